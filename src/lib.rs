@@ -1,0 +1,59 @@
+//! # fluid-surfels
+//!
+//! Turns the particles of a low-resolution fluid simulation (SPH, PBF, MPS, FLIP) into a
+//! rendered water surface. The pipeline, one module per stage:
+//!
+//! 1. [`surface`]: surface particle detection with hysteresis and normals
+//!    (Solenthaler et al. 2007, §3.1), on top of [`neighbours`] (fixed-radius neighbour search).
+//! 2. Upsampling, 3. density grid, 4. surfel splatting and 5. optics follow in later releases.
+//!
+//! Supporting modules: [`particles`] (the [`ParticleSet`] every stage reads), [`io`] (PLY and
+//! XYZ/CSV readers and writers), [`scenes`] (deterministic test scenes and a small simulator) and
+//! [`preview`] (PNG pictures of particle sets).
+//!
+//! ```
+//! use fluid_surfels::{scenes, neighbours::{Backend, Neighbourhoods}, surface::{SurfaceDetector, SurfaceParams}};
+//!
+//! let scene = scenes::block(&scenes::BlockParams { counts: [10, 10, 10], ..Default::default() })?;
+//! let nb = Neighbourhoods::build(&scene.particles.positions, scene.support_radius, Backend::CellGrid)?;
+//! let mut detector = SurfaceDetector::new(SurfaceParams::default())?;
+//! let surface = detector.detect(&scene.particles, &nb)?;
+//! // 10^3 block: the 8^3 core is interior, the 488 outer particles are surface
+//! assert_eq!(surface.counts().surface, 1000 - 512);
+//! # Ok::<(), fluid_surfels::Error>(())
+//! ```
+
+pub mod io;
+pub mod kernels;
+pub mod linalg;
+pub mod neighbours;
+pub mod particles;
+pub mod preview;
+pub mod scenes;
+pub mod surface;
+
+pub use particles::{Attribute, ParticleSet, ScalarKind};
+
+/// Every error the crate returns.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum Error {
+    /// Reading or writing a file.
+    #[error(transparent)]
+    Io(#[from] io::IoError),
+    /// Neighbour search.
+    #[error(transparent)]
+    Neighbour(#[from] neighbours::NeighbourError),
+    /// Surface detection.
+    #[error(transparent)]
+    Surface(#[from] surface::SurfaceError),
+    /// Scene construction.
+    #[error(transparent)]
+    Scene(#[from] scenes::SceneError),
+    /// An invalid particle set.
+    #[error(transparent)]
+    Particles(#[from] particles::ParticleSetError),
+    /// Drawing a picture.
+    #[error(transparent)]
+    Preview(#[from] preview::PreviewError),
+}

@@ -1,0 +1,595 @@
+//! Fixed-radius neighbour search: every particle's neighbours within a radius, in parallel.
+//!
+//! The result is a compact CSR structure ([`Neighbourhoods`]): one flat index array and one
+//! offset array, not a `Vec` per particle. Two backends build it:
+//!
+//! - [`Backend::CellGrid`] (default): a uniform grid of cells of edge `radius`; particles sorted by
+//!   cell so that the 27-cell stencil reads nine contiguous runs of positions (one per row of three
+//!   cells along x). Grids whose cell count would exceed a few per particle switch to a sparse
+//!   index (binary search in the sorted cell keys), so a far-flung splash particle cannot blow up
+//!   memory.
+//! - [`Backend::KdTree`]: kiddo's immutable k-d tree with unsorted radius queries.
+//!
+//! `fluid-surfels bench detect` times both; ARCHITECTURE.md records why the grid is the default.
+//! kiddo also serves k-nearest queries ([`estimate_spacing`]).
+
+use std::num::NonZeroUsize;
+
+use glam::Vec3;
+use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// Particles processed per parallel task: large enough to amortise task overhead, small enough
+/// to balance two to sixteen threads on a million particles.
+const CHUNK: usize = 4096;
+
+/// Longest grid axis, in cells, that the search accepts (keys must fit in 64 bits).
+const MAX_CELLS_PER_AXIS: u64 = 1 << 21;
+
+/// Errors of the neighbour search.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum NeighbourError {
+    /// The radius is zero, negative or not finite.
+    #[error("neighbour radius must be finite and > 0, got {radius}")]
+    InvalidRadius { radius: f32 },
+    /// A position is NaN or infinite.
+    #[error("particle {index} has a non-finite position {position:?}")]
+    NonFinitePosition { index: usize, position: [f32; 3] },
+    /// The particles span too many cells of the given radius along one axis.
+    #[error(
+        "the particles span {cells:?} cells of size {radius} (extent {extent:?}); at most {max} per axis are supported: use a larger radius or remove far-away particles"
+    )]
+    GridTooLarge {
+        cells: [u64; 3],
+        extent: [f32; 3],
+        radius: f32,
+        max: u64,
+    },
+    /// More particles than 32-bit indices can address.
+    #[error("{count} particles exceed the supported maximum of {max}")]
+    TooManyParticles { count: usize, max: usize },
+    /// A spacing estimate needs at least two distinct positions.
+    #[error("cannot estimate a particle spacing: {reason}")]
+    NoSpacing { reason: &'static str },
+    /// kiddo refused to build its tree.
+    #[error("k-d tree construction failed: {0}")]
+    KdTree(String),
+}
+
+/// Which search structure builds the neighbourhoods.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Backend {
+    /// Uniform cell grid (default; measured faster, see ARCHITECTURE.md).
+    #[default]
+    CellGrid,
+    /// kiddo's immutable k-d tree.
+    KdTree,
+}
+
+/// All neighbours within `radius` of every particle, stored compactly (CSR).
+///
+/// A particle is never its own neighbour; the relation is symmetric (up to the rounding of the
+/// inclusive bound `|p_i - p_j| <= radius`, which is computed identically both ways).
+/// Rows are stored in the order the search visited particles (cell order for the grid), which
+/// keeps the build cache-friendly; [`Neighbourhoods::of`] hides this.
+#[derive(Clone, Debug, Default)]
+pub struct Neighbourhoods {
+    radius: f32,
+    /// particle index -> row
+    row_of: Vec<u32>,
+    /// row -> start in `indices`; one more entry than rows
+    offsets: Vec<usize>,
+    indices: Vec<u32>,
+}
+
+impl Neighbourhoods {
+    /// Builds the neighbourhoods of `positions` within `radius`.
+    pub fn build(positions: &[Vec3], radius: f32, backend: Backend) -> Result<Self, NeighbourError> {
+        check_input(positions, radius)?;
+        match backend {
+            Backend::CellGrid => Ok(CellGrid::new(positions, radius)?.all_neighbours()),
+            Backend::KdTree => kd_tree_neighbours(positions, radius),
+        }
+    }
+
+    /// Builds from one list per particle (used by the reference implementation and tests).
+    #[must_use]
+    pub fn from_lists(radius: f32, lists: &[Vec<u32>]) -> Self {
+        let mut offsets = Vec::with_capacity(lists.len() + 1);
+        offsets.push(0);
+        let mut indices = Vec::with_capacity(lists.iter().map(Vec::len).sum());
+        for l in lists {
+            indices.extend_from_slice(l);
+            offsets.push(indices.len());
+        }
+        Self {
+            radius,
+            row_of: (0..lists.len() as u32).collect(),
+            offsets,
+            indices,
+        }
+    }
+
+    /// The search radius.
+    #[must_use]
+    pub fn radius(&self) -> f32 {
+        self.radius
+    }
+
+    /// Number of particles.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.row_of.len()
+    }
+
+    /// True when built over no particle.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.row_of.is_empty()
+    }
+
+    /// Neighbours of particle `i` (indices into the particle set), in no particular order.
+    #[must_use]
+    #[inline]
+    pub fn of(&self, i: usize) -> &[u32] {
+        let row = self.row_of[i] as usize;
+        &self.indices[self.offsets[row]..self.offsets[row + 1]]
+    }
+
+    /// Total number of (ordered) neighbour pairs.
+    #[must_use]
+    pub fn total(&self) -> usize {
+        self.indices.len()
+    }
+
+    /// Mean number of neighbours per particle.
+    #[must_use]
+    pub fn mean_count(&self) -> f32 {
+        if self.is_empty() {
+            0.0
+        } else {
+            self.total() as f32 / self.len() as f32
+        }
+    }
+
+    /// Memory held, in bytes.
+    #[must_use]
+    pub fn heap_bytes(&self) -> usize {
+        self.row_of.capacity() * 4 + self.offsets.capacity() * 8 + self.indices.capacity() * 4
+    }
+}
+
+fn check_input(positions: &[Vec3], radius: f32) -> Result<(), NeighbourError> {
+    if !(radius.is_finite() && radius > 0.0) {
+        return Err(NeighbourError::InvalidRadius { radius });
+    }
+    if positions.len() > u32::MAX as usize {
+        return Err(NeighbourError::TooManyParticles {
+            count: positions.len(),
+            max: u32::MAX as usize,
+        });
+    }
+    if let Some(index) = positions.par_iter().position_first(|p| !p.is_finite()) {
+        return Err(NeighbourError::NonFinitePosition {
+            index,
+            position: positions[index].to_array(),
+        });
+    }
+    Ok(())
+}
+
+/// Where the particles of a run of cells start in the cell-sorted order.
+#[derive(Debug)]
+enum CellIndex {
+    /// `start[key]` for every cell key, plus one final entry.
+    Dense(Vec<u32>),
+    /// Sorted cell key of every particle; ranges found by binary search.
+    Sparse(Vec<u64>),
+}
+
+/// A uniform grid of cubic cells with particles sorted by cell.
+#[derive(Debug)]
+pub struct CellGrid {
+    origin: Vec3,
+    cell: f32,
+    dims: [u64; 3],
+    /// positions in cell order
+    sorted: Vec<Vec3>,
+    /// cell-order slot -> particle index
+    order: Vec<u32>,
+    index: CellIndex,
+}
+
+impl CellGrid {
+    /// Sorts `positions` into cells of edge `cell`. Positions must be finite and `cell > 0`.
+    pub fn new(positions: &[Vec3], cell: f32) -> Result<Self, NeighbourError> {
+        check_input(positions, cell)?;
+        let (lo, hi) = positions
+            .iter()
+            .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &p| {
+                (lo.min(p), hi.max(p))
+            });
+        let (lo, hi) = if positions.is_empty() {
+            (Vec3::ZERO, Vec3::ZERO)
+        } else {
+            (lo, hi)
+        };
+        let extent = hi - lo;
+        let cells_f = (extent / cell).floor() + Vec3::ONE;
+        let dims_f = [cells_f.x as f64, cells_f.y as f64, cells_f.z as f64];
+        if dims_f.iter().any(|&d| d > MAX_CELLS_PER_AXIS as f64) {
+            return Err(NeighbourError::GridTooLarge {
+                cells: dims_f.map(|d| d.min(u64::MAX as f64) as u64),
+                extent: extent.to_array(),
+                radius: cell,
+                max: MAX_CELLS_PER_AXIS,
+            });
+        }
+        let dims = dims_f.map(|d| d as u64);
+        let inv = 1.0 / cell;
+        let key_of = |p: Vec3| {
+            let c = ((p - lo) * inv).floor();
+            let cx = (c.x as u64).min(dims[0] - 1);
+            let cy = (c.y as u64).min(dims[1] - 1);
+            let cz = (c.z as u64).min(dims[2] - 1);
+            cx + dims[0] * (cy + dims[1] * cz)
+        };
+        let mut keyed: Vec<(u64, u32)> = positions
+            .par_iter()
+            .enumerate()
+            .map(|(i, &p)| (key_of(p), i as u32))
+            .collect();
+        // Sorting (key, index) pairs keeps the order deterministic whatever the thread count.
+        keyed.par_sort_unstable();
+        let sorted = keyed.par_iter().map(|&(_, i)| positions[i as usize]).collect();
+        let order = keyed.par_iter().map(|&(_, i)| i).collect();
+        let total_cells = dims[0] * dims[1] * dims[2];
+        // A dense start table costs 4 bytes a cell: allow a few cells per particle.
+        let dense_limit = (4 * positions.len() as u64).max(1 << 16);
+        let index = if total_cells <= dense_limit {
+            let mut start = vec![0u32; total_cells as usize + 1];
+            for &(k, _) in &keyed {
+                start[k as usize + 1] += 1;
+            }
+            for c in 0..total_cells as usize {
+                start[c + 1] += start[c];
+            }
+            CellIndex::Dense(start)
+        } else {
+            CellIndex::Sparse(keyed.iter().map(|&(k, _)| k).collect())
+        };
+        Ok(Self {
+            origin: lo,
+            cell,
+            dims,
+            sorted,
+            order,
+            index,
+        })
+    }
+
+    fn cell_of(&self, p: Vec3) -> [u64; 3] {
+        let c = ((p - self.origin) / self.cell).floor().max(Vec3::ZERO);
+        [
+            (c.x as u64).min(self.dims[0] - 1),
+            (c.y as u64).min(self.dims[1] - 1),
+            (c.z as u64).min(self.dims[2] - 1),
+        ]
+    }
+
+    /// Range of cell-order slots covering cells with keys `first..=last`.
+    #[inline]
+    fn slots(&self, first: u64, last: u64) -> std::ops::Range<usize> {
+        match &self.index {
+            CellIndex::Dense(start) => start[first as usize] as usize..start[last as usize + 1] as usize,
+            CellIndex::Sparse(keys) => {
+                keys.partition_point(|&k| k < first)..keys.partition_point(|&k| k <= last)
+            }
+        }
+    }
+
+    /// Calls `visit(j)` for every particle `j` within `radius` (<= the cell size) of `p`,
+    /// including any particle at `p` itself.
+    #[inline]
+    pub fn for_each_within(&self, p: Vec3, radius: f32, mut visit: impl FnMut(u32)) {
+        debug_assert!(radius <= self.cell * 1.0001);
+        if self.sorted.is_empty() {
+            return;
+        }
+        let r2 = radius * radius;
+        let [cx, cy, cz] = self.cell_of(p);
+        let [nx, ny, nz] = self.dims;
+        let x0 = cx.saturating_sub(1);
+        let x1 = (cx + 1).min(nx - 1);
+        for z in cz.saturating_sub(1)..=(cz + 1).min(nz - 1) {
+            for y in cy.saturating_sub(1)..=(cy + 1).min(ny - 1) {
+                let row = nx * (y + ny * z);
+                for s in self.slots(row + x0, row + x1) {
+                    if self.sorted[s].distance_squared(p) <= r2 {
+                        visit(self.order[s]);
+                    }
+                }
+            }
+        }
+    }
+
+    /// The neighbourhoods of every particle within the cell size, in parallel.
+    #[must_use]
+    pub fn all_neighbours(&self) -> Neighbourhoods {
+        let n = self.sorted.len();
+        let chunks: Vec<(Vec<usize>, Vec<u32>)> = (0..n.div_ceil(CHUNK))
+            .into_par_iter()
+            .map(|c| {
+                let slots = c * CHUNK..((c + 1) * CHUNK).min(n);
+                let mut counts = Vec::with_capacity(slots.len());
+                let mut found = Vec::with_capacity(slots.len() * 40);
+                for s in slots {
+                    let me = self.order[s];
+                    let before = found.len();
+                    self.for_each_within(self.sorted[s], self.cell, |j| {
+                        if j != me {
+                            found.push(j);
+                        }
+                    });
+                    counts.push(found.len() - before);
+                }
+                (counts, found)
+            })
+            .collect();
+        let mut row_of = vec![0u32; n];
+        for (s, &i) in self.order.iter().enumerate() {
+            row_of[i as usize] = s as u32;
+        }
+        assemble(self.cell, row_of, chunks)
+    }
+}
+
+/// Joins per-chunk (counts, indices) into one CSR structure, copying chunks in parallel.
+fn assemble(radius: f32, row_of: Vec<u32>, chunks: Vec<(Vec<usize>, Vec<u32>)>) -> Neighbourhoods {
+    let rows: usize = chunks.iter().map(|c| c.0.len()).sum();
+    let total: usize = chunks.iter().map(|c| c.1.len()).sum();
+    let mut offsets = Vec::with_capacity(rows + 1);
+    offsets.push(0usize);
+    for (counts, _) in &chunks {
+        for &k in counts {
+            offsets.push(offsets[offsets.len() - 1] + k);
+        }
+    }
+    let mut indices = vec![0u32; total];
+    let mut parts = Vec::with_capacity(chunks.len());
+    let mut rest = indices.as_mut_slice();
+    for (_, found) in &chunks {
+        let (head, tail) = rest.split_at_mut(found.len());
+        parts.push(head);
+        rest = tail;
+    }
+    parts
+        .into_par_iter()
+        .zip(chunks.par_iter())
+        .for_each(|(dst, (_, src))| dst.copy_from_slice(src));
+    Neighbourhoods {
+        radius,
+        row_of,
+        offsets,
+        indices,
+    }
+}
+
+fn kd_tree_neighbours(positions: &[Vec3], radius: f32) -> Result<Neighbourhoods, NeighbourError> {
+    let n = positions.len();
+    if n == 0 {
+        return Ok(Neighbourhoods {
+            radius,
+            offsets: vec![0],
+            ..Neighbourhoods::default()
+        });
+    }
+    let points: Vec<[f32; 3]> = positions.iter().map(|p| p.to_array()).collect();
+    let tree: ImmutableKdTree<f32, 3> =
+        ImmutableKdTree::new_from_slice(&points).map_err(|e| NeighbourError::KdTree(format!("{e:?}")))?;
+    let r2 = radius * radius;
+    let chunks: Vec<(Vec<usize>, Vec<u32>)> = (0..n.div_ceil(CHUNK))
+        .into_par_iter()
+        .map(|c| {
+            let rows = c * CHUNK..((c + 1) * CHUNK).min(n);
+            let mut counts = Vec::with_capacity(rows.len());
+            let mut found = Vec::with_capacity(rows.len() * 40);
+            for i in rows {
+                let before = found.len();
+                tree.query(&points[i])
+                    .within::<SquaredEuclidean<f32>>(r2)
+                    .unsorted()
+                    .visit(|nb| {
+                        if nb.item as usize != i {
+                            found.push(nb.item);
+                        }
+                    });
+                counts.push(found.len() - before);
+            }
+            (counts, found)
+        })
+        .collect();
+    Ok(assemble(radius, (0..n as u32).collect(), chunks))
+}
+
+/// The straightforward single-threaded neighbour search that benchmarks compare against: a hash
+/// map from cell to particle list and one `Vec` of neighbours per particle.
+#[must_use]
+pub fn reference_neighbours(positions: &[Vec3], radius: f32) -> Vec<Vec<u32>> {
+    use std::collections::HashMap;
+    let cell_of = |p: Vec3| {
+        let c = (p / radius).floor();
+        (c.x as i64, c.y as i64, c.z as i64)
+    };
+    let mut cells: HashMap<(i64, i64, i64), Vec<u32>> = HashMap::new();
+    for (i, &p) in positions.iter().enumerate() {
+        cells.entry(cell_of(p)).or_default().push(i as u32);
+    }
+    let r2 = radius * radius;
+    positions
+        .iter()
+        .enumerate()
+        .map(|(i, &p)| {
+            let (cx, cy, cz) = cell_of(p);
+            let mut list = Vec::new();
+            for dz in -1..=1 {
+                for dy in -1..=1 {
+                    for dx in -1..=1 {
+                        if let Some(cell) = cells.get(&(cx + dx, cy + dy, cz + dz)) {
+                            for &j in cell {
+                                if j as usize != i && positions[j as usize].distance_squared(p) <= r2 {
+                                    list.push(j);
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+            list
+        })
+        .collect()
+}
+
+/// Estimates the particle spacing as the median distance to the nearest other particle, over a
+/// deterministic sample of at most 20,000 particles (kiddo k-nearest queries). Coincident
+/// particles are skipped.
+pub fn estimate_spacing(positions: &[Vec3]) -> Result<f32, NeighbourError> {
+    check_input(positions, 1.0)?;
+    if positions.len() < 2 {
+        return Err(NeighbourError::NoSpacing {
+            reason: "fewer than two particles",
+        });
+    }
+    let points: Vec<[f32; 3]> = positions.iter().map(|p| p.to_array()).collect();
+    let tree: ImmutableKdTree<f32, 3> =
+        ImmutableKdTree::new_from_slice(&points).map_err(|e| NeighbourError::KdTree(format!("{e:?}")))?;
+    let step = positions.len().div_ceil(20_000);
+    let k = NonZeroUsize::new(4).expect("4 is not zero");
+    let mut nearest: Vec<f32> = (0..positions.len())
+        .into_par_iter()
+        .step_by(step)
+        .filter_map(|i| {
+            tree.query(&points[i])
+                .nearest_n::<SquaredEuclidean<f32>>(k)
+                .execute()
+                .iter()
+                .map(|nb| nb.distance)
+                .find(|&d2| d2 > 0.0)
+                .map(f32::sqrt)
+        })
+        .collect();
+    if nearest.is_empty() {
+        return Err(NeighbourError::NoSpacing {
+            reason: "all particles coincide",
+        });
+    }
+    let mid = nearest.len() / 2;
+    let (_, median, _) = nearest.select_nth_unstable_by(mid, f32::total_cmp);
+    Ok(*median)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    fn seed() -> u64 {
+        std::env::var("FLUID_SURFELS_SEED")
+            .ok()
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(0x5eed)
+    }
+
+    fn brute_force(positions: &[Vec3], r: f32) -> Vec<Vec<u32>> {
+        (0..positions.len())
+            .map(|i| {
+                (0..positions.len() as u32)
+                    .filter(|&j| j as usize != i && positions[j as usize].distance_squared(positions[i]) <= r * r)
+                    .collect()
+            })
+            .collect()
+    }
+
+    fn sorted(mut v: Vec<u32>) -> Vec<u32> {
+        v.sort_unstable();
+        v
+    }
+
+    #[test]
+    fn backends_match_brute_force_on_random_clouds() {
+        let seed = seed();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        for case in 0..20 {
+            let n = rng.random_range(0..600);
+            let scale = [0.01f32, 1.0, 1000.0][case % 3];
+            let mut positions: Vec<Vec3> = (0..n)
+                .map(|_| Vec3::new(rng.random(), rng.random(), rng.random()) * scale)
+                .collect();
+            if n > 10 {
+                // coincident points and a far outlier (forces the sparse index)
+                positions[3] = positions[2];
+                positions[5] = Vec3::splat(scale * 1e3);
+            }
+            let r = scale * rng.random_range(0.02..0.3);
+            let truth = brute_force(&positions, r);
+            for backend in [Backend::CellGrid, Backend::KdTree] {
+                let nb = Neighbourhoods::build(&positions, r, backend).unwrap();
+                assert_eq!(nb.len(), n);
+                for i in 0..n {
+                    assert_eq!(
+                        sorted(nb.of(i).to_vec()),
+                        truth[i],
+                        "seed {seed} (FLUID_SURFELS_SEED), case {case}, backend {backend:?}, particle {i}"
+                    );
+                }
+            }
+            let reference = reference_neighbours(&positions, r);
+            for i in 0..n {
+                assert_eq!(sorted(reference[i].clone()), truth[i], "seed {seed}, case {case}");
+            }
+        }
+    }
+
+    #[test]
+    fn degenerate_inputs() {
+        assert_eq!(
+            Neighbourhoods::build(&[Vec3::ZERO], 0.0, Backend::CellGrid).unwrap_err(),
+            NeighbourError::InvalidRadius { radius: 0.0 }
+        );
+        assert!(matches!(
+            Neighbourhoods::build(&[Vec3::ZERO], f32::NAN, Backend::KdTree),
+            Err(NeighbourError::InvalidRadius { .. })
+        ));
+        assert!(matches!(
+            Neighbourhoods::build(&[Vec3::ZERO, Vec3::new(f32::NAN, 0.0, 0.0)], 1.0, Backend::CellGrid),
+            Err(NeighbourError::NonFinitePosition { index: 1, .. })
+        ));
+        for backend in [Backend::CellGrid, Backend::KdTree] {
+            let empty = Neighbourhoods::build(&[], 1.0, backend).unwrap();
+            assert!(empty.is_empty());
+            let one = Neighbourhoods::build(&[Vec3::ONE], 1.0, backend).unwrap();
+            assert!(one.of(0).is_empty());
+            let same = Neighbourhoods::build(&[Vec3::ONE; 4], 1.0, backend).unwrap();
+            assert_eq!(same.of(0).len(), 3);
+        }
+        let far = [Vec3::ZERO, Vec3::splat(1e30)];
+        assert!(matches!(
+            Neighbourhoods::build(&far, 1e-6, Backend::CellGrid),
+            Err(NeighbourError::GridTooLarge { .. })
+        ));
+    }
+
+    #[test]
+    fn spacing_of_a_lattice() {
+        let positions: Vec<Vec3> = (0..1000)
+            .map(|i| Vec3::new((i % 10) as f32, ((i / 10) % 10) as f32, (i / 100) as f32) * 0.05)
+            .collect();
+        let s = estimate_spacing(&positions).unwrap();
+        assert!((s - 0.05).abs() < 1e-5, "{s}");
+        assert!(estimate_spacing(&[Vec3::ONE; 3]).is_err());
+        assert!(estimate_spacing(&[Vec3::ONE]).is_err());
+    }
+}

@@ -1,0 +1,399 @@
+//! Built-in scenes, deterministic for a given seed, used by tests, benches and the main job.
+//!
+//! - [`block`] and [`sphere`]: jittered lattices with an analytic surface ([`AnalyticShape`]), so
+//!   the true surface particles are known.
+//! - [`column`]: a small position-based-fluids simulation of a collapsing water column in a tank
+//!   (the paper's Figure 8), giving irregular, dynamic frames with splashes and lone drops.
+
+pub mod column;
+
+use glam::Vec3;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+pub use column::{ColumnParams, ColumnSim};
+
+use crate::particles::ParticleSet;
+
+/// Errors of scene construction.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SceneError {
+    /// A scene parameter is out of range.
+    #[error("invalid scene parameter `{name}`: {reason}")]
+    InvalidParameter { name: &'static str, reason: String },
+    /// No built-in scene has this name.
+    #[error("unknown scene `{0}`; the built-in scenes are block, sphere and column")]
+    UnknownScene(String),
+    /// A frame was asked of a scene that has only one.
+    #[error("scene `{scene}` is static; only `column` has frames (got --frame {frame})")]
+    NoFrames { scene: &'static str, frame: usize },
+}
+
+/// A solid whose boundary is known exactly.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum AnalyticShape {
+    /// Axis-aligned box.
+    Box { min: Vec3, max: Vec3 },
+    /// Ball.
+    Sphere { centre: Vec3, radius: f32 },
+}
+
+impl AnalyticShape {
+    /// Distance from `p` to the boundary, positive inside.
+    #[must_use]
+    pub fn depth(&self, p: Vec3) -> f32 {
+        match *self {
+            Self::Box { min, max } => (p - min).min(max - p).min_element(),
+            Self::Sphere { centre, radius } => radius - p.distance(centre),
+        }
+    }
+
+    /// Outward unit normal of the boundary point nearest to `p`.
+    #[must_use]
+    pub fn normal(&self, p: Vec3) -> Vec3 {
+        match *self {
+            Self::Box { min, max } => {
+                let d = [p.x - min.x, max.x - p.x, p.y - min.y, max.y - p.y, p.z - min.z, max.z - p.z];
+                let k = (0..6).min_by(|&a, &b| d[a].total_cmp(&d[b])).unwrap_or(0);
+                [Vec3::NEG_X, Vec3::X, Vec3::NEG_Y, Vec3::Y, Vec3::NEG_Z, Vec3::Z][k]
+            }
+            Self::Sphere { centre, .. } => (p - centre).normalize_or_zero(),
+        }
+    }
+}
+
+/// One frame of a built-in scene.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    /// Scene name.
+    pub name: &'static str,
+    /// The particles (with ids and masses).
+    pub particles: ParticleSet,
+    /// Rest spacing between particles.
+    pub spacing: f32,
+    /// SPH support radius to use for neighbourhoods (twice the spacing).
+    pub support_radius: f32,
+    /// Exact boundary, for static scenes.
+    pub shape: Option<AnalyticShape>,
+}
+
+/// Parameters of the jittered block.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct BlockParams {
+    /// Particles along x, y and z.
+    pub counts: [u32; 3],
+    /// Lattice spacing.
+    pub spacing: f32,
+    /// Each coordinate is displaced uniformly within `±jitter * spacing`.
+    pub jitter: f32,
+    /// Seed of the jitter.
+    pub seed: u64,
+}
+
+impl Default for BlockParams {
+    /// 28^3 = 21,952 particles, spacing 0.05 (the data in `../shared/data`), 10 % jitter.
+    fn default() -> Self {
+        Self {
+            counts: [28, 28, 28],
+            spacing: 0.05,
+            jitter: 0.1,
+            seed: 1,
+        }
+    }
+}
+
+impl BlockParams {
+    /// A roughly cubic block of about `n` particles (at least one).
+    #[must_use]
+    pub fn with_particles(n: usize) -> Self {
+        let side = (n.max(1) as f64).cbrt().round().max(1.0) as u32;
+        let xy = side * side;
+        let z = (n as u32).div_ceil(xy).max(1);
+        Self {
+            counts: [side, side, z],
+            ..Self::default()
+        }
+    }
+}
+
+/// Parameters of the jittered sphere.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct SphereParams {
+    /// Sphere radius in units of the spacing.
+    pub radius_in_spacings: f32,
+    /// Lattice spacing.
+    pub spacing: f32,
+    /// Each coordinate is displaced uniformly within `±jitter * spacing`.
+    pub jitter: f32,
+    /// Seed of the jitter.
+    pub seed: u64,
+}
+
+impl Default for SphereParams {
+    /// Radius 18 spacings: about 24,000 particles.
+    fn default() -> Self {
+        Self {
+            radius_in_spacings: 18.0,
+            spacing: 0.05,
+            jitter: 0.1,
+            seed: 2,
+        }
+    }
+}
+
+fn check_lattice(spacing: f32, jitter: f32) -> Result<(), SceneError> {
+    if !(spacing.is_finite() && spacing > 0.0) {
+        return Err(SceneError::InvalidParameter {
+            name: "spacing",
+            reason: format!("must be finite and > 0, got {spacing}"),
+        });
+    }
+    if !(0.0..0.5).contains(&jitter) {
+        return Err(SceneError::InvalidParameter {
+            name: "jitter",
+            reason: format!("must lie in [0, 0.5), got {jitter}"),
+        });
+    }
+    Ok(())
+}
+
+fn jitter(rng: &mut ChaCha8Rng, amount: f32) -> Vec3 {
+    if amount == 0.0 {
+        return Vec3::ZERO;
+    }
+    Vec3::new(
+        rng.random_range(-amount..=amount),
+        rng.random_range(-amount..=amount),
+        rng.random_range(-amount..=amount),
+    )
+}
+
+fn finish(name: &'static str, positions: Vec<Vec3>, spacing: f32, shape: AnalyticShape) -> Scene {
+    let n = positions.len();
+    let mut particles = ParticleSet::from_positions(positions);
+    particles.ids = Some((0..n as u32).collect());
+    Scene {
+        name,
+        particles,
+        spacing,
+        support_radius: 2.0 * spacing,
+        shape: Some(shape),
+    }
+}
+
+/// A block of `counts` particles on a lattice of the given spacing, jittered. The analytic box
+/// lies half a spacing outside the outermost lattice planes, so each particle owns one cube.
+pub fn block(params: &BlockParams) -> Result<Scene, SceneError> {
+    check_lattice(params.spacing, params.jitter)?;
+    let [nx, ny, nz] = params.counts;
+    let total = nx as u64 * ny as u64 * nz as u64;
+    if total == 0 || total > 200_000_000 {
+        return Err(SceneError::InvalidParameter {
+            name: "counts",
+            reason: format!("{nx} x {ny} x {nz} particles: need between 1 and 200 million"),
+        });
+    }
+    let s = params.spacing;
+    let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
+    let mut positions = Vec::with_capacity(total as usize);
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                let lattice = (Vec3::new(i as f32, j as f32, k as f32) + 0.5) * s;
+                positions.push(lattice + jitter(&mut rng, params.jitter * s));
+            }
+        }
+    }
+    let max = Vec3::new(nx as f32, ny as f32, nz as f32) * s;
+    Ok(finish("block", positions, s, AnalyticShape::Box { min: Vec3::ZERO, max }))
+}
+
+/// A ball of radius `radius_in_spacings * spacing` centred at the origin, filled with
+/// concentric shells of particles at radii `(k + 1/2) * spacing` (the outermost half a spacing
+/// inside the analytic sphere, as in [`block`]), each shell a Fibonacci spiral of
+/// `round(4 pi r^2 / spacing^2)` points turned by a random rotation, then jittered.
+///
+/// Why shells and not the cubic lattice cut by the sphere: a lattice's outermost particles form a
+/// staircase whose depth below the sphere spans half to one and a half spacings, so "within one
+/// spacing of the boundary" would call half of the outermost particles interior. Measured with
+/// the default detector, that lattice sphere gives 100 % recall but at most 55-75 % precision
+/// whatever the threshold (ARCHITECTURE.md); the shells give the sphere clean layers like the
+/// block's, which is what the analytic truth assumes.
+pub fn sphere(params: &SphereParams) -> Result<Scene, SceneError> {
+    check_lattice(params.spacing, params.jitter)?;
+    let rs = params.radius_in_spacings;
+    if !(rs.is_finite() && (1.0..=500.0).contains(&rs)) {
+        return Err(SceneError::InvalidParameter {
+            name: "radius_in_spacings",
+            reason: format!("must lie in [1, 500], got {rs}"),
+        });
+    }
+    let s = params.spacing;
+    let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
+    let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+    let mut positions = Vec::new();
+    let shells = (rs - 0.5).floor() as i32;
+    for k in (0..=shells).rev() {
+        let r = rs - 0.5 - k as f32;
+        if r <= 0.0 {
+            continue;
+        }
+        let count = ((4.0 * std::f32::consts::PI * r * r).round() as usize).max(1);
+        let rotation = glam::Quat::from_euler(
+            glam::EulerRot::XYZ,
+            rng.random_range(0.0..std::f32::consts::TAU),
+            rng.random_range(0.0..std::f32::consts::TAU),
+            rng.random_range(0.0..std::f32::consts::TAU),
+        );
+        for i in 0..count {
+            let y = 1.0 - 2.0 * (i as f32 + 0.5) / count as f32;
+            let ring = (1.0 - y * y).max(0.0).sqrt();
+            let phi = golden * i as f32;
+            let unit = rotation * Vec3::new(ring * phi.cos(), y, ring * phi.sin());
+            positions.push(unit * r * s + jitter(&mut rng, params.jitter * s));
+        }
+    }
+    Ok(finish(
+        "sphere",
+        positions,
+        s,
+        AnalyticShape::Sphere {
+            centre: Vec3::ZERO,
+            radius: rs * s,
+        },
+    ))
+}
+
+/// The cubic lattice points at least half a spacing inside the sphere, jittered: the
+/// staircase-surfaced sphere that [`sphere`] explains it does not use; kept for comparison.
+pub fn lattice_sphere(params: &SphereParams) -> Result<Scene, SceneError> {
+    check_lattice(params.spacing, params.jitter)?;
+    let rs = params.radius_in_spacings;
+    if !(rs.is_finite() && (1.0..=500.0).contains(&rs)) {
+        return Err(SceneError::InvalidParameter {
+            name: "radius_in_spacings",
+            reason: format!("must lie in [1, 500], got {rs}"),
+        });
+    }
+    let s = params.spacing;
+    let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
+    let m = rs.ceil() as i32;
+    let mut positions = Vec::new();
+    for k in -m..=m {
+        for j in -m..=m {
+            for i in -m..=m {
+                let lattice = Vec3::new(i as f32, j as f32, k as f32);
+                if lattice.length() <= rs - 0.5 {
+                    positions.push(lattice * s + jitter(&mut rng, params.jitter * s));
+                }
+            }
+        }
+    }
+    Ok(finish(
+        "lattice-sphere",
+        positions,
+        s,
+        AnalyticShape::Sphere {
+            centre: Vec3::ZERO,
+            radius: rs * s,
+        },
+    ))
+}
+
+/// Names of the built-in scenes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum SceneName {
+    /// Jittered block of 21,952 particles.
+    Block,
+    /// Jittered sphere of about 24,000 particles.
+    Sphere,
+    /// Collapsing water column, about 3,000 particles, 30 frames a second.
+    Column,
+}
+
+impl SceneName {
+    /// The scene's name as the CLI spells it.
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Block => "block",
+            Self::Sphere => "sphere",
+            Self::Column => "column",
+        }
+    }
+}
+
+/// Frame `frame` of a built-in scene with its default parameters; static scenes accept only
+/// frame 0 (or none).
+pub fn build(name: SceneName, frame: Option<usize>) -> Result<Scene, SceneError> {
+    match name {
+        SceneName::Block | SceneName::Sphere => {
+            if let Some(f) = frame.filter(|&f| f != 0) {
+                return Err(SceneError::NoFrames {
+                    scene: name.as_str(),
+                    frame: f,
+                });
+            }
+            if name == SceneName::Block {
+                block(&BlockParams::default())
+            } else {
+                sphere(&SphereParams::default())
+            }
+        }
+        SceneName::Column => {
+            let mut sim = ColumnSim::new(ColumnParams::default())?;
+            sim.advance_to(frame.unwrap_or(ColumnParams::SPLASH_FRAME));
+            Ok(sim.scene())
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scenes_are_deterministic_and_sized() {
+        let a = block(&BlockParams::default()).unwrap();
+        let b = block(&BlockParams::default()).unwrap();
+        assert_eq!(a.particles, b.particles);
+        assert_eq!(a.particles.len(), 21_952);
+        let s = sphere(&SphereParams::default()).unwrap();
+        assert!(s.particles.len() >= 20_000, "{}", s.particles.len());
+        let shape = s.shape.unwrap();
+        assert!(s.particles.positions.iter().all(|&p| shape.depth(p) > 0.0));
+        assert!(a.particles.validate().is_ok() && s.particles.validate().is_ok());
+    }
+
+    #[test]
+    fn bad_parameters_are_refused() {
+        let bad = BlockParams {
+            spacing: f32::NAN,
+            ..BlockParams::default()
+        };
+        assert!(block(&bad).is_err());
+        let bad = BlockParams {
+            counts: [0, 1, 1],
+            ..BlockParams::default()
+        };
+        assert!(block(&bad).is_err());
+        let bad = SphereParams {
+            radius_in_spacings: 1e9,
+            ..SphereParams::default()
+        };
+        assert!(sphere(&bad).is_err());
+        assert!(matches!(build(SceneName::Block, Some(3)), Err(SceneError::NoFrames { .. })));
+    }
+
+    #[test]
+    fn block_with_particles_rounds_sensibly() {
+        let p = BlockParams::with_particles(1_000_000);
+        assert_eq!(p.counts, [100, 100, 100]);
+        let p = BlockParams::with_particles(1);
+        assert_eq!(p.counts, [1, 1, 1]);
+    }
+}
