@@ -9,7 +9,9 @@ use fluid_surfels::scenes::{ColumnParams, ColumnSim};
 use fluid_surfels::surface::{ParticleClass, SurfaceDetector, SurfaceParams};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let out = std::env::args().nth(1).unwrap_or_else(|| "column_frames.png".into());
+    let out = std::env::args()
+        .nth(1)
+        .unwrap_or_else(|| "column_frames.png".into());
     let params = ColumnParams::default();
     let mut sim = ColumnSim::new(params)?;
     let mut detector = SurfaceDetector::new(SurfaceParams::default())?;
@@ -18,7 +20,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for frame in 0..=150 {
         sim.advance_to(frame);
         let particles = sim.particles();
-        let nb = Neighbourhoods::build(&particles.positions, sim.support_radius(), Backend::CellGrid)?;
+        let nb = Neighbourhoods::build(
+            &particles.positions,
+            sim.support_radius(),
+            Backend::CellGrid,
+        )?;
         let surface = detector.detect(particles, &nb)?;
         if [0, 5, 10, 14, 20, 30, 60, 150].contains(&frame) {
             let counts = surface.counts();
@@ -32,10 +38,20 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     ParticleClass::Isolated => palette::ISOLATED,
                 })
                 .collect();
-            pictures.push(preview::render_points(&particles.positions, &colours, params.spacing * 0.5, &camera, 320, 320)?);
+            pictures.push(preview::render_points(
+                &particles.positions,
+                &colours,
+                params.spacing * 0.5,
+                &camera,
+                320,
+                320,
+            )?);
         }
     }
-    preview::save_png(&preview::side_by_side(&pictures), std::path::Path::new(&out))?;
+    preview::save_png(
+        &preview::side_by_side(&pictures),
+        std::path::Path::new(&out),
+    )?;
     println!("wrote {out}");
     Ok(())
 }

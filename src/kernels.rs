@@ -1,5 +1,5 @@
 //! SPH smoothing kernels of Müller et al. 2003 ("Particle-based fluid simulation for interactive
-//! applications", [MCG03] in Solenthaler et al. 2007), shared by surface detection and the
+//! applications", \[MCG03\] in Solenthaler et al. 2007), shared by surface detection and the
 //! built-in simulator. `h` is the support radius: every kernel is zero for `r >= h`.
 
 use std::f32::consts::PI;
@@ -56,7 +56,8 @@ mod tests {
         for i in 0..n {
             for j in 0..n {
                 for k in 0..n {
-                    let p = Vec3::new(i as f32 + 0.5, j as f32 + 0.5, k as f32 + 0.5) * step - Vec3::splat(h);
+                    let p = Vec3::new(i as f32 + 0.5, j as f32 + 0.5, k as f32 + 0.5) * step
+                        - Vec3::splat(h);
                     sum += f(p) as f64;
                 }
             }
@@ -75,18 +76,32 @@ mod tests {
     #[test]
     fn gradients_match_finite_differences() {
         let h = 0.7;
-        for p in [Vec3::new(0.1, 0.2, -0.3), Vec3::new(0.5, 0.1, 0.1), Vec3::new(-0.2, 0.0, 0.05)] {
+        for p in [
+            Vec3::new(0.1, 0.2, -0.3),
+            Vec3::new(0.5, 0.1, 0.1),
+            Vec3::new(-0.2, 0.0, 0.05),
+        ] {
             let e = 1e-3;
             let fd = Vec3::new(
-                poly6((p + Vec3::X * e).length_squared(), h) - poly6((p - Vec3::X * e).length_squared(), h),
-                poly6((p + Vec3::Y * e).length_squared(), h) - poly6((p - Vec3::Y * e).length_squared(), h),
-                poly6((p + Vec3::Z * e).length_squared(), h) - poly6((p - Vec3::Z * e).length_squared(), h),
+                poly6((p + Vec3::X * e).length_squared(), h)
+                    - poly6((p - Vec3::X * e).length_squared(), h),
+                poly6((p + Vec3::Y * e).length_squared(), h)
+                    - poly6((p - Vec3::Y * e).length_squared(), h),
+                poly6((p + Vec3::Z * e).length_squared(), h)
+                    - poly6((p - Vec3::Z * e).length_squared(), h),
             ) / (2.0 * e);
             let g = poly6_gradient(p, h);
-            assert!((fd - g).length() < 1e-2 * g.length().max(1.0), "{fd} vs {g}");
+            assert!(
+                (fd - g).length() < 1e-2 * g.length().max(1.0),
+                "{fd} vs {g}"
+            );
             let spiky = |q: Vec3| {
                 let l = q.length();
-                if l >= h { 0.0 } else { 15.0 / (PI * h.powi(6)) * (h - l).powi(3) }
+                if l >= h {
+                    0.0
+                } else {
+                    15.0 / (PI * h.powi(6)) * (h - l).powi(3)
+                }
             };
             let fd = Vec3::new(
                 spiky(p + Vec3::X * e) - spiky(p - Vec3::X * e),
@@ -94,7 +109,10 @@ mod tests {
                 spiky(p + Vec3::Z * e) - spiky(p - Vec3::Z * e),
             ) / (2.0 * e);
             let g = spiky_gradient(p, h);
-            assert!((fd - g).length() < 1e-2 * g.length().max(1.0), "{fd} vs {g}");
+            assert!(
+                (fd - g).length() < 1e-2 * g.length().max(1.0),
+                "{fd} vs {g}"
+            );
         }
         assert_eq!(spiky_gradient(Vec3::ZERO, h), Vec3::ZERO);
         assert_eq!(poly6_gradient(Vec3::X * h, h), Vec3::ZERO);

@@ -8,6 +8,7 @@ use glam::{Mat3, Vec3};
 /// Only the symmetric part of `m` is used. Jacobi is slower than a closed form but accurate for
 /// nearly repeated eigenvalues, which flat neighbourhoods produce.
 #[must_use]
+#[allow(clippy::needless_range_loop)] // index loops read like the rotation formulas
 pub fn symmetric_eigen(m: Mat3) -> ([f32; 3], [Vec3; 3]) {
     let mut a = [[0.0f64; 3]; 3];
     for (r, row) in a.iter_mut().enumerate() {
@@ -54,7 +55,8 @@ pub fn symmetric_eigen(m: Mat3) -> ([f32; 3], [Vec3; 3]) {
     let mut idx = [0usize, 1, 2];
     idx.sort_by(|&i, &j| a[i][i].total_cmp(&a[j][j]));
     let values = idx.map(|i| a[i][i] as f32);
-    let vectors = idx.map(|i| Vec3::new(v[0][i] as f32, v[1][i] as f32, v[2][i] as f32).normalize_or_zero());
+    let vectors =
+        idx.map(|i| Vec3::new(v[0][i] as f32, v[1][i] as f32, v[2][i] as f32).normalize_or_zero());
     (values, vectors)
 }
 
@@ -65,11 +67,21 @@ mod tests {
 
     #[test]
     fn recovers_a_rotated_diagonal() {
-        for (k, diag) in [[1.0, 2.0, 3.0], [0.0, 0.0, 5.0], [2.0, 2.0, 2.0], [1e-6, 1.0, 1.0]]
-            .into_iter()
-            .enumerate()
+        for (k, diag) in [
+            [1.0, 2.0, 3.0],
+            [0.0, 0.0, 5.0],
+            [2.0, 2.0, 2.0],
+            [1e-6, 1.0, 1.0],
+        ]
+        .into_iter()
+        .enumerate()
         {
-            let r = Mat3::from_quat(Quat::from_euler(glam::EulerRot::XYZ, 0.3 * k as f32, 1.1, -0.7));
+            let r = Mat3::from_quat(Quat::from_euler(
+                glam::EulerRot::XYZ,
+                0.3 * k as f32,
+                1.1,
+                -0.7,
+            ));
             let m = r * Mat3::from_diagonal(Vec3::from(diag)) * r.transpose();
             let (vals, vecs) = symmetric_eigen(m);
             let mut sorted = diag;
@@ -77,7 +89,10 @@ mod tests {
             for i in 0..3 {
                 assert!((vals[i] - sorted[i]).abs() < 1e-5, "{vals:?} vs {sorted:?}");
                 let mv = m * vecs[i];
-                assert!((mv - vecs[i] * vals[i]).length() < 1e-4, "case {k} vector {i}");
+                assert!(
+                    (mv - vecs[i] * vals[i]).length() < 1e-4,
+                    "case {k} vector {i}"
+                );
                 assert!((vecs[i].length() - 1.0).abs() < 1e-5);
             }
         }

@@ -11,7 +11,9 @@ use fluid_surfels::io::{self, Format};
 use fluid_surfels::neighbours::{self, Backend, Neighbourhoods};
 use fluid_surfels::preview::{self, PreviewCamera, palette};
 use fluid_surfels::scenes::{self, ColumnParams, ColumnSim, SceneName};
-use fluid_surfels::surface::{self, NormalMethod, ParticleClass, Surface, SurfaceDetector, SurfaceParams};
+use fluid_surfels::surface::{
+    self, NormalMethod, ParticleClass, Surface, SurfaceDetector, SurfaceParams,
+};
 use fluid_surfels::{Error, ParticleSet};
 use serde::Serialize;
 
@@ -168,8 +170,10 @@ fn progress(len: u64, what: &str) -> indicatif::ProgressBar {
     }
     let bar = indicatif::ProgressBar::new(len);
     bar.set_style(
-        indicatif::ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} frames, {per_sec}, {eta} left")
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        indicatif::ProgressStyle::with_template(
+            "{msg} [{bar:30}] {pos}/{len} frames, {per_sec}, {eta} left",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
     bar.set_message(what.to_owned());
     bar
@@ -187,7 +191,11 @@ struct ColumnFrame {
 
 /// Runs the column simulation to `frame`, detecting the surface on every frame so that the
 /// hysteresis state is that of a real run.
-fn column_to_frame(frame: usize, params: SurfaceParams, radius: Option<f32>) -> Result<ColumnFrame, Error> {
+fn column_to_frame(
+    frame: usize,
+    params: SurfaceParams,
+    radius: Option<f32>,
+) -> Result<ColumnFrame, Error> {
     let mut sim = ColumnSim::new(ColumnParams::default())?;
     let radius = radius.unwrap_or(sim.support_radius());
     let mut detector = SurfaceDetector::new(params)?;
@@ -233,14 +241,27 @@ fn run(args: &RunArgs) -> Result<(), Error> {
     let ply = args.out_dir.join("surface.ply");
     io::write_particles(&ply, &surface_particles(particles, &surface), None)?;
     let camera = PreviewCamera::framing(glam::Vec3::ZERO, sim.params().tank);
-    let picture = preview::render_points(&particles.positions, &class_colours(&surface), sim.params().spacing * 0.5, &camera, 800, 800)?;
+    let picture = preview::render_points(
+        &particles.positions,
+        &class_colours(&surface),
+        sim.params().spacing * 0.5,
+        &camera,
+        800,
+        800,
+    )?;
     let png = args.out_dir.join("classes.png");
     preview::save_png(&picture, &png)?;
     let write_ms = ms(t);
 
-    println!("fluid-surfels: scene `column` (collapsing water column, position based fluids), frame {}", sim.frame());
+    println!(
+        "fluid-surfels: scene `column` (collapsing water column, position based fluids), frame {}",
+        sim.frame()
+    );
     println!("  particles          {}", particles.len());
-    println!("  support radius     {} (2 x spacing)", sim.support_radius());
+    println!(
+        "  support radius     {} (2 x spacing)",
+        sim.support_radius()
+    );
     println!(
         "  surface            {} ({:.1} %), interior {}, isolated {}; {} flips since the previous frame",
         counts.surface,
@@ -258,8 +279,14 @@ fn run(args: &RunArgs) -> Result<(), Error> {
         surface.timings.normals_ms,
         write_ms
     );
-    println!("  wrote              {} (surface particles with normals)", ply.display());
-    println!("  wrote              {} (orange surface, blue interior, green isolated)", png.display());
+    println!(
+        "  wrote              {} (surface particles with normals)",
+        ply.display()
+    );
+    println!(
+        "  wrote              {} (orange surface, blue interior, green isolated)",
+        png.display()
+    );
     println!("  total              {:.0} ms", ms(total));
     Ok(())
 }
@@ -296,10 +323,17 @@ fn check_output(out: &Path, input: Option<&Path>, force: bool) -> Result<(), Err
         i == out || matches!((std::fs::canonicalize(i), std::fs::canonicalize(out)), (Ok(a), Ok(b)) if a == b)
     });
     if same || (out.exists() && !force) {
-        let why = if same { "it is the input file" } else { "it exists; pass --force to replace it" };
+        let why = if same {
+            "it is the input file"
+        } else {
+            "it exists; pass --force to replace it"
+        };
         return Err(io::IoError::Os {
             path: out.to_owned(),
-            source: std::io::Error::new(std::io::ErrorKind::AlreadyExists, format!("refusing to overwrite: {why}")),
+            source: std::io::Error::new(
+                std::io::ErrorKind::AlreadyExists,
+                format!("refusing to overwrite: {why}"),
+            ),
         }
         .into());
     }
@@ -347,16 +381,29 @@ fn detect(args: &DetectArgs) -> Result<(), Error> {
             let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
             timings.neighbours = ms(t);
             let surface = SurfaceDetector::new(params)?.detect(&particles, &nb)?;
-            (path.display().to_string(), particles, radius, (surface, nb.mean_count()))
+            (
+                path.display().to_string(),
+                particles,
+                radius,
+                (surface, nb.mean_count()),
+            )
         }
         (None, Some(SceneName::Column)) => {
             let frame = args.frame.unwrap_or(ColumnParams::SPLASH_FRAME);
             let result = column_to_frame(frame, params, args.radius)?;
             // "read" is the simulation of the frames before this one
-            timings.read = ms(t) - result.neighbours_ms - result.surface.timings.classify_ms - result.surface.timings.normals_ms;
+            timings.read = ms(t)
+                - result.neighbours_ms
+                - result.surface.timings.classify_ms
+                - result.surface.timings.normals_ms;
             timings.neighbours = result.neighbours_ms;
             let particles = result.sim.particles().clone();
-            ("scene column".to_owned(), particles, result.radius, (result.surface, result.mean_neighbours))
+            (
+                "scene column".to_owned(),
+                particles,
+                result.radius,
+                (result.surface, result.mean_neighbours),
+            )
         }
         (None, Some(name)) => {
             let scene = scenes::build(name, args.frame)?;
@@ -366,7 +413,12 @@ fn detect(args: &DetectArgs) -> Result<(), Error> {
             let nb = Neighbourhoods::build(&scene.particles.positions, radius, Backend::CellGrid)?;
             timings.neighbours = ms(t);
             let surface = SurfaceDetector::new(params)?.detect(&scene.particles, &nb)?;
-            (format!("scene {}", name.as_str()), scene.particles, radius, (surface, nb.mean_count()))
+            (
+                format!("scene {}", name.as_str()),
+                scene.particles,
+                radius,
+                (surface, nb.mean_count()),
+            )
         }
         (None, None) => unreachable!("clap requires --input or --scene"),
     };
@@ -381,9 +433,18 @@ fn detect(args: &DetectArgs) -> Result<(), Error> {
         outputs.push(out.display().to_string());
     }
     if let Some(png) = &args.png {
-        let (lo, hi) = particles.bounds().unwrap_or((glam::Vec3::ZERO, glam::Vec3::ONE));
+        let (lo, hi) = particles
+            .bounds()
+            .unwrap_or((glam::Vec3::ZERO, glam::Vec3::ONE));
         let spacing = spacing_estimate.unwrap_or(radius * 0.5);
-        let picture = preview::render_points(&particles.positions, &class_colours(&surface), spacing * 0.5, &PreviewCamera::framing(lo, hi), 800, 800)?;
+        let picture = preview::render_points(
+            &particles.positions,
+            &class_colours(&surface),
+            spacing * 0.5,
+            &PreviewCamera::framing(lo, hi),
+            800,
+            800,
+        )?;
         preview::save_png(&picture, png)?;
         outputs.push(png.display().to_string());
     }
@@ -405,14 +466,31 @@ fn detect(args: &DetectArgs) -> Result<(), Error> {
         outputs,
     };
     if args.json {
-        println!("{}", serde_json::to_string(&report).expect("the report serialises"));
+        println!(
+            "{}",
+            serde_json::to_string(&report).expect("the report serialises")
+        );
     } else {
         let c = report.counts;
-        println!("{}: {} particles, radius {}{}", report.source, report.particles, report.radius,
-            report.spacing_estimate.map(|s| format!(" (2 x estimated spacing {s})")).unwrap_or_default());
-        println!("  surface {}, interior {}, isolated {} (mean {:.1} neighbours)", c.surface, c.interior, c.isolated, report.mean_neighbours);
+        println!(
+            "{}: {} particles, radius {}{}",
+            report.source,
+            report.particles,
+            report.radius,
+            report
+                .spacing_estimate
+                .map(|s| format!(" (2 x estimated spacing {s})"))
+                .unwrap_or_default()
+        );
+        println!(
+            "  surface {}, interior {}, isolated {} (mean {:.1} neighbours)",
+            c.surface, c.interior, c.isolated, report.mean_neighbours
+        );
         let t = &report.timings_ms;
-        println!("  ms: read {:.1}, neighbours {:.1}, classify {:.1}, normals {:.1}, write {:.1}", t.read, t.neighbours, t.classify, t.normals, t.write);
+        println!(
+            "  ms: read {:.1}, neighbours {:.1}, classify {:.1}, normals {:.1}, write {:.1}",
+            t.read, t.neighbours, t.classify, t.normals, t.write
+        );
         for o in &report.outputs {
             println!("  wrote {o}");
         }
@@ -453,7 +531,10 @@ fn bench_detect(args: &BenchDetectArgs) -> Result<(), Error> {
     let repeat = args.repeat.max(1);
     let params = SurfaceParams::default();
     if !args.json {
-        println!("bench detect: jittered block of {n} particles, radius {r} (2 x spacing), {} threads", rayon::current_num_threads());
+        println!(
+            "bench detect: jittered block of {n} particles, radius {r} (2 x spacing), {} threads",
+            rayon::current_num_threads()
+        );
     }
     let mut grid_ms = Vec::new();
     let mut kd_ms = Vec::new();
@@ -504,11 +585,18 @@ fn bench_detect(args: &BenchDetectArgs) -> Result<(), Error> {
         classes_agree_with_reference: agree,
     };
     if args.json {
-        println!("{}", serde_json::to_string(&report).expect("the report serialises"));
+        println!(
+            "{}",
+            serde_json::to_string(&report).expect("the report serialises")
+        );
     } else {
-        println!("  mean neighbours {:.1}, surface particles {}", report.mean_neighbours, report.surface_particles);
+        println!(
+            "  mean neighbours {:.1}, surface particles {}",
+            report.mean_neighbours, report.surface_particles
+        );
         println!("  phase                          ms      particles/s");
-        let row = |name: &str, v: f64| println!("  {name:<28} {v:>8.1}  {:>12.0}", n as f64 / (v / 1e3));
+        let row =
+            |name: &str, v: f64| println!("  {name:<28} {v:>8.1}  {:>12.0}", n as f64 / (v / 1e3));
         row("neighbours (cell grid)", grid);
         row("neighbours (kiddo k-d tree)", kd);
         row("detection + normals", det);
@@ -516,7 +604,10 @@ fn bench_detect(args: &BenchDetectArgs) -> Result<(), Error> {
         row("reference neighbours", ref_nb);
         row("reference detection", ref_det);
         row("reference total", ref_total);
-        println!("  speedup over the single-threaded reference: {:.2}x (classes identical: {agree})", report.speedup);
+        println!(
+            "  speedup over the single-threaded reference: {:.2}x (classes identical: {agree})",
+            report.speedup
+        );
         println!("  (parallel figures are the median of {repeat} runs; the reference runs once)");
     }
     Ok(())

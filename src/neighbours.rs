@@ -86,7 +86,11 @@ pub struct Neighbourhoods {
 
 impl Neighbourhoods {
     /// Builds the neighbourhoods of `positions` within `radius`.
-    pub fn build(positions: &[Vec3], radius: f32, backend: Backend) -> Result<Self, NeighbourError> {
+    pub fn build(
+        positions: &[Vec3],
+        radius: f32,
+        backend: Backend,
+    ) -> Result<Self, NeighbourError> {
         check_input(positions, radius)?;
         match backend {
             Backend::CellGrid => Ok(CellGrid::new(positions, radius)?.all_neighbours()),
@@ -243,7 +247,10 @@ impl CellGrid {
             .collect();
         // Sorting (key, index) pairs keeps the order deterministic whatever the thread count.
         keyed.par_sort_unstable();
-        let sorted = keyed.par_iter().map(|&(_, i)| positions[i as usize]).collect();
+        let sorted = keyed
+            .par_iter()
+            .map(|&(_, i)| positions[i as usize])
+            .collect();
         let order = keyed.par_iter().map(|&(_, i)| i).collect();
         let total_cells = dims[0] * dims[1] * dims[2];
         // A dense start table costs 4 bytes a cell: allow a few cells per particle.
@@ -283,7 +290,9 @@ impl CellGrid {
     #[inline]
     fn slots(&self, first: u64, last: u64) -> std::ops::Range<usize> {
         match &self.index {
-            CellIndex::Dense(start) => start[first as usize] as usize..start[last as usize + 1] as usize,
+            CellIndex::Dense(start) => {
+                start[first as usize] as usize..start[last as usize + 1] as usize
+            }
             CellIndex::Sparse(keys) => {
                 keys.partition_point(|&k| k < first)..keys.partition_point(|&k| k <= last)
             }
@@ -387,8 +396,8 @@ fn kd_tree_neighbours(positions: &[Vec3], radius: f32) -> Result<Neighbourhoods,
         });
     }
     let points: Vec<[f32; 3]> = positions.iter().map(|p| p.to_array()).collect();
-    let tree: ImmutableKdTree<f32, 3> =
-        ImmutableKdTree::new_from_slice(&points).map_err(|e| NeighbourError::KdTree(format!("{e:?}")))?;
+    let tree: ImmutableKdTree<f32, 3> = ImmutableKdTree::new_from_slice(&points)
+        .map_err(|e| NeighbourError::KdTree(format!("{e:?}")))?;
     let r2 = radius * radius;
     let chunks: Vec<(Vec<usize>, Vec<u32>)> = (0..n.div_ceil(CHUNK))
         .into_par_iter()
@@ -439,7 +448,9 @@ pub fn reference_neighbours(positions: &[Vec3], radius: f32) -> Vec<Vec<u32>> {
                     for dx in -1..=1 {
                         if let Some(cell) = cells.get(&(cx + dx, cy + dy, cz + dz)) {
                             for &j in cell {
-                                if j as usize != i && positions[j as usize].distance_squared(p) <= r2 {
+                                if j as usize != i
+                                    && positions[j as usize].distance_squared(p) <= r2
+                                {
                                     list.push(j);
                                 }
                             }
@@ -463,8 +474,8 @@ pub fn estimate_spacing(positions: &[Vec3]) -> Result<f32, NeighbourError> {
         });
     }
     let points: Vec<[f32; 3]> = positions.iter().map(|p| p.to_array()).collect();
-    let tree: ImmutableKdTree<f32, 3> =
-        ImmutableKdTree::new_from_slice(&points).map_err(|e| NeighbourError::KdTree(format!("{e:?}")))?;
+    let tree: ImmutableKdTree<f32, 3> = ImmutableKdTree::new_from_slice(&points)
+        .map_err(|e| NeighbourError::KdTree(format!("{e:?}")))?;
     let step = positions.len().div_ceil(20_000);
     let k = NonZeroUsize::new(4).expect("4 is not zero");
     let mut nearest: Vec<f32> = (0..positions.len())
@@ -507,7 +518,10 @@ mod tests {
         (0..positions.len())
             .map(|i| {
                 (0..positions.len() as u32)
-                    .filter(|&j| j as usize != i && positions[j as usize].distance_squared(positions[i]) <= r * r)
+                    .filter(|&j| {
+                        j as usize != i
+                            && positions[j as usize].distance_squared(positions[i]) <= r * r
+                    })
                     .collect()
             })
             .collect()
@@ -538,17 +552,21 @@ mod tests {
             for backend in [Backend::CellGrid, Backend::KdTree] {
                 let nb = Neighbourhoods::build(&positions, r, backend).unwrap();
                 assert_eq!(nb.len(), n);
-                for i in 0..n {
+                for (i, expected) in truth.iter().enumerate() {
                     assert_eq!(
                         sorted(nb.of(i).to_vec()),
-                        truth[i],
+                        *expected,
                         "seed {seed} (FLUID_SURFELS_SEED), case {case}, backend {backend:?}, particle {i}"
                     );
                 }
             }
             let reference = reference_neighbours(&positions, r);
             for i in 0..n {
-                assert_eq!(sorted(reference[i].clone()), truth[i], "seed {seed}, case {case}");
+                assert_eq!(
+                    sorted(reference[i].clone()),
+                    truth[i],
+                    "seed {seed}, case {case}"
+                );
             }
         }
     }
@@ -564,7 +582,11 @@ mod tests {
             Err(NeighbourError::InvalidRadius { .. })
         ));
         assert!(matches!(
-            Neighbourhoods::build(&[Vec3::ZERO, Vec3::new(f32::NAN, 0.0, 0.0)], 1.0, Backend::CellGrid),
+            Neighbourhoods::build(
+                &[Vec3::ZERO, Vec3::new(f32::NAN, 0.0, 0.0)],
+                1.0,
+                Backend::CellGrid
+            ),
             Err(NeighbourError::NonFinitePosition { index: 1, .. })
         ));
         for backend in [Backend::CellGrid, Backend::KdTree] {

@@ -88,7 +88,11 @@ pub enum ParticleSetError {
     NonFinitePosition { index: usize, position: [f32; 3] },
     /// Two particles share an id.
     #[error("particle id {id} appears more than once (particles {first} and {second})")]
-    DuplicateId { id: u32, first: usize, second: usize },
+    DuplicateId {
+        id: u32,
+        first: usize,
+        second: usize,
+    },
 }
 
 impl ParticleSet {

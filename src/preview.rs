@@ -167,7 +167,15 @@ mod tests {
             target: Vec3::ZERO,
             fov_y_degrees: 40.0,
         };
-        let img = render_points(&[Vec3::ZERO, Vec3::new(0.0, 0.0, 10.0)], &[[255, 0, 0], [0, 255, 0]], 0.2, &camera, 64, 48).unwrap();
+        let img = render_points(
+            &[Vec3::ZERO, Vec3::new(0.0, 0.0, 10.0)],
+            &[[255, 0, 0], [0, 255, 0]],
+            0.2,
+            &camera,
+            64,
+            48,
+        )
+        .unwrap();
         let centre = img.get_pixel(32, 24);
         assert!(centre[0] > 80 && centre[1] == 0, "{centre:?}");
         assert_eq!(*img.get_pixel(0, 0), Rgb(palette::BACKGROUND));

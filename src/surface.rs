@@ -34,7 +34,7 @@ use crate::particles::ParticleSet;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum NormalMethod {
-    /// Weighted covariance analysis of the neighbourhood (the paper's [Paj03]); the normal is the
+    /// Weighted covariance analysis of the neighbourhood (the paper's \[Paj03\]); the normal is the
     /// eigenvector of the smallest eigenvalue. Higher quality, slightly more expensive.
     #[default]
     Covariance,
@@ -53,9 +53,10 @@ pub struct SurfaceParams {
     /// >= 99.7 % and precision >= 95 % (`examples/threshold_sweep.rs`, ARCHITECTURE.md).
     pub high_threshold: f32,
     /// A surface particle stops being surface only when its offset falls below this fraction of
-    /// the support radius. Default 0.09: on the settling `column` pool it cuts flips per frame
-    /// to about a fifth of a single threshold's (`examples/threshold_sweep.rs`); lower values
-    /// gain little more and keep particles that sank marked as surface longer.
+    /// the support radius. Default 0.09: on the settling `column` pool (frames 101-200) it cuts
+    /// flips per frame from 1.21 with a single threshold to 0.15 (`tests/surface.rs`,
+    /// `examples/threshold_sweep.rs`); lower values gain little more and keep particles that
+    /// sank marked as surface longer.
     /// Set equal to `high_threshold` to disable hysteresis.
     pub low_threshold: f32,
     /// How normals of surface particles are computed.
@@ -91,7 +92,10 @@ pub enum SurfaceError {
     InvalidThresholds { low: f32, high: f32 },
     /// The neighbourhoods were built for another particle set.
     #[error("neighbourhoods cover {neighbourhoods} particles but the set has {particles}")]
-    SizeMismatch { particles: usize, neighbourhoods: usize },
+    SizeMismatch {
+        particles: usize,
+        neighbourhoods: usize,
+    },
     /// An attribute's length does not match the particle count.
     #[error("invalid particle set: {0}")]
     Particles(#[from] crate::particles::ParticleSetError),
@@ -158,7 +162,9 @@ impl Surface {
     /// Indices of the particles of one class.
     #[must_use]
     pub fn indices_of(&self, class: ParticleClass) -> Vec<usize> {
-        (0..self.classes.len()).filter(|&i| self.classes[i] == class).collect()
+        (0..self.classes.len())
+            .filter(|&i| self.classes[i] == class)
+            .collect()
     }
 }
 
@@ -283,7 +289,13 @@ impl SurfaceDetector {
         let classify_ms = start.elapsed().as_secs_f64() * 1e3;
 
         let start = Instant::now();
-        let normals = surface_normals(particles, neighbourhoods, &classes, &offset_vectors, self.params.normals);
+        let normals = surface_normals(
+            particles,
+            neighbourhoods,
+            &classes,
+            &offset_vectors,
+            self.params.normals,
+        );
         let normals_ms = start.elapsed().as_secs_f64() * 1e3;
         Ok(Surface {
             offsets: offset_vectors.iter().map(|d| d.length() / r).collect(),
@@ -307,7 +319,10 @@ pub fn detect_surface(
     SurfaceDetector::new(*params)?.detect(particles, neighbourhoods)
 }
 
-fn check_sizes(particles: &ParticleSet, neighbourhoods: &Neighbourhoods) -> Result<(), SurfaceError> {
+fn check_sizes(
+    particles: &ParticleSet,
+    neighbourhoods: &Neighbourhoods,
+) -> Result<(), SurfaceError> {
     if particles.len() != neighbourhoods.len() {
         return Err(SurfaceError::SizeMismatch {
             particles: particles.len(),

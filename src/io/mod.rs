@@ -82,7 +82,12 @@ impl IoError {
         }
     }
 
-    pub(crate) fn parse(path: &Path, location: Location, expected: impl Into<String>, found: impl Into<String>) -> Self {
+    pub(crate) fn parse(
+        path: &Path,
+        location: Location,
+        expected: impl Into<String>,
+        found: impl Into<String>,
+    ) -> Self {
         Self::Parse {
             path: path.to_owned(),
             location,
@@ -139,7 +144,11 @@ pub fn read_particles(path: &Path, format: Option<Format>) -> Result<ParticleSet
 
 /// Writes a particle file in `format` or else the format its extension names; PLY is written
 /// binary little-endian.
-pub fn write_particles(path: &Path, set: &ParticleSet, format: Option<Format>) -> Result<(), IoError> {
+pub fn write_particles(
+    path: &Path,
+    set: &ParticleSet,
+    format: Option<Format>,
+) -> Result<(), IoError> {
     let format = match format {
         Some(f) => f,
         None => Format::from_path(path)?,
@@ -154,8 +163,14 @@ pub fn write_particles(path: &Path, set: &ParticleSet, format: Option<Format>) -
 /// Writes `bytes` to `path` through a temporary file in the same folder and a rename, so that a
 /// failed write never leaves a half-written file under the final name.
 pub(crate) fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
-    let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
     std::fs::write(&tmp, bytes).map_err(|e| IoError::os(path, e))?;
     std::fs::rename(&tmp, path).map_err(|e| {

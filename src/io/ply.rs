@@ -77,7 +77,9 @@ struct Header {
 }
 
 fn parse_header(bytes: &[u8], path: &Path) -> Result<Header, IoError> {
-    let err = |line: usize, expected: &str, found: &str| IoError::parse(path, Location::Line(line), expected, found);
+    let err = |line: usize, expected: &str, found: &str| {
+        IoError::parse(path, Location::Line(line), expected, found)
+    };
     let mut pos = 0;
     let mut line_no = 0;
     let mut encoding = None;
@@ -85,7 +87,11 @@ fn parse_header(bytes: &[u8], path: &Path) -> Result<Header, IoError> {
     loop {
         line_no += 1;
         let Some(len) = bytes[pos..].iter().position(|&b| b == b'\n') else {
-            return Err(err(line_no, "a header ending in `end_header`", "end of file"));
+            return Err(err(
+                line_no,
+                "a header ending in `end_header`",
+                "end of file",
+            ));
         };
         let raw = &bytes[pos..pos + len];
         pos += len + 1;
@@ -106,7 +112,13 @@ fn parse_header(bytes: &[u8], path: &Path) -> Result<Header, IoError> {
                     Some("ascii") => Encoding::Ascii,
                     Some("binary_little_endian") => Encoding::BinaryLittleEndian,
                     Some("binary_big_endian") => Encoding::BinaryBigEndian,
-                    _ => return Err(err(line_no, "format ascii|binary_little_endian|binary_big_endian", text)),
+                    _ => {
+                        return Err(err(
+                            line_no,
+                            "format ascii|binary_little_endian|binary_big_endian",
+                            text,
+                        ));
+                    }
                 };
                 if words.get(2).copied() != Some("1.0") {
                     return Err(err(line_no, "PLY version 1.0", text));
@@ -115,7 +127,8 @@ fn parse_header(bytes: &[u8], path: &Path) -> Result<Header, IoError> {
             }
             Some("comment" | "obj_info") | None => {}
             Some("element") => {
-                let (Some(name), Some(count), None) = (words.get(1), words.get(2), words.get(3)) else {
+                let (Some(name), Some(count), None) = (words.get(1), words.get(2), words.get(3))
+                else {
                     return Err(err(line_no, "`element <name> <count>`", text));
                 };
                 let count = count
@@ -129,26 +142,54 @@ fn parse_header(bytes: &[u8], path: &Path) -> Result<Header, IoError> {
             }
             Some("property") => {
                 let Some(element) = elements.last_mut() else {
-                    return Err(err(line_no, "an `element` line before the first property", text));
+                    return Err(err(
+                        line_no,
+                        "an `element` line before the first property",
+                        text,
+                    ));
                 };
                 let prop = match words[1..] {
                     ["list", c, i, name] => match (kind_from_name(c), kind_from_name(i)) {
-                        (Some(count), Some(item)) if count.is_integer() => (name, PropType::List { count, item }),
-                        _ => return Err(err(line_no, "`property list <integer type> <type> <name>`", text)),
+                        (Some(count), Some(item)) if count.is_integer() => {
+                            (name, PropType::List { count, item })
+                        }
+                        _ => {
+                            return Err(err(
+                                line_no,
+                                "`property list <integer type> <type> <name>`",
+                                text,
+                            ));
+                        }
                     },
                     [t, name] => match kind_from_name(t) {
                         Some(k) => (name, PropType::Scalar(k)),
-                        None => return Err(err(line_no, "a PLY scalar type (char, uchar, short, ushort, int, uint, float, double)", t)),
+                        None => {
+                            return Err(err(
+                                line_no,
+                                "a PLY scalar type (char, uchar, short, ushort, int, uint, float, double)",
+                                t,
+                            ));
+                        }
                     },
                     _ => return Err(err(line_no, "`property <type> <name>`", text)),
                 };
                 if element.props.iter().any(|(n, _)| n == prop.0) {
-                    return Err(err(line_no, "a property name not used before in the element", prop.0));
+                    return Err(err(
+                        line_no,
+                        "a property name not used before in the element",
+                        prop.0,
+                    ));
                 }
                 element.props.push((prop.0.to_owned(), prop.1));
             }
             Some("end_header") => break,
-            Some(other) => return Err(err(line_no, "a header keyword (format, comment, element, property, end_header)", other)),
+            Some(other) => {
+                return Err(err(
+                    line_no,
+                    "a header keyword (format, comment, element, property, end_header)",
+                    other,
+                ));
+            }
         }
     }
     let encoding = encoding.ok_or_else(|| err(2, "a `format` line", "none before end_header"))?;
@@ -170,8 +211,16 @@ fn truncate(s: &str) -> String {
 
 /// Reads values one by one from the data section, in either encoding.
 enum Reader<'a> {
-    Binary { bytes: &'a [u8], pos: usize, little: bool },
-    Ascii { bytes: &'a [u8], pos: usize, line: usize },
+    Binary {
+        bytes: &'a [u8],
+        pos: usize,
+        little: bool,
+    },
+    Ascii {
+        bytes: &'a [u8],
+        pos: usize,
+        line: usize,
+    },
 }
 
 impl Reader<'_> {
@@ -195,7 +244,12 @@ impl Reader<'_> {
                 let at = Location::Byte(*pos as u64);
                 let size = kind.size();
                 let Some(raw) = bytes.get(*pos..*pos + size) else {
-                    return Err(IoError::parse(path, at, format!("a {} value ({size} bytes)", kind_name(kind)), "end of file"));
+                    return Err(IoError::parse(
+                        path,
+                        at,
+                        format!("a {} value ({size} bytes)", kind_name(kind)),
+                        "end of file",
+                    ));
                 };
                 *pos += size;
                 let mut b = [0u8; 8];
@@ -215,33 +269,65 @@ impl Reader<'_> {
                 };
                 Ok((v, at))
             }
-            Self::Ascii { bytes, pos, line } => {
-                while let Some(&c) = bytes.get(*pos) {
-                    if c == b'\n' {
-                        *line += 1;
-                    } else if !c.is_ascii_whitespace() {
-                        break;
-                    }
-                    *pos += 1;
-                }
+            Self::Ascii { .. } => {
+                self.skip_whitespace();
+                let Self::Ascii { bytes, pos, line } = self else {
+                    unreachable!()
+                };
                 let at = Location::Line(*line);
                 let start = *pos;
                 while bytes.get(*pos).is_some_and(|c| !c.is_ascii_whitespace()) {
                     *pos += 1;
                 }
                 if start == *pos {
-                    return Err(IoError::parse(path, at, format!("a {} value", kind_name(kind)), "end of file"));
+                    return Err(IoError::parse(
+                        path,
+                        at,
+                        format!("a {} value", kind_name(kind)),
+                        "end of file",
+                    ));
                 }
                 let token = String::from_utf8_lossy(&bytes[start..*pos]);
-                let v: f64 = token
-                    .parse()
-                    .map_err(|_| IoError::parse(path, at, format!("a {} value", kind_name(kind)), truncate(&token)))?;
+                let v: f64 = token.parse().map_err(|_| {
+                    IoError::parse(
+                        path,
+                        at,
+                        format!("a {} value", kind_name(kind)),
+                        truncate(&token),
+                    )
+                })?;
+                // a `float` property holds f32 values: round the decimal as an f32 reader would
+                let v = if kind == ScalarKind::F32 {
+                    v as f32 as f64
+                } else {
+                    v
+                };
                 let fits = !kind.is_integer()
                     || (v.fract() == 0.0 && v >= int_min(kind) && v <= int_max(kind));
                 if !fits {
-                    return Err(IoError::parse(path, at, format!("a {} value", kind_name(kind)), truncate(&token)));
+                    return Err(IoError::parse(
+                        path,
+                        at,
+                        format!("a {} value", kind_name(kind)),
+                        truncate(&token),
+                    ));
                 }
                 Ok((v, at))
+            }
+        }
+    }
+
+    /// Moves past whitespace (counting lines), so that `location` names the next value.
+    fn skip_whitespace(&mut self) {
+        if let Self::Ascii { bytes, pos, line } = self {
+            while let Some(&c) = bytes.get(*pos) {
+                if !c.is_ascii_whitespace() {
+                    break;
+                }
+                if c == b'\n' {
+                    *line += 1;
+                }
+                *pos += 1;
             }
         }
     }
@@ -279,7 +365,8 @@ fn int_max(k: ScalarKind) -> f64 {
 /// Parses a whole PLY file held in memory; `path` names it in errors.
 pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
     let header = parse_header(bytes, path)?;
-    let hdr_err = |expected: &str, found: &str| IoError::parse(path, Location::Line(2), expected, found);
+    let hdr_err =
+        |expected: &str, found: &str| IoError::parse(path, Location::Line(2), expected, found);
     let Some(vertex_index) = header.elements.iter().position(|e| e.name == "vertex") else {
         return Err(hdr_err("an `element vertex` in the header", "none"));
     };
@@ -316,14 +403,20 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
             path,
             Location::Byte(header.data_start as u64),
             format!("data for the header's element counts (at least {min_bytes} bytes)"),
-            format!("{} bytes after the header (wrong counts or truncated file)", data.len()),
+            format!(
+                "{} bytes after the header (wrong counts or truncated file)",
+                data.len()
+            ),
         ));
     }
 
     let vertex = &header.elements[vertex_index];
     for (name, t) in &vertex.props {
         if matches!(t, PropType::List { .. }) {
-            return Err(hdr_err("scalar vertex properties", &format!("list property `{name}`")));
+            return Err(hdr_err(
+                "scalar vertex properties",
+                &format!("list property `{name}`"),
+            ));
         }
     }
     let find = |n: &str| vertex.props.iter().position(|(p, _)| p == n);
@@ -340,7 +433,9 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                     PropType::Scalar(kind) => {
                         let (v, at) = reader.next(kind, path)?;
                         if e_index == vertex_index {
-                            if (p_index == ix || p_index == iy || p_index == iz) && !(v as f32).is_finite() {
+                            if (p_index == ix || p_index == iy || p_index == iz)
+                                && !(v as f32).is_finite()
+                            {
                                 return Err(IoError::NonFinite {
                                     path: path.to_owned(),
                                     location: at,
@@ -353,10 +448,20 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                     }
                     PropType::List { count, item } => {
                         let (len, at) = reader.next(count, path)?;
-                        let min_item = if header.encoding == Encoding::Ascii { 1.0 } else { item.size() as f64 };
-                        if !(0.0..=MAX_LIST_LEN).contains(&len) || len * min_item > reader.remaining() as f64 + 1.0
+                        let min_item = if header.encoding == Encoding::Ascii {
+                            1.0
+                        } else {
+                            item.size() as f64
+                        };
+                        if !(0.0..=MAX_LIST_LEN).contains(&len)
+                            || len * min_item > reader.remaining() as f64 + 1.0
                         {
-                            return Err(IoError::parse(path, at, "a list length the file can hold", len.to_string()));
+                            return Err(IoError::parse(
+                                path,
+                                at,
+                                "a list length the file can hold",
+                                len.to_string(),
+                            ));
                         }
                         for _ in 0..len as usize {
                             reader.next(item, path)?;
@@ -366,6 +471,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
             }
         }
     }
+    reader.skip_whitespace();
     if !reader.at_end() {
         return Err(IoError::parse(
             path,
@@ -389,20 +495,31 @@ fn assemble(vertex: &Element, mut columns: Vec<Vec<f64>>, n: usize) -> ParticleS
         })
         .collect();
     let mut taken = vec![false; names.len()];
-    let mut take3 = |a: &str, b: &str, c: &str, cols: &[Vec<f64>], accept: &dyn Fn(ScalarKind) -> bool| {
-        let idx = [a, b, c].map(|name| names.iter().position(|&n| n == name));
-        match idx {
-            [Some(i), Some(j), Some(k)] if accept(kinds[i]) && accept(kinds[j]) && accept(kinds[k]) => {
-                taken[i] = true;
-                taken[j] = true;
-                taken[k] = true;
-                Some((0..n).map(|r| [cols[i][r], cols[j][r], cols[k][r]]).collect::<Vec<_>>())
+    let mut take3 =
+        |a: &str, b: &str, c: &str, cols: &[Vec<f64>], accept: &dyn Fn(ScalarKind) -> bool| {
+            let idx = [a, b, c].map(|name| names.iter().position(|&n| n == name));
+            match idx {
+                [Some(i), Some(j), Some(k)]
+                    if accept(kinds[i]) && accept(kinds[j]) && accept(kinds[k]) =>
+                {
+                    taken[i] = true;
+                    taken[j] = true;
+                    taken[k] = true;
+                    Some(
+                        (0..n)
+                            .map(|r| [cols[i][r], cols[j][r], cols[k][r]])
+                            .collect::<Vec<_>>(),
+                    )
+                }
+                _ => None,
             }
-            _ => None,
-        }
-    };
+        };
     let any = |_: ScalarKind| true;
-    let to_vec3 = |v: Vec<[f64; 3]>| v.into_iter().map(|a| Vec3::new(a[0] as f32, a[1] as f32, a[2] as f32)).collect::<Vec<_>>();
+    let to_vec3 = |v: Vec<[f64; 3]>| {
+        v.into_iter()
+            .map(|a| Vec3::new(a[0] as f32, a[1] as f32, a[2] as f32))
+            .collect::<Vec<_>>()
+    };
     let positions = to_vec3(take3("x", "y", "z", &columns, &any).unwrap_or_default());
     let normals = take3("nx", "ny", "nz", &columns, &any).map(to_vec3);
     let velocities = take3("vx", "vy", "vz", &columns, &any).map(to_vec3);
@@ -416,9 +533,12 @@ fn assemble(vertex: &Element, mut columns: Vec<Vec<f64>>, n: usize) -> ParticleS
         taken[i] = true;
         Some(i)
     };
-    let masses = single("mass", &|_, _| true).map(|i| columns[i].iter().map(|&m| m as f32).collect());
-    let ids = single("id", &|k, v| k.is_integer() && v.iter().all(|&x| (0.0..=u32::MAX as f64).contains(&x)))
-        .map(|i| columns[i].iter().map(|&x| x as u32).collect());
+    let masses =
+        single("mass", &|_, _| true).map(|i| columns[i].iter().map(|&m| m as f32).collect());
+    let ids = single("id", &|k, v| {
+        k.is_integer() && v.iter().all(|&x| (0.0..=u32::MAX as f64).contains(&x))
+    })
+    .map(|i| columns[i].iter().map(|&x| x as u32).collect());
     let extra = (0..names.len())
         .filter(|&i| !taken[i])
         .map(|i| Attribute {
@@ -451,19 +571,35 @@ pub fn to_bytes(set: &ParticleSet, encoding: Encoding) -> Vec<u8> {
     for (names, data) in vectors {
         if let Some(d) = data {
             for (axis, name) in names.into_iter().enumerate() {
-                cols.push((name.to_owned(), ScalarKind::F32, Box::new(move |i| d[i][axis] as f64)));
+                cols.push((
+                    name.to_owned(),
+                    ScalarKind::F32,
+                    Box::new(move |i| d[i][axis] as f64),
+                ));
             }
         }
     }
     if let Some(m) = &set.masses {
-        cols.push(("mass".into(), ScalarKind::F32, Box::new(move |i| m[i] as f64)));
+        cols.push((
+            "mass".into(),
+            ScalarKind::F32,
+            Box::new(move |i| m[i] as f64),
+        ));
     }
     if let Some(ids) = &set.ids {
-        cols.push(("id".into(), ScalarKind::U32, Box::new(move |i| ids[i] as f64)));
+        cols.push((
+            "id".into(),
+            ScalarKind::U32,
+            Box::new(move |i| ids[i] as f64),
+        ));
     }
     if let Some(c) = &set.colours {
         for (channel, name) in ["red", "green", "blue"].into_iter().enumerate() {
-            cols.push((name.into(), ScalarKind::U8, Box::new(move |i| c[i][channel] as f64)));
+            cols.push((
+                name.into(),
+                ScalarKind::U8,
+                Box::new(move |i| c[i][channel] as f64),
+            ));
         }
     }
     for a in &set.extra {
@@ -486,7 +622,14 @@ pub fn to_bytes(set: &ParticleSet, encoding: Encoding) -> Vec<u8> {
     out.push_str("end_header\n");
     let mut bytes = out.into_bytes();
     let record: usize = cols.iter().map(|c| c.1.size()).sum();
-    bytes.reserve(set.len() * if encoding == Encoding::Ascii { 12 * cols.len() } else { record });
+    bytes.reserve(
+        set.len()
+            * if encoding == Encoding::Ascii {
+                12 * cols.len()
+            } else {
+                record
+            },
+    );
     for i in 0..set.len() {
         for (c, (_, kind, get)) in cols.iter().enumerate() {
             let v = get(i);

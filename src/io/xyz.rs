@@ -32,7 +32,11 @@ fn split(line: &str) -> Vec<&str> {
 /// Parses a text particle file held in memory; `path` names it in errors.
 pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
     let text = std::str::from_utf8(bytes).map_err(|e| {
-        let line = bytes[..e.valid_up_to()].iter().filter(|&&b| b == b'\n').count() + 1;
+        let line = bytes[..e.valid_up_to()]
+            .iter()
+            .filter(|&&b| b == b'\n')
+            .count()
+            + 1;
         IoError::parse(
             path,
             Location::Line(line),
@@ -59,16 +63,31 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                 continue;
             }
             if header.is_none() && width != 3 && width != 6 {
-                return Err(IoError::parse(path, Location::Line(line_no), "3 columns (x y z) or 6 (x y z nx ny nz), or a header row", format!("{width} columns")));
+                return Err(IoError::parse(
+                    path,
+                    Location::Line(line_no),
+                    "3 columns (x y z) or 6 (x y z nx ny nz), or a header row",
+                    format!("{width} columns"),
+                ));
             }
         }
         if tokens.len() != width {
-            return Err(IoError::parse(path, Location::Line(line_no), format!("{width} values like the lines before"), format!("{} values", tokens.len())));
+            return Err(IoError::parse(
+                path,
+                Location::Line(line_no),
+                format!("{width} values like the lines before"),
+                format!("{} values", tokens.len()),
+            ));
         }
         let particle = columns[0].len();
         for (c, (value, token)) in parsed.iter().zip(&tokens).enumerate() {
             let Some(v) = *value else {
-                return Err(IoError::parse(path, Location::Line(line_no), "a number", *token));
+                return Err(IoError::parse(
+                    path,
+                    Location::Line(line_no),
+                    "a number",
+                    *token,
+                ));
             };
             if c < 3 && !(v as f32).is_finite() {
                 return Err(IoError::NonFinite {
@@ -82,11 +101,19 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
         }
     }
     let names: Vec<String> = header.unwrap_or_else(|| {
-        ["x", "y", "z", "nx", "ny", "nz"][..width.min(6)].iter().map(|s| s.to_string()).collect()
+        ["x", "y", "z", "nx", "ny", "nz"][..width.min(6)]
+            .iter()
+            .map(|s| s.to_string())
+            .collect()
     });
     let find = |n: &str| names.iter().position(|c| c.eq_ignore_ascii_case(n));
     let (Some(ix), Some(iy), Some(iz)) = (find("x"), find("y"), find("z")) else {
-        return Err(IoError::parse(path, Location::Line(1), "columns named x, y and z", names.join(",")));
+        return Err(IoError::parse(
+            path,
+            Location::Line(1),
+            "columns named x, y and z",
+            names.join(","),
+        ));
     };
     // positions must be finite wherever the x, y, z columns are
     for (c, col) in [ix, iy, iz].iter().map(|&c| (c, &columns[c])) {
@@ -102,11 +129,23 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
     let n = columns.first().map_or(0, Vec::len);
     let mut taken = vec![false; names.len()];
     let mut vec3 = |a: &str, b: &str, c: &str| {
-        let (Some(i), Some(j), Some(k)) = (find(a), find(b), find(c)) else { return None };
+        let (Some(i), Some(j), Some(k)) = (find(a), find(b), find(c)) else {
+            return None;
+        };
         taken[i] = true;
         taken[j] = true;
         taken[k] = true;
-        Some((0..n).map(|r| Vec3::new(columns[i][r] as f32, columns[j][r] as f32, columns[k][r] as f32)).collect::<Vec<_>>())
+        Some(
+            (0..n)
+                .map(|r| {
+                    Vec3::new(
+                        columns[i][r] as f32,
+                        columns[j][r] as f32,
+                        columns[k][r] as f32,
+                    )
+                })
+                .collect::<Vec<_>>(),
+        )
     };
     let positions = vec3("x", "y", "z").unwrap_or_default();
     let normals = vec3("nx", "ny", "nz");
@@ -121,7 +160,11 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
         taken[i] = true;
         set.masses = Some(columns[i].iter().map(|&m| m as f32).collect());
     }
-    if let Some(i) = find("id").filter(|&i| columns[i].iter().all(|&v| v.fract() == 0.0 && (0.0..=u32::MAX as f64).contains(&v))) {
+    if let Some(i) = find("id").filter(|&i| {
+        columns[i]
+            .iter()
+            .all(|&v| v.fract() == 0.0 && (0.0..=u32::MAX as f64).contains(&v))
+    }) {
         taken[i] = true;
         set.ids = Some(columns[i].iter().map(|&v| v as u32).collect());
     }
@@ -141,7 +184,11 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
 #[must_use]
 pub fn to_string(set: &ParticleSet, delimiter: Delimiter) -> String {
     let mut out = String::with_capacity(set.len() * 40);
-    let sep = if delimiter == Delimiter::Comma { "," } else { " " };
+    let sep = if delimiter == Delimiter::Comma {
+        ","
+    } else {
+        " "
+    };
     let csv = delimiter == Delimiter::Comma;
     if csv {
         let mut names = vec!["x", "y", "z"];

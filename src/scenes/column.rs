@@ -95,7 +95,10 @@ impl ColumnSim {
         }
         let size = Vec3::new(nx as f32, ny as f32, nz as f32) * s;
         if !params.tank.is_finite() || params.tank.cmplt(size).any() {
-            return bad("tank", format!("{} does not hold the column {size}", params.tank));
+            return bad(
+                "tank",
+                format!("{} does not hold the column {size}", params.tank),
+            );
         }
         if !(params.frame_rate.is_finite() && params.frame_rate > 0.0) || params.substeps == 0 {
             return bad("frame_rate", "frame rate and substeps must be > 0".into());
@@ -106,7 +109,8 @@ impl ColumnSim {
             for j in 0..ny {
                 for i in 0..nx {
                     let jitter = Vec3::new(rng.random(), rng.random(), rng.random()) - 0.5;
-                    positions.push((Vec3::new(i as f32, j as f32, k as f32) + 0.5 + jitter * 0.02) * s);
+                    positions
+                        .push((Vec3::new(i as f32, j as f32, k as f32) + 0.5 + jitter * 0.02) * s);
                 }
             }
         }
@@ -132,7 +136,8 @@ impl ColumnSim {
                 }
             }
         }
-        let relaxation = 0.01 * (grad_sum.length_squared() + grad_sq) / (rest_density * rest_density);
+        let relaxation =
+            0.01 * (grad_sum.length_squared() + grad_sq) / (rest_density * rest_density);
         Ok(Self {
             params,
             particles,
@@ -204,7 +209,11 @@ impl ColumnSim {
         let h = self.support;
         let rho0 = self.rest_density;
         let x = &self.particles.positions;
-        let v = self.particles.velocities.as_ref().expect("the simulation keeps velocities");
+        let v = self
+            .particles
+            .velocities
+            .as_ref()
+            .expect("the simulation keeps velocities");
         let mut p: Vec<Vec3> = x
             .par_iter()
             .zip(v.par_iter())
@@ -244,7 +253,11 @@ impl ColumnSim {
                 })
                 .collect();
         }
-        let velocity: Vec<Vec3> = x.par_iter().zip(p.par_iter()).map(|(&x, &p)| (p - x) / dt).collect();
+        let velocity: Vec<Vec3> = x
+            .par_iter()
+            .zip(p.par_iter())
+            .map(|(&x, &p)| (p - x) / dt)
+            .collect();
         let c = self.params.viscosity;
         let smoothed: Vec<Vec3> = (0..p.len())
             .into_par_iter()
@@ -282,7 +295,10 @@ mod tests {
         // collapsed: the centre of mass is lower and has moved away from the corner
         let now = mean(&sim);
         assert!(now.y < start.y - 0.05, "{now} vs {start}");
-        assert!(now.x > start.x + 0.05 && now.z > start.z + 0.05, "{now} vs {start}");
+        assert!(
+            now.x > start.x + 0.05 && now.z > start.z + 0.05,
+            "{now} vs {start}"
+        );
         assert!(sim.particles().validate().is_ok());
     }
 

@@ -2,7 +2,7 @@
 //!
 //! - [`block`] and [`sphere`]: jittered lattices with an analytic surface ([`AnalyticShape`]), so
 //!   the true surface particles are known.
-//! - [`column`]: a small position-based-fluids simulation of a collapsing water column in a tank
+//! - [`mod@column`]: a small position-based-fluids simulation of a collapsing water column in a tank
 //!   (the paper's Figure 8), giving irregular, dynamic frames with splashes and lone drops.
 
 pub mod column;
@@ -54,9 +54,23 @@ impl AnalyticShape {
     pub fn normal(&self, p: Vec3) -> Vec3 {
         match *self {
             Self::Box { min, max } => {
-                let d = [p.x - min.x, max.x - p.x, p.y - min.y, max.y - p.y, p.z - min.z, max.z - p.z];
+                let d = [
+                    p.x - min.x,
+                    max.x - p.x,
+                    p.y - min.y,
+                    max.y - p.y,
+                    p.z - min.z,
+                    max.z - p.z,
+                ];
                 let k = (0..6).min_by(|&a, &b| d[a].total_cmp(&d[b])).unwrap_or(0);
-                [Vec3::NEG_X, Vec3::X, Vec3::NEG_Y, Vec3::Y, Vec3::NEG_Z, Vec3::Z][k]
+                [
+                    Vec3::NEG_X,
+                    Vec3::X,
+                    Vec3::NEG_Y,
+                    Vec3::Y,
+                    Vec3::NEG_Z,
+                    Vec3::Z,
+                ][k]
             }
             Self::Sphere { centre, .. } => (p - centre).normalize_or_zero(),
         }
@@ -208,7 +222,15 @@ pub fn block(params: &BlockParams) -> Result<Scene, SceneError> {
         }
     }
     let max = Vec3::new(nx as f32, ny as f32, nz as f32) * s;
-    Ok(finish("block", positions, s, AnalyticShape::Box { min: Vec3::ZERO, max }))
+    Ok(finish(
+        "block",
+        positions,
+        s,
+        AnalyticShape::Box {
+            min: Vec3::ZERO,
+            max,
+        },
+    ))
 }
 
 /// A ball of radius `radius_in_spacings * spacing` centred at the origin, filled with
@@ -386,7 +408,10 @@ mod tests {
             ..SphereParams::default()
         };
         assert!(sphere(&bad).is_err());
-        assert!(matches!(build(SceneName::Block, Some(3)), Err(SceneError::NoFrames { .. })));
+        assert!(matches!(
+            build(SceneName::Block, Some(3)),
+            Err(SceneError::NoFrames { .. })
+        ));
     }
 
     #[test]

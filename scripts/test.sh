@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# The whole test suite: formatting, lints, docs, unit, integration and doc tests, examples built.
+# CI runs exactly this (.ci/run). Works on a fresh Debian machine with the Rust toolchain.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+# GPU tests run on Mesa's software Vulkan driver (lavapipe). Install it when missing; cargo cannot.
+if ! ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1; then
+  if command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
+    echo "== installing Mesa's software Vulkan driver (mesa-vulkan-drivers) for the GPU tests"
+    if ! (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mesa-vulkan-drivers >/dev/null); then
+      echo "warning: could not install mesa-vulkan-drivers; GPU tests will fail (FLUID_SURFELS_REQUIRE_GPU=1)" >&2
+    fi
+  else
+    echo "warning: lavapipe is missing and this shell cannot install it (needs root and apt-get)" >&2
+  fi
+fi
+# GPU tests fail instead of skipping when no adapter is found.
+export FLUID_SURFELS_REQUIRE_GPU=1
+# lavapipe warns without a runtime directory
+if [ -z "${XDG_RUNTIME_DIR:-}" ]; then
+  export XDG_RUNTIME_DIR="${TMPDIR:-/tmp}/fluid-surfels-xdg-$(id -u)"
+  mkdir -p "$XDG_RUNTIME_DIR" && chmod 700 "$XDG_RUNTIME_DIR"
+fi
+
+echo "== cargo fmt --check"
+cargo fmt --all -- --check
+echo "== cargo clippy (all targets, warnings are errors)"
+cargo clippy --locked --all-targets -- -D warnings
+echo "== cargo doc (warnings are errors)"
+RUSTDOCFLAGS="-D warnings" cargo doc --locked --no-deps
+echo "== cargo test (unit, integration, doc tests; examples and benches built)"
+cargo test --locked --all-targets
+cargo test --locked --doc
