@@ -48,7 +48,7 @@ fn main() {
     println!(
         "high threshold (x r) | block recall precision | sphere recall precision | lattice-sphere recall precision"
     );
-    for k in 0..=12 {
+    for k in 0..=20 {
         let high = 0.07 + 0.01 * k as f32;
         let params = SurfaceParams {
             high_threshold: high,
