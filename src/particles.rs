@@ -38,16 +38,50 @@ impl ScalarKind {
     }
 }
 
-/// A named per-particle scalar that the crate does not interpret (density, pressure, texture
-/// coordinates...), kept so that files round-trip without losing anything.
+/// A named per-particle attribute that the crate does not interpret (density, pressure, texture
+/// coordinates, a vorticity vector...), kept so that files round-trip without losing anything.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Attribute {
     /// Name as found in the file.
     pub name: String,
     /// Type as found in the file.
     pub kind: ScalarKind,
-    /// One value per particle.
+    /// Values per particle: 1 for a scalar, 3 for a vector.
+    pub components: usize,
+    /// `components` values per particle, particle after particle.
     pub values: Vec<f64>,
+}
+
+impl Attribute {
+    /// A scalar attribute.
+    #[must_use]
+    pub fn scalar(name: impl Into<String>, kind: ScalarKind, values: Vec<f64>) -> Self {
+        Self {
+            name: name.into(),
+            kind,
+            components: 1,
+            values,
+        }
+    }
+
+    /// The values of particle `i`.
+    #[must_use]
+    pub fn of(&self, i: usize) -> &[f64] {
+        &self.values[i * self.components..(i + 1) * self.components]
+    }
+
+    /// Smallest and largest value over all particles and components (NaN ignored), `None` when
+    /// empty.
+    #[must_use]
+    pub fn range(&self) -> Option<(f64, f64)> {
+        self.values
+            .iter()
+            .filter(|v| !v.is_nan())
+            .fold(None, |acc, &v| match acc {
+                None => Some((v, v)),
+                Some((lo, hi)) => Some((lo.min(v), hi.max(v))),
+            })
+    }
 }
 
 /// Particles of one simulation frame.
@@ -167,7 +201,11 @@ impl ParticleSet {
                 .map(|a| Attribute {
                     name: a.name.clone(),
                     kind: a.kind,
-                    values: indices.iter().map(|&i| a.values[i]).collect(),
+                    components: a.components,
+                    values: indices
+                        .iter()
+                        .flat_map(|&i| a.of(i).iter().copied())
+                        .collect(),
                 })
                 .collect(),
         }
@@ -191,7 +229,14 @@ impl ParticleSet {
         check("normal", self.normals.as_ref().map(Vec::len))?;
         check("colour", self.colours.as_ref().map(Vec::len))?;
         for a in &self.extra {
-            check(&a.name, Some(a.values.len()))?;
+            if a.components == 0 || a.values.len() % a.components != 0 {
+                return Err(ParticleSetError::LengthMismatch {
+                    attribute: a.name.clone(),
+                    expected: n * a.components.max(1),
+                    found: a.values.len(),
+                });
+            }
+            check(&a.name, Some(a.values.len() / a.components))?;
         }
         if let Some(index) = self.positions.iter().position(|p| !p.is_finite()) {
             return Err(ParticleSetError::NonFinitePosition {
@@ -251,15 +296,22 @@ mod tests {
     fn select_keeps_attributes_aligned() {
         let mut set = ParticleSet::from_positions(vec![Vec3::X, Vec3::Y, Vec3::Z]);
         set.ids = Some(vec![10, 11, 12]);
+        set.extra.push(Attribute::scalar(
+            "density",
+            ScalarKind::F32,
+            vec![1.0, 2.0, 3.0],
+        ));
         set.extra.push(Attribute {
-            name: "density".into(),
+            name: "vorticity".into(),
             kind: ScalarKind::F32,
-            values: vec![1.0, 2.0, 3.0],
+            components: 3,
+            values: (0..9).map(f64::from).collect(),
         });
         let sub = set.select(&[2, 0]);
         assert_eq!(sub.positions, vec![Vec3::Z, Vec3::X]);
         assert_eq!(sub.ids, Some(vec![12, 10]));
         assert_eq!(sub.extra[0].values, vec![3.0, 1.0]);
+        assert_eq!(sub.extra[1].values, vec![6.0, 7.0, 8.0, 0.0, 1.0, 2.0]);
         assert!(sub.validate().is_ok());
     }
 }

@@ -50,13 +50,13 @@ fn full_set() -> ParticleSet {
         (ScalarKind::F64, std::f64::consts::PI),
     ];
     for (k, (kind, extreme)) in kinds.into_iter().enumerate() {
-        set.extra.push(Attribute {
-            name: format!("extra_{k}"),
+        set.extra.push(Attribute::scalar(
+            format!("extra_{k}"),
             kind,
-            values: (0..n)
+            (0..n)
                 .map(|i| if i == 0 { extreme } else { (i % 3) as f64 })
                 .collect(),
-        });
+        ));
     }
     set
 }

@@ -364,6 +364,13 @@ fn int_max(k: ScalarKind) -> f64 {
 
 /// Parses a whole PLY file held in memory; `path` names it in errors.
 pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
+    if !looks_like(bytes) {
+        return Err(IoError::WrongFormat {
+            path: path.to_owned(),
+            expected: "PLY",
+            found: super::describe(bytes),
+        });
+    }
     let header = parse_header(bytes, path)?;
     let hdr_err =
         |expected: &str, found: &str| IoError::parse(path, Location::Line(2), expected, found);
@@ -541,11 +548,7 @@ fn assemble(vertex: &Element, mut columns: Vec<Vec<f64>>, n: usize) -> ParticleS
     .map(|i| columns[i].iter().map(|&x| x as u32).collect());
     let extra = (0..names.len())
         .filter(|&i| !taken[i])
-        .map(|i| Attribute {
-            name: names[i].to_owned(),
-            kind: kinds[i],
-            values: std::mem::take(&mut columns[i]),
-        })
+        .map(|i| Attribute::scalar(names[i], kinds[i], std::mem::take(&mut columns[i])))
         .collect();
     ParticleSet {
         positions,
@@ -603,7 +606,10 @@ pub fn to_bytes(set: &ParticleSet, encoding: Encoding) -> Vec<u8> {
         }
     }
     for a in &set.extra {
-        cols.push((a.name.clone(), a.kind, Box::new(move |i| a.values[i])));
+        for (c, name) in super::component_names(a).into_iter().enumerate() {
+            let k = a.components;
+            cols.push((name, a.kind, Box::new(move |i| a.values[i * k + c])));
+        }
     }
 
     let format = match encoding {
@@ -679,4 +685,9 @@ pub fn write(path: &Path, set: &ParticleSet, encoding: Encoding) -> Result<(), I
         source,
     })?;
     write_atomically(path, &to_bytes(set, encoding))
+}
+
+/// True when `bytes` start like a PLY file.
+pub(crate) fn looks_like(bytes: &[u8]) -> bool {
+    bytes.starts_with(b"ply")
 }

@@ -41,7 +41,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
             path,
             Location::Line(line),
             "text (x y z per line)",
-            "binary data; raw binary .xyz files are not supported yet",
+            "binary data; for raw little-endian f32 triplets (splashsurf's binary .xyz) pass --format xyz-raw",
         )
     })?;
     let mut header: Option<Vec<String>> = None;
@@ -169,11 +169,11 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
         set.ids = Some(columns[i].iter().map(|&v| v as u32).collect());
     }
     for (i, name) in names.iter().enumerate().filter(|(i, _)| !taken[*i]) {
-        set.extra.push(Attribute {
-            name: name.clone(),
-            kind: ScalarKind::F64,
-            values: std::mem::take(&mut columns[i]),
-        });
+        set.extra.push(Attribute::scalar(
+            name.clone(),
+            ScalarKind::F64,
+            std::mem::take(&mut columns[i]),
+        ));
     }
     Ok(set)
 }
@@ -204,7 +204,10 @@ pub fn to_string(set: &ParticleSet, delimiter: Delimiter) -> String {
         if set.ids.is_some() {
             names.push("id");
         }
-        names.extend(set.extra.iter().map(|a| a.name.as_str()));
+        let mut names: Vec<String> = names.into_iter().map(String::from).collect();
+        for a in &set.extra {
+            names.extend(super::component_names(a));
+        }
         out.push_str(&names.join(","));
         out.push('\n');
     }
@@ -225,7 +228,9 @@ pub fn to_string(set: &ParticleSet, delimiter: Delimiter) -> String {
                 let _ = write!(out, "{sep}{}", ids[i]);
             }
             for a in &set.extra {
-                let _ = write!(out, "{sep}{}", a.values[i]);
+                for v in a.of(i) {
+                    let _ = write!(out, "{sep}{v}");
+                }
             }
         }
         out.push('\n');
@@ -240,4 +245,36 @@ pub fn write(path: &Path, set: &ParticleSet, delimiter: Delimiter) -> Result<(),
         source,
     })?;
     write_atomically(path, to_string(set, delimiter).as_bytes())
+}
+
+/// Parses raw little-endian f32 triplets (splashsurf's binary `.xyz`); the length must be a
+/// multiple of 12 bytes.
+pub fn parse_raw(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
+    if bytes.len() % 12 != 0 {
+        return Err(IoError::parse(
+            path,
+            Location::Byte((bytes.len() / 12 * 12) as u64),
+            "a whole number of 12-byte x y z f32 triplets",
+            format!("{} bytes ({} left over)", bytes.len(), bytes.len() % 12),
+        ));
+    }
+    let coords: Vec<f64> = bytes
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
+        .collect();
+    Ok(ParticleSet::from_positions(super::positions_from(
+        path,
+        &coords,
+        |i| Location::Byte(12 * i as u64),
+    )?))
+}
+
+/// Serialises the positions as raw little-endian f32 triplets.
+#[must_use]
+pub fn to_raw(set: &ParticleSet) -> Vec<u8> {
+    set.positions
+        .iter()
+        .flat_map(|p| p.to_array())
+        .flat_map(f32::to_le_bytes)
+        .collect()
 }

@@ -1,0 +1,790 @@
+//! VTK XML particle files: `UnstructuredGrid` (`.vtu`) and `PolyData` (`.vtp`).
+//!
+//! Every `DataArray` encoding is read: `ascii`, inline `binary` (base64) and `appended` data,
+//! both `raw` (which splashsurf cannot read) and `base64`; little- or big-endian, `UInt32` or
+//! `UInt64` headers, uncompressed or `vtkZLibDataCompressor`. Points come from `<Points>`, named
+//! arrays from `<PointData>`; several pieces are concatenated. Cells are read past.
+//!
+//! Written files are unstructured grids of vertex cells with raw appended data (the compact and
+//! fast choice), or base64 or ascii inline data on request ([`Encoding`]).
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use base64::Engine as _;
+use base64::engine::general_purpose::STANDARD as BASE64;
+use quick_xml::events::{BytesStart, Event};
+
+use super::{
+    IoError, Location, RawAttribute, assemble, check_allocation, named_arrays, positions_from,
+    push_value, read_value,
+};
+use crate::particles::{ParticleSet, ScalarKind};
+
+/// How a written file stores its arrays.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Encoding {
+    /// Numbers as text.
+    Ascii,
+    /// Inline base64 binary.
+    Base64,
+    /// Raw binary after the XML (`<AppendedData encoding="raw">`).
+    RawAppended,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct ArrayType {
+    kind: ScalarKind,
+    size: usize,
+    /// 64-bit integers, read into f64
+    int64: Option<bool>,
+}
+
+fn array_type(name: &str) -> Option<ArrayType> {
+    let t = |kind: ScalarKind| ArrayType {
+        kind,
+        size: kind.size(),
+        int64: None,
+    };
+    Some(match name {
+        "Int8" | "Char" => t(ScalarKind::I8),
+        "UInt8" | "UChar" => t(ScalarKind::U8),
+        "Int16" => t(ScalarKind::I16),
+        "UInt16" => t(ScalarKind::U16),
+        "Int32" => t(ScalarKind::I32),
+        "UInt32" => t(ScalarKind::U32),
+        "Float32" => t(ScalarKind::F32),
+        "Float64" => t(ScalarKind::F64),
+        "Int64" => ArrayType {
+            kind: ScalarKind::F64,
+            size: 8,
+            int64: Some(true),
+        },
+        "UInt64" => ArrayType {
+            kind: ScalarKind::F64,
+            size: 8,
+            int64: Some(false),
+        },
+        _ => return None,
+    })
+}
+
+fn type_name(kind: ScalarKind) -> &'static str {
+    match kind {
+        ScalarKind::I8 => "Int8",
+        ScalarKind::U8 => "UInt8",
+        ScalarKind::I16 => "Int16",
+        ScalarKind::U16 => "UInt16",
+        ScalarKind::I32 => "Int32",
+        ScalarKind::U32 => "UInt32",
+        ScalarKind::F32 => "Float32",
+        ScalarKind::F64 => "Float64",
+    }
+}
+
+/// Where an array is: its section, attributes and inline text.
+#[derive(Debug)]
+struct ArrayRef {
+    section: Section,
+    name: String,
+    ty: ArrayType,
+    components: usize,
+    format: String,
+    offset: Option<usize>,
+    text: String,
+    /// byte offset of the `<DataArray` tag, for errors
+    at: u64,
+    piece: usize,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Section {
+    Points,
+    PointData,
+    Other,
+}
+
+struct FileInfo {
+    big_endian: bool,
+    header_size: usize,
+    compressed: bool,
+    pieces: Vec<u64>,
+}
+
+fn attr(e: &BytesStart<'_>, key: &str) -> Option<String> {
+    e.attributes()
+        .flatten()
+        .find(|a| a.key.as_ref() == key)
+        .map(|a| a.value.into_owned())
+}
+
+/// Parses a whole VTK XML file held in memory; `path` names it in errors.
+pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
+    let start = bytes
+        .iter()
+        .position(|b| !b.is_ascii_whitespace())
+        .unwrap_or(0);
+    if !(bytes[start..].starts_with(b"<?xml") || bytes[start..].starts_with(b"<VTKFile")) {
+        return Err(IoError::WrongFormat {
+            path: path.to_owned(),
+            expected: "VTK XML",
+            found: super::describe(bytes),
+        });
+    }
+    // Raw appended data is not XML: parse only the text before it, and slice the data by hand.
+    let appended_tag = find(bytes, b"<AppendedData");
+    let (xml, appended) = match appended_tag {
+        Some(tag) => {
+            let open_end = find(&bytes[tag..], b">")
+                .map(|k| tag + k + 1)
+                .ok_or_else(|| {
+                    IoError::parse(
+                        path,
+                        Location::Byte(tag as u64),
+                        "`>` closing <AppendedData",
+                        "end of file",
+                    )
+                })?;
+            let tag_text = String::from_utf8_lossy(&bytes[tag..open_end]);
+            let raw = tag_text.contains("\"raw\"");
+            let underscore = bytes[open_end..]
+                .iter()
+                .position(|&b| b == b'_')
+                .map(|k| open_end + k + 1)
+                .ok_or_else(|| {
+                    IoError::parse(
+                        path,
+                        Location::Byte(open_end as u64),
+                        "`_` starting the appended data",
+                        "end of file",
+                    )
+                })?;
+            let end = rfind(bytes, b"</AppendedData>")
+                .filter(|&e| e >= underscore)
+                .unwrap_or(bytes.len());
+            let data = &bytes[underscore..end];
+            (&bytes[..tag], Some((raw, data, underscore)))
+        }
+        None => (bytes, None),
+    };
+    let xml = std::str::from_utf8(xml).map_err(|e| {
+        IoError::parse(
+            path,
+            Location::Byte(e.valid_up_to() as u64),
+            "UTF-8 XML text",
+            "invalid bytes",
+        )
+    })?;
+    let (info, arrays) = scan(xml, path)?;
+
+    let points_total: u128 = info.pieces.iter().map(|&p| p as u128).sum();
+    check_allocation(path, Location::Byte(0), points_total * 48)?;
+    let mut coords: Vec<f64> = Vec::new();
+    let mut named: Vec<RawAttribute> = Vec::new();
+    let mut by_name: HashMap<String, usize> = HashMap::new();
+    let mut piece_of_coords = Vec::new();
+    for a in &arrays {
+        let n = info.pieces.get(a.piece).copied().unwrap_or(0) as usize;
+        match a.section {
+            Section::Points => {
+                if a.components != 3 {
+                    return Err(IoError::parse(
+                        path,
+                        Location::Byte(a.at),
+                        "3 components for Points",
+                        a.components.to_string(),
+                    ));
+                }
+                let values = decode(a, n * 3, &info, appended, path)?;
+                piece_of_coords.push(a.piece);
+                coords.extend(values);
+            }
+            Section::PointData => {
+                let values = decode(a, n * a.components, &info, appended, path)?;
+                match by_name.get(&a.name) {
+                    Some(&k) if named[k].components == a.components => {
+                        named[k].values.extend(values)
+                    }
+                    Some(_) => {
+                        return Err(IoError::parse(
+                            path,
+                            Location::Byte(a.at),
+                            format!("array `{}` with the same components in every piece", a.name),
+                            a.components.to_string(),
+                        ));
+                    }
+                    None => {
+                        by_name.insert(a.name.clone(), named.len());
+                        named.push(RawAttribute {
+                            name: a.name.clone(),
+                            kind: a.ty.kind,
+                            components: a.components,
+                            values,
+                        });
+                    }
+                }
+            }
+            Section::Other => {}
+        }
+    }
+    if piece_of_coords.len() != info.pieces.len() {
+        return Err(IoError::parse(
+            path,
+            Location::Byte(0),
+            format!(
+                "a <Points> array in each of the {} pieces",
+                info.pieces.len()
+            ),
+            format!("{}", piece_of_coords.len()),
+        ));
+    }
+    let total = (coords.len() / 3) as u128;
+    named.retain(|a| a.values.len() as u128 == total * a.components as u128);
+    let positions = positions_from(path, &coords, |_| Location::Byte(0))?;
+    Ok(assemble(positions, named))
+}
+
+fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
+    hay.windows(needle.len()).position(|w| w == needle)
+}
+
+fn rfind(hay: &[u8], needle: &[u8]) -> Option<usize> {
+    hay.windows(needle.len()).rposition(|w| w == needle)
+}
+
+/// Walks the XML, collecting the file's settings, the pieces' point counts and every array.
+fn scan(xml: &str, path: &Path) -> Result<(FileInfo, Vec<ArrayRef>), IoError> {
+    let mut reader = quick_xml::Reader::from_str(xml);
+    let mut info = FileInfo {
+        big_endian: false,
+        header_size: 4,
+        compressed: false,
+        pieces: Vec::new(),
+    };
+    let mut arrays: Vec<ArrayRef> = Vec::new();
+    let mut section = Section::Other;
+    let mut open_array: Option<ArrayRef> = None;
+    let mut saw_root = false;
+    loop {
+        let at = reader.buffer_position();
+        let event = reader.read_event().map_err(|e| {
+            IoError::parse(
+                path,
+                Location::Byte(reader.error_position()),
+                "well-formed XML",
+                e.to_string(),
+            )
+        })?;
+        let empty = matches!(event, Event::Empty(_));
+        match event {
+            Event::Start(e) | Event::Empty(e) => match e.name().as_ref() {
+                "VTKFile" => {
+                    saw_root = true;
+                    let kind = attr(&e, "type").unwrap_or_default();
+                    if kind != "UnstructuredGrid" && kind != "PolyData" {
+                        return Err(IoError::unsupported(
+                            path,
+                            Location::Byte(at),
+                            format!(
+                                "VTK XML type `{kind}` (particles come as UnstructuredGrid or PolyData)"
+                            ),
+                        ));
+                    }
+                    info.big_endian = attr(&e, "byte_order").as_deref() == Some("BigEndian");
+                    info.header_size = match attr(&e, "header_type").as_deref() {
+                        None | Some("UInt32") => 4,
+                        Some("UInt64") => 8,
+                        Some(other) => {
+                            return Err(IoError::unsupported(
+                                path,
+                                Location::Byte(at),
+                                format!("header type {other}"),
+                            ));
+                        }
+                    };
+                    match attr(&e, "compressor").as_deref() {
+                        None | Some("") => {}
+                        Some("vtkZLibDataCompressor") => info.compressed = true,
+                        Some(other) => {
+                            return Err(IoError::unsupported(
+                                path,
+                                Location::Byte(at),
+                                format!("the compressor {other} (only zlib)"),
+                            ));
+                        }
+                    }
+                }
+                "Piece" => {
+                    let n = attr(&e, "NumberOfPoints").unwrap_or_default();
+                    let n: u64 = n.parse().map_err(|_| {
+                        IoError::parse(path, Location::Byte(at), "NumberOfPoints=\"<count>\"", n)
+                    })?;
+                    info.pieces.push(n);
+                }
+                "Points" => section = Section::Points,
+                "PointData" => section = Section::PointData,
+                "CellData" | "Cells" | "Verts" | "Lines" | "Polys" | "Strips" | "FieldData" => {
+                    section = Section::Other
+                }
+                "DataArray" => {
+                    let ty_name = attr(&e, "type").unwrap_or_default();
+                    let ty = array_type(&ty_name).ok_or_else(|| {
+                        IoError::unsupported(
+                            path,
+                            Location::Byte(at),
+                            format!("DataArray type `{ty_name}`"),
+                        )
+                    })?;
+                    let components = attr(&e, "NumberOfComponents")
+                        .map_or(Ok(1), |c| c.parse::<usize>())
+                        .map_err(|_| {
+                            IoError::parse(path, Location::Byte(at), "a component count", "text")
+                        })?;
+                    if components == 0 || components > 64 {
+                        return Err(IoError::parse(
+                            path,
+                            Location::Byte(at),
+                            "1 to 64 components",
+                            components.to_string(),
+                        ));
+                    }
+                    let array = ArrayRef {
+                        section,
+                        name: attr(&e, "Name").unwrap_or_default(),
+                        ty,
+                        components,
+                        format: attr(&e, "format").unwrap_or_else(|| "ascii".into()),
+                        offset: attr(&e, "offset").and_then(|o| o.trim().parse().ok()),
+                        text: String::new(),
+                        at,
+                        piece: info.pieces.len().saturating_sub(1),
+                    };
+                    if empty {
+                        arrays.push(array);
+                    } else {
+                        open_array = Some(array);
+                    }
+                }
+                _ => {}
+            },
+            Event::Text(t) => {
+                if let Some(a) = open_array.as_mut() {
+                    a.text.push_str(&t);
+                }
+            }
+            Event::End(e) => match e.name().as_ref() {
+                "DataArray" => {
+                    if let Some(a) = open_array.take() {
+                        arrays.push(a);
+                    }
+                }
+                "Points" | "PointData" => section = Section::Other,
+                _ => {}
+            },
+            Event::Eof => break,
+            _ => {}
+        }
+    }
+    if !saw_root {
+        return Err(IoError::parse(
+            path,
+            Location::Byte(0),
+            "a <VTKFile> element",
+            "none",
+        ));
+    }
+    if info.pieces.is_empty() {
+        return Err(IoError::parse(
+            path,
+            Location::Byte(0),
+            "a <Piece> element",
+            "none",
+        ));
+    }
+    Ok((info, arrays))
+}
+
+/// Decodes `count` values of an array.
+fn decode(
+    a: &ArrayRef,
+    count: usize,
+    info: &FileInfo,
+    appended: Option<(bool, &[u8], usize)>,
+    path: &Path,
+) -> Result<Vec<f64>, IoError> {
+    let at = Location::Byte(a.at);
+    let bytes: Vec<u8> = match a.format.as_str() {
+        "ascii" => {
+            let mut out = Vec::with_capacity(count);
+            for token in a.text.split_ascii_whitespace() {
+                let v: f64 = token.parse().map_err(|_| {
+                    IoError::parse(path, at, format!("numbers in array `{}`", a.name), token)
+                })?;
+                out.push(if a.ty.kind == ScalarKind::F32 {
+                    v as f32 as f64
+                } else {
+                    v
+                });
+            }
+            if out.len() != count {
+                return Err(IoError::parse(
+                    path,
+                    at,
+                    format!("{count} values in array `{}`", a.name),
+                    out.len().to_string(),
+                ));
+            }
+            return Ok(out);
+        }
+        "binary" => {
+            let text: String = a.text.split_ascii_whitespace().collect();
+            block_from_base64(text.as_bytes(), info, path, at)?
+        }
+        "appended" => {
+            let Some((raw, data, data_start)) = appended else {
+                return Err(IoError::parse(
+                    path,
+                    at,
+                    "an <AppendedData> section",
+                    "none",
+                ));
+            };
+            let offset = a
+                .offset
+                .ok_or_else(|| IoError::parse(path, at, "an offset attribute", "none"))?;
+            let location = Location::Byte((data_start + offset) as u64);
+            let tail = data.get(offset..).ok_or_else(|| {
+                IoError::parse(
+                    path,
+                    location,
+                    format!("appended data at offset {offset}"),
+                    format!("{} bytes of appended data (truncated file)", data.len()),
+                )
+            })?;
+            if raw {
+                block_from_raw(tail, info, path, location)?
+            } else {
+                block_from_base64(tail, info, path, location)?
+            }
+        }
+        other => {
+            return Err(IoError::unsupported(
+                path,
+                at,
+                format!("DataArray format `{other}`"),
+            ));
+        }
+    };
+    let need = count * a.ty.size;
+    if bytes.len() < need {
+        return Err(IoError::parse(
+            path,
+            at,
+            format!("{need} bytes for {count} values of `{}`", a.name),
+            format!("{} bytes (wrong count or truncated file)", bytes.len()),
+        ));
+    }
+    let data = &bytes[..need];
+    Ok(match a.ty.int64 {
+        None => data
+            .chunks_exact(a.ty.size)
+            .map(|c| read_value(c, a.ty.kind, info.big_endian))
+            .collect(),
+        Some(signed) => data
+            .chunks_exact(8)
+            .map(|c| {
+                let mut b: [u8; 8] = c.try_into().expect("8 bytes");
+                if info.big_endian {
+                    b.reverse();
+                }
+                if signed {
+                    i64::from_le_bytes(b) as f64
+                } else {
+                    u64::from_le_bytes(b) as f64
+                }
+            })
+            .collect(),
+    })
+}
+
+fn header_value(b: &[u8], info: &FileInfo) -> u64 {
+    let mut v = [0u8; 8];
+    v[..info.header_size].copy_from_slice(&b[..info.header_size]);
+    if info.big_endian {
+        v[..info.header_size].reverse();
+    }
+    u64::from_le_bytes(v)
+}
+
+/// The uncompressed bytes of one raw appended block: `[header][data]`.
+fn block_from_raw(
+    tail: &[u8],
+    info: &FileInfo,
+    path: &Path,
+    at: Location,
+) -> Result<Vec<u8>, IoError> {
+    let h = info.header_size;
+    let short =
+        |what: &str| IoError::parse(path, at, what.to_owned(), "end of data (truncated file)");
+    if !info.compressed {
+        let size = header_value(tail.get(..h).ok_or_else(|| short("a block size"))?, info) as usize;
+        return tail
+            .get(h..h.saturating_add(size))
+            .map(<[u8]>::to_vec)
+            .ok_or_else(|| short("the block's data"));
+    }
+    let nblocks = header_value(tail.get(..h).ok_or_else(|| short("a block count"))?, info) as usize;
+    let header_len = nblocks
+        .checked_add(3)
+        .and_then(|k| k.checked_mul(h))
+        .ok_or_else(|| short("a compression header"))?;
+    let header = tail
+        .get(..header_len)
+        .ok_or_else(|| short("a compression header"))?;
+    inflate_blocks(header, &tail[header_len..], info, path, at)
+}
+
+/// The uncompressed bytes of one base64 block (inline or appended).
+fn block_from_base64(
+    text: &[u8],
+    info: &FileInfo,
+    path: &Path,
+    at: Location,
+) -> Result<Vec<u8>, IoError> {
+    let h = info.header_size;
+    let bad = |e: String| IoError::parse(path, at, "base64 data", e);
+    let b64_len = |bytes: usize| bytes.div_ceil(3) * 4;
+    // the end of this block's text: up to the next whitespace (appended data may hold more)
+    let text = &text[..text
+        .iter()
+        .position(u8::is_ascii_whitespace)
+        .unwrap_or(text.len())];
+    if !info.compressed {
+        // VTK writes header and data as one base64 stream; some writers encode them apart
+        if let Ok(all) = BASE64.decode(text) {
+            let size = header_value(
+                all.get(..h).ok_or_else(|| bad("no block size".into()))?,
+                info,
+            ) as usize;
+            return all
+                .get(h..h + size)
+                .map(<[u8]>::to_vec)
+                .ok_or_else(|| bad("fewer bytes than the block size".into()));
+        }
+        let head_chars = b64_len(h).min(text.len());
+        let head = BASE64
+            .decode(&text[..head_chars])
+            .map_err(|e| bad(e.to_string()))?;
+        let size = header_value(
+            head.get(..h).ok_or_else(|| bad("no block size".into()))?,
+            info,
+        ) as usize;
+        let data = BASE64
+            .decode(&text[head_chars..])
+            .map_err(|e| bad(e.to_string()))?;
+        return data
+            .get(..size)
+            .map(<[u8]>::to_vec)
+            .ok_or_else(|| bad("fewer bytes than the block size".into()));
+    }
+    // compressed: the header [nblocks, block size, last size, sizes...] is encoded on its own
+    let first = BASE64
+        .decode(
+            text.get(..b64_len(h))
+                .ok_or_else(|| bad("no header".into()))?,
+        )
+        .map_err(|e| bad(e.to_string()))?;
+    let nblocks = header_value(&first, info) as usize;
+    let header_bytes = nblocks
+        .checked_add(3)
+        .and_then(|k| k.checked_mul(h))
+        .ok_or_else(|| bad("a header too large".into()))?;
+    let head_chars = b64_len(header_bytes);
+    let header = BASE64
+        .decode(
+            text.get(..head_chars)
+                .ok_or_else(|| bad("a truncated header".into()))?,
+        )
+        .map_err(|e| bad(e.to_string()))?;
+    let data = BASE64
+        .decode(&text[head_chars..])
+        .map_err(|e| bad(e.to_string()))?;
+    inflate_blocks(&header, &data, info, path, at)
+}
+
+/// Inflates zlib blocks described by a VTK compression header.
+fn inflate_blocks(
+    header: &[u8],
+    data: &[u8],
+    info: &FileInfo,
+    path: &Path,
+    at: Location,
+) -> Result<Vec<u8>, IoError> {
+    use std::io::Read;
+    let h = info.header_size;
+    let value = |k: usize| {
+        header
+            .get(k * h..(k + 1) * h)
+            .map(|b| header_value(b, info))
+    };
+    let short = || IoError::parse(path, at, "a complete compression header", "a truncated one");
+    let nblocks = value(0).ok_or_else(short)? as usize;
+    let block = value(1).ok_or_else(short)?;
+    let last = value(2).ok_or_else(short)?;
+    let total = if nblocks == 0 {
+        0
+    } else {
+        block as u128 * (nblocks as u128 - 1)
+            + if last == 0 {
+                block as u128
+            } else {
+                last as u128
+            }
+    };
+    check_allocation(path, at, total)?;
+    let mut out = Vec::with_capacity(total as usize);
+    let mut pos = 0usize;
+    for k in 0..nblocks {
+        let size = value(3 + k).ok_or_else(short)? as usize;
+        let chunk = data.get(pos..pos + size).ok_or_else(|| {
+            IoError::parse(
+                path,
+                at,
+                format!("compressed block {k} of {size} bytes"),
+                "end of data (truncated file)",
+            )
+        })?;
+        pos += size;
+        let expect = if k + 1 == nblocks && last != 0 {
+            last
+        } else {
+            block
+        };
+        let before = out.len();
+        flate2::read::ZlibDecoder::new(chunk)
+            .take(expect)
+            .read_to_end(&mut out)
+            .map_err(|e| IoError::parse(path, at, "zlib data", e.to_string()))?;
+        if (out.len() - before) as u64 != expect {
+            return Err(IoError::parse(
+                path,
+                at,
+                format!("block {k} inflating to {expect} bytes"),
+                format!("{} bytes", out.len() - before),
+            ));
+        }
+    }
+    Ok(out)
+}
+
+/// Serialises a particle set as a VTK XML unstructured grid of vertex cells.
+#[must_use]
+pub fn to_bytes_with(set: &ParticleSet, encoding: Encoding) -> Vec<u8> {
+    let n = set.len();
+    let mut arrays: Vec<(String, ScalarKind, usize, Vec<f64>)> = Vec::new();
+    let section_split = 1; // arrays[0] is the points
+    arrays.push((
+        "Points".into(),
+        ScalarKind::F32,
+        3,
+        set.positions
+            .iter()
+            .flat_map(|p| p.to_array().map(f64::from))
+            .collect(),
+    ));
+    for a in named_arrays(set) {
+        arrays.push((a.name, a.kind, a.components, a.values));
+    }
+    let cells: [(&str, ScalarKind, Vec<f64>); 3] = [
+        (
+            "connectivity",
+            ScalarKind::I32,
+            (0..n).map(|i| i as f64).collect(),
+        ),
+        (
+            "offsets",
+            ScalarKind::I32,
+            (1..=n).map(|i| i as f64).collect(),
+        ),
+        ("types", ScalarKind::U8, vec![1.0; n]),
+    ];
+    let mut xml = String::new();
+    let mut appended: Vec<u8> = Vec::new();
+    let mut data_array =
+        |xml: &mut String, name: &str, kind: ScalarKind, components: usize, values: &[f64]| {
+            let head = format!(
+                "<DataArray type=\"{}\" Name=\"{}\" NumberOfComponents=\"{components}\"",
+                type_name(kind),
+                escape(name)
+            );
+            match encoding {
+                Encoding::Ascii => {
+                    xml.push_str(&head);
+                    xml.push_str(" format=\"ascii\">\n");
+                    for v in values {
+                        if kind == ScalarKind::F32 {
+                            xml.push_str(&format!("{} ", *v as f32));
+                        } else {
+                            xml.push_str(&format!("{v} "));
+                        }
+                    }
+                    xml.push_str("\n</DataArray>\n");
+                }
+                Encoding::Base64 | Encoding::RawAppended => {
+                    let mut block = Vec::with_capacity(4 + values.len() * kind.size());
+                    block.extend_from_slice(&((values.len() * kind.size()) as u32).to_le_bytes());
+                    for &v in values {
+                        push_value(&mut block, kind, v, false);
+                    }
+                    if encoding == Encoding::Base64 {
+                        xml.push_str(&head);
+                        xml.push_str(" format=\"binary\">\n");
+                        xml.push_str(&BASE64.encode(&block));
+                        xml.push_str("\n</DataArray>\n");
+                    } else {
+                        xml.push_str(&format!(
+                            "{head} format=\"appended\" offset=\"{}\"/>\n",
+                            appended.len()
+                        ));
+                        appended.extend_from_slice(&block);
+                    }
+                }
+            }
+        };
+    xml.push_str("<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"1.0\" byte_order=\"LittleEndian\" header_type=\"UInt32\">\n<UnstructuredGrid>\n");
+    xml.push_str(&format!(
+        "<Piece NumberOfPoints=\"{n}\" NumberOfCells=\"{n}\">\n<PointData>\n"
+    ));
+    for (name, kind, components, values) in &arrays[section_split..] {
+        data_array(&mut xml, name, *kind, *components, values);
+    }
+    xml.push_str("</PointData>\n<Points>\n");
+    let (name, kind, components, values) = &arrays[0];
+    data_array(&mut xml, name, *kind, *components, values);
+    xml.push_str("</Points>\n<Cells>\n");
+    for (name, kind, values) in &cells {
+        data_array(&mut xml, name, *kind, 1, values);
+    }
+    xml.push_str("</Cells>\n</Piece>\n</UnstructuredGrid>\n");
+    let mut out = xml.into_bytes();
+    if encoding == Encoding::RawAppended {
+        out.extend_from_slice(b"<AppendedData encoding=\"raw\">\n_");
+        out.extend_from_slice(&appended);
+        out.extend_from_slice(b"\n</AppendedData>\n");
+    }
+    out.extend_from_slice(b"</VTKFile>\n");
+    out
+}
+
+/// Serialises with raw appended data (see [`to_bytes_with`]).
+#[must_use]
+pub fn to_bytes(set: &ParticleSet) -> Vec<u8> {
+    to_bytes_with(set, Encoding::RawAppended)
+}
+
+fn escape(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('"', "&quot;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+}
