@@ -146,52 +146,38 @@ impl<'a> Cursor<'a> {
                 self.pos += 1;
             }
         } else {
+            // `self.line` counts the lines consumed; values start on the next one
+            let mut line = self.line + 1;
             while out.len() < count {
-                while self
-                    .bytes
-                    .get(self.pos)
-                    .is_some_and(u8::is_ascii_whitespace)
-                {
+                while self.bytes.get(self.pos).is_some_and(u8::is_ascii_whitespace) {
                     if self.bytes[self.pos] == b'\n' {
-                        self.line += 1;
+                        line += 1;
                     }
                     self.pos += 1;
                 }
                 let start = self.pos;
-                while self
-                    .bytes
-                    .get(self.pos)
-                    .is_some_and(|c| !c.is_ascii_whitespace())
-                {
+                while self.bytes.get(self.pos).is_some_and(|c| !c.is_ascii_whitespace()) {
                     self.pos += 1;
                 }
                 if start == self.pos {
                     return Err(IoError::parse(
                         self.path,
-                        Location::Line(self.line),
+                        Location::Line(line),
                         format!("{count} values of {what}"),
                         format!("end of file after {}", out.len()),
                     ));
                 }
                 let token = std::str::from_utf8(&self.bytes[start..self.pos]).unwrap_or("?");
                 let v: f64 = token.parse().map_err(|_| {
-                    IoError::parse(
-                        self.path,
-                        Location::Line(self.line),
-                        format!("a number ({what})"),
-                        token,
-                    )
+                    IoError::parse(self.path, Location::Line(line), format!("a number ({what})"), token)
                 })?;
-                out.push(if t.kind == ScalarKind::F32 {
-                    v as f32 as f64
-                } else {
-                    v
-                });
+                out.push(if t.kind == ScalarKind::F32 { v as f32 as f64 } else { v });
             }
-            // finish the current line
+            // finish the current line; the next `raw_line` consumes its end
             while self.bytes.get(self.pos).is_some_and(|&c| c != b'\n') {
                 self.pos += 1;
             }
+            self.line = line - 1;
         }
         Ok(out)
     }
@@ -284,8 +270,8 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                 let n: u64 = number(&c, words.next(), "a point count")?;
                 let t = data_type(&c, words.next())?;
                 let start = c.pos;
+                let line = c.line + 1;
                 let coords = c.values(3 * n, t, "point coordinates")?;
-                let line = c.line;
                 positions = Some(positions_from(path, &coords, |i| {
                     if binary {
                         Location::Byte((start + 3 * i * t.size) as u64)

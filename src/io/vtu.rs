@@ -161,7 +161,22 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                 })?;
             let end = rfind(bytes, b"</AppendedData>")
                 .filter(|&e| e >= underscore)
-                .unwrap_or(bytes.len());
+                .ok_or_else(|| {
+                    IoError::parse(
+                        path,
+                        Location::Byte(bytes.len() as u64),
+                        "`</AppendedData>` after the appended data",
+                        "end of file (truncated file)",
+                    )
+                })?;
+            if find(&bytes[end..], b"</VTKFile>").is_none() {
+                return Err(IoError::parse(
+                    path,
+                    Location::Byte(bytes.len() as u64),
+                    "`</VTKFile>` closing the file",
+                    "end of file (truncated file)",
+                ));
+            }
             let data = &bytes[underscore..end];
             (&bytes[..tag], Some((raw, data, underscore)))
         }
@@ -175,7 +190,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
             "invalid bytes",
         )
     })?;
-    let (info, arrays) = scan(xml, path)?;
+    let (info, arrays) = scan(xml, path, appended.is_some())?;
 
     let points_total: u128 = info.pieces.iter().map(|&p| p as u128).sum();
     check_allocation(path, Location::Byte(0), points_total * 48)?;
@@ -253,7 +268,7 @@ fn rfind(hay: &[u8], needle: &[u8]) -> Option<usize> {
 }
 
 /// Walks the XML, collecting the file's settings, the pieces' point counts and every array.
-fn scan(xml: &str, path: &Path) -> Result<(FileInfo, Vec<ArrayRef>), IoError> {
+fn scan(xml: &str, path: &Path, appended_follows: bool) -> Result<(FileInfo, Vec<ArrayRef>), IoError> {
     let mut reader = quick_xml::Reader::from_str(xml);
     let mut info = FileInfo {
         big_endian: false,
@@ -265,6 +280,7 @@ fn scan(xml: &str, path: &Path) -> Result<(FileInfo, Vec<ArrayRef>), IoError> {
     let mut section = Section::Other;
     let mut open_array: Option<ArrayRef> = None;
     let mut saw_root = false;
+    let mut closed_root = false;
     loop {
         let at = reader.buffer_position();
         let event = reader.read_event().map_err(|e| {
@@ -379,6 +395,7 @@ fn scan(xml: &str, path: &Path) -> Result<(FileInfo, Vec<ArrayRef>), IoError> {
                     }
                 }
                 "Points" | "PointData" => section = Section::Other,
+                "VTKFile" => closed_root = true,
                 _ => {}
             },
             Event::Eof => break,
@@ -392,6 +409,10 @@ fn scan(xml: &str, path: &Path) -> Result<(FileInfo, Vec<ArrayRef>), IoError> {
             "a <VTKFile> element",
             "none",
         ));
+    }
+    // with appended data the XML parsed here stops at <AppendedData>, whose end was checked
+    if !closed_root && !xml.contains("<AppendedData") && !xml.trim_end().is_empty() && !appended_follows {
+        return Err(IoError::parse(path, Location::Byte(xml.len() as u64), "`</VTKFile>` closing the file", "end of file (truncated file)"));
     }
     if info.pieces.is_empty() {
         return Err(IoError::parse(

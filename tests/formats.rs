@@ -1,0 +1,305 @@
+//! Every reader and writer: the shipped SPH files, round trips across formats, files checked by
+//! another tool's reader (vtkio), and malformed files of every kind.
+
+use std::path::{Path, PathBuf};
+
+use fluid_surfels::io::{self, Format, IoError, Location, vtu};
+use fluid_surfels::{Attribute, ParticleSet, ScalarKind};
+use glam::Vec3;
+
+fn data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data").join(name)
+}
+
+#[test]
+fn shipped_sph_files_read_with_counts_and_attributes() {
+    // SPlisHSPlasH: legacy VTK 4.1 BINARY, vertex cells, FIELD with id and velocity
+    let dam = io::read_particles(&data("double_dam_break_frame_26_4732_particles.vtk"), None).unwrap();
+    assert_eq!(dam.len(), 4732);
+    let ids = dam.ids.as_ref().expect("the id array becomes ids");
+    let mut sorted = ids.clone();
+    sorted.sort_unstable();
+    sorted.dedup();
+    assert_eq!(sorted.len(), 4732, "ids are unique");
+    let v = dam.velocities.as_ref().expect("the velocity array becomes velocities");
+    assert!(v.iter().all(|v| v.is_finite()) && v.iter().any(|v| v.length() > 0.1));
+    // the simulation's domain: a 3 x 1 x 3 box around the origin (spacing 0.05)
+    let (lo, hi) = dam.bounds().unwrap();
+    assert!(lo.cmpgt(Vec3::new(-1.6, -0.1, -1.6)).all() && hi.cmplt(Vec3::new(1.6, 1.1, 1.6)).all(), "{lo} {hi}");
+    // particles of radius 0.025: nearest neighbours a little closer than 2r in the flowing frame
+    let spacing = fluid_surfels::neighbours::estimate_spacing(&dam.positions).unwrap();
+    println!("double dam break: estimated spacing {spacing}");
+    assert!((0.03..0.06).contains(&spacing), "{spacing}");
+
+    // ParaView: legacy VTK 5.1 ASCII with OFFSETS/CONNECTIVITY, double points
+    let cube = io::read_particles(&data("cube_8_particles.vtk"), None).unwrap();
+    assert_eq!(cube.len(), 8);
+    assert_eq!(cube.positions[1], Vec3::new(0.5, 0.4995095, 1.0));
+
+    // isolated particles, legacy BINARY with empty POINT_DATA/CELL_DATA sections
+    let free = io::read_particles(&data("free_particles_125_particles.vtk"), None).unwrap();
+    assert_eq!(free.len(), 125);
+    assert!(free.extra.is_empty());
+
+    // partio's gzipped BGEO. The data README says it carries id, density and velocity; the file
+    // itself declares no point attribute (header: 24,389 points, 0 attributes, 16-byte records,
+    // which is also its decompressed size of 41 + 24,389 x 16 + 2 bytes), so only positions exist.
+    let bgeo = io::read_particles(&data("dam_break_frame_23_24389_particles.bgeo"), None).unwrap();
+    assert_eq!(bgeo.len(), 24_389);
+    assert!(bgeo.ids.is_none() && bgeo.velocities.is_none() && bgeo.extra.is_empty());
+    let (lo, hi) = bgeo.bounds().unwrap();
+    assert!(lo.y > 0.0 && hi.y < 4.0, "{lo} {hi}");
+
+    // PLY from Blender
+    assert_eq!(io::read_particles(&data("cube.ply"), None).unwrap().len(), 24);
+    assert_eq!(io::read_particles(&data("cube_normals.ply"), None).unwrap().len(), 24);
+}
+
+/// A set with every kind of attribute the generic formats carry.
+fn rich_set(n: usize) -> ParticleSet {
+    let positions: Vec<Vec3> = (0..n)
+        .map(|i| Vec3::new((i as f32 * 0.37).sin() * 1.5, i as f32 * 1e-3 + 0.1, -(i as f32).sqrt() / 7.0))
+        .collect();
+    let mut set = ParticleSet::from_positions(positions);
+    set.ids = Some((0..n as u32).map(|i| i * 7 + 3).collect());
+    set.velocities = Some((0..n).map(|i| Vec3::new(i as f32 * 0.1, -1.0 / (i as f32 + 1.0), 0.25)).collect());
+    set.masses = Some((0..n).map(|i| 1.0 + i as f32 * 1e-4).collect());
+    set.extra.push(Attribute::scalar("density", ScalarKind::F32, (0..n).map(|i| (1000.0 + i as f32 * 0.5) as f64).collect()));
+    set.extra.push(Attribute {
+        name: "vorticity".into(),
+        kind: ScalarKind::F32,
+        components: 3,
+        values: (0..3 * n).map(|k| ((k as f32) * 0.01).cos() as f64).collect(),
+    });
+    set.extra.push(Attribute::scalar("phase", ScalarKind::I32, (0..n).map(|i| (i % 4) as f64 - 1.0).collect()));
+    set
+}
+
+#[test]
+fn positions_agree_across_formats() {
+    let set = rich_set(300);
+    let dir = tempfile::tempdir().unwrap();
+    for format in Format::ALL {
+        let name = format!("p.{}", match format {
+            Format::XyzRaw => "bin",
+            Format::Bgeo => "bgeo",
+            f => f.name(),
+        });
+        let path = dir.path().join(name);
+        io::write_particles(&path, &set, Some(format)).unwrap();
+        let back = io::read_particles(&path, Some(format)).unwrap();
+        assert_eq!(back.len(), set.len(), "{format:?}");
+        // binary formats and the shortest-decimal text writers both give the exact f32 back
+        assert_eq!(back.positions, set.positions, "{format:?}: positions");
+        match format {
+            Format::Ply | Format::Vtk | Format::Vtu | Format::Bgeo => {
+                assert_eq!(back.ids, set.ids, "{format:?}: ids");
+                assert_eq!(back.velocities, set.velocities, "{format:?}: velocities");
+                assert_eq!(back.masses, set.masses, "{format:?}: masses");
+                if format == Format::Ply {
+                    // PLY holds scalars: the vector attribute comes back as three columns
+                    assert!(back.attribute("vorticity_y").is_some());
+                } else {
+                    assert_eq!(back.extra, set.extra, "{format:?}: extra attributes");
+                }
+            }
+            Format::Csv => {
+                assert_eq!(back.velocities, set.velocities);
+                assert_eq!(back.ids, set.ids);
+            }
+            Format::Xyz | Format::XyzRaw | Format::Json => {}
+        }
+    }
+    // VTU in each of its encodings
+    for encoding in [vtu::Encoding::Ascii, vtu::Encoding::Base64, vtu::Encoding::RawAppended] {
+        let bytes = vtu::to_bytes_with(&set, encoding);
+        let back = vtu::parse(&bytes, Path::new("m.vtu")).unwrap();
+        assert_eq!(back.positions, set.positions, "{encoding:?}");
+        assert_eq!(back.extra, set.extra, "{encoding:?}");
+        assert_eq!(back.ids, set.ids, "{encoding:?}");
+    }
+    // gzipped BGEO by extension
+    let gz = dir.path().join("p.bgeo.gz");
+    io::write_particles(&gz, &set, None).unwrap();
+    assert_eq!(&std::fs::read(&gz).unwrap()[..2], &[0x1f, 0x8b]);
+    assert_eq!(io::read_particles(&gz, None).unwrap().positions, set.positions);
+}
+
+#[test]
+fn written_vtk_files_open_in_vtkio() {
+    let set = rich_set(50);
+    let dir = tempfile::tempdir().unwrap();
+    let legacy = dir.path().join("p.vtk");
+    io::write_particles(&legacy, &set, None).unwrap();
+    let vtk = vtkio::Vtk::import(&legacy).unwrap_or_else(|e| panic!("vtkio rejects our legacy VTK: {e:?}"));
+    let text = format!("{vtk:?}");
+    assert!(text.contains("velocity") && text.contains("density"), "arrays missing in {}", &text[..text.len().min(400)]);
+    // vtkio parses inline base64 and ascii VTU (not raw appended data, which ParaView reads)
+    for encoding in [vtu::Encoding::Base64, vtu::Encoding::Ascii] {
+        let xml = dir.path().join("p.vtu");
+        std::fs::write(&xml, vtu::to_bytes_with(&set, encoding)).unwrap();
+        let vtk = vtkio::Vtk::import(&xml).unwrap_or_else(|e| panic!("vtkio rejects our {encoding:?} VTU: {e:?}"));
+        assert!(format!("{vtk:?}").contains("vorticity"), "{encoding:?}");
+    }
+}
+
+fn parse(format: Format, bytes: &[u8]) -> Result<ParticleSet, IoError> {
+    io::parse_bytes(format, bytes, Path::new("bad.file"))
+}
+
+#[test]
+fn every_reader_survives_truncation_at_every_percent() {
+    let set = rich_set(200);
+    for format in Format::ALL {
+        let bytes = io::to_bytes(format, &set, Path::new("x")).unwrap();
+        let mut errors = 0;
+        for pct in 1..100 {
+            let cut = bytes.len() * pct / 100;
+            match parse(format, &bytes[..cut]) {
+                Err(e) => {
+                    errors += 1;
+                    assert!(e.to_string().contains("bad.file"), "{format:?} at {pct} %: {e}");
+                }
+                // text formats cut at a line end are complete files of fewer particles
+                Ok(s) => assert!(
+                    matches!(format, Format::Xyz | Format::Csv) && s.len() < set.len()
+                        || format == Format::XyzRaw && s.len() == cut / 12,
+                    "{format:?} at {pct} % read {} particles without an error",
+                    s.len()
+                ),
+            }
+        }
+        println!("{format:?}: {errors} of 99 truncations gave an error");
+        if !matches!(format, Format::Xyz | Format::Csv | Format::XyzRaw) {
+            assert_eq!(errors, 99, "{format:?}");
+        }
+    }
+    // gzipped BGEO cut short
+    let mut gz = Vec::new();
+    {
+        use std::io::Write;
+        let mut e = flate2::write::GzEncoder::new(&mut gz, flate2::Compression::default());
+        e.write_all(&io::to_bytes(Format::Bgeo, &set, Path::new("x")).unwrap()).unwrap();
+        e.finish().unwrap();
+    }
+    for pct in 1..100 {
+        assert!(parse(Format::Bgeo, &gz[..gz.len() * pct / 100]).is_err(), "gz at {pct} %");
+    }
+}
+
+#[test]
+fn wrong_magic_is_named() {
+    let ply = io::to_bytes(Format::Ply, &rich_set(3), Path::new("x")).unwrap();
+    for format in [Format::Vtk, Format::Vtu, Format::Bgeo, Format::Json] {
+        let e = parse(format, &ply).unwrap_err();
+        assert!(matches!(e, IoError::WrongFormat { .. }), "{format:?}: {e}");
+        assert!(e.to_string().contains("PLY"), "{format:?}: {e}");
+    }
+    let vtk = std::fs::read(data("cube_8_particles.vtk")).unwrap();
+    let e = parse(Format::Ply, &vtk).unwrap_err();
+    assert!(e.to_string().contains("legacy VTK"), "{e}");
+    let bgeo = std::fs::read(data("dam_break_frame_23_24389_particles.bgeo")).unwrap();
+    let e = parse(Format::Vtk, &bgeo).unwrap_err();
+    assert!(e.to_string().contains("gzip"), "{e}");
+    // a text .xyz that is really binary says how to read raw triplets
+    let e = parse(Format::Xyz, &io::to_bytes(Format::XyzRaw, &rich_set(5), Path::new("x")).unwrap()).unwrap_err();
+    assert!(e.to_string().contains("xyz-raw"), "{e}");
+}
+
+#[test]
+fn unsupported_versions_and_types() {
+    let e = parse(Format::Vtk, b"# vtk DataFile Version 9.0\nt\nASCII\nDATASET POLYDATA\n").unwrap_err();
+    assert!(matches!(e, IoError::Unsupported { location: Location::Line(1), .. }), "{e}");
+    let e = parse(Format::Vtk, b"# vtk DataFile Version 3.0\nt\nASCII\nDATASET STRUCTURED_POINTS\n").unwrap_err();
+    assert!(matches!(e, IoError::Unsupported { location: Location::Line(4), .. }), "{e}");
+    let mut bgeo = io::to_bytes(Format::Bgeo, &rich_set(3), Path::new("x")).unwrap();
+    bgeo[8] = 4; // version 4
+    let e = parse(Format::Bgeo, &bgeo).unwrap_err();
+    assert!(e.to_string().contains("version"), "{e}");
+    let e = parse(Format::Bgeo, &[0x7f, b'N', b'S', b'J', 0, 0]).unwrap_err();
+    assert!(e.to_string().contains("new-style"), "{e}");
+    let e = parse(Format::Vtu, b"<?xml version=\"1.0\"?><VTKFile type=\"ImageData\"></VTKFile>").unwrap_err();
+    assert!(matches!(e, IoError::Unsupported { .. }), "{e}");
+    let e = parse(Format::Vtu, b"<VTKFile type=\"UnstructuredGrid\" compressor=\"vtkLZ4DataCompressor\"></VTKFile>").unwrap_err();
+    assert!(e.to_string().contains("LZ4"), "{e}");
+}
+
+#[test]
+fn wrong_counts_are_caught_where_they_are() {
+    // VTK: POINTS says 3, two given
+    let text = b"# vtk DataFile Version 3.0\nt\nASCII\nDATASET POLYDATA\nPOINTS 3 float\n0 0 0 1 1 1\n";
+    let e = parse(Format::Vtk, text).unwrap_err();
+    assert!(e.location().is_some(), "{e}");
+    // VTK: POINT_DATA count differs from POINTS
+    let text = b"# vtk DataFile Version 3.0\nt\nASCII\nDATASET POLYDATA\nPOINTS 2 float\n0 0 0 1 1 1\nPOINT_DATA 3\n";
+    let e = parse(Format::Vtk, text).unwrap_err();
+    assert!(matches!(e, IoError::Parse { location: Location::Line(7), .. }), "{e}");
+    // VTK: non-numeric value with its line
+    let text = b"# vtk DataFile Version 3.0\nt\nASCII\nDATASET POLYDATA\nPOINTS 2 float\n0 0 0\n1 x 1\n";
+    let e = parse(Format::Vtk, text).unwrap_err();
+    assert!(matches!(e, IoError::Parse { location: Location::Line(7), .. }), "{e}");
+    // VTK: NaN coordinates
+    let text = b"# vtk DataFile Version 3.0\nt\nASCII\nDATASET POLYDATA\nPOINTS 2 float\n0 0 0\n1 nan 1\n";
+    assert!(matches!(parse(Format::Vtk, text), Err(IoError::NonFinite { index: 1, .. })));
+    // BGEO: point count larger than the data
+    let mut bgeo = io::to_bytes(Format::Bgeo, &rich_set(10), Path::new("x")).unwrap();
+    bgeo[9..13].copy_from_slice(&20i32.to_be_bytes());
+    let e = parse(Format::Bgeo, &bgeo).unwrap_err();
+    assert!(e.to_string().contains("wrong count"), "{e}");
+    // VTU: fewer ascii values than NumberOfPoints requires
+    let bytes = vtu::to_bytes_with(&rich_set(4), vtu::Encoding::Ascii);
+    let text = String::from_utf8(bytes).unwrap().replace("NumberOfPoints=\"4\"", "NumberOfPoints=\"5\"");
+    let e = parse(Format::Vtu, text.as_bytes()).unwrap_err();
+    assert!(matches!(e, IoError::Parse { location: Location::Byte(_), .. }), "{e}");
+    // JSON: not triplets
+    let e = parse(Format::Json, b"[[0, 0, 0], [1, 2]]").unwrap_err();
+    assert!(matches!(e, IoError::Parse { location: Location::Line(1), .. }), "{e}");
+    // raw xyz: not a multiple of 12 bytes
+    let e = parse(Format::XyzRaw, &[0u8; 25]).unwrap_err();
+    assert!(matches!(e, IoError::Parse { location: Location::Byte(24), .. }), "{e}");
+}
+
+#[test]
+fn counts_beyond_memory_and_gzip_bombs_are_refused_without_allocating() {
+    // headers declaring ~2^31 x 3 values: more than the file, or more than the machine
+    let e = parse(Format::Vtk, b"# vtk DataFile Version 3.0\nt\nBINARY\nDATASET POLYDATA\nPOINTS 4000000000 float\n\x00\x00").unwrap_err();
+    assert!(e.to_string().contains("wrong count or truncated"), "{e}");
+    let mut bgeo = io::to_bytes(Format::Bgeo, &rich_set(2), Path::new("x")).unwrap();
+    bgeo[9..13].copy_from_slice(&i32::MAX.to_be_bytes());
+    assert!(parse(Format::Bgeo, &bgeo).is_err());
+    // gzipped BGEO whose header says 2^31 points: refused from the header (memory or data)
+    let mut gz = Vec::new();
+    {
+        use std::io::Write;
+        let mut e = flate2::write::GzEncoder::new(&mut gz, flate2::Compression::default());
+        e.write_all(&bgeo).unwrap();
+        e.finish().unwrap();
+    }
+    let e = parse(Format::Bgeo, &gz).unwrap_err();
+    assert!(matches!(e, IoError::TooLarge { .. } | IoError::Parse { .. }), "{e}");
+    // a gzip bomb: a 2-point header followed by 2 GiB of zeros (about 2 MiB compressed)
+    let small = io::to_bytes(Format::Bgeo, &rich_set(2), Path::new("x")).unwrap();
+    let mut bomb = Vec::new();
+    {
+        use std::io::Write;
+        let mut e = flate2::write::GzEncoder::new(&mut bomb, flate2::Compression::best());
+        e.write_all(&small).unwrap();
+        let zeros = vec![0u8; 1 << 20];
+        for _ in 0..2048 {
+            e.write_all(&zeros).unwrap();
+        }
+        e.finish().unwrap();
+    }
+    assert!(bomb.len() < 4 << 20, "{}", bomb.len());
+    let e = parse(Format::Bgeo, &bomb).unwrap_err();
+    assert!(e.to_string().contains("gzip bomb"), "{e}");
+    // VTU compression header claiming terabytes
+    let xml = b"<VTKFile type=\"UnstructuredGrid\" compressor=\"vtkZLibDataCompressor\" header_type=\"UInt64\"><UnstructuredGrid><Piece NumberOfPoints=\"1\"><Points><DataArray type=\"Float32\" NumberOfComponents=\"3\" format=\"appended\" offset=\"0\"/></Points></Piece></UnstructuredGrid><AppendedData encoding=\"raw\">_";
+    let mut v = xml.to_vec();
+    for value in [1u64, 1 << 40, 1 << 40, 10] {
+        v.extend_from_slice(&value.to_le_bytes());
+    }
+    v.extend_from_slice(b"</AppendedData></VTKFile>");
+    let e = parse(Format::Vtu, &v).unwrap_err();
+    assert!(matches!(e, IoError::TooLarge { .. } | IoError::Parse { .. }), "{e}");
+}
