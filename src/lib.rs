@@ -7,9 +7,10 @@
 //!    (Solenthaler et al. 2007, §3.1), on top of [`neighbours`] (fixed-radius neighbour search).
 //! 2. Upsampling, 3. density grid, 4. surfel splatting and 5. optics follow in later releases.
 //!
-//! Supporting modules: [`particles`] (the [`ParticleSet`] every stage reads), [`io`] (PLY and
-//! XYZ/CSV readers and writers), [`scenes`] (deterministic test scenes and a small simulator) and
-//! [`preview`] (PNG pictures of particle sets).
+//! Supporting modules: [`particles`] (the [`ParticleSet`] every stage reads), [`io`] (readers and
+//! writers for PLY, legacy VTK, VTU, BGEO, XYZ, CSV and JSON), [`sequence`] (numbered frame
+//! sequences), [`scenes`] (deterministic test scenes and a small simulator) and [`preview`] (PNG
+//! pictures of particle sets).
 //!
 //! ```
 //! use fluid_surfels::{scenes, neighbours::{Backend, Neighbourhoods}, surface::{SurfaceDetector, SurfaceParams}};
@@ -30,6 +31,7 @@ pub mod neighbours;
 pub mod particles;
 pub mod preview;
 pub mod scenes;
+pub mod sequence;
 pub mod surface;
 
 pub use particles::{Attribute, ParticleSet, ScalarKind};
@@ -56,4 +58,13 @@ pub enum Error {
     /// Drawing a picture.
     #[error(transparent)]
     Preview(#[from] preview::PreviewError),
+    /// A command-line or API argument that cannot be used as given.
+    #[error("invalid argument `{argument}`: {reason}")]
+    InvalidArgument {
+        argument: &'static str,
+        reason: String,
+    },
+    /// Frame patterns and ranges.
+    #[error(transparent)]
+    Sequence(#[from] sequence::SequenceError),
 }

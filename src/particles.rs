@@ -229,7 +229,7 @@ impl ParticleSet {
         check("normal", self.normals.as_ref().map(Vec::len))?;
         check("colour", self.colours.as_ref().map(Vec::len))?;
         for a in &self.extra {
-            if a.components == 0 || a.values.len() % a.components != 0 {
+            if a.components == 0 || !a.values.len().is_multiple_of(a.components) {
                 return Err(ParticleSetError::LengthMismatch {
                     attribute: a.name.clone(),
                     expected: n * a.components.max(1),

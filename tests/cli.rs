@@ -172,3 +172,174 @@ fn bench_detect_reports_the_reference_ratio() {
     assert_eq!(v["classes_agree_with_reference"], true);
     assert!(v["particles"].as_u64().unwrap() >= 5000);
 }
+
+/// Twenty frames of 150,000 particles each (jittered blocks that grow frame by frame).
+fn write_sequence(dir: &Path) {
+    for f in 0..20u64 {
+        let scene = fluid_surfels::scenes::block(&fluid_surfels::scenes::BlockParams {
+            counts: [60, 50, 50],
+            seed: f,
+            ..Default::default()
+        })
+        .unwrap();
+        let path = dir.join(format!("ParticleData_Fluid_{f}.ply"));
+        fluid_surfels::io::write_particles(&path, &scene.particles, None).unwrap();
+    }
+}
+
+fn outputs(dir: &Path) -> Vec<(String, std::time::SystemTime)> {
+    let mut v: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with("surface_"))
+        .map(|e| {
+            (
+                e.file_name().to_string_lossy().into_owned(),
+                e.metadata().unwrap().modified().unwrap(),
+            )
+        })
+        .collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn sequences_run_in_parallel_and_resume_after_a_kill() {
+    let dir = tempfile::tempdir().unwrap();
+    write_sequence(dir.path());
+    let input = format!("{}/ParticleData_Fluid_{{}}.ply", dir.path().display());
+    let out_dir = dir.path().join("out");
+    std::fs::create_dir(&out_dir).unwrap();
+    let out = format!("{}/surface_{{:04}}.ply", out_dir.display());
+    let args = |extra: &[&str]| {
+        let mut c = bin();
+        c.args([
+            "detect", "--input", &input, "--out", &out, "--frames", "0..20", "--jobs", "2",
+            "--radius", "0.1",
+        ]);
+        c.args(extra);
+        c
+    };
+    // start, and kill it once a few frames are written
+    let mut child = args(&[])
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    while outputs(&out_dir).len() < 4 && std::time::Instant::now() < deadline {
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let done = outputs(&out_dir);
+    println!("killed after {} of 20 frames", done.len());
+    assert!(
+        done.len() >= 4 && done.len() < 20,
+        "{} outputs when killed",
+        done.len()
+    );
+    // every output present is complete (written atomically)
+    for (name, _) in &done {
+        let s = fluid_surfels::io::read_particles(&out_dir.join(name), None).unwrap();
+        assert!(s.len() > 10_000, "{name}: {}", s.len());
+    }
+    // without --skip-existing or --force, nothing is overwritten
+    let refused = args(&[]).output().unwrap();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("--skip-existing"));
+    assert_eq!(outputs(&out_dir), done);
+    // resume: the rest is done, the frames already written are left untouched
+    std::thread::sleep(std::time::Duration::from_millis(20));
+    let resumed = args(&["--skip-existing", "--json"]).output().unwrap();
+    assert!(
+        resumed.status.success(),
+        "{}",
+        String::from_utf8_lossy(&resumed.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&resumed.stdout).unwrap();
+    assert_eq!(v["skipped"].as_array().unwrap().len(), done.len());
+    assert_eq!(v["processed"].as_u64().unwrap() as usize, 20 - done.len());
+    let after = outputs(&out_dir);
+    assert_eq!(after.len(), 20);
+    for (name, time) in &done {
+        let now = after.iter().find(|(n, _)| n == name).unwrap();
+        assert_eq!(now.1, *time, "{name} was rewritten");
+    }
+    assert_eq!(after[0].0, "surface_0000.ply");
+    assert_eq!(after[19].0, "surface_0019.ply");
+    // every frame of the blocks has its outer layer as surface: 60x50x50 - 58x48x48
+    let last = fluid_surfels::io::read_particles(&out_dir.join("surface_0019.ply"), None).unwrap();
+    assert_eq!(last.len(), 60 * 50 * 50 - 58 * 48 * 48);
+}
+
+#[test]
+fn info_describes_a_file() {
+    let out = bin()
+        .args([
+            "info",
+            &data("double_dam_break_frame_26_4732_particles.vtk"),
+            "--json",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["format"], "vtk");
+    assert_eq!(v["particles"], 4732);
+    let names: Vec<&str> = v["attributes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["id", "velocity"]);
+    assert_eq!(v["attributes"][0]["max"], 4731.0);
+    assert!(v["spacing_estimate"].as_f64().unwrap() > 0.03);
+    let text = bin()
+        .args(["info", &data("cube_normals.ply")])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&text.stdout);
+    assert!(
+        text.contains("particles  24") && text.contains("normal"),
+        "{text}"
+    );
+    // a file that is not what its extension says
+    let dir = tempfile::tempdir().unwrap();
+    let fake = dir.path().join("fake.vtk");
+    std::fs::copy(data("cube.ply"), &fake).unwrap();
+    let out = bin().arg("info").arg(&fake).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("found a PLY file"));
+}
+
+#[test]
+fn bench_io_reports_every_format() {
+    let out = bin()
+        .args([
+            "bench",
+            "io",
+            "--particles",
+            "2000",
+            "--repeat",
+            "1",
+            "--json",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let formats = v["formats"].as_array().unwrap();
+    assert_eq!(formats.len(), 8);
+    for f in formats {
+        assert!(f["particles_per_second"].as_f64().unwrap() > 0.0, "{f}");
+    }
+}

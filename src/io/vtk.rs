@@ -149,14 +149,22 @@ impl<'a> Cursor<'a> {
             // `self.line` counts the lines consumed; values start on the next one
             let mut line = self.line + 1;
             while out.len() < count {
-                while self.bytes.get(self.pos).is_some_and(u8::is_ascii_whitespace) {
+                while self
+                    .bytes
+                    .get(self.pos)
+                    .is_some_and(u8::is_ascii_whitespace)
+                {
                     if self.bytes[self.pos] == b'\n' {
                         line += 1;
                     }
                     self.pos += 1;
                 }
                 let start = self.pos;
-                while self.bytes.get(self.pos).is_some_and(|c| !c.is_ascii_whitespace()) {
+                while self
+                    .bytes
+                    .get(self.pos)
+                    .is_some_and(|c| !c.is_ascii_whitespace())
+                {
                     self.pos += 1;
                 }
                 if start == self.pos {
@@ -169,9 +177,18 @@ impl<'a> Cursor<'a> {
                 }
                 let token = std::str::from_utf8(&self.bytes[start..self.pos]).unwrap_or("?");
                 let v: f64 = token.parse().map_err(|_| {
-                    IoError::parse(self.path, Location::Line(line), format!("a number ({what})"), token)
+                    IoError::parse(
+                        self.path,
+                        Location::Line(line),
+                        format!("a number ({what})"),
+                        token,
+                    )
                 })?;
-                out.push(if t.kind == ScalarKind::F32 { v as f32 as f64 } else { v });
+                out.push(if t.kind == ScalarKind::F32 {
+                    v as f32 as f64
+                } else {
+                    v
+                });
             }
             // finish the current line; the next `raw_line` consumes its end
             while self.bytes.get(self.pos).is_some_and(|&c| c != b'\n') {

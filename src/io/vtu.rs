@@ -268,7 +268,11 @@ fn rfind(hay: &[u8], needle: &[u8]) -> Option<usize> {
 }
 
 /// Walks the XML, collecting the file's settings, the pieces' point counts and every array.
-fn scan(xml: &str, path: &Path, appended_follows: bool) -> Result<(FileInfo, Vec<ArrayRef>), IoError> {
+fn scan(
+    xml: &str,
+    path: &Path,
+    appended_follows: bool,
+) -> Result<(FileInfo, Vec<ArrayRef>), IoError> {
     let mut reader = quick_xml::Reader::from_str(xml);
     let mut info = FileInfo {
         big_endian: false,
@@ -411,8 +415,17 @@ fn scan(xml: &str, path: &Path, appended_follows: bool) -> Result<(FileInfo, Vec
         ));
     }
     // with appended data the XML parsed here stops at <AppendedData>, whose end was checked
-    if !closed_root && !xml.contains("<AppendedData") && !xml.trim_end().is_empty() && !appended_follows {
-        return Err(IoError::parse(path, Location::Byte(xml.len() as u64), "`</VTKFile>` closing the file", "end of file (truncated file)"));
+    if !closed_root
+        && !xml.contains("<AppendedData")
+        && !xml.trim_end().is_empty()
+        && !appended_follows
+    {
+        return Err(IoError::parse(
+            path,
+            Location::Byte(xml.len() as u64),
+            "`</VTKFile>` closing the file",
+            "end of file (truncated file)",
+        ));
     }
     if info.pieces.is_empty() {
         return Err(IoError::parse(

@@ -250,7 +250,7 @@ pub fn write(path: &Path, set: &ParticleSet, delimiter: Delimiter) -> Result<(),
 /// Parses raw little-endian f32 triplets (splashsurf's binary `.xyz`); the length must be a
 /// multiple of 12 bytes.
 pub fn parse_raw(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
-    if bytes.len() % 12 != 0 {
+    if !bytes.len().is_multiple_of(12) {
         return Err(IoError::parse(
             path,
             Location::Byte((bytes.len() / 12 * 12) as u64),

@@ -1,0 +1,278 @@
+//! Benchmarks users can run: `bench detect` and `bench io`.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use fluid_surfels::io::{self, Format};
+use fluid_surfels::neighbours::{self, Backend, Neighbourhoods};
+use fluid_surfels::scenes;
+use fluid_surfels::surface::{self, SurfaceDetector, SurfaceParams};
+use fluid_surfels::{Attribute, Error, ScalarKind};
+use serde::Serialize;
+
+use super::ms;
+
+/// Arguments of `bench detect`.
+#[derive(clap::Args)]
+pub struct BenchDetectArgs {
+    /// Number of particles.
+    #[arg(long, default_value_t = 1_000_000)]
+    pub particles: usize,
+    /// Timed repetitions of the parallel path (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+pub struct BenchDetectReport {
+    particles: usize,
+    threads: usize,
+    radius: f32,
+    mean_neighbours: f32,
+    surface_particles: usize,
+    neighbours_grid_ms: f64,
+    neighbours_kdtree_ms: f64,
+    detect_ms: f64,
+    total_ms: f64,
+    particles_per_second: f64,
+    reference_neighbours_ms: f64,
+    reference_detect_ms: f64,
+    reference_total_ms: f64,
+    reference_particles_per_second: f64,
+    speedup: f64,
+    classes_agree_with_reference: bool,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+pub fn bench_detect(args: &BenchDetectArgs) -> Result<(), Error> {
+    let scene = scenes::block(&scenes::BlockParams::with_particles(args.particles))?;
+    let particles = &scene.particles;
+    let r = scene.support_radius;
+    let n = particles.len();
+    let repeat = args.repeat.max(1);
+    let params = SurfaceParams::default();
+    if !args.json {
+        println!(
+            "bench detect: jittered block of {n} particles, radius {r} (2 x spacing), {} threads",
+            rayon::current_num_threads()
+        );
+    }
+    let mut grid_ms = Vec::new();
+    let mut kd_ms = Vec::new();
+    let mut det_ms = Vec::new();
+    let mut last = None;
+    for _ in 0..repeat {
+        let t = Instant::now();
+        let nb = Neighbourhoods::build(&particles.positions, r, Backend::CellGrid)?;
+        grid_ms.push(ms(t));
+        let t = Instant::now();
+        let kd = Neighbourhoods::build(&particles.positions, r, Backend::KdTree)?;
+        kd_ms.push(ms(t));
+        drop(kd);
+        let t = Instant::now();
+        let surface = SurfaceDetector::new(params)?.detect(particles, &nb)?;
+        det_ms.push(ms(t));
+        last = Some((nb, surface));
+    }
+    let (nb, surface) = last.expect("at least one repetition");
+    let (grid, kd, det) = (median(grid_ms), median(kd_ms), median(det_ms));
+    let total = grid + det;
+
+    let t = Instant::now();
+    let lists = neighbours::reference_neighbours(&particles.positions, r);
+    let ref_nb = ms(t);
+    let t = Instant::now();
+    let (ref_classes, _) = surface::detect_reference(particles, &lists, r, &params);
+    let ref_det = ms(t);
+    let ref_total = ref_nb + ref_det;
+    let agree = ref_classes == surface.classes;
+
+    let report = BenchDetectReport {
+        particles: n,
+        threads: rayon::current_num_threads(),
+        radius: r,
+        mean_neighbours: nb.mean_count(),
+        surface_particles: surface.counts().surface,
+        neighbours_grid_ms: grid,
+        neighbours_kdtree_ms: kd,
+        detect_ms: det,
+        total_ms: total,
+        particles_per_second: n as f64 / (total / 1e3),
+        reference_neighbours_ms: ref_nb,
+        reference_detect_ms: ref_det,
+        reference_total_ms: ref_total,
+        reference_particles_per_second: n as f64 / (ref_total / 1e3),
+        speedup: ref_total / total,
+        classes_agree_with_reference: agree,
+    };
+    if args.json {
+        println!(
+            "{}",
+            serde_json::to_string(&report).expect("the report serialises")
+        );
+    } else {
+        println!(
+            "  mean neighbours {:.1}, surface particles {}",
+            report.mean_neighbours, report.surface_particles
+        );
+        println!("  phase                          ms      particles/s");
+        let row =
+            |name: &str, v: f64| println!("  {name:<28} {v:>8.1}  {:>12.0}", n as f64 / (v / 1e3));
+        row("neighbours (cell grid)", grid);
+        row("neighbours (kiddo k-d tree)", kd);
+        row("detection + normals", det);
+        row("total (grid + detection)", total);
+        row("reference neighbours", ref_nb);
+        row("reference detection", ref_det);
+        row("reference total", ref_total);
+        println!(
+            "  speedup over the single-threaded reference: {:.2}x (classes identical: {agree})",
+            report.speedup
+        );
+        println!("  (parallel figures are the median of {repeat} runs; the reference runs once)");
+    }
+    Ok(())
+}
+
+/// Arguments of `bench io`.
+#[derive(clap::Args)]
+pub struct BenchIoArgs {
+    /// Number of particles in the files written and read.
+    #[arg(long, default_value_t = 1_000_000)]
+    pub particles: usize,
+    /// Timed reads per format (the fastest is reported).
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
+    /// Formats to measure (default: all).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub formats: Vec<Format>,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct IoRow {
+    format: &'static str,
+    file: String,
+    bytes: u64,
+    write_ms: f64,
+    read_ms: f64,
+    particles_per_second: f64,
+}
+
+#[derive(Serialize)]
+struct IoReport {
+    particles: usize,
+    attributes: Vec<&'static str>,
+    formats: Vec<IoRow>,
+}
+
+/// Writes a jittered block with ids, velocities and a density in every format, then times
+/// reading each back.
+pub fn bench_io(args: &BenchIoArgs) -> Result<(), Error> {
+    let mut set = scenes::block(&scenes::BlockParams::with_particles(args.particles))?.particles;
+    let n = set.len();
+    set.velocities = Some(
+        set.positions
+            .iter()
+            .map(|p| glam::Vec3::new(p.y, -p.x, 0.1))
+            .collect(),
+    );
+    set.extra.push(Attribute::scalar(
+        "density",
+        ScalarKind::F32,
+        (0..n).map(|i| 1000.0 + (i % 17) as f64).collect(),
+    ));
+    let dir = std::env::temp_dir().join(format!("fluid-surfels-bench-io-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).map_err(|e| io::IoError::Os {
+        path: dir.clone(),
+        source: e,
+    })?;
+    let formats = if args.formats.is_empty() {
+        Format::ALL.to_vec()
+    } else {
+        args.formats.clone()
+    };
+    let mut rows = Vec::new();
+    let mut failure = None;
+    for format in formats {
+        let name: PathBuf = dir.join(match format {
+            Format::Bgeo => "particles.bgeo".to_owned(),
+            Format::XyzRaw => "particles.bin".to_owned(),
+            f => format!("particles.{}", f.name()),
+        });
+        let t = Instant::now();
+        if let Err(e) = io::write_particles(&name, &set, Some(format)) {
+            failure = Some(e);
+            break;
+        }
+        let write_ms = ms(t);
+        let bytes = std::fs::metadata(&name).map(|m| m.len()).unwrap_or(0);
+        let mut best = f64::INFINITY;
+        for _ in 0..args.repeat.max(1) {
+            let t = Instant::now();
+            match io::read_particles(&name, Some(format)) {
+                Ok(back) => {
+                    assert_eq!(back.len(), n, "{format:?} read back a different count");
+                    best = best.min(ms(t));
+                }
+                Err(e) => failure = Some(e),
+            }
+        }
+        let _ = std::fs::remove_file(&name);
+        if failure.is_some() {
+            break;
+        }
+        rows.push(IoRow {
+            format: format.name(),
+            file: name
+                .file_name()
+                .map(|f| f.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            bytes,
+            write_ms,
+            read_ms: best,
+            particles_per_second: n as f64 / (best / 1e3),
+        });
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    if let Some(e) = failure {
+        return Err(e.into());
+    }
+    let report = IoReport {
+        particles: n,
+        attributes: vec!["id", "velocity", "density"],
+        formats: rows,
+    };
+    if args.json {
+        println!(
+            "{}",
+            serde_json::to_string(&report).expect("the report serialises")
+        );
+    } else {
+        println!(
+            "bench io: {n} particles with id, velocity and density; fastest of {} reads",
+            args.repeat.max(1)
+        );
+        println!("  format      file MB   write ms    read ms   particles/s");
+        for r in &report.formats {
+            println!(
+                "  {:<10} {:>8.1} {:>10.1} {:>10.1} {:>13.0}",
+                r.format,
+                r.bytes as f64 / 1e6,
+                r.write_ms,
+                r.read_ms,
+                r.particles_per_second
+            );
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,515 @@
+//! `fluid-surfels detect`: surface detection on a file, a frame sequence or a built-in scene.
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use fluid_surfels::io::{self, Format};
+use fluid_surfels::neighbours::{self, Backend, Neighbourhoods};
+use fluid_surfels::preview::{self, PreviewCamera};
+use fluid_surfels::scenes::{self, ColumnParams, SceneName};
+use fluid_surfels::sequence::{FramePattern, FrameRange};
+use fluid_surfels::surface::{self, NormalMethod, Surface, SurfaceDetector, SurfaceParams};
+use fluid_surfels::{Error, ParticleSet};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use super::{check_output, class_colours, ms, progress, surface_particles};
+
+/// Arguments of `detect`.
+#[derive(clap::Args)]
+#[command(group = clap::ArgGroup::new("source").required(true).args(["input", "scene"]))]
+pub struct DetectArgs {
+    /// Particle file, or a numbered sequence with `{}` or `{:04}` for the frame number
+    /// (`dir/ParticleData_Fluid_{}.vtk`).
+    #[arg(long)]
+    pub input: Option<String>,
+    /// Built-in scene.
+    #[arg(long, value_enum)]
+    pub scene: Option<SceneName>,
+    /// Format of --input (default: from its extension).
+    #[arg(long, value_enum)]
+    pub format: Option<Format>,
+    /// Support radius (default: the scene's, or twice the particle spacing estimated from the
+    /// file, or from the first frame of a sequence).
+    #[arg(long)]
+    pub radius: Option<f32>,
+    /// Frame of the `column` scene (hysteresis runs over all frames up to it).
+    #[arg(long)]
+    pub frame: Option<usize>,
+    /// Frames of a sequence: A..B, A..=B, with an optional :STEP (default: every file found).
+    #[arg(long)]
+    pub frames: Option<FrameRange>,
+    /// Normal estimation.
+    #[arg(long, value_enum, default_value = "pca")]
+    pub normals: NormalChoice,
+    /// High threshold, as a fraction of the radius (default 0.14).
+    #[arg(long)]
+    pub high: Option<f32>,
+    /// Low threshold, as a fraction of the radius (default 0.09).
+    #[arg(long)]
+    pub low: Option<f32>,
+    /// Write the surface particles with their normals here (format by extension); for a
+    /// sequence, a pattern with `{}`.
+    #[arg(long)]
+    pub out: Option<String>,
+    /// Write a picture of all particles coloured by class here (PNG); a pattern for sequences.
+    #[arg(long)]
+    pub png: Option<String>,
+    /// Frames processed at once (sequences). Each job runs its frames in order with its own
+    /// hysteresis state, which starts afresh at the job's first frame.
+    #[arg(long, default_value_t = 1)]
+    pub jobs: usize,
+    /// Skip frames whose outputs exist (resume an interrupted sequence).
+    #[arg(long)]
+    pub skip_existing: bool,
+    /// Replace existing output files.
+    #[arg(long)]
+    pub force: bool,
+    /// Print one JSON object of statistics on stdout instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Normal estimation choices on the command line.
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum NormalChoice {
+    /// Covariance (PCA) analysis of the neighbourhood.
+    Pca,
+    /// Gradient of the SPH colour field.
+    ColourField,
+}
+
+#[derive(Serialize)]
+struct DetectReport {
+    source: String,
+    particles: usize,
+    radius: f32,
+    spacing_estimate: Option<f32>,
+    frame: Option<usize>,
+    normals: NormalMethod,
+    high_threshold: f32,
+    low_threshold: f32,
+    counts: surface::ClassCounts,
+    flips: usize,
+    mean_neighbours: f32,
+    timings_ms: DetectTimings,
+    outputs: Vec<String>,
+}
+
+#[derive(Serialize, Default, Clone, Copy)]
+struct DetectTimings {
+    read: f64,
+    neighbours: f64,
+    classify: f64,
+    normals: f64,
+    write: f64,
+}
+
+fn params(args: &DetectArgs) -> Result<SurfaceParams, Error> {
+    let defaults = SurfaceParams::default();
+    let high = args.high.unwrap_or(defaults.high_threshold);
+    let params = SurfaceParams {
+        high_threshold: high,
+        low_threshold: args.low.unwrap_or(defaults.low_threshold.min(high)),
+        normals: match args.normals {
+            NormalChoice::Pca => NormalMethod::Covariance,
+            NormalChoice::ColourField => NormalMethod::ColourField,
+        },
+    };
+    params.validate()?;
+    Ok(params)
+}
+
+fn invalid(argument: &'static str, reason: impl Into<String>) -> Error {
+    Error::InvalidArgument {
+        argument,
+        reason: reason.into(),
+    }
+}
+
+pub fn detect(args: &DetectArgs) -> Result<(), Error> {
+    let params = params(args)?;
+    if let Some(pattern) = args
+        .input
+        .as_deref()
+        .map(FramePattern::parse)
+        .transpose()?
+        .flatten()
+    {
+        return detect_sequence(args, &pattern, params);
+    }
+    if args.frames.is_some() || args.jobs != 1 || args.skip_existing {
+        return Err(invalid(
+            "--frames",
+            "--frames, --jobs and --skip-existing need an --input pattern with {} (a sequence)",
+        ));
+    }
+    let input = args.input.as_deref().map(PathBuf::from);
+    let out = args.out.as_deref().map(PathBuf::from);
+    let png = args.png.as_deref().map(PathBuf::from);
+    for o in [&out, &png].into_iter().flatten() {
+        check_output(o, input.as_deref(), args.force)?;
+    }
+    let mut timings = DetectTimings::default();
+    let t = Instant::now();
+    let mut spacing_estimate = None;
+    let (source, particles, radius, surface, mean_neighbours) = match (&input, args.scene) {
+        (Some(path), _) => {
+            if args.frame.is_some() {
+                return Err(invalid(
+                    "--frame",
+                    "--frame applies to the column scene; use --frames with an --input pattern for sequences",
+                ));
+            }
+            let particles = io::read_particles(path, args.format)?;
+            timings.read = ms(t);
+            let radius = match args.radius {
+                Some(r) => r,
+                None => {
+                    let s = neighbours::estimate_spacing(&particles.positions)?;
+                    spacing_estimate = Some(s);
+                    2.0 * s
+                }
+            };
+            let t = Instant::now();
+            let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
+            timings.neighbours = ms(t);
+            let surface = SurfaceDetector::new(params)?.detect(&particles, &nb)?;
+            (
+                path.display().to_string(),
+                particles,
+                radius,
+                surface,
+                nb.mean_count(),
+            )
+        }
+        (None, Some(SceneName::Column)) => {
+            let frame = args.frame.unwrap_or(ColumnParams::SPLASH_FRAME);
+            let result = super::run::column_to_frame(frame, params, args.radius)?;
+            // "read" is the simulation of the frames up to this one
+            timings.read = ms(t)
+                - result.neighbours_ms
+                - result.surface.timings.classify_ms
+                - result.surface.timings.normals_ms;
+            timings.neighbours = result.neighbours_ms;
+            let particles = result.sim.particles().clone();
+            (
+                "scene column".to_owned(),
+                particles,
+                result.radius,
+                result.surface,
+                result.mean_neighbours,
+            )
+        }
+        (None, Some(name)) => {
+            let scene = scenes::build(name, args.frame)?;
+            timings.read = ms(t);
+            let radius = args.radius.unwrap_or(scene.support_radius);
+            let t = Instant::now();
+            let nb = Neighbourhoods::build(&scene.particles.positions, radius, Backend::CellGrid)?;
+            timings.neighbours = ms(t);
+            let surface = SurfaceDetector::new(params)?.detect(&scene.particles, &nb)?;
+            (
+                format!("scene {}", name.as_str()),
+                scene.particles,
+                radius,
+                surface,
+                nb.mean_count(),
+            )
+        }
+        (None, None) => unreachable!("clap requires --input or --scene"),
+    };
+    timings.classify = surface.timings.classify_ms;
+    timings.normals = surface.timings.normals_ms;
+    let t = Instant::now();
+    let outputs = write_outputs(
+        &particles,
+        &surface,
+        radius,
+        spacing_estimate,
+        out.as_deref(),
+        png.as_deref(),
+    )?;
+    timings.write = ms(t);
+
+    let report = DetectReport {
+        source,
+        particles: particles.len(),
+        radius,
+        spacing_estimate,
+        frame: args.frame,
+        normals: params.normals,
+        high_threshold: params.high_threshold,
+        low_threshold: params.low_threshold,
+        counts: surface.counts(),
+        flips: surface.flips,
+        mean_neighbours,
+        timings_ms: timings,
+        outputs,
+    };
+    if args.json {
+        println!(
+            "{}",
+            serde_json::to_string(&report).expect("the report serialises")
+        );
+    } else {
+        let c = report.counts;
+        let estimate = report
+            .spacing_estimate
+            .map(|s| format!(" (2 x estimated spacing {s})"))
+            .unwrap_or_default();
+        println!(
+            "{}: {} particles, radius {}{estimate}",
+            report.source, report.particles, report.radius
+        );
+        println!(
+            "  surface {}, interior {}, isolated {} (mean {:.1} neighbours)",
+            c.surface, c.interior, c.isolated, report.mean_neighbours
+        );
+        let t = &report.timings_ms;
+        println!(
+            "  ms: read {:.1}, neighbours {:.1}, classify {:.1}, normals {:.1}, write {:.1}",
+            t.read, t.neighbours, t.classify, t.normals, t.write
+        );
+        for o in &report.outputs {
+            println!("  wrote {o}");
+        }
+    }
+    Ok(())
+}
+
+/// Writes the surface particles and the picture, each when asked for.
+fn write_outputs(
+    particles: &ParticleSet,
+    surface: &Surface,
+    radius: f32,
+    spacing: Option<f32>,
+    out: Option<&Path>,
+    png: Option<&Path>,
+) -> Result<Vec<String>, Error> {
+    let mut outputs = Vec::new();
+    if let Some(out) = out {
+        io::write_particles(out, &surface_particles(particles, surface), None)?;
+        outputs.push(out.display().to_string());
+    }
+    if let Some(png) = png {
+        let (lo, hi) = particles
+            .bounds()
+            .unwrap_or((glam::Vec3::ZERO, glam::Vec3::ONE));
+        let spacing = spacing.unwrap_or(radius * 0.5);
+        let picture = preview::render_points(
+            &particles.positions,
+            &class_colours(surface),
+            spacing * 0.5,
+            &PreviewCamera::framing(lo, hi),
+            800,
+            800,
+        )?;
+        // through a temporary name, like the particle writers
+        let tmp = png.with_extension(format!("{}.tmp.png", std::process::id()));
+        preview::save_png(&picture, &tmp)?;
+        std::fs::rename(&tmp, png).map_err(|e| io::IoError::Os {
+            path: png.to_owned(),
+            source: e,
+        })?;
+        outputs.push(png.display().to_string());
+    }
+    Ok(outputs)
+}
+
+#[derive(Serialize)]
+struct FrameReport {
+    frame: usize,
+    particles: usize,
+    counts: surface::ClassCounts,
+    flips: usize,
+    ms: f64,
+}
+
+#[derive(Serialize)]
+struct SequenceReport {
+    input: String,
+    radius: f32,
+    jobs: usize,
+    processed: usize,
+    skipped: Vec<usize>,
+    seconds: f64,
+    frames_per_second: f64,
+    frames: Vec<FrameReport>,
+}
+
+fn detect_sequence(
+    args: &DetectArgs,
+    pattern: &FramePattern,
+    params: SurfaceParams,
+) -> Result<(), Error> {
+    if args.scene.is_some() || args.frame.is_some() {
+        return Err(invalid(
+            "--frame",
+            "--scene and --frame do not combine with an --input sequence",
+        ));
+    }
+    let frames: Vec<usize> = match args.frames {
+        Some(range) => range.frames().collect(),
+        None => pattern.existing_frames()?,
+    };
+    let pattern_of = |text: &Option<String>,
+                      flag: &'static str|
+     -> Result<Option<FramePattern>, Error> {
+        match text {
+            None => Ok(None),
+            Some(t) => FramePattern::parse(t)?.map(Some).ok_or_else(|| {
+                invalid(
+                    flag,
+                    format!("`{t}` needs a {{}} for the frame number when the input is a sequence"),
+                )
+            }),
+        }
+    };
+    let out = pattern_of(&args.out, "--out")?;
+    let png = pattern_of(&args.png, "--png")?;
+    // plan: skip frames already done, refuse to replace anything without --force
+    let mut todo = Vec::new();
+    let mut skipped = Vec::new();
+    for &f in &frames {
+        let targets: Vec<PathBuf> = [&out, &png]
+            .into_iter()
+            .flatten()
+            .map(|p| p.path(f))
+            .collect();
+        let input = pattern.path(f);
+        if args.skip_existing && !targets.is_empty() && targets.iter().all(|t| t.exists()) {
+            skipped.push(f);
+            continue;
+        }
+        for t in &targets {
+            check_output(t, Some(&input), args.force)?;
+        }
+        todo.push(f);
+    }
+    let radius = match args.radius {
+        Some(r) => r,
+        None => match todo.first() {
+            Some(&f) => {
+                2.0 * neighbours::estimate_spacing(
+                    &io::read_particles(&pattern.path(f), args.format)?.positions,
+                )?
+            }
+            None => 0.0,
+        },
+    };
+    let jobs = args.jobs.clamp(1, todo.len().max(1));
+    let block = todo.len().div_ceil(jobs).max(1);
+    let blocks: Vec<&[usize]> = todo.chunks(block).collect();
+    let bar = progress(todo.len() as u64, "detect");
+    let failed = AtomicBool::new(false);
+    let first_error: Mutex<Option<Error>> = Mutex::new(None);
+    let start = Instant::now();
+    let run_block = |frames: &[usize]| -> Vec<FrameReport> {
+        let mut reports = Vec::new();
+        let mut detector = match SurfaceDetector::new(params) {
+            Ok(d) => d,
+            Err(e) => {
+                failed.store(true, Ordering::SeqCst);
+                first_error
+                    .lock()
+                    .expect("no panic holds the lock")
+                    .get_or_insert(e.into());
+                return reports;
+            }
+        };
+        for &f in frames {
+            if failed.load(Ordering::SeqCst) {
+                break;
+            }
+            let t = Instant::now();
+            let result = (|| -> Result<FrameReport, Error> {
+                let particles = io::read_particles(&pattern.path(f), args.format)?;
+                let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
+                let surface = detector.detect(&particles, &nb)?;
+                write_outputs(
+                    &particles,
+                    &surface,
+                    radius,
+                    None,
+                    out.as_ref().map(|p| p.path(f)).as_deref(),
+                    png.as_ref().map(|p| p.path(f)).as_deref(),
+                )?;
+                Ok(FrameReport {
+                    frame: f,
+                    particles: particles.len(),
+                    counts: surface.counts(),
+                    flips: surface.flips,
+                    ms: ms(t),
+                })
+            })();
+            match result {
+                Ok(r) => reports.push(r),
+                Err(e) => {
+                    failed.store(true, Ordering::SeqCst);
+                    first_error
+                        .lock()
+                        .expect("no panic holds the lock")
+                        .get_or_insert(e);
+                    break;
+                }
+            }
+            bar.inc(1);
+        }
+        reports
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(jobs.max(rayon::current_num_threads()))
+        .build()
+        .map_err(|e| invalid("--jobs", e.to_string()))?;
+    let mut reports: Vec<FrameReport> =
+        pool.install(|| blocks.par_iter().flat_map_iter(|b| run_block(b)).collect());
+    bar.finish_and_clear();
+    if let Some(e) = first_error.into_inner().expect("no panic holds the lock") {
+        return Err(e);
+    }
+    reports.sort_by_key(|r| r.frame);
+    let seconds = start.elapsed().as_secs_f64();
+    let report = SequenceReport {
+        input: args.input.clone().unwrap_or_default(),
+        radius,
+        jobs,
+        processed: reports.len(),
+        skipped,
+        seconds,
+        frames_per_second: reports.len() as f64 / seconds.max(1e-9),
+        frames: reports,
+    };
+    if args.json {
+        println!(
+            "{}",
+            serde_json::to_string(&report).expect("the report serialises")
+        );
+    } else {
+        println!(
+            "{}: {} frames processed, {} skipped (outputs existed), radius {}",
+            report.input,
+            report.processed,
+            report.skipped.len(),
+            report.radius
+        );
+        println!(
+            "  {:.2} s, {:.1} frames/s with {} jobs",
+            report.seconds, report.frames_per_second, report.jobs
+        );
+        if let (Some(first), Some(last)) = (report.frames.first(), report.frames.last()) {
+            println!(
+                "  frame {}: {} surface of {}; frame {}: {} surface of {}",
+                first.frame,
+                first.counts.surface,
+                first.particles,
+                last.frame,
+                last.counts.surface,
+                last.particles
+            );
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,171 @@
+//! `fluid-surfels info FILE`: what a particle file holds.
+
+use std::path::PathBuf;
+
+use fluid_surfels::io::{self, Format};
+use fluid_surfels::{Error, neighbours};
+use serde::Serialize;
+
+/// Arguments of `info`.
+#[derive(clap::Args)]
+pub struct InfoArgs {
+    /// The particle file.
+    pub file: PathBuf,
+    /// Its format (default: from the extension).
+    #[arg(long, value_enum)]
+    pub format: Option<Format>,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct AttributeInfo {
+    name: String,
+    kind: String,
+    components: usize,
+    min: Option<f64>,
+    max: Option<f64>,
+}
+
+#[derive(Serialize)]
+struct Info {
+    file: String,
+    format: &'static str,
+    bytes: u64,
+    particles: usize,
+    attributes: Vec<AttributeInfo>,
+    bounds_min: Option<[f32; 3]>,
+    bounds_max: Option<[f32; 3]>,
+    spacing_estimate: Option<f32>,
+}
+
+fn range(values: impl Iterator<Item = f64>) -> (Option<f64>, Option<f64>) {
+    values.fold((None, None), |(lo, hi): (Option<f64>, Option<f64>), v| {
+        (
+            Some(lo.map_or(v, |l| l.min(v))),
+            Some(hi.map_or(v, |h| h.max(v))),
+        )
+    })
+}
+
+/// Integers as integers, other values with six significant decimals.
+fn number(v: f64) -> String {
+    if v.fract() == 0.0 && v.abs() < 1e15 {
+        format!("{v:.0}")
+    } else {
+        format!("{v:.6}")
+    }
+}
+
+pub fn info(args: &InfoArgs) -> Result<(), Error> {
+    let format = match args.format {
+        Some(f) => f,
+        None => Format::from_path(&args.file)?,
+    };
+    let set = io::read_particles(&args.file, Some(format))?;
+    let mut attributes = Vec::new();
+    let mut push =
+        |name: &str, kind: &str, components: usize, values: &mut dyn Iterator<Item = f64>| {
+            let (min, max) = range(values);
+            attributes.push(AttributeInfo {
+                name: name.to_owned(),
+                kind: kind.to_owned(),
+                components,
+                min,
+                max,
+            });
+        };
+    if let Some(ids) = &set.ids {
+        push("id", "u32", 1, &mut ids.iter().map(|&i| i as f64));
+    }
+    if let Some(v) = &set.velocities {
+        push(
+            "velocity",
+            "f32",
+            3,
+            &mut v.iter().flat_map(|v| v.to_array()).map(f64::from),
+        );
+    }
+    if let Some(m) = &set.masses {
+        push("mass", "f32", 1, &mut m.iter().map(|&m| m as f64));
+    }
+    if let Some(nrm) = &set.normals {
+        push(
+            "normal",
+            "f32",
+            3,
+            &mut nrm.iter().flat_map(|v| v.to_array()).map(f64::from),
+        );
+    }
+    if let Some(c) = &set.colours {
+        push(
+            "colour",
+            "u8",
+            3,
+            &mut c.iter().flatten().map(|&c| c as f64),
+        );
+    }
+    for a in &set.extra {
+        push(
+            &a.name,
+            &format!("{:?}", a.kind).to_lowercase(),
+            a.components,
+            &mut a.values.iter().copied(),
+        );
+    }
+    let bounds = set.bounds();
+    let info = Info {
+        file: args.file.display().to_string(),
+        format: format.name(),
+        bytes: std::fs::metadata(&args.file).map(|m| m.len()).unwrap_or(0),
+        particles: set.len(),
+        attributes,
+        bounds_min: bounds.map(|b| b.0.to_array()),
+        bounds_max: bounds.map(|b| b.1.to_array()),
+        spacing_estimate: neighbours::estimate_spacing(&set.positions).ok(),
+    };
+    if args.json {
+        println!(
+            "{}",
+            serde_json::to_string(&info).expect("the report serialises")
+        );
+        return Ok(());
+    }
+    println!("{}: {} ({} bytes)", info.file, info.format, info.bytes);
+    println!("  particles  {}", info.particles);
+    if let (Some(lo), Some(hi)) = (info.bounds_min, info.bounds_max) {
+        println!(
+            "  bounds     [{:.6}, {:.6}, {:.6}] .. [{:.6}, {:.6}, {:.6}]",
+            lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
+        );
+    }
+    match info.spacing_estimate {
+        Some(s) => println!(
+            "  spacing    {s:.6} (median nearest-neighbour distance; support radius 2x: {:.6})",
+            2.0 * s
+        ),
+        None => println!("  spacing    unknown (fewer than two distinct particles)"),
+    }
+    if info.attributes.is_empty() {
+        println!("  attributes none");
+    }
+    for a in &info.attributes {
+        let shape = if a.components == 1 {
+            a.kind.clone()
+        } else {
+            format!("{} x {}", a.kind, a.components)
+        };
+        match (a.min, a.max) {
+            (Some(lo), Some(hi)) => println!(
+                "  attribute  {:<16} {:<10} range {} .. {}",
+                a.name,
+                shape,
+                number(lo),
+                number(hi)
+            ),
+            _ => println!("  attribute  {:<16} {:<10}", a.name, shape),
+        }
+    }
+    Ok(())
+}
