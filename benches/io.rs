@@ -12,15 +12,24 @@ use fluid_surfels::io::{self, Format};
 use fluid_surfels::scenes::{BlockParams, block};
 
 fn readers(c: &mut Criterion) {
-    let mut set = block(&BlockParams::with_particles(1_000_000)).expect("valid block").particles;
-    set.velocities = Some(set.positions.iter().map(|p| glam::Vec3::new(p.y, -p.x, 0.0)).collect());
+    let mut set = block(&BlockParams::with_particles(1_000_000))
+        .expect("valid block")
+        .particles;
+    set.velocities = Some(
+        set.positions
+            .iter()
+            .map(|p| glam::Vec3::new(p.y, -p.x, 0.0))
+            .collect(),
+    );
     let path = Path::new("bench.ply");
     let ply = io::to_bytes(Format::Ply, &set, path).expect("valid set");
     let vtk = io::to_bytes(Format::Vtk, &set, path).expect("valid set");
     let bgeo = io::to_bytes(Format::Bgeo, &set, path).expect("valid set");
     let mut group = c.benchmark_group("read_1m");
     group.sample_size(10);
-    group.bench_function("ply_fluid_surfels", |b| b.iter(|| io::parse_bytes(Format::Ply, black_box(&ply), path)));
+    group.bench_function("ply_fluid_surfels", |b| {
+        b.iter(|| io::parse_bytes(Format::Ply, black_box(&ply), path))
+    });
     group.bench_function("ply_rs_bw", |b| {
         b.iter(|| {
             let parser = ply_rs_bw::parser::Parser::<ply_rs_bw::ply::DefaultElement>::new();
@@ -28,8 +37,12 @@ fn readers(c: &mut Criterion) {
             parser.read_ply(&mut reader).expect("valid PLY")
         })
     });
-    group.bench_function("vtk_binary", |b| b.iter(|| io::parse_bytes(Format::Vtk, black_box(&vtk), path)));
-    group.bench_function("bgeo", |b| b.iter(|| io::parse_bytes(Format::Bgeo, black_box(&bgeo), path)));
+    group.bench_function("vtk_binary", |b| {
+        b.iter(|| io::parse_bytes(Format::Vtk, black_box(&vtk), path))
+    });
+    group.bench_function("bgeo", |b| {
+        b.iter(|| io::parse_bytes(Format::Bgeo, black_box(&bgeo), path))
+    });
     group.finish();
 }
 

@@ -308,6 +308,30 @@ fn info_describes_a_file() {
         text.contains("particles  24") && text.contains("normal"),
         "{text}"
     );
+    // a sequence: one entry per frame
+    let dir = tempfile::tempdir().unwrap();
+    for f in [3, 4, 5] {
+        std::fs::copy(data("cube.ply"), dir.path().join(format!("c_{f:03}.ply"))).unwrap();
+    }
+    let pattern = format!("{}/c_{{:03}}.ply", dir.path().display());
+    let out = bin()
+        .args(["info", &pattern, "--json", "--jobs", "2"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let frames: Vec<u64> = v
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f["frame"].as_u64().unwrap())
+        .collect();
+    assert_eq!(frames, [3, 4, 5]);
+    assert!(v.as_array().unwrap().iter().all(|f| f["particles"] == 24));
     // a file that is not what its extension says
     let dir = tempfile::tempdir().unwrap();
     let fake = dir.path().join("fake.vtk");

@@ -427,10 +427,7 @@ fn counts_beyond_memory_and_gzip_bombs_are_refused_without_allocating() {
         e.finish().unwrap();
     }
     let e = parse(Format::Bgeo, &gz).unwrap_err();
-    assert!(
-        matches!(e, IoError::TooLarge { .. }),
-        "{e}"
-    );
+    assert!(matches!(e, IoError::TooLarge { .. }), "{e}");
     // a gzip bomb: a 2-point header followed by 2 GiB of zeros (about 2 MiB compressed)
     let small = io::to_bytes(Format::Bgeo, &rich_set(2), Path::new("x")).unwrap();
     let mut bomb = Vec::new();
@@ -455,16 +452,16 @@ fn counts_beyond_memory_and_gzip_bombs_are_refused_without_allocating() {
     }
     v.extend_from_slice(b"</AppendedData></VTKFile>");
     let e = parse(Format::Vtu, &v).unwrap_err();
-    assert!(
-        matches!(e, IoError::TooLarge { .. }),
-        "{e}"
-    );
+    assert!(matches!(e, IoError::TooLarge { .. }), "{e}");
 }
 
 #[test]
 fn mutated_files_never_panic() {
     use rand::{Rng, SeedableRng};
-    let seed: u64 = std::env::var("FLUID_SURFELS_SEED").ok().and_then(|s| s.parse().ok()).unwrap_or(7);
+    let seed: u64 = std::env::var("FLUID_SURFELS_SEED")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(7);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let set = rich_set(20);
     let mut cases: Vec<(Format, Vec<u8>)> = Format::ALL
@@ -474,8 +471,14 @@ fn mutated_files_never_panic() {
     for encoding in [vtu::Encoding::Ascii, vtu::Encoding::Base64] {
         cases.push((Format::Vtu, vtu::to_bytes_with(&set, encoding)));
     }
-    cases.push((Format::Vtk, std::fs::read(data("cube_8_particles.vtk")).unwrap()));
-    cases.push((Format::Ply, std::fs::read(data("cube_normals.ply")).unwrap()));
+    cases.push((
+        Format::Vtk,
+        std::fs::read(data("cube_8_particles.vtk")).unwrap(),
+    ));
+    cases.push((
+        Format::Ply,
+        std::fs::read(data("cube_normals.ply")).unwrap(),
+    ));
     let mut parsed = 0;
     for (format, original) in &cases {
         for round in 0..400 {
@@ -484,7 +487,9 @@ fn mutated_files_never_panic() {
                 let at = rng.random_range(0..bytes.len().max(1));
                 match rng.random_range(0..5) {
                     0 if !bytes.is_empty() => bytes[at] ^= 1 << rng.random_range(0..8),
-                    1 if !bytes.is_empty() => bytes[at] = [0, 0xff, b'9', b'-', b'\n', b' '][rng.random_range(0..6)],
+                    1 if !bytes.is_empty() => {
+                        bytes[at] = [0, 0xff, b'9', b'-', b'\n', b' '][rng.random_range(0..6)]
+                    }
                     2 if !bytes.is_empty() => {
                         bytes.remove(at);
                     }
@@ -492,8 +497,12 @@ fn mutated_files_never_panic() {
                     _ => bytes.truncate(at),
                 }
             }
-            let result = std::panic::catch_unwind(|| io::parse_bytes(*format, &bytes, Path::new("m")));
-            assert!(result.is_ok(), "seed {seed} (FLUID_SURFELS_SEED): {format:?} round {round} panicked");
+            let result =
+                std::panic::catch_unwind(|| io::parse_bytes(*format, &bytes, Path::new("m")));
+            assert!(
+                result.is_ok(),
+                "seed {seed} (FLUID_SURFELS_SEED): {format:?} round {round} panicked"
+            );
             parsed += result.unwrap().is_ok() as usize;
         }
     }
@@ -534,7 +543,10 @@ LOOKUP_TABLE default
     assert_eq!(s.ids, Some(vec![7, 8, 9]));
     assert_eq!(s.masses, Some(vec![0.1, 0.2, 0.3]));
     assert_eq!(s.velocities.as_ref().unwrap()[1], Vec3::new(0.0, 0.0, -2.0));
-    assert_eq!(s.attribute("density").unwrap().values, vec![1000.0, 1001.5, 999.0]);
+    assert_eq!(
+        s.attribute("density").unwrap().values,
+        vec![1000.0, 1001.5, 999.0]
+    );
     assert!(s.attribute("cell_thing").is_none());
 
     // BINARY 5.1 with 64-bit OFFSETS/CONNECTIVITY, as ParaView 5.10+ writes it
@@ -560,7 +572,10 @@ LOOKUP_TABLE default
     }
     b.extend_from_slice(b"\nMETADATA\nINFORMATION 0\n\n");
     let s = io::parse_bytes(Format::Vtk, &b, Path::new("p.vtk")).unwrap();
-    assert_eq!(s.positions, vec![Vec3::new(0.5, 1.0, 1.5), Vec3::new(-2.0, 0.0, 3.25)]);
+    assert_eq!(
+        s.positions,
+        vec![Vec3::new(0.5, 1.0, 1.5), Vec3::new(-2.0, 0.0, 3.25)]
+    );
     // 64-bit ids are kept as a (double) attribute, not mistaken for 32-bit ids
     assert_eq!(s.attribute("id").unwrap().values, vec![40.0, 41.0]);
 }
@@ -595,7 +610,10 @@ fn vtu_compressed_and_poly_data() {
     let points: Vec<f32> = (0..300).map(|i| i as f32 * 0.25 - 7.0).collect();
     let raw: Vec<u8> = points.iter().flat_map(|v| v.to_le_bytes()).collect();
     let (header, blocks) = vtk_zlib_block(&raw, 256);
-    let expected: Vec<Vec3> = points.chunks(3).map(|c| Vec3::new(c[0], c[1], c[2])).collect();
+    let expected: Vec<Vec3> = points
+        .chunks(3)
+        .map(|c| Vec3::new(c[0], c[1], c[2]))
+        .collect();
     // inline base64, header and data encoded apart (as VTK does when compressing)
     let inline = format!(
         "<?xml version=\"1.0\"?>\n<VTKFile type=\"PolyData\" version=\"1.0\" byte_order=\"LittleEndian\" header_type=\"UInt32\" compressor=\"vtkZLibDataCompressor\">\n<PolyData><Piece NumberOfPoints=\"100\" NumberOfVerts=\"0\">\n<Points><DataArray type=\"Float32\" NumberOfComponents=\"3\" format=\"binary\">\n{}{}\n</DataArray></Points>\n</Piece></PolyData></VTKFile>\n",

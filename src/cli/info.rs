@@ -3,14 +3,23 @@
 use std::path::PathBuf;
 
 use fluid_surfels::io::{self, Format};
+use fluid_surfels::sequence::{FramePattern, FrameRange};
 use fluid_surfels::{Error, neighbours};
+use rayon::prelude::*;
 use serde::Serialize;
 
 /// Arguments of `info`.
 #[derive(clap::Args)]
 pub struct InfoArgs {
-    /// The particle file.
+    /// The particle file, or a numbered sequence with `{}` or `{:04}` for the frame number
+    /// (one line per frame).
     pub file: PathBuf,
+    /// Frames of a sequence: A..B, A..=B, with an optional :STEP (default: every file found).
+    #[arg(long)]
+    pub frames: Option<FrameRange>,
+    /// Frames read at once (sequences).
+    #[arg(long, default_value_t = 1)]
+    pub jobs: usize,
     /// Its format (default: from the extension).
     #[arg(long, value_enum)]
     pub format: Option<Format>,
@@ -58,7 +67,76 @@ fn number(v: f64) -> String {
     }
 }
 
+#[derive(Serialize)]
+struct FrameInfo {
+    frame: usize,
+    particles: usize,
+    bounds_min: Option<[f32; 3]>,
+    bounds_max: Option<[f32; 3]>,
+}
+
+/// One line per frame of a sequence.
+fn info_sequence(args: &InfoArgs, pattern: &FramePattern) -> Result<(), Error> {
+    let frames: Vec<usize> = match args.frames {
+        Some(r) => r.frames().collect(),
+        None => pattern.existing_frames()?,
+    };
+    let bar = super::progress(frames.len() as u64, "info");
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(args.jobs.max(1))
+        .build()
+        .map_err(|e| Error::InvalidArgument {
+            argument: "--jobs",
+            reason: e.to_string(),
+        })?;
+    let rows: Result<Vec<FrameInfo>, Error> = pool.install(|| {
+        frames
+            .par_iter()
+            .map(|&f| {
+                let set = io::read_particles(&pattern.path(f), args.format)?;
+                bar.inc(1);
+                let b = set.bounds();
+                Ok(FrameInfo {
+                    frame: f,
+                    particles: set.len(),
+                    bounds_min: b.map(|b| b.0.to_array()),
+                    bounds_max: b.map(|b| b.1.to_array()),
+                })
+            })
+            .collect()
+    });
+    bar.finish_and_clear();
+    let rows = rows?;
+    if args.json {
+        println!(
+            "{}",
+            serde_json::to_string(&rows).expect("the report serialises")
+        );
+    } else {
+        for r in &rows {
+            let (lo, hi) = (
+                r.bounds_min.unwrap_or_default(),
+                r.bounds_max.unwrap_or_default(),
+            );
+            println!(
+                "frame {:>6}: {:>9} particles, bounds [{:.4}, {:.4}, {:.4}] .. [{:.4}, {:.4}, {:.4}]",
+                r.frame, r.particles, lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
+            );
+        }
+    }
+    Ok(())
+}
+
 pub fn info(args: &InfoArgs) -> Result<(), Error> {
+    if let Some(pattern) = FramePattern::parse(&args.file.to_string_lossy())? {
+        return info_sequence(args, &pattern);
+    }
+    if args.frames.is_some() {
+        return Err(Error::InvalidArgument {
+            argument: "--frames",
+            reason: "needs a file pattern with {} (a sequence)".into(),
+        });
+    }
     let format = match args.format {
         Some(f) => f,
         None => Format::from_path(&args.file)?,
