@@ -5,7 +5,9 @@
 //!
 //! 1. [`surface`]: surface particle detection with hysteresis and normals
 //!    (Solenthaler et al. 2007, §3.1), on top of [`neighbours`] (fixed-radius neighbour search).
-//! 2. Upsampling, 3. density grid, 4. surfel splatting and 5. optics follow in later releases.
+//! 2. [`refine`]: upsampling of the surface points by spherical interpolation with collision
+//!    avoidance and incremental neighbourhoods (Solenthaler et al. 2007, §3.2-3.4).
+//! 3. Density grid, 4. surfel splatting and 5. optics follow in later releases.
 //!
 //! Supporting modules: [`particles`] (the [`ParticleSet`] every stage reads), [`io`] (readers and
 //! writers for PLY, legacy VTK, VTU, BGEO, XYZ, CSV and JSON), [`sequence`] (numbered frame
@@ -30,6 +32,7 @@ pub mod linalg;
 pub mod neighbours;
 pub mod particles;
 pub mod preview;
+pub mod refine;
 pub mod scenes;
 pub mod sequence;
 pub mod surface;
@@ -49,6 +52,9 @@ pub enum Error {
     /// Surface detection.
     #[error(transparent)]
     Surface(#[from] surface::SurfaceError),
+    /// Upsampling.
+    #[error(transparent)]
+    Refine(#[from] refine::RefineError),
     /// Scene construction.
     #[error(transparent)]
     Scene(#[from] scenes::SceneError),
