@@ -379,16 +379,21 @@ fn for_each_common(a: &[u32], b: &[u32], mut f: impl FnMut(u32)) {
 }
 
 /// The child candidates of point `p1` with its higher-numbered neighbours, in neighbour order.
+/// Returns the number of pairs that gave no child (`|b'|` near zero).
 fn candidates_of(
     pts: &Points,
     p1: usize,
-    r_next: f32,
-    rule: HeightRule,
-    h_max: f32,
-    r0: f32,
+    params: &RefineParams,
+    r: f32,
     out: &mut Vec<Candidate>,
-    no_normal: &mut usize,
-) {
+) -> usize {
+    let (r_next, h_max, rule, r0) = (
+        r * RADIUS_FACTOR,
+        r * HMAX_FACTOR,
+        params.height,
+        params.initial_radius,
+    );
+    let mut no_normal = 0;
     let (x1, n1) = (pts.pos[p1], pts.nrm[p1]);
     for &p2 in pts.nb[p1].iter().filter(|&&p2| p2 as usize > p1) {
         let (x2, n2) = (pts.pos[p2 as usize], pts.nrm[p2 as usize]);
@@ -403,9 +408,10 @@ fn candidates_of(
                 nrm,
                 weight: pos.distance(x1) / r0,
             }),
-            None => *no_normal += 1,
+            None => no_normal += 1,
         }
     }
+    no_normal
 }
 
 /// Nearest older point of `N1 ∩ N2` within `beta` of the candidate (type 2).
@@ -651,11 +657,7 @@ fn finish(
 fn step_reference(pts: &mut Points, params: &RefineParams, r: f32, step: u32) -> StepStats {
     let t = Instant::now();
     let n_old = pts.pos.len();
-    let (r_next, h_max, beta) = (
-        r * RADIUS_FACTOR,
-        r * HMAX_FACTOR,
-        params.collision_factor * r,
-    );
+    let (r_next, beta) = (r * RADIUS_FACTOR, params.collision_factor * r);
     let mut s = StepStats {
         step,
         radius: r,
@@ -669,16 +671,7 @@ fn step_reference(pts: &mut Points, params: &RefineParams, r: f32, step: u32) ->
     let mut buffer = Vec::new();
     for p1 in 0..n_old {
         buffer.clear();
-        candidates_of(
-            pts,
-            p1,
-            r_next,
-            params.height,
-            h_max,
-            params.initial_radius,
-            &mut buffer,
-            &mut s.different_surfaces,
-        );
+        s.different_surfaces += candidates_of(pts, p1, params, r, &mut buffer);
         for c in buffer.iter().copied() {
             s.candidates += 1;
             if params.collisions {
@@ -737,11 +730,7 @@ fn step_reference(pts: &mut Points, params: &RefineParams, r: f32, step: u32) ->
 fn step_parallel(pts: &mut Points, params: &RefineParams, r: f32, step: u32) -> StepStats {
     let t = Instant::now();
     let n_old = pts.pos.len();
-    let (r_next, h_max, beta) = (
-        r * RADIUS_FACTOR,
-        r * HMAX_FACTOR,
-        params.collision_factor * r,
-    );
+    let (r_next, beta) = (r * RADIUS_FACTOR, params.collision_factor * r);
     let mut s = StepStats {
         step,
         radius: r,
@@ -753,17 +742,7 @@ fn step_parallel(pts: &mut Points, params: &RefineParams, r: f32, step: u32) -> 
         .into_par_iter()
         .map(|p1| {
             let mut out = Vec::new();
-            let mut none = 0;
-            candidates_of(
-                pts,
-                p1,
-                r_next,
-                params.height,
-                h_max,
-                params.initial_radius,
-                &mut out,
-                &mut none,
-            );
+            let none = candidates_of(pts, p1, params, r, &mut out);
             (out, none)
         })
         .collect();
