@@ -12,6 +12,7 @@ use fluid_surfels::scenes::ColumnParams;
 use cli::bench::{BenchDetectArgs, BenchIoArgs};
 use cli::detect::DetectArgs;
 use cli::info::InfoArgs;
+use cli::refine::RefineArgs;
 use cli::run::RunArgs;
 
 #[derive(Parser)]
@@ -29,6 +30,9 @@ enum Command {
     /// Surface detection (Solenthaler et al. 2007, §3.1) on a file, a frame sequence or a
     /// built-in scene.
     Detect(DetectArgs),
+    /// Surface detection then upsampling (Solenthaler et al. 2007, §3.2-3.4) on a file, a frame
+    /// sequence or a built-in scene.
+    Refine(RefineArgs),
     /// What a particle file holds: format, count, attributes and their ranges, bounds, spacing.
     Info(InfoArgs),
     /// Benchmarks.
@@ -43,6 +47,9 @@ enum BenchCommand {
     Detect(BenchDetectArgs),
     /// Writing and reading every file format.
     Io(BenchIoArgs),
+    /// Upsampling on frames of the column scene like the paper's Table 1, against the
+    /// single-threaded reference.
+    Refine(cli::bench::BenchRefineArgs),
 }
 
 fn main() -> ExitCode {
@@ -55,8 +62,10 @@ fn main() -> ExitCode {
         Some(Command::Run(args)) => cli::run::run(&args),
         Some(Command::Detect(args)) => cli::detect::detect(&args),
         Some(Command::Info(args)) => cli::info::info(&args),
+        Some(Command::Refine(args)) => cli::refine::refine_command(&args),
         Some(Command::Bench(BenchCommand::Detect(args))) => cli::bench::bench_detect(&args),
         Some(Command::Bench(BenchCommand::Io(args))) => cli::bench::bench_io(&args),
+        Some(Command::Bench(BenchCommand::Refine(args))) => cli::bench::bench_refine(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

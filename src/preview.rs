@@ -65,9 +65,20 @@ pub mod palette {
     pub const ISOLATED: [u8; 3] = [60, 200, 90];
     /// Background.
     pub const BACKGROUND: [u8; 3] = [28, 30, 36];
+    /// Light background, for pictures with dark points.
+    pub const LIGHT_BACKGROUND: [u8; 3] = [235, 235, 230];
+    /// Refinement steps as in Solenthaler et al. 2007, Figure 2: black P0, blue P1, red P2,
+    /// yellow P3 (then grey for further steps).
+    pub const STEPS: [[u8; 3]; 5] = [
+        [20, 20, 20],
+        [40, 90, 230],
+        [220, 40, 40],
+        [240, 200, 30],
+        [150, 150, 150],
+    ];
 }
 
-/// Draws particles as shaded spheres of world radius `radius`.
+/// Draws particles as shaded spheres of world radius `radius` on the dark background.
 pub fn render_points(
     positions: &[glam::Vec3],
     colours: &[[u8; 3]],
@@ -75,6 +86,27 @@ pub fn render_points(
     camera: &PreviewCamera,
     width: u32,
     height: u32,
+) -> Result<RgbImage, PreviewError> {
+    render_points_on(
+        positions,
+        colours,
+        radius,
+        camera,
+        width,
+        height,
+        palette::BACKGROUND,
+    )
+}
+
+/// [`render_points`] on a background of one's choice (dark points need a light one).
+pub fn render_points_on(
+    positions: &[glam::Vec3],
+    colours: &[[u8; 3]],
+    radius: f32,
+    camera: &PreviewCamera,
+    width: u32,
+    height: u32,
+    background: [u8; 3],
 ) -> Result<RgbImage, PreviewError> {
     if width == 0 || height == 0 || width > 16384 || height > 16384 {
         return Err(PreviewError::InvalidSize { width, height });
@@ -85,7 +117,7 @@ pub fn render_points(
             colours: colours.len(),
         });
     }
-    let mut image = RgbImage::from_pixel(width, height, Rgb(palette::BACKGROUND));
+    let mut image = RgbImage::from_pixel(width, height, Rgb(background));
     let mut depth = vec![f32::INFINITY; (width * height) as usize];
     let view = glam::camera::rh::view::look_at_mat4(camera.eye, camera.target, Vec3::Y);
     let aspect = width as f32 / height as f32;

@@ -367,3 +367,130 @@ fn bench_io_reports_every_format() {
         assert!(f["particles_per_second"].as_f64().unwrap() > 0.0, "{f}");
     }
 }
+
+#[test]
+fn refine_reports_steps_and_writes_points() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("refined.ply");
+    let png = dir.path().join("refine.png");
+    let run = bin()
+        .args([
+            "refine", "--scene", "column", "--frame", "14", "--json", "--out",
+        ])
+        .arg(&out)
+        .arg("--png")
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    let steps = v["steps"].as_array().unwrap();
+    assert_eq!(steps.len(), 3);
+    for s in steps {
+        for key in [
+            "points_after",
+            "candidates",
+            "collisions_type2",
+            "collisions_type3",
+            "resolved",
+            "ms",
+        ] {
+            assert!(s[key].is_number(), "{key} in {s}");
+        }
+    }
+    let points = v["points"].as_u64().unwrap();
+    assert_eq!(points, steps[2]["points_after"].as_u64().unwrap());
+    let set = fluid_surfels::io::read_particles(&out, None).unwrap();
+    assert_eq!(set.len() as u64, points);
+    for name in ["step", "weight", "radius"] {
+        assert!(set.attribute(name).is_some(), "{name}");
+    }
+    assert_eq!(image::open(&png).unwrap().width(), 1400);
+    // the reference implementation gives the same points
+    let out2 = dir.path().join("reference.ply");
+    let run = bin()
+        .args([
+            "refine",
+            "--scene",
+            "column",
+            "--frame",
+            "14",
+            "--reference",
+            "--out",
+        ])
+        .arg(&out2)
+        .output()
+        .unwrap();
+    assert!(run.status.success());
+    assert_eq!(
+        fluid_surfels::io::read_particles(&out2, None)
+            .unwrap()
+            .positions,
+        set.positions
+    );
+    // refining the output of `detect` directly
+    let surface = dir.path().join("surface.ply");
+    assert!(
+        bin()
+            .args(["detect", "--scene", "block", "--out"])
+            .arg(&surface)
+            .output()
+            .unwrap()
+            .status
+            .success()
+    );
+    let run = bin()
+        .args([
+            "refine",
+            "--surface-input",
+            "--radius",
+            "0.1",
+            "--steps",
+            "1",
+            "--json",
+            "--input",
+        ])
+        .arg(&surface)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    assert!(v["points"].as_u64().unwrap() > v["p0"].as_u64().unwrap());
+}
+
+#[test]
+fn bench_refine_reports_table_1_frames() {
+    let out = bin()
+        .args(["bench", "refine", "--repeat", "1", "--json"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let frames = v["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 3);
+    for f in frames {
+        for key in [
+            "name",
+            "p0",
+            "p3",
+            "seconds",
+            "points_per_second",
+            "reference_points_per_second",
+            "speedup",
+        ] {
+            assert!(!f[key].is_null(), "{key} in {f}");
+        }
+    }
+}

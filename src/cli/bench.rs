@@ -276,3 +276,128 @@ pub fn bench_io(args: &BenchIoArgs) -> Result<(), Error> {
     }
     Ok(())
 }
+
+/// Arguments of `bench refine`.
+#[derive(clap::Args)]
+pub struct BenchRefineArgs {
+    /// Timed repetitions per frame and implementation (the fastest is reported).
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct RefineRow {
+    name: &'static str,
+    frame: usize,
+    p0: usize,
+    p3: usize,
+    seconds: f64,
+    points_per_second: f64,
+    reference_seconds: f64,
+    reference_points_per_second: f64,
+    speedup: f64,
+}
+
+#[derive(Serialize)]
+struct RefineBenchReport {
+    threads: usize,
+    steps: u32,
+    points_per_second_means: &'static str,
+    frames: Vec<RefineRow>,
+}
+
+/// Refines the surface of three `column` frames like the paper's Table 1 (initial block,
+/// splashing, equilibrium) with the parallel and the reference implementation.
+pub fn bench_refine(args: &BenchRefineArgs) -> Result<(), Error> {
+    use fluid_surfels::refine::{RefineParams, refine, refine_reference};
+    use fluid_surfels::scenes::{ColumnParams, ColumnSim};
+    let frames = [
+        ("initial block", ColumnParams::INITIAL_FRAME),
+        ("splashing", ColumnParams::SPLASH_FRAME),
+        ("equilibrium", ColumnParams::EQUILIBRIUM_FRAME),
+    ];
+    let mut sim = ColumnSim::new(ColumnParams::default())?;
+    let mut detector = SurfaceDetector::new(SurfaceParams::default())?;
+    let mut inputs = Vec::new();
+    for f in 0..=ColumnParams::EQUILIBRIUM_FRAME {
+        sim.advance_to(f);
+        let nb = Neighbourhoods::build(
+            &sim.particles().positions,
+            sim.support_radius(),
+            Backend::CellGrid,
+        )?;
+        let surface = detector.detect(sim.particles(), &nb)?;
+        if let Some((name, _)) = frames.iter().find(|x| x.1 == f) {
+            let (p, n) =
+                super::refine::surface_of(sim.particles(), &surface.classes, &surface.normals);
+            inputs.push((*name, f, p, n));
+        }
+    }
+    let params = RefineParams::with_radius(sim.support_radius());
+    let mut rows = Vec::new();
+    for (name, frame, p, n) in inputs {
+        let mut best = f64::INFINITY;
+        let mut best_ref = f64::INFINITY;
+        let mut p3 = 0;
+        for _ in 0..args.repeat.max(1) {
+            let t = Instant::now();
+            let r = refine(&p, &n, &params)?;
+            best = best.min(t.elapsed().as_secs_f64());
+            p3 = r.len();
+            let t = Instant::now();
+            let r = refine_reference(&p, &n, &params)?;
+            best_ref = best_ref.min(t.elapsed().as_secs_f64());
+            assert_eq!(r.len(), p3, "the implementations disagree");
+        }
+        rows.push(RefineRow {
+            name,
+            frame,
+            p0: p.len(),
+            p3,
+            seconds: best,
+            points_per_second: p3 as f64 / best,
+            reference_seconds: best_ref,
+            reference_points_per_second: p3 as f64 / best_ref,
+            speedup: best_ref / best,
+        });
+    }
+    let report = RefineBenchReport {
+        threads: rayon::current_num_threads(),
+        steps: params.steps,
+        points_per_second_means: "P3 / seconds, as the paper's Table 1",
+        frames: rows,
+    };
+    if args.json {
+        println!(
+            "{}",
+            serde_json::to_string(&report).expect("the report serialises")
+        );
+    } else {
+        println!(
+            "bench refine: column frames like Table 1, 3 steps, {} threads, fastest of {}",
+            report.threads,
+            args.repeat.max(1)
+        );
+        println!(
+            "  frame              P0      P3    parallel s   points/s    reference s   points/s   speedup"
+        );
+        for r in &report.frames {
+            println!(
+                "  {:<14} {:>6} {:>7}   {:>9.4} {:>10.0}   {:>11.4} {:>10.0}   {:>6.2}x",
+                r.name,
+                r.p0,
+                r.p3,
+                r.seconds,
+                r.points_per_second,
+                r.reference_seconds,
+                r.reference_points_per_second,
+                r.speedup
+            );
+        }
+        println!("  (points/s = P3 / seconds, as in the paper's Table 1)");
+    }
+    Ok(())
+}

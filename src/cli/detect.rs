@@ -1,8 +1,6 @@
 //! `fluid-surfels detect`: surface detection on a file, a frame sequence or a built-in scene.
 
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use fluid_surfels::io::{self, Format};
@@ -12,10 +10,9 @@ use fluid_surfels::scenes::{self, ColumnParams, SceneName};
 use fluid_surfels::sequence::{FramePattern, FrameRange};
 use fluid_surfels::surface::{self, NormalMethod, Surface, SurfaceDetector, SurfaceParams};
 use fluid_surfels::{Error, ParticleSet};
-use rayon::prelude::*;
 use serde::Serialize;
 
-use super::{check_output, class_colours, ms, progress, surface_particles};
+use super::{check_output, class_colours, ms, surface_particles};
 
 /// Arguments of `detect`.
 #[derive(clap::Args)]
@@ -281,7 +278,7 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
 }
 
 /// Writes the surface particles and the picture, each when asked for.
-fn write_outputs(
+pub fn write_outputs(
     particles: &ParticleSet,
     surface: &Surface,
     radius: f32,
@@ -351,136 +348,60 @@ fn detect_sequence(
             "--scene and --frame do not combine with an --input sequence",
         ));
     }
-    let frames: Vec<usize> = match args.frames {
-        Some(range) => range.frames().collect(),
-        None => pattern.existing_frames()?,
+    let out = super::output_pattern(&args.out, "--out")?;
+    let png = super::output_pattern(&args.png, "--png")?;
+    let sequence = super::Sequence {
+        input: pattern,
+        frames: super::sequence_frames(pattern, args.frames)?,
+        outputs: [&out, &png].into_iter().flatten().cloned().collect(),
+        jobs: args.jobs,
+        skip_existing: args.skip_existing,
+        force: args.force,
+        label: "detect",
     };
-    let pattern_of = |text: &Option<String>,
-                      flag: &'static str|
-     -> Result<Option<FramePattern>, Error> {
-        match text {
-            None => Ok(None),
-            Some(t) => FramePattern::parse(t)?.map(Some).ok_or_else(|| {
-                invalid(
-                    flag,
-                    format!("`{t}` needs a {{}} for the frame number when the input is a sequence"),
-                )
-            }),
+    let (todo, _) = sequence.plan()?;
+    let radius = match (args.radius, todo.first()) {
+        (Some(r), _) => r,
+        (None, Some(&f)) => {
+            2.0 * neighbours::estimate_spacing(
+                &io::read_particles(&pattern.path(f), args.format)?.positions,
+            )?
         }
+        (None, None) => 0.0,
     };
-    let out = pattern_of(&args.out, "--out")?;
-    let png = pattern_of(&args.png, "--png")?;
-    // plan: skip frames already done, refuse to replace anything without --force
-    let mut todo = Vec::new();
-    let mut skipped = Vec::new();
-    for &f in &frames {
-        let targets: Vec<PathBuf> = [&out, &png]
-            .into_iter()
-            .flatten()
-            .map(|p| p.path(f))
-            .collect();
-        let input = pattern.path(f);
-        if args.skip_existing && !targets.is_empty() && targets.iter().all(|t| t.exists()) {
-            skipped.push(f);
-            continue;
-        }
-        for t in &targets {
-            check_output(t, Some(&input), args.force)?;
-        }
-        todo.push(f);
-    }
-    let radius = match args.radius {
-        Some(r) => r,
-        None => match todo.first() {
-            Some(&f) => {
-                2.0 * neighbours::estimate_spacing(
-                    &io::read_particles(&pattern.path(f), args.format)?.positions,
-                )?
-            }
-            None => 0.0,
-        },
-    };
-    let jobs = args.jobs.clamp(1, todo.len().max(1));
-    let block = todo.len().div_ceil(jobs).max(1);
-    let blocks: Vec<&[usize]> = todo.chunks(block).collect();
-    let bar = progress(todo.len() as u64, "detect");
-    let failed = AtomicBool::new(false);
-    let first_error: Mutex<Option<Error>> = Mutex::new(None);
-    let start = Instant::now();
-    let run_block = |frames: &[usize]| -> Vec<FrameReport> {
-        let mut reports = Vec::new();
-        let mut detector = match SurfaceDetector::new(params) {
-            Ok(d) => d,
-            Err(e) => {
-                failed.store(true, Ordering::SeqCst);
-                first_error
-                    .lock()
-                    .expect("no panic holds the lock")
-                    .get_or_insert(e.into());
-                return reports;
-            }
-        };
-        for &f in frames {
-            if failed.load(Ordering::SeqCst) {
-                break;
-            }
+    let run = sequence.run(
+        || Ok(SurfaceDetector::new(params)?),
+        |detector, f| {
             let t = Instant::now();
-            let result = (|| -> Result<FrameReport, Error> {
-                let particles = io::read_particles(&pattern.path(f), args.format)?;
-                let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
-                let surface = detector.detect(&particles, &nb)?;
-                write_outputs(
-                    &particles,
-                    &surface,
-                    radius,
-                    None,
-                    out.as_ref().map(|p| p.path(f)).as_deref(),
-                    png.as_ref().map(|p| p.path(f)).as_deref(),
-                )?;
-                Ok(FrameReport {
-                    frame: f,
-                    particles: particles.len(),
-                    counts: surface.counts(),
-                    flips: surface.flips,
-                    ms: ms(t),
-                })
-            })();
-            match result {
-                Ok(r) => reports.push(r),
-                Err(e) => {
-                    failed.store(true, Ordering::SeqCst);
-                    first_error
-                        .lock()
-                        .expect("no panic holds the lock")
-                        .get_or_insert(e);
-                    break;
-                }
-            }
-            bar.inc(1);
-        }
-        reports
-    };
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(jobs.max(rayon::current_num_threads()))
-        .build()
-        .map_err(|e| invalid("--jobs", e.to_string()))?;
-    let mut reports: Vec<FrameReport> =
-        pool.install(|| blocks.par_iter().flat_map_iter(|b| run_block(b)).collect());
-    bar.finish_and_clear();
-    if let Some(e) = first_error.into_inner().expect("no panic holds the lock") {
-        return Err(e);
-    }
-    reports.sort_by_key(|r| r.frame);
-    let seconds = start.elapsed().as_secs_f64();
+            let particles = io::read_particles(&pattern.path(f), args.format)?;
+            let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
+            let surface = detector.detect(&particles, &nb)?;
+            write_outputs(
+                &particles,
+                &surface,
+                radius,
+                None,
+                out.as_ref().map(|p| p.path(f)).as_deref(),
+                png.as_ref().map(|p| p.path(f)).as_deref(),
+            )?;
+            Ok(FrameReport {
+                frame: f,
+                particles: particles.len(),
+                counts: surface.counts(),
+                flips: surface.flips,
+                ms: ms(t),
+            })
+        },
+    )?;
     let report = SequenceReport {
         input: args.input.clone().unwrap_or_default(),
         radius,
-        jobs,
-        processed: reports.len(),
-        skipped,
-        seconds,
-        frames_per_second: reports.len() as f64 / seconds.max(1e-9),
-        frames: reports,
+        jobs: run.jobs,
+        processed: run.results.len(),
+        skipped: run.skipped,
+        seconds: run.seconds,
+        frames_per_second: run.results.len() as f64 / run.seconds.max(1e-9),
+        frames: run.results,
     };
     if args.json {
         println!(

@@ -3,11 +3,17 @@
 pub mod bench;
 pub mod detect;
 pub mod info;
+pub mod refine;
 pub mod run;
 
 use std::io::IsTerminal;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
+
+use fluid_surfels::sequence::FramePattern;
+use rayon::prelude::*;
 
 use fluid_surfels::io;
 use fluid_surfels::preview::palette;
@@ -75,4 +81,154 @@ pub fn check_output(out: &Path, input: Option<&Path>, force: bool) -> Result<(),
         .into());
     }
     Ok(())
+}
+
+/// How a subcommand runs over the frames of a sequence.
+pub struct Sequence<'a> {
+    /// Input file pattern.
+    pub input: &'a FramePattern,
+    /// Frames asked for.
+    pub frames: Vec<usize>,
+    /// Output patterns (a frame is done when all exist).
+    pub outputs: Vec<FramePattern>,
+    /// Frames at once.
+    pub jobs: usize,
+    /// Skip frames whose outputs all exist.
+    pub skip_existing: bool,
+    /// Replace existing outputs.
+    pub force: bool,
+    /// Progress bar label.
+    pub label: &'static str,
+}
+
+/// What [`Sequence::run`] reports.
+pub struct SequenceRun<R> {
+    /// Per processed frame, in frame order.
+    pub results: Vec<R>,
+    /// Frames skipped because their outputs existed.
+    pub skipped: Vec<usize>,
+    /// Jobs actually used.
+    pub jobs: usize,
+    /// Wall-clock seconds of the processing.
+    pub seconds: f64,
+}
+
+impl Sequence<'_> {
+    /// Frames still to do, after `--skip-existing` and the refusal to overwrite without
+    /// `--force` (checked for every frame before anything runs).
+    pub fn plan(&self) -> Result<(Vec<usize>, Vec<usize>), Error> {
+        let mut todo = Vec::new();
+        let mut skipped = Vec::new();
+        for &f in &self.frames {
+            let targets: Vec<PathBuf> = self.outputs.iter().map(|p| p.path(f)).collect();
+            if self.skip_existing && !targets.is_empty() && targets.iter().all(|t| t.exists()) {
+                skipped.push(f);
+                continue;
+            }
+            let input = self.input.path(f);
+            for t in &targets {
+                check_output(t, Some(&input), self.force)?;
+            }
+            todo.push(f);
+        }
+        Ok((todo, skipped))
+    }
+
+    /// Runs `process(state, frame)` over the frames to do: `jobs` runs of consecutive frames in
+    /// parallel, each with its own `state` (made by `make_state`) used in frame order. Stops at
+    /// the first error.
+    pub fn run<S, R: Send>(
+        &self,
+        make_state: impl Fn() -> Result<S, Error> + Sync,
+        process: impl Fn(&mut S, usize) -> Result<R, Error> + Sync,
+    ) -> Result<SequenceRun<R>, Error> {
+        let (todo, skipped) = self.plan()?;
+        let jobs = self.jobs.clamp(1, todo.len().max(1));
+        let block = todo.len().div_ceil(jobs).max(1);
+        let blocks: Vec<&[usize]> = todo.chunks(block).collect();
+        let bar = progress(todo.len() as u64, self.label);
+        let failed = AtomicBool::new(false);
+        let first_error: Mutex<Option<Error>> = Mutex::new(None);
+        let fail = |e: Error| {
+            failed.store(true, Ordering::SeqCst);
+            first_error
+                .lock()
+                .expect("no panic holds the lock")
+                .get_or_insert(e);
+        };
+        let start = Instant::now();
+        let run_block = |frames: &[usize]| -> Vec<(usize, R)> {
+            let mut out = Vec::new();
+            let mut state = match make_state() {
+                Ok(s) => s,
+                Err(e) => {
+                    fail(e);
+                    return out;
+                }
+            };
+            for &f in frames {
+                if failed.load(Ordering::SeqCst) {
+                    break;
+                }
+                match process(&mut state, f) {
+                    Ok(r) => out.push((f, r)),
+                    Err(e) => {
+                        fail(e);
+                        break;
+                    }
+                }
+                bar.inc(1);
+            }
+            out
+        };
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(jobs.max(rayon::current_num_threads()))
+            .build()
+            .map_err(|e| Error::InvalidArgument {
+                argument: "--jobs",
+                reason: e.to_string(),
+            })?;
+        let mut done: Vec<(usize, R)> =
+            pool.install(|| blocks.par_iter().flat_map_iter(|b| run_block(b)).collect());
+        bar.finish_and_clear();
+        if let Some(e) = first_error.into_inner().expect("no panic holds the lock") {
+            return Err(e);
+        }
+        done.sort_by_key(|(f, _)| *f);
+        Ok(SequenceRun {
+            results: done.into_iter().map(|(_, r)| r).collect(),
+            skipped,
+            jobs,
+            seconds: start.elapsed().as_secs_f64(),
+        })
+    }
+}
+
+/// The frames of a sequence: the range given, or every file of the pattern found on disk.
+pub fn sequence_frames(
+    pattern: &FramePattern,
+    range: Option<fluid_surfels::sequence::FrameRange>,
+) -> Result<Vec<usize>, Error> {
+    Ok(match range {
+        Some(r) => r.frames().collect(),
+        None => pattern.existing_frames()?,
+    })
+}
+
+/// An output pattern that must have a placeholder because the input is a sequence.
+pub fn output_pattern(
+    text: &Option<String>,
+    flag: &'static str,
+) -> Result<Option<FramePattern>, Error> {
+    match text {
+        None => Ok(None),
+        Some(t) => FramePattern::parse(t)?
+            .map(Some)
+            .ok_or_else(|| Error::InvalidArgument {
+                argument: flag,
+                reason: format!(
+                    "`{t}` needs a {{}} for the frame number when the input is a sequence"
+                ),
+            }),
+    }
 }

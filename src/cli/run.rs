@@ -97,6 +97,24 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
     preview::save_png(&picture, &png)?;
     let write_ms = ms(t);
 
+    // stage 2: upsampling of the surface, 3 steps
+    let (points, normals) =
+        super::refine::surface_of(particles, &surface.classes, &surface.normals);
+    let t = Instant::now();
+    let refined = fluid_surfels::refine::refine(
+        &points,
+        &normals,
+        &fluid_surfels::refine::RefineParams::with_radius(sim.support_radius()),
+    )?;
+    let refine_ms = ms(t);
+    let refined_ply = args.out_dir.join("refined.ply");
+    io::write_particles(&refined_ply, &refined.to_particle_set(), None)?;
+    let refine_png = args.out_dir.join("refine.png");
+    preview::save_png(
+        &super::refine::refinement_picture(&points, &refined, 700)?,
+        &refine_png,
+    )?;
+
     println!(
         "fluid-surfels: scene `column` (collapsing water column, position based fluids), frame {}",
         sim.frame()
@@ -130,6 +148,27 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
     println!(
         "  wrote              {} (orange surface, blue interior, green isolated)",
         png.display()
+    );
+    let counts: Vec<String> = refined
+        .stats
+        .iter()
+        .map(|s| s.points_after.to_string())
+        .collect();
+    println!(
+        "  refinement         {} surface points -> {} in 3 steps ({}), {:.1}x, {:.1} ms",
+        points.len(),
+        refined.len(),
+        counts.join(" -> "),
+        refined.len() as f64 / points.len().max(1) as f64,
+        refine_ms
+    );
+    println!(
+        "  wrote              {} (refined points: normal, step, weight, splat radius)",
+        refined_ply.display()
+    );
+    println!(
+        "  wrote              {} (input | refined: black P0, blue P1, red P2, yellow P3)",
+        refine_png.display()
     );
     println!("  total              {:.0} ms", ms(total));
     Ok(())

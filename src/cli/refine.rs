@@ -1,0 +1,428 @@
+//! `fluid-surfels refine`: surface detection then upsampling (Solenthaler et al. 2007).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use fluid_surfels::io::{self, Format};
+use fluid_surfels::neighbours::{self, Backend, Neighbourhoods};
+use fluid_surfels::preview::{self, PreviewCamera, palette};
+use fluid_surfels::refine::{self, HeightRule, RefineParams, Refined, StepStats};
+use fluid_surfels::scenes::{self, ColumnParams, SceneName};
+use fluid_surfels::sequence::{FramePattern, FrameRange};
+use fluid_surfels::surface::{ParticleClass, SurfaceDetector, SurfaceParams};
+use fluid_surfels::{Error, ParticleSet};
+use glam::Vec3;
+use serde::Serialize;
+
+use super::{check_output, ms};
+
+/// Arguments of `refine`.
+#[derive(clap::Args)]
+#[command(group = clap::ArgGroup::new("source").required(true).args(["input", "scene"]))]
+pub struct RefineArgs {
+    /// Particle file, or a numbered sequence with `{}` or `{:04}` for the frame number.
+    #[arg(long)]
+    pub input: Option<String>,
+    /// Built-in scene.
+    #[arg(long, value_enum)]
+    pub scene: Option<SceneName>,
+    /// Format of --input (default: from its extension).
+    #[arg(long, value_enum)]
+    pub format: Option<Format>,
+    /// The input already holds surface points with normals (the output of `detect`): refine it
+    /// as it is instead of detecting its surface first.
+    #[arg(long)]
+    pub surface_input: bool,
+    /// Support radius r0 (default: the scene's, or twice the estimated particle spacing).
+    #[arg(long)]
+    pub radius: Option<f32>,
+    /// Frame of the `column` scene.
+    #[arg(long)]
+    pub frame: Option<usize>,
+    /// Frames of a sequence: A..B, A..=B, with an optional :STEP (default: every file found).
+    #[arg(long)]
+    pub frames: Option<FrameRange>,
+    /// Refinement steps.
+    #[arg(long, default_value_t = 3)]
+    pub steps: u32,
+    /// Child height rule: min (eq. 5, keeps edges) or average (eq. 4, smoother).
+    #[arg(long, value_enum, default_value = "min")]
+    pub height: HeightChoice,
+    /// Run the single-threaded reference implementation instead of the parallel one.
+    #[arg(long)]
+    pub reference: bool,
+    /// Write the refined points (normals, step, weight, radius) here; a pattern for sequences.
+    #[arg(long)]
+    pub out: Option<String>,
+    /// Write a picture here: the input points beside the refined ones coloured by step.
+    #[arg(long)]
+    pub png: Option<String>,
+    /// Frames processed at once (sequences).
+    #[arg(long, default_value_t = 1)]
+    pub jobs: usize,
+    /// Skip frames whose outputs exist.
+    #[arg(long)]
+    pub skip_existing: bool,
+    /// Replace existing output files.
+    #[arg(long)]
+    pub force: bool,
+    /// Print one JSON object of statistics instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Eq. 4 or 5 on the command line.
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum HeightChoice {
+    /// Eq. 5.
+    Min,
+    /// Eq. 4.
+    Average,
+}
+
+#[derive(Serialize)]
+struct RefineReport {
+    source: String,
+    frame: Option<usize>,
+    radius: f32,
+    implementation: &'static str,
+    p0: usize,
+    points: usize,
+    steps: Vec<StepStats>,
+    detect_ms: f64,
+    refine_ms: f64,
+    outputs: Vec<String>,
+}
+
+/// Surface points (with normals) of a particle set: detected, or taken as they are.
+pub fn surface_points(
+    particles: &ParticleSet,
+    radius: f32,
+    surface_input: bool,
+) -> Result<(Vec<Vec3>, Vec<Vec3>), Error> {
+    if surface_input {
+        let normals = particles
+            .normals
+            .clone()
+            .ok_or_else(|| Error::InvalidArgument {
+                argument: "--surface-input",
+                reason: "the input has no normals (nx ny nz or a normal array)".into(),
+            })?;
+        return Ok((particles.positions.clone(), normals));
+    }
+    let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
+    let surface = SurfaceDetector::new(SurfaceParams::default())?.detect(particles, &nb)?;
+    Ok(surface_of(particles, &surface.classes, &surface.normals))
+}
+
+/// The surface and isolated particles with their normals (isolated ones keep a zero normal and
+/// are kept as they are by the refinement).
+pub fn surface_of(
+    particles: &ParticleSet,
+    classes: &[ParticleClass],
+    normals: &[Vec3],
+) -> (Vec<Vec3>, Vec<Vec3>) {
+    let idx: Vec<usize> = (0..particles.len())
+        .filter(|&i| classes[i] != ParticleClass::Interior)
+        .collect();
+    (
+        idx.iter().map(|&i| particles.positions[i]).collect(),
+        idx.iter().map(|&i| normals[i]).collect(),
+    )
+}
+
+/// The input points beside the refined points coloured by step (the paper's Figure 2).
+pub fn refinement_picture(
+    input: &[Vec3],
+    refined: &Refined,
+    size: u32,
+) -> Result<image::RgbImage, Error> {
+    let all = input.iter().chain(&refined.positions);
+    let (lo, hi) = all.fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &p| {
+        (lo.min(p), hi.max(p))
+    });
+    let (lo, hi) = if lo.is_finite() {
+        (lo, hi)
+    } else {
+        (Vec3::ZERO, Vec3::ONE)
+    };
+    let camera = PreviewCamera::framing(lo, hi);
+    let splat = refined.final_radius * 0.5;
+    let input_colours = vec![palette::STEPS[0]; input.len()];
+    let r0 = refined.final_radius / refine::RADIUS_FACTOR.powi(refined.stats.len() as i32);
+    let left = preview::render_points_on(
+        input,
+        &input_colours,
+        0.2 * r0,
+        &camera,
+        size,
+        size,
+        palette::LIGHT_BACKGROUND,
+    )?;
+    let colours: Vec<[u8; 3]> = refined
+        .steps
+        .iter()
+        .map(|&s| palette::STEPS[(s as usize).min(4)])
+        .collect();
+    let right = preview::render_points_on(
+        &refined.positions,
+        &colours,
+        splat,
+        &camera,
+        size,
+        size,
+        palette::LIGHT_BACKGROUND,
+    )?;
+    Ok(preview::side_by_side(&[left, right]))
+}
+
+fn params(args: &RefineArgs, radius: f32) -> RefineParams {
+    RefineParams {
+        steps: args.steps,
+        height: match args.height {
+            HeightChoice::Min => HeightRule::Min,
+            HeightChoice::Average => HeightRule::Average,
+        },
+        ..RefineParams::with_radius(radius)
+    }
+}
+
+fn run_refine(
+    args: &RefineArgs,
+    p: &[Vec3],
+    n: &[Vec3],
+    params: &RefineParams,
+) -> Result<Refined, Error> {
+    Ok(if args.reference {
+        refine::refine_reference(p, n, params)?
+    } else {
+        refine::refine(p, n, params)?
+    })
+}
+
+fn write(
+    out: Option<&Path>,
+    png: Option<&Path>,
+    input: &[Vec3],
+    refined: &Refined,
+) -> Result<Vec<String>, Error> {
+    let mut outputs = Vec::new();
+    if let Some(out) = out {
+        io::write_particles(out, &refined.to_particle_set(), None)?;
+        outputs.push(out.display().to_string());
+    }
+    if let Some(png) = png {
+        let picture = refinement_picture(input, refined, 700)?;
+        let tmp = png.with_extension(format!("{}.tmp.png", std::process::id()));
+        preview::save_png(&picture, &tmp)?;
+        std::fs::rename(&tmp, png).map_err(|e| io::IoError::Os {
+            path: png.to_owned(),
+            source: e,
+        })?;
+        outputs.push(png.display().to_string());
+    }
+    Ok(outputs)
+}
+
+pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
+    if let Some(pattern) = args
+        .input
+        .as_deref()
+        .map(FramePattern::parse)
+        .transpose()?
+        .flatten()
+    {
+        return refine_sequence(args, &pattern);
+    }
+    if args.frames.is_some() || args.jobs != 1 || args.skip_existing {
+        return Err(Error::InvalidArgument {
+            argument: "--frames",
+            reason:
+                "--frames, --jobs and --skip-existing need an --input pattern with {} (a sequence)"
+                    .into(),
+        });
+    }
+    let input = args.input.as_deref().map(PathBuf::from);
+    let out = args.out.as_deref().map(PathBuf::from);
+    let png = args.png.as_deref().map(PathBuf::from);
+    for o in [&out, &png].into_iter().flatten() {
+        check_output(o, input.as_deref(), args.force)?;
+    }
+    let t = Instant::now();
+    let (source, radius, points, normals) = match (&input, args.scene) {
+        (Some(path), _) => {
+            let particles = io::read_particles(path, args.format)?;
+            let radius = match args.radius {
+                Some(r) => r,
+                None => 2.0 * neighbours::estimate_spacing(&particles.positions)?,
+            };
+            let (p, n) = surface_points(&particles, radius, args.surface_input)?;
+            (path.display().to_string(), radius, p, n)
+        }
+        (None, Some(SceneName::Column)) => {
+            let frame = args.frame.unwrap_or(ColumnParams::SPLASH_FRAME);
+            let result = super::run::column_to_frame(frame, SurfaceParams::default(), args.radius)?;
+            let (p, n) = surface_of(
+                result.sim.particles(),
+                &result.surface.classes,
+                &result.surface.normals,
+            );
+            ("scene column".into(), result.radius, p, n)
+        }
+        (None, Some(name)) => {
+            let scene = scenes::build(name, args.frame)?;
+            let radius = args.radius.unwrap_or(scene.support_radius);
+            let (p, n) = surface_points(&scene.particles, radius, false)?;
+            (format!("scene {}", name.as_str()), radius, p, n)
+        }
+        (None, None) => unreachable!("clap requires --input or --scene"),
+    };
+    let detect_ms = ms(t);
+    let t = Instant::now();
+    let refined = run_refine(args, &points, &normals, &params(args, radius))?;
+    let refine_ms = ms(t);
+    let outputs = write(out.as_deref(), png.as_deref(), &points, &refined)?;
+    let report = RefineReport {
+        source,
+        frame: args.frame,
+        radius,
+        implementation: if args.reference {
+            "reference"
+        } else {
+            "parallel"
+        },
+        p0: points.len(),
+        points: refined.len(),
+        steps: refined.stats.clone(),
+        detect_ms,
+        refine_ms,
+        outputs,
+    };
+    if args.json {
+        println!(
+            "{}",
+            serde_json::to_string(&report).expect("the report serialises")
+        );
+        return Ok(());
+    }
+    println!(
+        "{}: {} surface points -> {} refined points in {} steps ({:.1}x), r0 {}",
+        report.source,
+        report.p0,
+        report.points,
+        args.steps,
+        report.points as f64 / report.p0.max(1) as f64,
+        radius
+    );
+    println!("  step  radius     points  candidates  collisions (type 2 / 3)  moved      ms");
+    for s in &report.steps {
+        println!(
+            "  {:>4}  {:<9.5} {:>7}  {:>10}  {:>10} / {:<10}  {:>6}  {:>6.1}",
+            s.step,
+            s.radius,
+            s.points_after,
+            s.candidates,
+            s.collisions_type2,
+            s.collisions_type3,
+            s.moved,
+            s.ms
+        );
+    }
+    println!(
+        "  ms: input and detection {:.1}, refinement {:.1} ({})",
+        report.detect_ms, report.refine_ms, report.implementation
+    );
+    for o in &report.outputs {
+        println!("  wrote {o}");
+    }
+    Ok(())
+}
+
+#[derive(Serialize)]
+struct FrameReport {
+    frame: usize,
+    p0: usize,
+    points: usize,
+    ms: f64,
+}
+
+fn refine_sequence(args: &RefineArgs, pattern: &FramePattern) -> Result<(), Error> {
+    if args.scene.is_some() || args.frame.is_some() {
+        return Err(Error::InvalidArgument {
+            argument: "--frame",
+            reason: "--scene and --frame do not combine with an --input sequence".into(),
+        });
+    }
+    let out = super::output_pattern(&args.out, "--out")?;
+    let png = super::output_pattern(&args.png, "--png")?;
+    let sequence = super::Sequence {
+        input: pattern,
+        frames: super::sequence_frames(pattern, args.frames)?,
+        outputs: [&out, &png].into_iter().flatten().cloned().collect(),
+        jobs: args.jobs,
+        skip_existing: args.skip_existing,
+        force: args.force,
+        label: "refine",
+    };
+    let (todo, _) = sequence.plan()?;
+    let radius = match (args.radius, todo.first()) {
+        (Some(r), _) => r,
+        (None, Some(&f)) => {
+            2.0 * neighbours::estimate_spacing(
+                &io::read_particles(&pattern.path(f), args.format)?.positions,
+            )?
+        }
+        (None, None) => 0.0,
+    };
+    let run = sequence.run(
+        || Ok(SurfaceDetector::new(SurfaceParams::default())?),
+        |detector, f| {
+            let t = Instant::now();
+            let particles = io::read_particles(&pattern.path(f), args.format)?;
+            let (p, n) = if args.surface_input {
+                surface_points(&particles, radius, true)?
+            } else {
+                let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
+                let surface = detector.detect(&particles, &nb)?;
+                surface_of(&particles, &surface.classes, &surface.normals)
+            };
+            let refined = run_refine(args, &p, &n, &params(args, radius))?;
+            write(
+                out.as_ref().map(|x| x.path(f)).as_deref(),
+                png.as_ref().map(|x| x.path(f)).as_deref(),
+                &p,
+                &refined,
+            )?;
+            Ok(FrameReport {
+                frame: f,
+                p0: p.len(),
+                points: refined.len(),
+                ms: ms(t),
+            })
+        },
+    )?;
+    if args.json {
+        let v = serde_json::json!({
+            "input": args.input,
+            "radius": radius,
+            "jobs": run.jobs,
+            "processed": run.results.len(),
+            "skipped": run.skipped,
+            "seconds": run.seconds,
+            "frames_per_second": run.results.len() as f64 / run.seconds.max(1e-9),
+            "frames": run.results,
+        });
+        println!("{v}");
+    } else {
+        println!(
+            "{}: {} frames refined, {} skipped, {:.2} s ({:.1} frames/s, {} jobs)",
+            args.input.as_deref().unwrap_or(""),
+            run.results.len(),
+            run.skipped.len(),
+            run.seconds,
+            run.results.len() as f64 / run.seconds.max(1e-9),
+            run.jobs
+        );
+    }
+    Ok(())
+}
