@@ -253,8 +253,9 @@ impl CellGrid {
             .collect();
         let order = keyed.par_iter().map(|&(_, i)| i).collect();
         let total_cells = dims[0] * dims[1] * dims[2];
-        // A dense start table costs 4 bytes a cell: allow a few cells per particle.
-        let dense_limit = (4 * positions.len() as u64).max(1 << 16);
+        // A dense start table costs 4 bytes a cell: allow a few cells per particle, and at
+        // least 4 MiB, so that sparse surfaces in large boxes stay on the fast path.
+        let dense_limit = (8 * positions.len() as u64).max(1 << 20);
         let index = if total_cells <= dense_limit {
             let mut start = vec![0u32; total_cells as usize + 1];
             for &(k, _) in &keyed {

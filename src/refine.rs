@@ -7,9 +7,10 @@
 //! from the relations already known, without a search structure (§3.4).
 //!
 //! Two implementations share every formula: [`refine_reference`], a direct single-threaded
-//! transcription, and [`refine`], which computes children, collision candidates and neighbourhood
-//! updates in parallel and keeps only the greedy acceptance sequential. Both give the same points
-//! in the same order whatever the thread count (tested).
+//! transcription, and [`refine`], which computes the children, the type 2 collision checks and
+//! the neighbourhood updates in parallel and keeps the type 3 checks and registrations, which
+//! depend on every earlier decision of the step, in one sequential pass. Both give the same
+//! points in the same order whatever the thread count (tested).
 //!
 //! Where this differs from, or makes precise, the paper:
 //! - Eq. 8 and 10 take `|n . a|`, which loses the side of the child: between two points on the
@@ -426,6 +427,28 @@ fn type2_hit(pts: &Points, c: &Candidate, beta: f32) -> Option<u32> {
     best.map(|(_, q)| q)
 }
 
+/// Nearest child of this step within `beta` among those registered at both parents
+/// (type 3: `S = R1 ∩ R2`), ties to the earliest.
+fn type3_hit(
+    registered: &[Vec<u32>],
+    accepted: &[Candidate],
+    c: &Candidate,
+    beta: f32,
+) -> Option<u32> {
+    let mut best: Option<(f32, u32)> = None;
+    for_each_common(
+        &registered[c.p1 as usize],
+        &registered[c.p2 as usize],
+        |k| {
+            let d2 = accepted[k as usize].pos.distance_squared(c.pos);
+            if d2 < beta * beta && best.is_none_or(|(bd, _)| d2 < bd) {
+                best = Some((d2, k));
+            }
+        },
+    );
+    best.map(|(_, k)| k)
+}
+
 /// Calls `f(q)` once for every older point of `U = N1 ∪ N2` (which holds both parents) within
 /// `reach` of the candidate, in ascending order: a merge of the two sorted neighbour lists.
 fn for_each_registration_unique(pts: &Points, c: &Candidate, reach: f32, mut f: impl FnMut(u32)) {
@@ -725,8 +748,8 @@ fn step_reference(pts: &mut Points, params: &RefineParams, r: f32, step: u32) ->
     s
 }
 
-/// One step with children, collision candidates and neighbourhood updates computed in parallel;
-/// only the greedy acceptance (a linear pass over precomputed conflict lists) is sequential.
+/// One step with the children, type 2 checks and neighbourhood updates computed in parallel;
+/// type 3 checks and registrations run in candidate order, as in the reference.
 fn step_parallel(pts: &mut Points, params: &RefineParams, r: f32, step: u32) -> StepStats {
     let t = Instant::now();
     let n_old = pts.pos.len();
@@ -759,96 +782,32 @@ fn step_parallel(pts: &mut Points, params: &RefineParams, r: f32, step: u32) -> 
     } else {
         vec![None; n]
     };
-    // 3. registrations (§3.3.1): where each candidate would register if accepted, as sorted
-    //    (old point, candidate) keys; a candidate rejected by type 2 never registers
-    let mut reg: Vec<u64> = candidates
-        .par_iter()
-        .enumerate()
-        .filter(|(k, _)| hits[*k].is_none())
-        .flat_map_iter(|(k, c)| {
-            let mut keys = Vec::with_capacity(16);
-            for_each_registration_unique(pts, c, r_next + beta, |q| {
-                keys.push((q as u64) << 32 | k as u64)
-            });
-            keys
-        })
-        .collect();
-    reg.par_sort_unstable();
-    let mut start = vec![0usize; n_old + 1];
-    for &key in &reg {
-        start[(key >> 32) as usize + 1] += 1;
-    }
-    for q in 0..n_old {
-        start[q + 1] += start[q];
-    }
-    let reg_k: Vec<u32> = reg.iter().map(|&key| key as u32).collect();
-    let at = |q: u32| &reg_k[start[q as usize]..start[q as usize + 1]];
-    //    type 3 conflicts: earlier candidates registered at both parents and within beta;
-    //    whether they count depends on their own acceptance
-    let conflicts: Vec<Vec<(f32, u32)>> = if params.collisions {
-        candidates
-            .par_iter()
-            .enumerate()
-            .map(|(k, c)| {
-                let mut out = Vec::new();
-                if hits[k].is_some() {
-                    return out;
-                }
-                for_each_common(at(c.p1), at(c.p2), |j| {
-                    if (j as usize) < k {
-                        let d2 = candidates[j as usize].pos.distance_squared(c.pos);
-                        if d2 < beta * beta {
-                            out.push((d2, j));
-                        }
-                    }
-                });
-                out
-            })
-            .collect()
-    } else {
-        vec![Vec::new(); n]
-    };
-    // 4. greedy acceptance in candidate order
-    let mut accepted_flag = vec![false; n];
-    let mut new_index = vec![u32::MAX; n];
+    // 3. in candidate order: type 3 checks against the registrations made so far, acceptance
+    //    and registration, exactly as the reference does (this part is inherently sequential)
+    let mut registered: Vec<Vec<u32>> = vec![Vec::new(); n_old];
+    let mut children_of: Vec<Vec<u32>> = vec![Vec::new(); n_old];
     let mut accepted: Vec<Candidate> = Vec::new();
     let mut moves: Vec<(Target, Candidate)> = Vec::new();
-    for k in 0..n {
-        let c = candidates[k];
+    for (k, c) in candidates.iter().enumerate() {
         if let Some(q) = hits[k] {
             s.collisions_type2 += 1;
-            moves.push((Target::Old(q), c));
+            moves.push((Target::Old(q), *c));
             continue;
         }
-        let mut best: Option<(f32, u32)> = None;
-        for &(d2, j) in &conflicts[k] {
-            if accepted_flag[j as usize] && best.is_none_or(|(bd, _)| d2 < bd) {
-                best = Some((d2, j));
+        if params.collisions {
+            if let Some(j) = type3_hit(&registered, &accepted, c, beta) {
+                s.collisions_type3 += 1;
+                moves.push((Target::New(j), *c));
+                continue;
             }
         }
-        if let Some((_, j)) = best {
-            s.collisions_type3 += 1;
-            moves.push((Target::New(new_index[j as usize]), c));
-            continue;
-        }
-        accepted_flag[k] = true;
-        new_index[k] = accepted.len() as u32;
-        accepted.push(c);
-    }
-    let mut children_of: Vec<Vec<u32>> = vec![Vec::new(); n_old];
-    for (i, c) in accepted.iter().enumerate() {
-        children_of[c.p1 as usize].push(i as u32);
-        children_of[c.p2 as usize].push(i as u32);
+        let a = accepted.len() as u32;
+        for_each_registration_unique(pts, c, r_next + beta, |q| registered[q as usize].push(a));
+        children_of[c.p1 as usize].push(a);
+        children_of[c.p2 as usize].push(a);
+        accepted.push(*c);
     }
     s.resolved = moves.len();
-    // the children registered at each old point, among the accepted ones
-    let mut registered: Vec<Vec<u32>> = vec![Vec::new(); n_old];
-    for &key in &reg {
-        let k = key as u32 as usize;
-        if accepted_flag[k] {
-            registered[(key >> 32) as usize].push(new_index[k]);
-        }
-    }
     s.moved = append_and_update(
         pts,
         &accepted,
