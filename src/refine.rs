@@ -794,12 +794,12 @@ fn step_parallel(pts: &mut Points, params: &RefineParams, r: f32, step: u32) -> 
             moves.push((Target::Old(q), *c));
             continue;
         }
-        if params.collisions {
-            if let Some(j) = type3_hit(&registered, &accepted, c, beta) {
-                s.collisions_type3 += 1;
-                moves.push((Target::New(j), *c));
-                continue;
-            }
+        if params.collisions
+            && let Some(j) = type3_hit(&registered, &accepted, c, beta)
+        {
+            s.collisions_type3 += 1;
+            moves.push((Target::New(j), *c));
+            continue;
         }
         let a = accepted.len() as u32;
         for_each_registration_unique(pts, c, r_next + beta, |q| registered[q as usize].push(a));
