@@ -7,7 +7,8 @@
 //!    (Solenthaler et al. 2007, §3.1), on top of [`neighbours`] (fixed-radius neighbour search).
 //! 2. [`refine`]: upsampling of the surface points by spherical interpolation with collision
 //!    avoidance and incremental neighbourhoods (Solenthaler et al. 2007, §3.2-3.4).
-//! 3. Density grid, 4. surfel splatting and 5. optics follow in later releases.
+//! 3. [`density`]: the density grid (Iwasaki et al., §4) on the CPU, slab by slab; the GPU path
+//!    and surfel extraction follow, then 4. surfel splatting and 5. optics.
 //!
 //! Supporting modules: [`particles`] (the [`ParticleSet`] every stage reads), [`io`] (readers and
 //! writers for PLY, legacy VTK, VTU, BGEO, XYZ, CSV and JSON), [`sequence`] (numbered frame
@@ -26,6 +27,7 @@
 //! # Ok::<(), fluid_surfels::Error>(())
 //! ```
 
+pub mod density;
 pub mod io;
 pub mod kernels;
 pub mod linalg;
@@ -55,6 +57,9 @@ pub enum Error {
     /// Upsampling.
     #[error(transparent)]
     Refine(#[from] refine::RefineError),
+    /// The density grid.
+    #[error(transparent)]
+    Density(#[from] density::DensityError),
     /// Scene construction.
     #[error(transparent)]
     Scene(#[from] scenes::SceneError),
