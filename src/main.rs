@@ -50,6 +50,9 @@ enum BenchCommand {
     /// Upsampling on frames of the column scene like the paper's Table 1, against the
     /// single-threaded reference.
     Refine(cli::bench::BenchRefineArgs),
+    /// The density grid (the paper's case: 150,000 particles into 256^3), against a naive
+    /// single-threaded reference.
+    Density(cli::bench::BenchDensityArgs),
 }
 
 fn main() -> ExitCode {
@@ -66,6 +69,7 @@ fn main() -> ExitCode {
         Some(Command::Bench(BenchCommand::Detect(args))) => cli::bench::bench_detect(&args),
         Some(Command::Bench(BenchCommand::Io(args))) => cli::bench::bench_io(&args),
         Some(Command::Bench(BenchCommand::Refine(args))) => cli::bench::bench_refine(&args),
+        Some(Command::Bench(BenchCommand::Density(args))) => cli::bench::bench_density(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

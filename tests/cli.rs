@@ -494,3 +494,31 @@ fn bench_refine_reports_table_1_frames() {
         }
     }
 }
+
+#[test]
+fn bench_density_compares_with_the_naive_reference() {
+    let out = bin()
+        .args([
+            "bench",
+            "density",
+            "--particles",
+            "3000",
+            "--resolution",
+            "40",
+            "--json",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["particles"], 3000);
+    assert_eq!(v["grid"], serde_json::json!([40, 40, 40]));
+    assert!(v["cpu_density_ms"].as_f64().unwrap() > 0.0);
+    assert!(v["naive_density_ms"].as_f64().unwrap() > 0.0);
+    assert!(v["gpu_density_ms"].is_null());
+    assert!(v["max_difference_from_naive"].as_f64().unwrap() <= 1e-4);
+}
