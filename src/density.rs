@@ -192,8 +192,9 @@ impl GridSpec {
                 nx: dims_u[0] as u64,
                 ny: dims_u[1] as u64,
                 nz: dims_u[2] as u64,
-                cells: dims_u.iter().map(|&d| d as u128).product(),
-                bytes: dims_u.iter().map(|&d| d as u128).product::<u128>() * 4,
+                // saturating: absurd sizes must not overflow while being reported
+                cells: dims_u.iter().product::<f64>().min(u128::MAX as f64 / 8.0) as u128,
+                bytes: (dims_u.iter().product::<f64>() * 4.0).min(u128::MAX as f64 / 2.0) as u128,
                 limit: crate::io::available_memory(),
             });
         }
