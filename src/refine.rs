@@ -6,11 +6,11 @@
 //! neighbourhoods for the next, smaller radius `r_{i+1} = r_i sqrt(4 - 2 sqrt 2) / 2` (eq. 16)
 //! from the relations already known, without a search structure (§3.4).
 //!
-//! Two implementations share every formula: [`refine_reference`], a direct single-threaded
-//! transcription, and [`refine`], which computes the children, the type 2 collision checks and
-//! the neighbourhood updates in parallel and keeps the type 3 checks and registrations, which
-//! depend on every earlier decision of the step, in one sequential pass. Both give the same
-//! points in the same order whatever the thread count (tested).
+//! Two entry points run the same step: [`refine_reference`] entirely on one thread, and
+//! [`refine`], which computes the children, the type 2 collision checks and the neighbourhood
+//! updates with rayon and keeps the type 3 checks and registrations, which depend on every
+//! earlier decision of the step, in one pass in candidate order. Both give the same points in the
+//! same order whatever the thread count (tested).
 //!
 //! Where this differs from, or makes precise, the paper:
 //! - Eq. 8 and 10 take `|n . a|`, which loses the side of the child: between two points on the
@@ -675,9 +675,18 @@ fn finish(
     }
 }
 
-/// One step, single-threaded, pairs in order, each child checked against the registrations made
-/// so far, exactly as §3.3 describes.
-fn step_reference(pts: &mut Points, params: &RefineParams, r: f32, step: u32) -> StepStats {
+/// One step (§3.2-3.4). With `parallel`, the children, the type 2 checks and the neighbourhood
+/// update are computed with rayon; the type 3 checks and registrations, which depend on every
+/// earlier decision of the step, always run in one pass in candidate order, as §3.3 describes:
+/// pairs in order of their first point, each child checked against the older points of
+/// `N1 ∩ N2` (type 2) and against the children registered so far at both parents (type 3).
+fn step_once(
+    pts: &mut Points,
+    params: &RefineParams,
+    r: f32,
+    step: u32,
+    parallel: bool,
+) -> StepStats {
     let t = Instant::now();
     let n_old = pts.pos.len();
     let (r_next, beta) = (r * RADIUS_FACTOR, params.collision_factor * r);
@@ -687,103 +696,30 @@ fn step_reference(pts: &mut Points, params: &RefineParams, r: f32, step: u32) ->
         points_before: n_old,
         ..StepStats::default()
     };
-    let mut registered: Vec<Vec<u32>> = vec![Vec::new(); n_old];
-    let mut children_of: Vec<Vec<u32>> = vec![Vec::new(); n_old];
-    let mut accepted: Vec<Candidate> = Vec::new();
-    let mut moves: Vec<(Target, Candidate)> = Vec::new();
-    let mut buffer = Vec::new();
-    for p1 in 0..n_old {
-        buffer.clear();
-        s.different_surfaces += candidates_of(pts, p1, params, r, &mut buffer);
-        for c in buffer.iter().copied() {
-            s.candidates += 1;
-            if params.collisions {
-                if let Some(q) = type2_hit(pts, &c, beta) {
-                    s.collisions_type2 += 1;
-                    moves.push((Target::Old(q), c));
-                    continue;
-                }
-                // type 3: S = R1 ∩ R2
-                let mut best: Option<(f32, u32)> = None;
-                for_each_common(
-                    &registered[c.p1 as usize],
-                    &registered[c.p2 as usize],
-                    |k| {
-                        let d2 = accepted[k as usize].pos.distance_squared(c.pos);
-                        if d2 < beta * beta && best.is_none_or(|(bd, _)| d2 < bd) {
-                            best = Some((d2, k));
-                        }
-                    },
-                );
-                if let Some((_, k)) = best {
-                    s.collisions_type3 += 1;
-                    moves.push((Target::New(k), c));
-                    continue;
-                }
-            }
-            let k = accepted.len() as u32;
-            for_each_registration_unique(pts, &c, r_next + beta, |q| {
-                registered[q as usize].push(k)
-            });
-            children_of[c.p1 as usize].push(k);
-            children_of[c.p2 as usize].push(k);
-            accepted.push(c);
-        }
-    }
-    s.resolved = moves.len();
-    s.moved = append_and_update(
-        pts,
-        &accepted,
-        &moves,
-        &registered,
-        &children_of,
-        step as u8,
-        r_next,
-        beta,
-        step == params.steps,
-        false,
-    );
-    s.points_after = pts.pos.len();
-    s.ms = t.elapsed().as_secs_f64() * 1e3;
-    s
-}
-
-/// One step with the children, type 2 checks and neighbourhood updates computed in parallel;
-/// type 3 checks and registrations run in candidate order, as in the reference.
-fn step_parallel(pts: &mut Points, params: &RefineParams, r: f32, step: u32) -> StepStats {
-    let t = Instant::now();
-    let n_old = pts.pos.len();
-    let (r_next, beta) = (r * RADIUS_FACTOR, params.collision_factor * r);
-    let mut s = StepStats {
-        step,
-        radius: r,
-        points_before: n_old,
-        ..StepStats::default()
+    // candidates, in (first point, neighbour) order
+    let generate = |p1: usize| {
+        let mut out = Vec::new();
+        let none = candidates_of(pts, p1, params, r, &mut out);
+        (out, none)
     };
-    // 1. candidates, in (p1, neighbour) order
-    let per_point: Vec<(Vec<Candidate>, usize)> = (0..n_old)
-        .into_par_iter()
-        .map(|p1| {
-            let mut out = Vec::new();
-            let none = candidates_of(pts, p1, params, r, &mut out);
-            (out, none)
-        })
-        .collect();
+    let per_point: Vec<(Vec<Candidate>, usize)> = if parallel {
+        (0..n_old).into_par_iter().map(generate).collect()
+    } else {
+        (0..n_old).map(generate).collect()
+    };
     s.different_surfaces = per_point.iter().map(|p| p.1).sum();
     let candidates: Vec<Candidate> = per_point.into_iter().flat_map(|p| p.0).collect();
     s.candidates = candidates.len();
-    let n = candidates.len();
-    // 2. type 2 hits, independent of the other children
-    let hits: Vec<Option<u32>> = if params.collisions {
-        candidates
+    // type 2 hits depend on the older points only
+    let hits: Vec<Option<u32>> = match (params.collisions, parallel) {
+        (false, _) => vec![None; candidates.len()],
+        (true, true) => candidates
             .par_iter()
             .map(|c| type2_hit(pts, c, beta))
-            .collect()
-    } else {
-        vec![None; n]
+            .collect(),
+        (true, false) => candidates.iter().map(|c| type2_hit(pts, c, beta)).collect(),
     };
-    // 3. in candidate order: type 3 checks against the registrations made so far, acceptance
-    //    and registration, exactly as the reference does (this part is inherently sequential)
+    // type 3, acceptance and registration, in candidate order
     let mut registered: Vec<Vec<u32>> = vec![Vec::new(); n_old];
     let mut children_of: Vec<Vec<u32>> = vec![Vec::new(); n_old];
     let mut accepted: Vec<Candidate> = Vec::new();
@@ -818,7 +754,7 @@ fn step_parallel(pts: &mut Points, params: &RefineParams, r: f32, step: u32) -> 
         r_next,
         beta,
         step == params.steps,
-        true,
+        parallel,
     );
     s.points_after = pts.pos.len();
     s.ms = t.elapsed().as_secs_f64() * 1e3;
@@ -840,11 +776,7 @@ fn run(
     let mut stats = Vec::new();
     let mut r = params.initial_radius;
     for step in 1..=params.steps {
-        let s = if parallel {
-            step_parallel(&mut pts, params, r, step)
-        } else {
-            step_reference(&mut pts, params, r, step)
-        };
+        let s = step_once(&mut pts, params, r, step, parallel);
         stats.push(s);
         r *= RADIUS_FACTOR;
         if step < params.steps {

@@ -252,21 +252,7 @@ impl Reader<'_> {
                     ));
                 };
                 *pos += size;
-                let mut b = [0u8; 8];
-                b[..size].copy_from_slice(raw);
-                if !*little {
-                    b[..size].reverse();
-                }
-                let v = match kind {
-                    ScalarKind::I8 => b[0] as i8 as f64,
-                    ScalarKind::U8 => b[0] as f64,
-                    ScalarKind::I16 => i16::from_le_bytes([b[0], b[1]]) as f64,
-                    ScalarKind::U16 => u16::from_le_bytes([b[0], b[1]]) as f64,
-                    ScalarKind::I32 => i32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
-                    ScalarKind::U32 => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
-                    ScalarKind::F32 => f32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
-                    ScalarKind::F64 => f64::from_le_bytes(b),
-                };
+                let v = super::read_value(raw, kind, !*little);
                 Ok((v, at))
             }
             Self::Ascii { .. } => {
@@ -652,22 +638,7 @@ pub fn to_bytes(set: &ParticleSet, encoding: Encoding) -> Vec<u8> {
                     bytes.extend_from_slice(text.as_bytes());
                 }
                 Encoding::BinaryLittleEndian | Encoding::BinaryBigEndian => {
-                    let mut b = [0u8; 8];
-                    let size = kind.size();
-                    match kind {
-                        ScalarKind::I8 => b[..1].copy_from_slice(&(v as i8).to_le_bytes()),
-                        ScalarKind::U8 => b[..1].copy_from_slice(&(v as u8).to_le_bytes()),
-                        ScalarKind::I16 => b[..2].copy_from_slice(&(v as i16).to_le_bytes()),
-                        ScalarKind::U16 => b[..2].copy_from_slice(&(v as u16).to_le_bytes()),
-                        ScalarKind::I32 => b[..4].copy_from_slice(&(v as i32).to_le_bytes()),
-                        ScalarKind::U32 => b[..4].copy_from_slice(&(v as u32).to_le_bytes()),
-                        ScalarKind::F32 => b[..4].copy_from_slice(&(v as f32).to_le_bytes()),
-                        ScalarKind::F64 => b.copy_from_slice(&v.to_le_bytes()),
-                    }
-                    if encoding == Encoding::BinaryBigEndian {
-                        b[..size].reverse();
-                    }
-                    bytes.extend_from_slice(&b[..size]);
+                    super::push_value(&mut bytes, *kind, v, encoding == Encoding::BinaryBigEndian);
                 }
             }
         }
