@@ -3,11 +3,11 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use fluid_surfels::io::{self, Format};
+use fluid_surfels::io;
 use fluid_surfels::neighbours::{self, Backend, Neighbourhoods};
 use fluid_surfels::preview::{self, PreviewCamera};
 use fluid_surfels::scenes::{self, ColumnParams, SceneName};
-use fluid_surfels::sequence::{FramePattern, FrameRange};
+use fluid_surfels::sequence::FramePattern;
 use fluid_surfels::surface::{self, NormalMethod, Surface, SurfaceDetector, SurfaceParams};
 use fluid_surfels::{Error, ParticleSet};
 use serde::Serialize;
@@ -16,28 +16,11 @@ use super::{check_output, class_colours, ms, surface_particles};
 
 /// Arguments of `detect`.
 #[derive(clap::Args)]
-#[command(group = clap::ArgGroup::new("source").required(true).args(["input", "scene"]))]
 pub struct DetectArgs {
-    /// Particle file, or a numbered sequence with `{}` or `{:04}` for the frame number
-    /// (`dir/ParticleData_Fluid_{}.vtk`).
-    #[arg(long)]
-    pub input: Option<String>,
-    /// Built-in scene.
-    #[arg(long, value_enum)]
-    pub scene: Option<SceneName>,
-    /// Format of --input (default: from its extension).
-    #[arg(long, value_enum)]
-    pub format: Option<Format>,
-    /// Support radius (default: the scene's, or twice the particle spacing estimated from the
-    /// file, or from the first frame of a sequence).
-    #[arg(long)]
-    pub radius: Option<f32>,
-    /// Frame of the `column` scene (hysteresis runs over all frames up to it).
-    #[arg(long)]
-    pub frame: Option<usize>,
-    /// Frames of a sequence: A..B, A..=B, with an optional :STEP (default: every file found).
-    #[arg(long)]
-    pub frames: Option<FrameRange>,
+    #[command(flatten)]
+    pub source: super::SourceArgs,
+    #[command(flatten)]
+    pub outputs: super::OutputArgs,
     /// Normal estimation.
     #[arg(long, value_enum, default_value = "pca")]
     pub normals: NormalChoice,
@@ -47,26 +30,6 @@ pub struct DetectArgs {
     /// Low threshold, as a fraction of the radius (default 0.09).
     #[arg(long)]
     pub low: Option<f32>,
-    /// Write the surface particles with their normals here (format by extension); for a
-    /// sequence, a pattern with `{}`.
-    #[arg(long)]
-    pub out: Option<String>,
-    /// Write a picture of all particles coloured by class here (PNG); a pattern for sequences.
-    #[arg(long)]
-    pub png: Option<String>,
-    /// Frames processed at once (sequences). Each job runs its frames in order with its own
-    /// hysteresis state, which starts afresh at the job's first frame.
-    #[arg(long, default_value_t = 1)]
-    pub jobs: usize,
-    /// Skip frames whose outputs exist (resume an interrupted sequence).
-    #[arg(long)]
-    pub skip_existing: bool,
-    /// Replace existing output files.
-    #[arg(long)]
-    pub force: bool,
-    /// Print one JSON object of statistics on stdout instead of text.
-    #[arg(long)]
-    pub json: bool,
 }
 
 /// Normal estimation choices on the command line.
@@ -129,6 +92,7 @@ fn invalid(argument: &'static str, reason: impl Into<String>) -> Error {
 pub fn detect(args: &DetectArgs) -> Result<(), Error> {
     let params = params(args)?;
     if let Some(pattern) = args
+        .source
         .input
         .as_deref()
         .map(FramePattern::parse)
@@ -137,32 +101,32 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
     {
         return detect_sequence(args, &pattern, params);
     }
-    if args.frames.is_some() || args.jobs != 1 || args.skip_existing {
+    if args.source.frames.is_some() || args.outputs.jobs != 1 || args.outputs.skip_existing {
         return Err(invalid(
             "--frames",
             "--frames, --jobs and --skip-existing need an --input pattern with {} (a sequence)",
         ));
     }
-    let input = args.input.as_deref().map(PathBuf::from);
-    let out = args.out.as_deref().map(PathBuf::from);
-    let png = args.png.as_deref().map(PathBuf::from);
+    let input = args.source.input.as_deref().map(PathBuf::from);
+    let out = args.outputs.out.as_deref().map(PathBuf::from);
+    let png = args.outputs.png.as_deref().map(PathBuf::from);
     for o in [&out, &png].into_iter().flatten() {
-        check_output(o, input.as_deref(), args.force)?;
+        check_output(o, input.as_deref(), args.outputs.force)?;
     }
     let mut timings = DetectTimings::default();
     let t = Instant::now();
     let mut spacing_estimate = None;
-    let (source, particles, radius, surface, mean_neighbours) = match (&input, args.scene) {
+    let (source, particles, radius, surface, mean_neighbours) = match (&input, args.source.scene) {
         (Some(path), _) => {
-            if args.frame.is_some() {
+            if args.source.frame.is_some() {
                 return Err(invalid(
                     "--frame",
                     "--frame applies to the column scene; use --frames with an --input pattern for sequences",
                 ));
             }
-            let particles = io::read_particles(path, args.format)?;
+            let particles = io::read_particles(path, args.source.format)?;
             timings.read = ms(t);
-            let radius = match args.radius {
+            let radius = match args.source.radius {
                 Some(r) => r,
                 None => {
                     let s = neighbours::estimate_spacing(&particles.positions)?;
@@ -183,8 +147,8 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
             )
         }
         (None, Some(SceneName::Column)) => {
-            let frame = args.frame.unwrap_or(ColumnParams::SPLASH_FRAME);
-            let result = super::run::column_to_frame(frame, params, args.radius)?;
+            let frame = args.source.frame.unwrap_or(ColumnParams::SPLASH_FRAME);
+            let result = super::run::column_to_frame(frame, params, args.source.radius)?;
             // "read" is the simulation of the frames up to this one
             timings.read = ms(t)
                 - result.neighbours_ms
@@ -201,9 +165,9 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
             )
         }
         (None, Some(name)) => {
-            let scene = scenes::build(name, args.frame)?;
+            let scene = scenes::build(name, args.source.frame)?;
             timings.read = ms(t);
-            let radius = args.radius.unwrap_or(scene.support_radius);
+            let radius = args.source.radius.unwrap_or(scene.support_radius);
             let t = Instant::now();
             let nb = Neighbourhoods::build(&scene.particles.positions, radius, Backend::CellGrid)?;
             timings.neighbours = ms(t);
@@ -236,7 +200,7 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
         particles: particles.len(),
         radius,
         spacing_estimate,
-        frame: args.frame,
+        frame: args.source.frame,
         normals: params.normals,
         high_threshold: params.high_threshold,
         low_threshold: params.low_threshold,
@@ -246,7 +210,7 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
         timings_ms: timings,
         outputs,
     };
-    if args.json {
+    if args.outputs.json {
         println!(
             "{}",
             serde_json::to_string(&report).expect("the report serialises")
@@ -342,29 +306,29 @@ fn detect_sequence(
     pattern: &FramePattern,
     params: SurfaceParams,
 ) -> Result<(), Error> {
-    if args.scene.is_some() || args.frame.is_some() {
+    if args.source.scene.is_some() || args.source.frame.is_some() {
         return Err(invalid(
             "--frame",
             "--scene and --frame do not combine with an --input sequence",
         ));
     }
-    let out = super::output_pattern(&args.out, "--out")?;
-    let png = super::output_pattern(&args.png, "--png")?;
+    let out = super::output_pattern(&args.outputs.out, "--out")?;
+    let png = super::output_pattern(&args.outputs.png, "--png")?;
     let sequence = super::Sequence {
         input: pattern,
-        frames: super::sequence_frames(pattern, args.frames)?,
+        frames: super::sequence_frames(pattern, args.source.frames)?,
         outputs: [&out, &png].into_iter().flatten().cloned().collect(),
-        jobs: args.jobs,
-        skip_existing: args.skip_existing,
-        force: args.force,
+        jobs: args.outputs.jobs,
+        skip_existing: args.outputs.skip_existing,
+        force: args.outputs.force,
         label: "detect",
     };
     let (todo, _) = sequence.plan()?;
-    let radius = match (args.radius, todo.first()) {
+    let radius = match (args.source.radius, todo.first()) {
         (Some(r), _) => r,
         (None, Some(&f)) => {
             2.0 * neighbours::estimate_spacing(
-                &io::read_particles(&pattern.path(f), args.format)?.positions,
+                &io::read_particles(&pattern.path(f), args.source.format)?.positions,
             )?
         }
         (None, None) => 0.0,
@@ -373,7 +337,7 @@ fn detect_sequence(
         || Ok(SurfaceDetector::new(params)?),
         |detector, f| {
             let t = Instant::now();
-            let particles = io::read_particles(&pattern.path(f), args.format)?;
+            let particles = io::read_particles(&pattern.path(f), args.source.format)?;
             let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
             let surface = detector.detect(&particles, &nb)?;
             write_outputs(
@@ -394,7 +358,7 @@ fn detect_sequence(
         },
     )?;
     let report = SequenceReport {
-        input: args.input.clone().unwrap_or_default(),
+        input: args.source.input.clone().unwrap_or_default(),
         radius,
         jobs: run.jobs,
         processed: run.results.len(),
@@ -403,7 +367,7 @@ fn detect_sequence(
         frames_per_second: run.results.len() as f64 / run.seconds.max(1e-9),
         frames: run.results,
     };
-    if args.json {
+    if args.outputs.json {
         println!(
             "{}",
             serde_json::to_string(&report).expect("the report serialises")

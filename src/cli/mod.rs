@@ -12,13 +12,65 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-use fluid_surfels::sequence::FramePattern;
+use fluid_surfels::io::Format;
+use fluid_surfels::scenes::SceneName;
+use fluid_surfels::sequence::{FramePattern, FrameRange};
 use rayon::prelude::*;
 
 use fluid_surfels::io;
 use fluid_surfels::preview::palette;
 use fluid_surfels::surface::{ParticleClass, Surface};
 use fluid_surfels::{Error, ParticleSet};
+
+/// Where a stage's particles come from (shared by `detect` and `refine`).
+#[derive(clap::Args)]
+#[command(group = clap::ArgGroup::new("source").required(true).args(["input", "scene"]))]
+pub struct SourceArgs {
+    /// Particle file, or a numbered sequence with `{}` or `{:04}` for the frame number
+    /// (`dir/ParticleData_Fluid_{}.vtk`).
+    #[arg(long)]
+    pub input: Option<String>,
+    /// Built-in scene.
+    #[arg(long, value_enum)]
+    pub scene: Option<SceneName>,
+    /// Format of --input (default: from its extension).
+    #[arg(long, value_enum)]
+    pub format: Option<Format>,
+    /// Support radius (default: the scene's, or twice the particle spacing estimated from the
+    /// file, or from the first frame of a sequence).
+    #[arg(long)]
+    pub radius: Option<f32>,
+    /// Frame of the `column` scene (hysteresis runs over all frames up to it).
+    #[arg(long)]
+    pub frame: Option<usize>,
+    /// Frames of a sequence: A..B, A..=B, with an optional :STEP (default: every file found).
+    #[arg(long)]
+    pub frames: Option<FrameRange>,
+}
+
+/// Where a stage's results go and how a sequence runs (shared by `detect` and `refine`).
+#[derive(clap::Args)]
+pub struct OutputArgs {
+    /// Write the stage's points here (format by extension); for a sequence, a pattern with `{}`.
+    #[arg(long)]
+    pub out: Option<String>,
+    /// Write a picture here (PNG); a pattern for sequences.
+    #[arg(long)]
+    pub png: Option<String>,
+    /// Frames processed at once (sequences). Each job runs consecutive frames in order with its
+    /// own state (hysteresis starts afresh at the job's first frame).
+    #[arg(long, default_value_t = 1)]
+    pub jobs: usize,
+    /// Skip frames whose outputs exist (resume an interrupted sequence).
+    #[arg(long)]
+    pub skip_existing: bool,
+    /// Replace existing output files.
+    #[arg(long)]
+    pub force: bool,
+    /// Print one JSON object of statistics on stdout instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
 
 pub fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3

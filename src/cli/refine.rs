@@ -3,12 +3,12 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use fluid_surfels::io::{self, Format};
+use fluid_surfels::io;
 use fluid_surfels::neighbours::{self, Backend, Neighbourhoods};
 use fluid_surfels::preview::{self, PreviewCamera, palette};
 use fluid_surfels::refine::{self, HeightRule, RefineParams, Refined, StepStats};
 use fluid_surfels::scenes::{self, ColumnParams, SceneName};
-use fluid_surfels::sequence::{FramePattern, FrameRange};
+use fluid_surfels::sequence::FramePattern;
 use fluid_surfels::surface::{ParticleClass, SurfaceDetector, SurfaceParams};
 use fluid_surfels::{Error, ParticleSet};
 use glam::Vec3;
@@ -18,30 +18,15 @@ use super::{check_output, ms};
 
 /// Arguments of `refine`.
 #[derive(clap::Args)]
-#[command(group = clap::ArgGroup::new("source").required(true).args(["input", "scene"]))]
 pub struct RefineArgs {
-    /// Particle file, or a numbered sequence with `{}` or `{:04}` for the frame number.
-    #[arg(long)]
-    pub input: Option<String>,
-    /// Built-in scene.
-    #[arg(long, value_enum)]
-    pub scene: Option<SceneName>,
-    /// Format of --input (default: from its extension).
-    #[arg(long, value_enum)]
-    pub format: Option<Format>,
+    #[command(flatten)]
+    pub source: super::SourceArgs,
+    #[command(flatten)]
+    pub outputs: super::OutputArgs,
     /// The input already holds surface points with normals (the output of `detect`): refine it
     /// as it is instead of detecting its surface first.
     #[arg(long)]
     pub surface_input: bool,
-    /// Support radius r0 (default: the scene's, or twice the estimated particle spacing).
-    #[arg(long)]
-    pub radius: Option<f32>,
-    /// Frame of the `column` scene.
-    #[arg(long)]
-    pub frame: Option<usize>,
-    /// Frames of a sequence: A..B, A..=B, with an optional :STEP (default: every file found).
-    #[arg(long)]
-    pub frames: Option<FrameRange>,
     /// Refinement steps.
     #[arg(long, default_value_t = 3)]
     pub steps: u32,
@@ -51,24 +36,6 @@ pub struct RefineArgs {
     /// Run the single-threaded reference implementation instead of the parallel one.
     #[arg(long)]
     pub reference: bool,
-    /// Write the refined points (normals, step, weight, radius) here; a pattern for sequences.
-    #[arg(long)]
-    pub out: Option<String>,
-    /// Write a picture here: the input points beside the refined ones coloured by step.
-    #[arg(long)]
-    pub png: Option<String>,
-    /// Frames processed at once (sequences).
-    #[arg(long, default_value_t = 1)]
-    pub jobs: usize,
-    /// Skip frames whose outputs exist.
-    #[arg(long)]
-    pub skip_existing: bool,
-    /// Replace existing output files.
-    #[arg(long)]
-    pub force: bool,
-    /// Print one JSON object of statistics instead of text.
-    #[arg(long)]
-    pub json: bool,
 }
 
 /// Eq. 4 or 5 on the command line.
@@ -226,6 +193,7 @@ fn write(
 
 pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
     if let Some(pattern) = args
+        .source
         .input
         .as_deref()
         .map(FramePattern::parse)
@@ -234,7 +202,7 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
     {
         return refine_sequence(args, &pattern);
     }
-    if args.frames.is_some() || args.jobs != 1 || args.skip_existing {
+    if args.source.frames.is_some() || args.outputs.jobs != 1 || args.outputs.skip_existing {
         return Err(Error::InvalidArgument {
             argument: "--frames",
             reason:
@@ -242,17 +210,17 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
                     .into(),
         });
     }
-    let input = args.input.as_deref().map(PathBuf::from);
-    let out = args.out.as_deref().map(PathBuf::from);
-    let png = args.png.as_deref().map(PathBuf::from);
+    let input = args.source.input.as_deref().map(PathBuf::from);
+    let out = args.outputs.out.as_deref().map(PathBuf::from);
+    let png = args.outputs.png.as_deref().map(PathBuf::from);
     for o in [&out, &png].into_iter().flatten() {
-        check_output(o, input.as_deref(), args.force)?;
+        check_output(o, input.as_deref(), args.outputs.force)?;
     }
     let t = Instant::now();
-    let (source, radius, points, normals) = match (&input, args.scene) {
+    let (source, radius, points, normals) = match (&input, args.source.scene) {
         (Some(path), _) => {
-            let particles = io::read_particles(path, args.format)?;
-            let radius = match args.radius {
+            let particles = io::read_particles(path, args.source.format)?;
+            let radius = match args.source.radius {
                 Some(r) => r,
                 None => 2.0 * neighbours::estimate_spacing(&particles.positions)?,
             };
@@ -260,8 +228,9 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
             (path.display().to_string(), radius, p, n)
         }
         (None, Some(SceneName::Column)) => {
-            let frame = args.frame.unwrap_or(ColumnParams::SPLASH_FRAME);
-            let result = super::run::column_to_frame(frame, SurfaceParams::default(), args.radius)?;
+            let frame = args.source.frame.unwrap_or(ColumnParams::SPLASH_FRAME);
+            let result =
+                super::run::column_to_frame(frame, SurfaceParams::default(), args.source.radius)?;
             let (p, n) = surface_of(
                 result.sim.particles(),
                 &result.surface.classes,
@@ -270,8 +239,8 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
             ("scene column".into(), result.radius, p, n)
         }
         (None, Some(name)) => {
-            let scene = scenes::build(name, args.frame)?;
-            let radius = args.radius.unwrap_or(scene.support_radius);
+            let scene = scenes::build(name, args.source.frame)?;
+            let radius = args.source.radius.unwrap_or(scene.support_radius);
             let (p, n) = surface_points(&scene.particles, radius, false)?;
             (format!("scene {}", name.as_str()), radius, p, n)
         }
@@ -284,7 +253,7 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
     let outputs = write(out.as_deref(), png.as_deref(), &points, &refined)?;
     let report = RefineReport {
         source,
-        frame: args.frame,
+        frame: args.source.frame,
         radius,
         implementation: if args.reference {
             "reference"
@@ -298,7 +267,7 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
         refine_ms,
         outputs,
     };
-    if args.json {
+    if args.outputs.json {
         println!(
             "{}",
             serde_json::to_string(&report).expect("the report serialises")
@@ -347,29 +316,29 @@ struct FrameReport {
 }
 
 fn refine_sequence(args: &RefineArgs, pattern: &FramePattern) -> Result<(), Error> {
-    if args.scene.is_some() || args.frame.is_some() {
+    if args.source.scene.is_some() || args.source.frame.is_some() {
         return Err(Error::InvalidArgument {
             argument: "--frame",
             reason: "--scene and --frame do not combine with an --input sequence".into(),
         });
     }
-    let out = super::output_pattern(&args.out, "--out")?;
-    let png = super::output_pattern(&args.png, "--png")?;
+    let out = super::output_pattern(&args.outputs.out, "--out")?;
+    let png = super::output_pattern(&args.outputs.png, "--png")?;
     let sequence = super::Sequence {
         input: pattern,
-        frames: super::sequence_frames(pattern, args.frames)?,
+        frames: super::sequence_frames(pattern, args.source.frames)?,
         outputs: [&out, &png].into_iter().flatten().cloned().collect(),
-        jobs: args.jobs,
-        skip_existing: args.skip_existing,
-        force: args.force,
+        jobs: args.outputs.jobs,
+        skip_existing: args.outputs.skip_existing,
+        force: args.outputs.force,
         label: "refine",
     };
     let (todo, _) = sequence.plan()?;
-    let radius = match (args.radius, todo.first()) {
+    let radius = match (args.source.radius, todo.first()) {
         (Some(r), _) => r,
         (None, Some(&f)) => {
             2.0 * neighbours::estimate_spacing(
-                &io::read_particles(&pattern.path(f), args.format)?.positions,
+                &io::read_particles(&pattern.path(f), args.source.format)?.positions,
             )?
         }
         (None, None) => 0.0,
@@ -378,7 +347,7 @@ fn refine_sequence(args: &RefineArgs, pattern: &FramePattern) -> Result<(), Erro
         || Ok(SurfaceDetector::new(SurfaceParams::default())?),
         |detector, f| {
             let t = Instant::now();
-            let particles = io::read_particles(&pattern.path(f), args.format)?;
+            let particles = io::read_particles(&pattern.path(f), args.source.format)?;
             let (p, n) = if args.surface_input {
                 surface_points(&particles, radius, true)?
             } else {
@@ -401,9 +370,9 @@ fn refine_sequence(args: &RefineArgs, pattern: &FramePattern) -> Result<(), Erro
             })
         },
     )?;
-    if args.json {
+    if args.outputs.json {
         let v = serde_json::json!({
-            "input": args.input,
+            "input": args.source.input,
             "radius": radius,
             "jobs": run.jobs,
             "processed": run.results.len(),
@@ -416,7 +385,7 @@ fn refine_sequence(args: &RefineArgs, pattern: &FramePattern) -> Result<(), Erro
     } else {
         println!(
             "{}: {} frames refined, {} skipped, {:.2} s ({:.1} frames/s, {} jobs)",
-            args.input.as_deref().unwrap_or(""),
+            args.source.input.as_deref().unwrap_or(""),
             run.results.len(),
             run.skipped.len(),
             run.seconds,
