@@ -38,6 +38,7 @@ pub mod refine;
 pub mod scenes;
 pub mod sequence;
 pub mod surface;
+pub mod surfels;
 
 pub use particles::{Attribute, ParticleSet, ScalarKind};
 
@@ -60,6 +61,9 @@ pub enum Error {
     /// The density grid.
     #[error(transparent)]
     Density(#[from] density::DensityError),
+    /// Surfel extraction.
+    #[error(transparent)]
+    Surfels(#[from] surfels::SurfelError),
     /// Scene construction.
     #[error(transparent)]
     Scene(#[from] scenes::SceneError),

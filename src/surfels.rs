@@ -1,0 +1,268 @@
+//! Stage 3, second half: sampling the iso-surface of the density grid into surfels
+//! (Iwasaki et al., §4.3), on the CPU.
+//!
+//! Surfels are placed where the density crosses the iso-value along the grid's x, y and z edges
+//! (linear interpolation), then projected onto the exact iso-surface of the particles' density by
+//! Newton steps along the gradient (the grid alone is only accurate to its interpolation). The
+//! normal is the negative density gradient (pointing out of the fluid). The radius is the grid
+//! spacing: every point of the iso-surface inside a grid cube lies within about 0.71 spacing of a
+//! crossing on the cube's edges (a plane through the cube's centre, measured from the centre to the
+//! edge midpoints) and the projection moves points by a fraction of that, so one spacing leaves no
+//! gap (tested on a dense sample of the surface). This replaces the paper's after-the-fact gap
+//! filling, which the edge sampling makes unnecessary.
+//!
+//! Extraction reads the grid plane by plane ([`SurfelExtractor::push_plane`]), so it can run on
+//! the slabs that [`crate::density::splat_slabs`] streams, never holding the whole grid.
+
+use glam::Vec3;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::density::{DensityGrid, GridSpec, Kernel};
+use crate::neighbours::CellGrid;
+
+/// Parameters of surfel extraction.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct SurfelParams {
+    /// Iso-value as a fraction of one particle's peak density `F(0, h)`. Default 0.75, so that a
+    /// lone drop still shows (as a sphere of radius about 0.3 h). Measured on a jittered sphere
+    /// of particles with h = 2 spacings, the surface then lies 0.7 spacing outside the boundary
+    /// the particles sample (1.2 outside the outermost centres); 3.0 puts it on that boundary but
+    /// makes every lone particle vanish (a single particle never exceeds 1.0).
+    pub iso_fraction: f32,
+    /// Newton steps projecting each surfel onto the exact iso-surface.
+    pub newton_steps: u32,
+}
+
+impl Default for SurfelParams {
+    fn default() -> Self {
+        Self {
+            iso_fraction: 0.75,
+            newton_steps: 4,
+        }
+    }
+}
+
+/// Errors of surfel extraction.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SurfelError {
+    /// A parameter is out of range.
+    #[error("invalid surfel parameter `{name}`: {reason}")]
+    InvalidParameter { name: &'static str, reason: String },
+    /// The neighbour grid of the particles could not be built.
+    #[error(transparent)]
+    Neighbours(#[from] crate::neighbours::NeighbourError),
+}
+
+/// Surfels: oriented disks on the iso-surface.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Surfels {
+    /// Centres, on the iso-surface.
+    pub positions: Vec<Vec3>,
+    /// Unit normals, out of the fluid.
+    pub normals: Vec<Vec3>,
+    /// Disk radii.
+    pub radii: Vec<f32>,
+    /// The iso-value used.
+    pub iso: f32,
+}
+
+impl Surfels {
+    /// Number of surfels.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    /// True when there is none.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    /// As a particle set with normals and a `radius` attribute.
+    #[must_use]
+    pub fn to_particle_set(&self) -> crate::ParticleSet {
+        let mut set = crate::ParticleSet::from_positions(self.positions.clone());
+        set.normals = Some(self.normals.clone());
+        set.extra.push(crate::Attribute::scalar(
+            "radius",
+            crate::ScalarKind::F32,
+            self.radii.iter().map(|&r| r as f64).collect(),
+        ));
+        set
+    }
+}
+
+/// The exact density of the particles and its gradient at a point.
+pub struct ExactDensity<'a> {
+    positions: &'a [Vec3],
+    grid: CellGrid,
+    kernel: Kernel,
+    h: f32,
+}
+
+impl<'a> ExactDensity<'a> {
+    /// Indexes the particles for density queries with effective radius `h`.
+    pub fn new(positions: &'a [Vec3], kernel: Kernel, h: f32) -> Result<Self, SurfelError> {
+        Ok(Self {
+            positions,
+            grid: CellGrid::new(positions, h)?,
+            kernel,
+            h,
+        })
+    }
+
+    /// Density and gradient at `x` (gradient by central differences of the exact sum, step
+    /// `h / 1000`).
+    #[must_use]
+    pub fn value_and_gradient(&self, x: Vec3) -> (f32, Vec3) {
+        let e = self.h * 1e-3;
+        let v = self.value(x);
+        let g = Vec3::new(
+            self.value(x + Vec3::X * e) - self.value(x - Vec3::X * e),
+            self.value(x + Vec3::Y * e) - self.value(x - Vec3::Y * e),
+            self.value(x + Vec3::Z * e) - self.value(x - Vec3::Z * e),
+        ) / (2.0 * e);
+        (v, g)
+    }
+
+    /// Density at `x`: the sum of the kernels of the particles within `h`.
+    #[must_use]
+    pub fn value(&self, x: Vec3) -> f32 {
+        let mut sum = 0.0;
+        self.grid.for_each_within(x, self.h, |j| {
+            sum += self
+                .kernel
+                .value_r2(self.positions[j as usize].distance_squared(x), self.h);
+        });
+        sum
+    }
+}
+
+/// Collects edge crossings plane by plane.
+pub struct SurfelExtractor {
+    spec: GridSpec,
+    iso: f32,
+    previous: Option<(u32, Vec<f32>)>,
+    crossings: Vec<Vec3>,
+}
+
+impl SurfelExtractor {
+    /// An extractor for a grid and an absolute iso-value.
+    #[must_use]
+    pub fn new(spec: GridSpec, iso: f32) -> Self {
+        Self {
+            spec,
+            iso,
+            previous: None,
+            crossings: Vec::new(),
+        }
+    }
+
+    /// Takes the next z plane (`k` in increasing order, `nx * ny` values).
+    pub fn push_plane(&mut self, k: u32, plane: Vec<f32>) {
+        let [nx, ny, _] = self.spec.dims;
+        let (nx, ny) = (nx as usize, ny as usize);
+        let iso = self.iso;
+        let at = |i: usize, j: usize| self.spec.point(i as u32, j as u32, k);
+        let cross = |a: f32, b: f32| (a < iso) != (b < iso);
+        let mut found = Vec::new();
+        for j in 0..ny {
+            for i in 0..nx {
+                let v = plane[i + nx * j];
+                if i + 1 < nx {
+                    let w = plane[i + 1 + nx * j];
+                    if cross(v, w) {
+                        found.push(at(i, j).lerp(at(i + 1, j), (iso - v) / (w - v)));
+                    }
+                }
+                if j + 1 < ny {
+                    let w = plane[i + nx * (j + 1)];
+                    if cross(v, w) {
+                        found.push(at(i, j).lerp(at(i, j + 1), (iso - v) / (w - v)));
+                    }
+                }
+                if let Some((_, prev)) = &self.previous {
+                    let u = prev[i + nx * j];
+                    if cross(u, v) {
+                        let below = self.spec.point(i as u32, j as u32, k - 1);
+                        found.push(below.lerp(at(i, j), (iso - u) / (v - u)));
+                    }
+                }
+            }
+        }
+        self.crossings.extend(found);
+        self.previous = Some((k, plane));
+    }
+
+    /// Takes a slab of consecutive planes starting at `k0`, as [`crate::density::splat_slabs`]
+    /// hands them out.
+    pub fn push_slab(&mut self, k0: u32, slab: Vec<f32>) {
+        let plane = self.spec.dims[0] as usize * self.spec.dims[1] as usize;
+        for (dk, values) in slab.chunks(plane).enumerate() {
+            self.push_plane(k0 + dk as u32, values.to_vec());
+        }
+    }
+
+    /// Projects the crossings onto the exact iso-surface and returns the surfels.
+    pub fn finish(self, density: &ExactDensity<'_>, params: &SurfelParams) -> Surfels {
+        let iso = self.iso;
+        let spacing = self.spec.spacing;
+        let (positions, normals): (Vec<Vec3>, Vec<Vec3>) = self
+            .crossings
+            .par_iter()
+            .map(|&start| {
+                let mut x = start;
+                let mut g = Vec3::ZERO;
+                for _ in 0..params.newton_steps {
+                    let (v, grad) = density.value_and_gradient(x);
+                    g = grad;
+                    let g2 = grad.length_squared();
+                    if g2 <= f32::MIN_POSITIVE {
+                        break;
+                    }
+                    // a Newton step along the gradient, never more than half a cell
+                    let step = (grad * ((iso - v) / g2)).clamp_length_max(0.5 * spacing);
+                    x += step;
+                }
+                if params.newton_steps == 0 {
+                    g = density.value_and_gradient(x).1;
+                }
+                (x, (-g).normalize_or_zero())
+            })
+            .unzip();
+        let radii = vec![spacing; positions.len()];
+        Surfels {
+            positions,
+            normals,
+            radii,
+            iso,
+        }
+    }
+}
+
+/// Extracts the surfels of a whole density grid.
+pub fn extract(
+    grid: &DensityGrid,
+    particles: &[Vec3],
+    kernel: Kernel,
+    h: f32,
+    params: &SurfelParams,
+) -> Result<Surfels, SurfelError> {
+    if !(params.iso_fraction.is_finite() && params.iso_fraction > 0.0) {
+        return Err(SurfelError::InvalidParameter {
+            name: "iso_fraction",
+            reason: format!("must be finite and > 0, got {}", params.iso_fraction),
+        });
+    }
+    let iso = params.iso_fraction * kernel.peak(h);
+    let density = ExactDensity::new(particles, kernel, h)?;
+    let mut extractor = SurfelExtractor::new(grid.spec, iso);
+    let plane = grid.spec.dims[0] as usize * grid.spec.dims[1] as usize;
+    for (k, values) in grid.values.chunks(plane).enumerate() {
+        extractor.push_plane(k as u32, values.to_vec());
+    }
+    Ok(extractor.finish(&density, params))
+}
