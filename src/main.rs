@@ -33,6 +33,9 @@ enum Command {
     /// Surface detection then upsampling (Solenthaler et al. 2007, §3.2-3.4) on a file, a frame
     /// sequence or a built-in scene.
     Refine(RefineArgs),
+    /// Density grid and iso-surface surfels (Iwasaki et al., §4) of a file, a frame sequence or
+    /// a built-in scene.
+    Surfels(cli::surfels::SurfelsArgs),
     /// What a particle file holds: format, count, attributes and their ranges, bounds, spacing.
     Info(InfoArgs),
     /// Benchmarks.
@@ -66,6 +69,7 @@ fn main() -> ExitCode {
         Some(Command::Detect(args)) => cli::detect::detect(&args),
         Some(Command::Info(args)) => cli::info::info(&args),
         Some(Command::Refine(args)) => cli::refine::refine_command(&args),
+        Some(Command::Surfels(args)) => cli::surfels::surfels_command(&args),
         Some(Command::Bench(BenchCommand::Detect(args))) => cli::bench::bench_detect(&args),
         Some(Command::Bench(BenchCommand::Io(args))) => cli::bench::bench_io(&args),
         Some(Command::Bench(BenchCommand::Refine(args))) => cli::bench::bench_refine(&args),

@@ -31,6 +31,16 @@ fn main_job_writes_surface_ply_and_picture() {
     );
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("particles          2880"), "{stdout}");
+    for file in [
+        "surface.ply",
+        "refined.ply",
+        "surfels.ply",
+        "classes.png",
+        "refine.png",
+        "surfels.png",
+    ] {
+        assert!(dir.path().join(file).exists(), "{file}");
+    }
     let surface = fluid_surfels::io::read_particles(&dir.path().join("surface.ply"), None).unwrap();
     assert!(
         surface.len() > 500 && surface.len() < 2880,
@@ -520,5 +530,54 @@ fn bench_density_compares_with_the_naive_reference() {
     assert!(v["cpu_density_ms"].as_f64().unwrap() > 0.0);
     assert!(v["naive_density_ms"].as_f64().unwrap() > 0.0);
     assert!(v["gpu_density_ms"].is_null());
+    assert!(v["cpu_extract_ms"].as_f64().unwrap() > 0.0);
+    assert!(v["surfels"].as_u64().unwrap() > 100);
     assert!(v["max_difference_from_naive"].as_f64().unwrap() <= 1e-4);
+}
+
+#[test]
+fn surfels_command_writes_surfels_and_refuses_the_gpu_for_now() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("surfels.ply");
+    let run = bin()
+        .args([
+            "surfels",
+            "--scene",
+            "sphere",
+            "--resolution",
+            "48",
+            "--json",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    let dims: Vec<u64> = v["grid"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| d.as_u64().unwrap())
+        .collect();
+    assert_eq!(
+        dims.iter().max(),
+        Some(&48),
+        "the longest axis has the resolution asked for: {dims:?}"
+    );
+    let n = v["surfels"].as_u64().unwrap();
+    assert!(n > 1000, "{n}");
+    let set = fluid_surfels::io::read_particles(&out, None).unwrap();
+    assert_eq!(set.len() as u64, n);
+    assert!(set.attribute("radius").is_some() && set.normals.is_some());
+    let gpu = bin()
+        .args(["surfels", "--scene", "sphere", "--gpu"])
+        .output()
+        .unwrap();
+    assert!(!gpu.status.success());
+    assert!(String::from_utf8_lossy(&gpu.stderr).contains("GPU path"));
 }

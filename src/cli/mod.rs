@@ -5,6 +5,7 @@ pub mod detect;
 pub mod info;
 pub mod refine;
 pub mod run;
+pub mod surfels;
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};

@@ -1,0 +1,276 @@
+//! `fluid-surfels surfels`: density grid and iso-surface surfels (Iwasaki et al., §4).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use fluid_surfels::Error;
+use fluid_surfels::density::{self, GridSpec, Kernel, Resolution};
+use fluid_surfels::io;
+use fluid_surfels::neighbours;
+use fluid_surfels::preview::{self, PreviewCamera};
+use fluid_surfels::scenes::{self, ColumnParams, SceneName};
+use fluid_surfels::sequence::FramePattern;
+use fluid_surfels::surfels::{self, SurfelParams, Surfels};
+use glam::Vec3;
+use serde::Serialize;
+
+use super::{check_output, ms};
+
+/// Arguments of `surfels`.
+#[derive(clap::Args)]
+pub struct SurfelsArgs {
+    #[command(flatten)]
+    pub source: super::SourceArgs,
+    #[command(flatten)]
+    pub outputs: super::OutputArgs,
+    /// Grid points along the longest axis of the particles' padded box.
+    #[arg(long, default_value_t = 128)]
+    pub resolution: u32,
+    /// Iso-value as a fraction of one particle's peak density (default 0.75).
+    #[arg(long)]
+    pub iso: Option<f32>,
+    /// Effective radius h of the density kernel (default: the support radius).
+    #[arg(long)]
+    pub h: Option<f32>,
+    /// Use the GPU path (not built yet: refused with an error).
+    #[arg(long, conflicts_with = "cpu")]
+    pub gpu: bool,
+    /// Use the CPU path (the default).
+    #[arg(long)]
+    pub cpu: bool,
+}
+
+#[derive(Serialize)]
+struct SurfelsReport {
+    source: String,
+    particles: usize,
+    h: f32,
+    grid: [u32; 3],
+    spacing: f32,
+    iso: f32,
+    surfels: usize,
+    path: &'static str,
+    density_ms: f64,
+    extract_ms: f64,
+    outputs: Vec<String>,
+}
+
+/// Surfels of a particle set, with the grid used and the time of each phase.
+pub fn surfels_of(
+    positions: &[Vec3],
+    h: f32,
+    resolution: u32,
+    iso_fraction: f32,
+) -> Result<(Surfels, GridSpec, f64, f64), Error> {
+    let spec = GridSpec::around(positions, h, Resolution::LongestAxis(resolution))?;
+    let t = Instant::now();
+    let grid = density::density_grid(
+        positions,
+        &spec,
+        Kernel::Wyvill,
+        h,
+        io::available_memory() / 2,
+    )?;
+    let density_ms = ms(t);
+    let t = Instant::now();
+    let params = SurfelParams {
+        iso_fraction,
+        ..SurfelParams::default()
+    };
+    let s = surfels::extract(&grid, positions, Kernel::Wyvill, h, &params)?;
+    Ok((s, spec, density_ms, ms(t)))
+}
+
+/// Surfels drawn as small shaded disks coloured by their normal.
+pub fn surfels_picture(
+    s: &Surfels,
+    camera: &PreviewCamera,
+    size: u32,
+) -> Result<image::RgbImage, Error> {
+    let colours: Vec<[u8; 3]> = s
+        .normals
+        .iter()
+        .map(|n| {
+            ((*n * 0.5 + 0.5) * 255.0)
+                .to_array()
+                .map(|c| c.clamp(0.0, 255.0) as u8)
+        })
+        .collect();
+    let radius = s.radii.first().copied().unwrap_or(0.01) * 0.6;
+    Ok(preview::render_points(
+        &s.positions,
+        &colours,
+        radius,
+        camera,
+        size,
+        size,
+    )?)
+}
+
+fn write(s: &Surfels, out: Option<&Path>, png: Option<&Path>) -> Result<Vec<String>, Error> {
+    let mut outputs = Vec::new();
+    if let Some(out) = out {
+        io::write_particles(out, &s.to_particle_set(), None)?;
+        outputs.push(out.display().to_string());
+    }
+    if let Some(png) = png {
+        let (lo, hi) = s
+            .positions
+            .iter()
+            .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &p| {
+                (lo.min(p), hi.max(p))
+            });
+        let (lo, hi) = if lo.is_finite() {
+            (lo, hi)
+        } else {
+            (Vec3::ZERO, Vec3::ONE)
+        };
+        let picture = surfels_picture(s, &PreviewCamera::framing(lo, hi), 800)?;
+        let tmp = png.with_extension(format!("{}.tmp.png", std::process::id()));
+        preview::save_png(&picture, &tmp)?;
+        std::fs::rename(&tmp, png).map_err(|e| io::IoError::Os {
+            path: png.to_owned(),
+            source: e,
+        })?;
+        outputs.push(png.display().to_string());
+    }
+    Ok(outputs)
+}
+
+pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
+    if args.gpu {
+        return Err(Error::InvalidArgument {
+            argument: "--gpu",
+            reason: "the GPU path of the density grid is not built yet; use the CPU path (--cpu, the default)".into(),
+        });
+    }
+    let iso = args.iso.unwrap_or(SurfelParams::default().iso_fraction);
+    let src = &args.source;
+    let out_args = &args.outputs;
+    if let Some(pattern) = src
+        .input
+        .as_deref()
+        .map(FramePattern::parse)
+        .transpose()?
+        .flatten()
+    {
+        return surfels_sequence(args, &pattern, iso);
+    }
+    let input = src.input.as_deref().map(PathBuf::from);
+    let out = out_args.out.as_deref().map(PathBuf::from);
+    let png = out_args.png.as_deref().map(PathBuf::from);
+    for o in [&out, &png].into_iter().flatten() {
+        check_output(o, input.as_deref(), out_args.force)?;
+    }
+    let (source, positions, radius) = match (&input, src.scene) {
+        (Some(path), _) => {
+            let particles = io::read_particles(path, src.format)?;
+            let r = match src.radius {
+                Some(r) => r,
+                None => 2.0 * neighbours::estimate_spacing(&particles.positions)?,
+            };
+            (path.display().to_string(), particles.positions, r)
+        }
+        (None, Some(name)) => {
+            let frame = if name == SceneName::Column {
+                Some(src.frame.unwrap_or(ColumnParams::SPLASH_FRAME))
+            } else {
+                src.frame
+            };
+            let scene = scenes::build(name, frame)?;
+            (
+                format!("scene {}", name.as_str()),
+                scene.particles.positions,
+                src.radius.unwrap_or(scene.support_radius),
+            )
+        }
+        (None, None) => unreachable!("clap requires --input or --scene"),
+    };
+    let h = args.h.unwrap_or(radius);
+    let (s, spec, density_ms, extract_ms) = surfels_of(&positions, h, args.resolution, iso)?;
+    let outputs = write(&s, out.as_deref(), png.as_deref())?;
+    let report = SurfelsReport {
+        source,
+        particles: positions.len(),
+        h,
+        grid: spec.dims,
+        spacing: spec.spacing,
+        iso: s.iso,
+        surfels: s.len(),
+        path: "cpu",
+        density_ms,
+        extract_ms,
+        outputs,
+    };
+    if out_args.json {
+        println!(
+            "{}",
+            serde_json::to_string(&report).expect("the report serialises")
+        );
+    } else {
+        println!(
+            "{}: {} particles, h {}, grid {:?} (spacing {:.5}), iso {:.4}",
+            report.source, report.particles, h, report.grid, report.spacing, report.iso
+        );
+        println!(
+            "  {} surfels; ms: density {:.1}, extraction {:.1} (CPU)",
+            report.surfels, density_ms, extract_ms
+        );
+        for o in &report.outputs {
+            println!("  wrote {o}");
+        }
+    }
+    Ok(())
+}
+
+fn surfels_sequence(args: &SurfelsArgs, pattern: &FramePattern, iso: f32) -> Result<(), Error> {
+    let src = &args.source;
+    let o = &args.outputs;
+    let out = super::output_pattern(&o.out, "--out")?;
+    let png = super::output_pattern(&o.png, "--png")?;
+    let sequence = super::Sequence {
+        input: pattern,
+        frames: super::sequence_frames(pattern, src.frames)?,
+        outputs: [&out, &png].into_iter().flatten().cloned().collect(),
+        jobs: o.jobs,
+        skip_existing: o.skip_existing,
+        force: o.force,
+        label: "surfels",
+    };
+    let (todo, _) = sequence.plan()?;
+    let radius = match (src.radius, todo.first()) {
+        (Some(r), _) => r,
+        (None, Some(&f)) => {
+            2.0 * neighbours::estimate_spacing(
+                &io::read_particles(&pattern.path(f), src.format)?.positions,
+            )?
+        }
+        (None, None) => 0.0,
+    };
+    let h = args.h.unwrap_or(radius);
+    let run = sequence.run(
+        || Ok(()),
+        |_, f| {
+            let particles = io::read_particles(&pattern.path(f), src.format)?;
+            let (s, _, d, e) = surfels_of(&particles.positions, h, args.resolution, iso)?;
+            write(&s, out.as_ref().map(|x| x.path(f)).as_deref(), png.as_ref().map(|x| x.path(f)).as_deref())?;
+            Ok(serde_json::json!({"frame": f, "particles": particles.len(), "surfels": s.len(), "density_ms": d, "extract_ms": e}))
+        },
+    )?;
+    let v = serde_json::json!({
+        "input": src.input, "h": h, "jobs": run.jobs, "processed": run.results.len(), "skipped": run.skipped,
+        "seconds": run.seconds, "frames": run.results,
+    });
+    if o.json {
+        println!("{v}");
+    } else {
+        println!(
+            "{}: {} frames, {} skipped, {:.2} s",
+            src.input.as_deref().unwrap_or(""),
+            run.results.len(),
+            run.skipped.len(),
+            run.seconds
+        );
+    }
+    Ok(())
+}
