@@ -28,6 +28,7 @@
 //! ```
 
 pub mod density;
+pub mod gpu;
 pub mod io;
 pub mod kernels;
 pub mod linalg;
@@ -61,6 +62,9 @@ pub enum Error {
     /// The density grid.
     #[error(transparent)]
     Density(#[from] density::DensityError),
+    /// The GPU stages.
+    #[error(transparent)]
+    Gpu(#[from] gpu::GpuError),
     /// Surfel extraction.
     #[error(transparent)]
     Surfels(#[from] surfels::SurfelError),

@@ -1,0 +1,75 @@
+// Density splatting, four z planes per pass (Iwasaki et al., §4.1): every particle of the
+// pass's z-cluster is drawn as a screen-aligned square covering its influence disk on the grid
+// plane; each fragment (one grid point in x, y) adds the particle's kernel value for the four
+// planes to the R, G, B and A channels of a float target with additive blending.
+//
+// The arithmetic is the CPU path's (src/density.rs): grid point x = origin.x + i * spacing,
+// r^2 = dx^2 + (dy^2 + dz^2), Wyvill's kernel as a polynomial in a^2 = r^2 / h^2.
+
+struct Params {
+    origin: vec3<f32>,
+    spacing: f32,
+    // grid points along x and y
+    dims: vec2<f32>,
+    h: f32,
+    // 2835 / (736 pi h^3) for Wyvill, 8 / (pi h^3) for the cubic spline
+    constant: f32,
+    // z of the pass's four planes
+    planes: vec4<f32>,
+    // 0: Wyvill, 1: cubic spline
+    kernel: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+}
+
+@group(0) @binding(0) var<uniform> params: Params;
+
+struct VertexOut {
+    @builtin(position) position: vec4<f32>,
+    @location(0) @interpolate(flat) centre: vec3<f32>,
+}
+
+@vertex
+fn vs_main(@builtin(vertex_index) vertex: u32, @location(0) particle: vec4<f32>) -> VertexOut {
+    // two triangles over the square [x - h, x + h] x [y - h, y + h], in framebuffer pixels where
+    // grid point i sits at the centre of pixel i
+    let corners = array<vec2<f32>, 6>(vec2(-1.0, -1.0), vec2(1.0, -1.0), vec2(1.0, 1.0), vec2(-1.0, -1.0), vec2(1.0, 1.0), vec2(-1.0, 1.0));
+    let c = corners[vertex];
+    let world = particle.xy + c * params.h;
+    let pixel = (world - params.origin.xy) / params.spacing + vec2<f32>(0.5, 0.5);
+    let ndc = vec2<f32>(pixel.x / params.dims.x * 2.0 - 1.0, 1.0 - pixel.y / params.dims.y * 2.0);
+    var out: VertexOut;
+    out.position = vec4<f32>(ndc, 0.0, 1.0);
+    out.centre = particle.xyz;
+    return out;
+}
+
+fn kernel_r2(r2: f32) -> f32 {
+    if params.kernel == 0u {
+        let a2 = r2 * (1.0 / (params.h * params.h));
+        let poly = ((-4.0 / 9.0 * a2 + 17.0 / 9.0) * a2 - 22.0 / 9.0) * a2 + 1.0;
+        return select(0.0, params.constant * poly, a2 < 1.0);
+    }
+    let q = 2.0 * sqrt(r2) / params.h;
+    if q >= 2.0 {
+        return 0.0;
+    }
+    if q < 1.0 {
+        return params.constant * (1.0 - 1.5 * q * q + 0.75 * q * q * q);
+    }
+    let t = 2.0 - q;
+    return params.constant * 0.25 * t * t * t;
+}
+
+@fragment
+fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
+    let i = floor(in.position.x);
+    let j = floor(in.position.y);
+    let dx = params.origin.x + i * params.spacing - in.centre.x;
+    let dy = params.origin.y + j * params.spacing - in.centre.y;
+    let dz = params.planes - vec4<f32>(in.centre.z);
+    let dyz2 = vec4<f32>(dy * dy) + dz * dz;
+    let r2 = vec4<f32>(dx * dx) + dyz2;
+    return vec4<f32>(kernel_r2(r2.x), kernel_r2(r2.y), kernel_r2(r2.z), kernel_r2(r2.w));
+}

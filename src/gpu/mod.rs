@@ -1,0 +1,123 @@
+//! The wgpu context shared by the GPU stages: headless (own adapter) or on a device the caller
+//! already has (a game's), plus the GPU density splatting of Iwasaki et al., §4.1.
+//!
+//! Shaders live in `shaders/*.wgsl` and are compiled into the crate; a unit test validates them
+//! with naga.
+
+pub mod density;
+
+use serde::Serialize;
+
+/// Errors of the GPU stages.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GpuError {
+    /// No adapter was found (no GPU and no software Vulkan driver such as Mesa's lavapipe).
+    #[error(
+        "no GPU adapter found ({0}); install a Vulkan driver (on Debian: apt-get install mesa-vulkan-drivers for lavapipe) or use the CPU path"
+    )]
+    NoAdapter(String),
+    /// The adapter lacks a feature the stage needs.
+    #[error("the GPU adapter `{adapter}` lacks {feature}")]
+    MissingFeature {
+        adapter: String,
+        feature: &'static str,
+    },
+    /// The device could not be created.
+    #[error("GPU device request failed: {0}")]
+    Device(String),
+    /// wgpu reported a validation or out-of-memory error.
+    #[error("GPU error: {0}")]
+    Validation(String),
+    /// Reading results back failed.
+    #[error("GPU readback failed: {0}")]
+    Readback(String),
+}
+
+/// What adapter runs the GPU stages.
+#[derive(Clone, Debug, Serialize)]
+pub struct AdapterSummary {
+    pub name: String,
+    pub backend: String,
+    pub device_type: String,
+}
+
+/// A device and queue for the GPU stages.
+#[derive(Clone, Debug)]
+pub struct GpuContext {
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+    /// The adapter, when the context created it.
+    pub adapter: Option<AdapterSummary>,
+}
+
+/// Features the GPU stages need: additive blending into `Rgba32Float` targets.
+pub const REQUIRED_FEATURES: wgpu::Features = wgpu::Features::FLOAT32_BLENDABLE;
+
+impl GpuContext {
+    /// Creates its own device on the first adapter found (`WGPU_BACKEND` is honoured).
+    pub fn headless() -> Result<Self, GpuError> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle().with_env());
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        let info = adapter.get_info();
+        if !adapter.features().contains(REQUIRED_FEATURES) {
+            return Err(GpuError::MissingFeature {
+                adapter: info.name,
+                feature: "FLOAT32_BLENDABLE (additive blending into 32-bit float targets)",
+            });
+        }
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("fluid-surfels"),
+            required_features: REQUIRED_FEATURES,
+            required_limits: adapter.limits(),
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::Device(e.to_string()))?;
+        Ok(Self {
+            device,
+            queue,
+            adapter: Some(AdapterSummary {
+                name: info.name,
+                backend: format!("{:?}", info.backend),
+                device_type: format!("{:?}", info.device_type),
+            }),
+        })
+    }
+
+    /// Uses a device the caller created (it must have [`REQUIRED_FEATURES`]).
+    #[must_use]
+    pub fn from_device(device: wgpu::Device, queue: wgpu::Queue) -> Self {
+        Self {
+            device,
+            queue,
+            adapter: None,
+        }
+    }
+}
+
+/// For tests and benchmarks: a headless context, or `None` with a message on stderr when there
+/// is no adapter. With `FLUID_SURFELS_REQUIRE_GPU=1` a missing adapter is an error instead.
+pub fn context_or_skip(what: &str) -> Result<Option<GpuContext>, GpuError> {
+    match GpuContext::headless() {
+        Ok(c) => {
+            if let Some(a) = &c.adapter {
+                eprintln!(
+                    "{what}: GPU adapter {} ({}, {})",
+                    a.name, a.backend, a.device_type
+                );
+            }
+            Ok(Some(c))
+        }
+        Err(e) if std::env::var("FLUID_SURFELS_REQUIRE_GPU").is_ok_and(|v| v == "1") => Err(e),
+        Err(e) => {
+            eprintln!(
+                "{what}: SKIPPED, no usable GPU adapter ({e}); set FLUID_SURFELS_REQUIRE_GPU=1 to make this an error"
+            );
+            Ok(None)
+        }
+    }
+}

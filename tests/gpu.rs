@@ -1,0 +1,73 @@
+//! GPU stages against their CPU specification (on lavapipe in CI). Without an adapter these
+//! tests skip with a message, unless FLUID_SURFELS_REQUIRE_GPU=1 makes that a failure.
+
+use fluid_surfels::density::{self, GridSpec, Kernel, Resolution};
+use fluid_surfels::gpu::{self, density as gpu_density};
+use fluid_surfels::scenes;
+
+#[test]
+fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
+    let module = naga::front::wgsl::parse_str(gpu_density::SHADER)
+        .unwrap_or_else(|e| panic!("{}", e.emit_to_string(gpu_density::SHADER)));
+    let info = naga::valid::Validator::new(
+        naga::valid::ValidationFlags::all(),
+        naga::valid::Capabilities::all(),
+    )
+    .validate(&module)
+    .unwrap_or_else(|e| panic!("density_splat.wgsl does not validate: {e:?}"));
+    let _ = info;
+    let params = module
+        .types
+        .iter()
+        .find(|(_, t)| t.name.as_deref() == Some("Params"))
+        .map(|(_, t)| t.inner.size(module.to_ctx()))
+        .expect("a Params struct");
+    assert_eq!(
+        params as usize,
+        std::mem::size_of::<gpu_density::RawParams>()
+    );
+}
+
+#[test]
+fn gpu_density_matches_the_cpu_path() {
+    let Some(ctx) = gpu::context_or_skip("gpu_density_matches_the_cpu_path").unwrap() else {
+        return;
+    };
+    let scene = scenes::block(&scenes::BlockParams {
+        counts: [14, 9, 11],
+        ..Default::default()
+    })
+    .unwrap();
+    let p = &scene.particles.positions;
+    let h = 2.0 * scene.spacing;
+    for kernel in [Kernel::Wyvill, Kernel::CubicSpline] {
+        // a grid whose plane count is not a multiple of 4 and whose rows are not 256-byte aligned
+        let spec = GridSpec::around(p, h, Resolution::LongestAxis(45)).unwrap();
+        let cpu = density::density_grid(p, &spec, kernel, h, 1 << 30).unwrap();
+        let gpu = gpu_density::density_grid_gpu(&ctx, p, &spec, kernel, h).unwrap();
+        assert_eq!(gpu.values.len(), cpu.values.len());
+        let max = cpu.max();
+        let (worst, at) = cpu
+            .values
+            .iter()
+            .zip(&gpu.values)
+            .enumerate()
+            .map(|(i, (a, b))| ((a - b).abs(), i))
+            .fold((0.0f32, 0), |m, x| if x.0 > m.0 { x } else { m });
+        println!(
+            "{kernel:?}: grid {:?}, max density {max}, largest GPU-CPU difference {worst:e} ({:e} of the max) at {at}",
+            spec.dims,
+            worst / max
+        );
+        assert!(
+            worst <= 1e-4 * max,
+            "{kernel:?}: {worst} at {at} (cpu {}, gpu {})",
+            cpu.values[at],
+            gpu.values[at]
+        );
+    }
+    // an empty set gives an empty grid, no error
+    let spec = GridSpec::around(p, h, Resolution::LongestAxis(8)).unwrap();
+    let empty = gpu_density::density_grid_gpu(&ctx, &[], &spec, Kernel::Wyvill, h).unwrap();
+    assert!(empty.values.iter().all(|&v| v == 0.0));
+}
