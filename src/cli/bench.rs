@@ -429,6 +429,8 @@ struct DensityBenchReport {
     cpu_density_ms: f64,
     cpu_extract_ms: Option<f64>,
     gpu_density_ms: Option<f64>,
+    gpu_difference_from_cpu: Option<f32>,
+    gpu_adapter: Option<String>,
     naive_density_ms: Option<f64>,
     speedup_over_naive: Option<f64>,
     max_difference_from_naive: Option<f32>,
@@ -470,6 +472,47 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
     let t = Instant::now();
     let grid = density::density_grid(&positions, &spec, Kernel::Wyvill, h, limit)?;
     let cpu = ms(t);
+    // the GPU path, when an adapter exists: one untimed run (pipeline creation, shader
+    // compilation), then the timed one
+    let gpu = match fluid_surfels::gpu::GpuContext::headless() {
+        Ok(ctx) => {
+            let _ = fluid_surfels::gpu::density::density_grid_gpu(
+                &ctx,
+                &positions[..positions.len().min(1000)],
+                &spec,
+                Kernel::Wyvill,
+                h,
+            )?;
+            let t = Instant::now();
+            let g = fluid_surfels::gpu::density::density_grid_gpu(
+                &ctx,
+                &positions,
+                &spec,
+                Kernel::Wyvill,
+                h,
+            )?;
+            let gpu_ms = ms(t);
+            let max = grid.max().max(f32::MIN_POSITIVE);
+            let diff = g
+                .values
+                .iter()
+                .zip(&grid.values)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max)
+                / max;
+            Some((
+                gpu_ms,
+                diff,
+                ctx.adapter.map(|a| a.name).unwrap_or_default(),
+            ))
+        }
+        Err(e) => {
+            if !args.json {
+                println!("  (no GPU: {e})");
+            }
+            None
+        }
+    };
     let t = Instant::now();
     let surfels = fluid_surfels::surfels::extract(
         &grid,
@@ -504,7 +547,9 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
         threads: rayon::current_num_threads(),
         cpu_density_ms: cpu,
         cpu_extract_ms: Some(extract_ms),
-        gpu_density_ms: None,
+        gpu_density_ms: gpu.as_ref().map(|g| g.0),
+        gpu_difference_from_cpu: gpu.as_ref().map(|g| g.1),
+        gpu_adapter: gpu.as_ref().map(|g| g.2.clone()),
         naive_density_ms: naive_ms,
         speedup_over_naive: naive_ms.map(|n| n / cpu),
         max_difference_from_naive: diff,
@@ -531,7 +576,12 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
             "  surfel extraction (CPU)            {extract_ms:>9.1} ms   {} surfels",
             surfels.len()
         );
-        println!("  GPU path: not built yet");
+        if let Some((g, d, name)) = &gpu {
+            println!(
+                "  GPU ({name})  {g:>9.1} ms   ratio to CPU {:.2}x, max difference {d:e} of the peak",
+                cpu / g
+            );
+        }
     }
     Ok(())
 }

@@ -32,7 +32,7 @@ pub struct SurfelsArgs {
     /// Effective radius h of the density kernel (default: the support radius).
     #[arg(long)]
     pub h: Option<f32>,
-    /// Use the GPU path (not built yet: refused with an error).
+    /// Fill the density grid on the GPU (headless adapter; surfels are extracted on the CPU).
     #[arg(long, conflicts_with = "cpu")]
     pub gpu: bool,
     /// Use the CPU path (the default).
@@ -62,15 +62,27 @@ pub fn surfels_of(
     resolution: u32,
     iso_fraction: f32,
 ) -> Result<(Surfels, GridSpec, f64, f64), Error> {
+    surfels_with(None, positions, h, resolution, iso_fraction)
+}
+
+/// [`surfels_of`] with the density grid filled on the GPU when a context is given.
+pub fn surfels_with(
+    gpu: Option<&fluid_surfels::gpu::GpuContext>,
+    positions: &[Vec3],
+    h: f32,
+    resolution: u32,
+    iso_fraction: f32,
+) -> Result<(Surfels, GridSpec, f64, f64), Error> {
     let spec = GridSpec::around(positions, h, Resolution::LongestAxis(resolution))?;
+    let limit = io::available_memory() / 2;
     let t = Instant::now();
-    let grid = density::density_grid(
-        positions,
-        &spec,
-        Kernel::Wyvill,
-        h,
-        io::available_memory() / 2,
-    )?;
+    let grid = match gpu {
+        Some(ctx) => {
+            spec.check_memory(limit)?;
+            fluid_surfels::gpu::density::density_grid_gpu(ctx, positions, &spec, Kernel::Wyvill, h)?
+        }
+        None => density::density_grid(positions, &spec, Kernel::Wyvill, h, limit)?,
+    };
     let density_ms = ms(t);
     let t = Instant::now();
     let params = SurfelParams {
@@ -138,12 +150,6 @@ fn write(s: &Surfels, out: Option<&Path>, png: Option<&Path>) -> Result<Vec<Stri
 }
 
 pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
-    if args.gpu {
-        return Err(Error::InvalidArgument {
-            argument: "--gpu",
-            reason: "the GPU path of the density grid is not built yet; use the CPU path (--cpu, the default)".into(),
-        });
-    }
     let iso = args.iso.unwrap_or(SurfelParams::default().iso_fraction);
     let src = &args.source;
     let out_args = &args.outputs;
@@ -187,7 +193,13 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
         (None, None) => unreachable!("clap requires --input or --scene"),
     };
     let h = args.h.unwrap_or(radius);
-    let (s, spec, density_ms, extract_ms) = surfels_of(&positions, h, args.resolution, iso)?;
+    let gpu = if args.gpu {
+        Some(fluid_surfels::gpu::GpuContext::headless()?)
+    } else {
+        None
+    };
+    let (s, spec, density_ms, extract_ms) =
+        surfels_with(gpu.as_ref(), &positions, h, args.resolution, iso)?;
     let outputs = write(&s, out.as_deref(), png.as_deref())?;
     let report = SurfelsReport {
         source,
@@ -197,7 +209,7 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
         spacing: spec.spacing,
         iso: s.iso,
         surfels: s.len(),
-        path: "cpu",
+        path: if args.gpu { "gpu" } else { "cpu" },
         density_ms,
         extract_ms,
         outputs,
@@ -213,8 +225,8 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
             report.source, report.particles, h, report.grid, report.spacing, report.iso
         );
         println!(
-            "  {} surfels; ms: density {:.1}, extraction {:.1} (CPU)",
-            report.surfels, density_ms, extract_ms
+            "  {} surfels; ms: density {:.1} ({}), extraction {:.1} (cpu)",
+            report.surfels, density_ms, report.path, extract_ms
         );
         for o in &report.outputs {
             println!("  wrote {o}");
