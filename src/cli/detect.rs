@@ -306,33 +306,12 @@ fn detect_sequence(
     pattern: &FramePattern,
     params: SurfaceParams,
 ) -> Result<(), Error> {
-    if args.source.scene.is_some() || args.source.frame.is_some() {
-        return Err(invalid(
-            "--frame",
-            "--scene and --frame do not combine with an --input sequence",
-        ));
-    }
-    let out = super::output_pattern(&args.outputs.out, "--out")?;
-    let png = super::output_pattern(&args.outputs.png, "--png")?;
-    let sequence = super::Sequence {
-        input: pattern,
-        frames: super::sequence_frames(pattern, args.source.frames)?,
-        outputs: [&out, &png].into_iter().flatten().cloned().collect(),
-        jobs: args.outputs.jobs,
-        skip_existing: args.outputs.skip_existing,
-        force: args.outputs.force,
-        label: "detect",
-    };
-    let (todo, _) = sequence.plan()?;
-    let radius = match (args.source.radius, todo.first()) {
-        (Some(r), _) => r,
-        (None, Some(&f)) => {
-            2.0 * neighbours::estimate_spacing(
-                &io::read_particles(&pattern.path(f), args.source.format)?.positions,
-            )?
-        }
-        (None, None) => 0.0,
-    };
+    let super::PreparedSequence {
+        sequence,
+        out,
+        png,
+        radius,
+    } = super::prepare_sequence(&args.source, &args.outputs, pattern, "detect")?;
     let run = sequence.run(
         || Ok(SurfaceDetector::new(params)?),
         |detector, f| {

@@ -285,3 +285,53 @@ pub fn output_pattern(
             }),
     }
 }
+
+/// A sequence set up from the shared arguments: the runner, the output patterns, and the support
+/// radius (given, or twice the spacing estimated from the first frame to do).
+pub struct PreparedSequence<'a> {
+    pub sequence: Sequence<'a>,
+    pub out: Option<FramePattern>,
+    pub png: Option<FramePattern>,
+    pub radius: f32,
+}
+
+/// Checks and prepares a sequence run for `detect`, `refine` and `surfels`.
+pub fn prepare_sequence<'a>(
+    source: &SourceArgs,
+    outputs: &OutputArgs,
+    pattern: &'a FramePattern,
+    label: &'static str,
+) -> Result<PreparedSequence<'a>, Error> {
+    if source.scene.is_some() || source.frame.is_some() {
+        return Err(Error::InvalidArgument {
+            argument: "--frame",
+            reason: "--scene and --frame do not combine with an --input sequence".into(),
+        });
+    }
+    let out = output_pattern(&outputs.out, "--out")?;
+    let png = output_pattern(&outputs.png, "--png")?;
+    let sequence = Sequence {
+        input: pattern,
+        frames: sequence_frames(pattern, source.frames)?,
+        outputs: [&out, &png].into_iter().flatten().cloned().collect(),
+        jobs: outputs.jobs,
+        skip_existing: outputs.skip_existing,
+        force: outputs.force,
+        label,
+    };
+    let (todo, _) = sequence.plan()?;
+    let radius = match (source.radius, todo.first()) {
+        (Some(r), _) => r,
+        (None, Some(&f)) => {
+            let first = fluid_surfels::io::read_particles(&pattern.path(f), source.format)?;
+            2.0 * fluid_surfels::neighbours::estimate_spacing(&first.positions)?
+        }
+        (None, None) => 0.0,
+    };
+    Ok(PreparedSequence {
+        sequence,
+        out,
+        png,
+        radius,
+    })
+}

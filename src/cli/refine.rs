@@ -316,33 +316,12 @@ struct FrameReport {
 }
 
 fn refine_sequence(args: &RefineArgs, pattern: &FramePattern) -> Result<(), Error> {
-    if args.source.scene.is_some() || args.source.frame.is_some() {
-        return Err(Error::InvalidArgument {
-            argument: "--frame",
-            reason: "--scene and --frame do not combine with an --input sequence".into(),
-        });
-    }
-    let out = super::output_pattern(&args.outputs.out, "--out")?;
-    let png = super::output_pattern(&args.outputs.png, "--png")?;
-    let sequence = super::Sequence {
-        input: pattern,
-        frames: super::sequence_frames(pattern, args.source.frames)?,
-        outputs: [&out, &png].into_iter().flatten().cloned().collect(),
-        jobs: args.outputs.jobs,
-        skip_existing: args.outputs.skip_existing,
-        force: args.outputs.force,
-        label: "refine",
-    };
-    let (todo, _) = sequence.plan()?;
-    let radius = match (args.source.radius, todo.first()) {
-        (Some(r), _) => r,
-        (None, Some(&f)) => {
-            2.0 * neighbours::estimate_spacing(
-                &io::read_particles(&pattern.path(f), args.source.format)?.positions,
-            )?
-        }
-        (None, None) => 0.0,
-    };
+    let super::PreparedSequence {
+        sequence,
+        out,
+        png,
+        radius,
+    } = super::prepare_sequence(&args.source, &args.outputs, pattern, "refine")?;
     let run = sequence.run(
         || Ok(SurfaceDetector::new(SurfaceParams::default())?),
         |detector, f| {

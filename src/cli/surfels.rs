@@ -238,27 +238,12 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
 fn surfels_sequence(args: &SurfelsArgs, pattern: &FramePattern, iso: f32) -> Result<(), Error> {
     let src = &args.source;
     let o = &args.outputs;
-    let out = super::output_pattern(&o.out, "--out")?;
-    let png = super::output_pattern(&o.png, "--png")?;
-    let sequence = super::Sequence {
-        input: pattern,
-        frames: super::sequence_frames(pattern, src.frames)?,
-        outputs: [&out, &png].into_iter().flatten().cloned().collect(),
-        jobs: o.jobs,
-        skip_existing: o.skip_existing,
-        force: o.force,
-        label: "surfels",
-    };
-    let (todo, _) = sequence.plan()?;
-    let radius = match (src.radius, todo.first()) {
-        (Some(r), _) => r,
-        (None, Some(&f)) => {
-            2.0 * neighbours::estimate_spacing(
-                &io::read_particles(&pattern.path(f), src.format)?.positions,
-            )?
-        }
-        (None, None) => 0.0,
-    };
+    let super::PreparedSequence {
+        sequence,
+        out,
+        png,
+        radius,
+    } = super::prepare_sequence(src, o, pattern, "surfels")?;
     let h = args.h.unwrap_or(radius);
     let run = sequence.run(
         || Ok(()),
