@@ -180,11 +180,19 @@ pub fn side_by_side(images: &[RgbImage]) -> RgbImage {
     canvas
 }
 
-/// Saves a picture as PNG.
+/// Saves a picture as PNG, through a temporary name in the same folder and a rename, so that an
+/// interrupted run never leaves a half-written picture under the final name.
 pub fn save_png(image: &RgbImage, path: &Path) -> Result<(), PreviewError> {
-    image.save(path).map_err(|source| PreviewError::Save {
-        path: path.to_owned(),
-        source,
+    let tmp = path.with_extension(format!("{}.tmp.png", std::process::id()));
+    let saved = image
+        .save(&tmp)
+        .and_then(|()| std::fs::rename(&tmp, path).map_err(image::ImageError::IoError));
+    saved.map_err(|source| {
+        let _ = std::fs::remove_file(&tmp);
+        PreviewError::Save {
+            path: path.to_owned(),
+            source,
+        }
     })
 }
 

@@ -113,10 +113,7 @@ pub fn bench_detect(args: &BenchDetectArgs) -> Result<(), Error> {
         classes_agree_with_reference: agree,
     };
     if args.json {
-        println!(
-            "{}",
-            serde_json::to_string(&report).expect("the report serialises")
-        );
+        super::print_json(&report);
     } else {
         println!(
             "  mean neighbours {:.1}, surface particles {}",
@@ -253,10 +250,7 @@ pub fn bench_io(args: &BenchIoArgs) -> Result<(), Error> {
         formats: rows,
     };
     if args.json {
-        println!(
-            "{}",
-            serde_json::to_string(&report).expect("the report serialises")
-        );
+        super::print_json(&report);
     } else {
         println!(
             "bench io: {n} particles with id, velocity and density; fastest of {} reads",
@@ -371,10 +365,7 @@ pub fn bench_refine(args: &BenchRefineArgs) -> Result<(), Error> {
         frames: rows,
     };
     if args.json {
-        println!(
-            "{}",
-            serde_json::to_string(&report).expect("the report serialises")
-        );
+        super::print_json(&report);
     } else {
         println!(
             "bench refine: column frames like Table 1, 3 steps, {} threads, fastest of {}",
@@ -556,10 +547,7 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
         surfels: Some(surfels.len()),
     };
     if args.json {
-        println!(
-            "{}",
-            serde_json::to_string(&report).expect("the report serialises")
-        );
+        super::print_json(&report);
     } else {
         println!(
             "bench density: {} particles (block filling the lower half of a cubic box), h = {h:.5}, grid {:?}, {} threads",

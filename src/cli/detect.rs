@@ -211,10 +211,7 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
         outputs,
     };
     if args.outputs.json {
-        println!(
-            "{}",
-            serde_json::to_string(&report).expect("the report serialises")
-        );
+        super::print_json(&report);
     } else {
         let c = report.counts;
         let estimate = report
@@ -268,13 +265,7 @@ pub fn write_outputs(
             800,
             800,
         )?;
-        // through a temporary name, like the particle writers
-        let tmp = png.with_extension(format!("{}.tmp.png", std::process::id()));
-        preview::save_png(&picture, &tmp)?;
-        std::fs::rename(&tmp, png).map_err(|e| io::IoError::Os {
-            path: png.to_owned(),
-            source: e,
-        })?;
+        preview::save_png(&picture, png)?;
         outputs.push(png.display().to_string());
     }
     Ok(outputs)
@@ -347,10 +338,7 @@ fn detect_sequence(
         frames: run.results,
     };
     if args.outputs.json {
-        println!(
-            "{}",
-            serde_json::to_string(&report).expect("the report serialises")
-        );
+        super::print_json(&report);
     } else {
         println!(
             "{}: {} frames processed, {} skipped (outputs existed), radius {}",

@@ -108,10 +108,7 @@ fn info_sequence(args: &InfoArgs, pattern: &FramePattern) -> Result<(), Error> {
     bar.finish_and_clear();
     let rows = rows?;
     if args.json {
-        println!(
-            "{}",
-            serde_json::to_string(&rows).expect("the report serialises")
-        );
+        super::print_json(&rows);
     } else {
         for r in &rows {
             let (lo, hi) = (
@@ -204,10 +201,7 @@ pub fn info(args: &InfoArgs) -> Result<(), Error> {
         spacing_estimate: neighbours::estimate_spacing(&set.positions).ok(),
     };
     if args.json {
-        println!(
-            "{}",
-            serde_json::to_string(&info).expect("the report serialises")
-        );
+        super::print_json(&info);
         return Ok(());
     }
     println!("{}: {} ({} bytes)", info.file, info.format, info.bytes);

@@ -73,6 +73,14 @@ pub struct OutputArgs {
     pub json: bool,
 }
 
+/// Prints a report as one JSON object on stdout (`--json`).
+pub fn print_json(report: &impl serde::Serialize) {
+    println!(
+        "{}",
+        serde_json::to_string(report).expect("reports are plain data and serialise")
+    );
+}
+
 pub fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }

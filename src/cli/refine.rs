@@ -180,12 +180,7 @@ fn write(
     }
     if let Some(png) = png {
         let picture = refinement_picture(input, refined, 700)?;
-        let tmp = png.with_extension(format!("{}.tmp.png", std::process::id()));
-        preview::save_png(&picture, &tmp)?;
-        std::fs::rename(&tmp, png).map_err(|e| io::IoError::Os {
-            path: png.to_owned(),
-            source: e,
-        })?;
+        preview::save_png(&picture, png)?;
         outputs.push(png.display().to_string());
     }
     Ok(outputs)
@@ -268,10 +263,7 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
         outputs,
     };
     if args.outputs.json {
-        println!(
-            "{}",
-            serde_json::to_string(&report).expect("the report serialises")
-        );
+        super::print_json(&report);
         return Ok(());
     }
     println!(

@@ -138,12 +138,7 @@ fn write(s: &Surfels, out: Option<&Path>, png: Option<&Path>) -> Result<Vec<Stri
             (Vec3::ZERO, Vec3::ONE)
         };
         let picture = surfels_picture(s, &PreviewCamera::framing(lo, hi), 800)?;
-        let tmp = png.with_extension(format!("{}.tmp.png", std::process::id()));
-        preview::save_png(&picture, &tmp)?;
-        std::fs::rename(&tmp, png).map_err(|e| io::IoError::Os {
-            path: png.to_owned(),
-            source: e,
-        })?;
+        preview::save_png(&picture, png)?;
         outputs.push(png.display().to_string());
     }
     Ok(outputs)
@@ -215,10 +210,7 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
         outputs,
     };
     if out_args.json {
-        println!(
-            "{}",
-            serde_json::to_string(&report).expect("the report serialises")
-        );
+        super::print_json(&report);
     } else {
         println!(
             "{}: {} particles, h {}, grid {:?} (spacing {:.5}), iso {:.4}",
