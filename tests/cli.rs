@@ -8,6 +8,21 @@ fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_fluid-surfels"))
 }
 
+/// Asserts that a run succeeded, showing its stderr otherwise.
+fn succeeded(out: &std::process::Output) {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// The JSON object a successful `--json` run printed.
+fn json_of(out: &std::process::Output) -> serde_json::Value {
+    succeeded(out);
+    serde_json::from_slice(&out.stdout).expect("--json prints one JSON object")
+}
+
 fn data(name: &str) -> String {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("tests/data")
@@ -24,11 +39,7 @@ fn main_job_writes_surface_ply_and_picture() {
         .arg(dir.path())
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    succeeded(&out);
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("particles          2880"), "{stdout}");
     for file in [
@@ -64,12 +75,7 @@ fn detect_prints_json_statistics() {
         .args(["detect", "--scene", "block", "--json"])
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let v = json_of(&out);
     assert_eq!(v["particles"], 21_952);
     let c = &v["counts"];
     let sum = c["interior"].as_u64().unwrap()
@@ -97,12 +103,7 @@ fn detect_on_a_file_estimates_the_radius_and_never_overwrites() {
             .unwrap()
     };
     let first = run(&[]);
-    assert!(
-        first.status.success(),
-        "{}",
-        String::from_utf8_lossy(&first.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&first.stdout).unwrap();
+    let v = json_of(&first);
     assert_eq!(v["spacing_estimate"], 2.0);
     let written = std::fs::read(&out_path).unwrap();
     // a second run refuses to replace the file, and leaves it as it was
@@ -172,12 +173,7 @@ fn bench_detect_reports_the_reference_ratio() {
         ])
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let v = json_of(&out);
     assert!(v["speedup"].as_f64().unwrap() > 0.0);
     assert_eq!(v["classes_agree_with_reference"], true);
     assert!(v["particles"].as_u64().unwrap() >= 5000);
@@ -261,12 +257,7 @@ fn sequences_run_in_parallel_and_resume_after_a_kill() {
     // resume: the rest is done, the frames already written are left untouched
     std::thread::sleep(std::time::Duration::from_millis(20));
     let resumed = args(&["--skip-existing", "--json"]).output().unwrap();
-    assert!(
-        resumed.status.success(),
-        "{}",
-        String::from_utf8_lossy(&resumed.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&resumed.stdout).unwrap();
+    let v = json_of(&resumed);
     assert_eq!(v["skipped"].as_array().unwrap().len(), done.len());
     assert_eq!(v["processed"].as_u64().unwrap() as usize, 20 - done.len());
     let after = outputs(&out_dir);
@@ -292,12 +283,7 @@ fn info_describes_a_file() {
         ])
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let v = json_of(&out);
     assert_eq!(v["format"], "vtk");
     assert_eq!(v["particles"], 4732);
     let names: Vec<&str> = v["attributes"]
@@ -328,12 +314,7 @@ fn info_describes_a_file() {
         .args(["info", &pattern, "--json", "--jobs", "2"])
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let v = json_of(&out);
     let frames: Vec<u64> = v
         .as_array()
         .unwrap()
@@ -365,12 +346,7 @@ fn bench_io_reports_every_format() {
         ])
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let v = json_of(&out);
     let formats = v["formats"].as_array().unwrap();
     assert_eq!(formats.len(), 8);
     for f in formats {
@@ -392,12 +368,7 @@ fn refine_reports_steps_and_writes_points() {
         .arg(&png)
         .output()
         .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    let v = json_of(&run);
     let steps = v["steps"].as_array().unwrap();
     assert_eq!(steps.len(), 3);
     for s in steps {
@@ -467,12 +438,7 @@ fn refine_reports_steps_and_writes_points() {
         .arg(&surface)
         .output()
         .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    let v = json_of(&run);
     assert!(v["points"].as_u64().unwrap() > v["p0"].as_u64().unwrap());
 }
 
@@ -482,12 +448,7 @@ fn bench_refine_reports_table_1_frames() {
         .args(["bench", "refine", "--repeat", "1", "--json"])
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let v = json_of(&out);
     let frames = v["frames"].as_array().unwrap();
     assert_eq!(frames.len(), 3);
     for f in frames {
@@ -519,12 +480,7 @@ fn bench_density_compares_with_the_naive_reference() {
         ])
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let v = json_of(&out);
     assert_eq!(v["particles"], 3000);
     assert_eq!(v["grid"], serde_json::json!([40, 40, 40]));
     assert!(v["cpu_density_ms"].as_f64().unwrap() > 0.0);
@@ -557,12 +513,7 @@ fn surfels_command_writes_surfels_on_cpu_and_gpu() {
         .arg(&out)
         .output()
         .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    let v = json_of(&run);
     let dims: Vec<u64> = v["grid"]
         .as_array()
         .unwrap()

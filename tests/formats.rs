@@ -196,6 +196,13 @@ fn written_vtk_files_open_in_vtkio() {
     }
 }
 
+fn gzip(bytes: &[u8], level: flate2::Compression) -> Vec<u8> {
+    use std::io::Write;
+    let mut e = flate2::write::GzEncoder::new(Vec::new(), level);
+    e.write_all(bytes).unwrap();
+    e.finish().unwrap()
+}
+
 fn parse(format: Format, bytes: &[u8]) -> Result<ParticleSet, IoError> {
     io::parse_bytes(format, bytes, Path::new("bad.file"))
 }
@@ -231,14 +238,10 @@ fn every_reader_survives_truncation_at_every_percent() {
         }
     }
     // gzipped BGEO cut short
-    let mut gz = Vec::new();
-    {
-        use std::io::Write;
-        let mut e = flate2::write::GzEncoder::new(&mut gz, flate2::Compression::default());
-        e.write_all(&io::to_bytes(Format::Bgeo, &set, Path::new("x")).unwrap())
-            .unwrap();
-        e.finish().unwrap();
-    }
+    let gz = gzip(
+        &io::to_bytes(Format::Bgeo, &set, Path::new("x")).unwrap(),
+        flate2::Compression::default(),
+    );
     for pct in 1..100 {
         assert!(
             parse(Format::Bgeo, &gz[..gz.len() * pct / 100]).is_err(),
@@ -333,13 +336,7 @@ fn wrong_counts_are_caught_where_they_are() {
     let text = b"# vtk DataFile Version 3.0\nt\nASCII\nDATASET POLYDATA\nPOINTS 2 float\n0 0 0 1 1 1\nPOINT_DATA 3\n";
     let e = parse(Format::Vtk, text).unwrap_err();
     assert!(
-        matches!(
-            e,
-            IoError::Parse {
-                location: Location::Line(7),
-                ..
-            }
-        ),
+        matches!(e, IoError::Parse { .. }) && e.location() == Some(Location::Line(7)),
         "{e}"
     );
     // VTK: non-numeric value with its line
@@ -347,13 +344,7 @@ fn wrong_counts_are_caught_where_they_are() {
         b"# vtk DataFile Version 3.0\nt\nASCII\nDATASET POLYDATA\nPOINTS 2 float\n0 0 0\n1 x 1\n";
     let e = parse(Format::Vtk, text).unwrap_err();
     assert!(
-        matches!(
-            e,
-            IoError::Parse {
-                location: Location::Line(7),
-                ..
-            }
-        ),
+        matches!(e, IoError::Parse { .. }) && e.location() == Some(Location::Line(7)),
         "{e}"
     );
     // VTK: NaN coordinates
@@ -387,25 +378,13 @@ fn wrong_counts_are_caught_where_they_are() {
     // JSON: not triplets
     let e = parse(Format::Json, b"[[0, 0, 0], [1, 2]]").unwrap_err();
     assert!(
-        matches!(
-            e,
-            IoError::Parse {
-                location: Location::Line(1),
-                ..
-            }
-        ),
+        matches!(e, IoError::Parse { .. }) && e.location() == Some(Location::Line(1)),
         "{e}"
     );
     // raw xyz: not a multiple of 12 bytes
     let e = parse(Format::XyzRaw, &[0u8; 25]).unwrap_err();
     assert!(
-        matches!(
-            e,
-            IoError::Parse {
-                location: Location::Byte(24),
-                ..
-            }
-        ),
+        matches!(e, IoError::Parse { .. }) && e.location() == Some(Location::Byte(24)),
         "{e}"
     );
 }
@@ -419,13 +398,7 @@ fn counts_beyond_memory_and_gzip_bombs_are_refused_without_allocating() {
     bgeo[9..13].copy_from_slice(&i32::MAX.to_be_bytes());
     assert!(parse(Format::Bgeo, &bgeo).is_err());
     // gzipped BGEO whose header says 2^31 points: refused from the header (memory or data)
-    let mut gz = Vec::new();
-    {
-        use std::io::Write;
-        let mut e = flate2::write::GzEncoder::new(&mut gz, flate2::Compression::default());
-        e.write_all(&bgeo).unwrap();
-        e.finish().unwrap();
-    }
+    let gz = gzip(&bgeo, flate2::Compression::default());
     let e = parse(Format::Bgeo, &gz).unwrap_err();
     assert!(matches!(e, IoError::TooLarge { .. }), "{e}");
     // a gzip bomb: a 2-point header followed by 2 GiB of zeros (about 2 MiB compressed)
