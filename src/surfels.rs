@@ -161,8 +161,9 @@ impl SurfelExtractor {
         }
     }
 
-    /// Takes the next z plane (`k` in increasing order, `nx * ny` values).
-    pub fn push_plane(&mut self, k: u32, plane: Vec<f32>) {
+    /// Takes the next z plane (`k` in increasing order, `nx * ny` values); only a copy of the
+    /// latest plane is kept.
+    pub fn push_plane(&mut self, k: u32, plane: &[f32]) {
         let [nx, ny, _] = self.spec.dims;
         let (nx, ny) = (nx as usize, ny as usize);
         let iso = self.iso;
@@ -194,7 +195,15 @@ impl SurfelExtractor {
             }
         }
         self.crossings.extend(found);
-        self.previous = Some((k, plane));
+        // keep this plane for the z edges of the next one, reusing the buffer
+        match &mut self.previous {
+            Some((pk, buffer)) => {
+                buffer.clear();
+                buffer.extend_from_slice(plane);
+                *pk = k;
+            }
+            None => self.previous = Some((k, plane.to_vec())),
+        }
     }
 
     /// Takes a slab of consecutive planes starting at `k0`, as [`crate::density::splat_slabs`]
@@ -202,7 +211,7 @@ impl SurfelExtractor {
     pub fn push_slab(&mut self, k0: u32, slab: Vec<f32>) {
         let plane = self.spec.dims[0] as usize * self.spec.dims[1] as usize;
         for (dk, values) in slab.chunks(plane).enumerate() {
-            self.push_plane(k0 + dk as u32, values.to_vec());
+            self.push_plane(k0 + dk as u32, values);
         }
     }
 
@@ -262,7 +271,7 @@ pub fn extract(
     let mut extractor = SurfelExtractor::new(grid.spec, iso);
     let plane = grid.spec.dims[0] as usize * grid.spec.dims[1] as usize;
     for (k, values) in grid.values.chunks(plane).enumerate() {
-        extractor.push_plane(k as u32, values.to_vec());
+        extractor.push_plane(k as u32, values);
     }
     Ok(extractor.finish(&density, params))
 }
