@@ -91,14 +91,7 @@ fn invalid(argument: &'static str, reason: impl Into<String>) -> Error {
 
 pub fn detect(args: &DetectArgs) -> Result<(), Error> {
     let params = params(args)?;
-    if let Some(pattern) = args
-        .source
-        .input
-        .as_deref()
-        .map(FramePattern::parse)
-        .transpose()?
-        .flatten()
-    {
+    if let Some(pattern) = args.source.sequence()? {
         return detect_sequence(args, &pattern, params);
     }
     if args.source.frames.is_some() || args.outputs.jobs != 1 || args.outputs.skip_existing {

@@ -49,6 +49,19 @@ pub struct SourceArgs {
     pub frames: Option<FrameRange>,
 }
 
+impl SourceArgs {
+    /// The frame pattern when `--input` names a sequence (has a `{}`), `None` for one file or a
+    /// scene.
+    pub fn sequence(&self) -> Result<Option<FramePattern>, Error> {
+        Ok(self
+            .input
+            .as_deref()
+            .map(FramePattern::parse)
+            .transpose()?
+            .flatten())
+    }
+}
+
 /// Where a stage's results go and how a sequence runs (shared by `detect` and `refine`).
 #[derive(clap::Args)]
 pub struct OutputArgs {

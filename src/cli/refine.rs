@@ -187,14 +187,7 @@ fn write(
 }
 
 pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
-    if let Some(pattern) = args
-        .source
-        .input
-        .as_deref()
-        .map(FramePattern::parse)
-        .transpose()?
-        .flatten()
-    {
+    if let Some(pattern) = args.source.sequence()? {
         return refine_sequence(args, &pattern);
     }
     if args.source.frames.is_some() || args.outputs.jobs != 1 || args.outputs.skip_existing {

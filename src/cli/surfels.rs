@@ -148,13 +148,7 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
     let iso = args.iso.unwrap_or(SurfelParams::default().iso_fraction);
     let src = &args.source;
     let out_args = &args.outputs;
-    if let Some(pattern) = src
-        .input
-        .as_deref()
-        .map(FramePattern::parse)
-        .transpose()?
-        .flatten()
-    {
+    if let Some(pattern) = src.sequence()? {
         return surfels_sequence(args, &pattern, iso);
     }
     let input = src.input.as_deref().map(PathBuf::from);
