@@ -38,6 +38,7 @@ pub mod preview;
 pub mod refine;
 pub mod scenes;
 pub mod sequence;
+pub mod splat;
 pub mod surface;
 pub mod surfels;
 
@@ -83,6 +84,9 @@ pub enum Error {
         argument: &'static str,
         reason: String,
     },
+    /// Surfel rendering.
+    #[error(transparent)]
+    Splat(#[from] splat::SplatError),
     /// Frame patterns and ranges.
     #[error(transparent)]
     Sequence(#[from] sequence::SequenceError),

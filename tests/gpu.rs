@@ -2,30 +2,48 @@
 //! tests skip with a message, unless FLUID_SURFELS_REQUIRE_GPU=1 makes that a failure.
 
 use fluid_surfels::density::{self, GridSpec, Kernel, Resolution};
-use fluid_surfels::gpu::{self, density as gpu_density};
+use fluid_surfels::gpu::{self, density as gpu_density, splat as gpu_splat};
 use fluid_surfels::scenes;
+use fluid_surfels::splat;
 
 #[test]
 fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
-    let module = naga::front::wgsl::parse_str(gpu_density::SHADER)
-        .unwrap_or_else(|e| panic!("{}", e.emit_to_string(gpu_density::SHADER)));
-    let info = naga::valid::Validator::new(
-        naga::valid::ValidationFlags::all(),
-        naga::valid::Capabilities::all(),
-    )
-    .validate(&module)
-    .unwrap_or_else(|e| panic!("density_splat.wgsl does not validate: {e:?}"));
-    let _ = info;
-    let params = module
-        .types
-        .iter()
-        .find(|(_, t)| t.name.as_deref() == Some("Params"))
-        .map(|(_, t)| t.inner.size(module.to_ctx()))
-        .expect("a Params struct");
-    assert_eq!(
-        params as usize,
-        std::mem::size_of::<gpu_density::RawParams>()
-    );
+    let shaders = [
+        (
+            "density_splat.wgsl",
+            gpu_density::SHADER,
+            "Params",
+            std::mem::size_of::<gpu_density::RawParams>(),
+        ),
+        (
+            "surfel_splat.wgsl",
+            gpu_splat::SHADER,
+            "Uniforms",
+            std::mem::size_of::<splat::RawUniforms>(),
+        ),
+    ];
+    for (file, source, name, rust_size) in shaders {
+        let module = naga::front::wgsl::parse_str(source)
+            .unwrap_or_else(|e| panic!("{file}: {}", e.emit_to_string(source)));
+        naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::all(),
+        )
+        .validate(&module)
+        .unwrap_or_else(|e| panic!("{file} does not validate: {e:?}"));
+        let size = module
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some(name))
+            .map(|(_, t)| t.inner.size(module.to_ctx()))
+            .unwrap_or_else(|| panic!("{file}: no struct {name}"));
+        assert_eq!(
+            size as usize, rust_size,
+            "{file}: {name} and its Rust mirror differ in size"
+        );
+    }
+    // the surfel vertex layout: four vec4 attributes
+    assert_eq!(std::mem::size_of::<splat::Surfel>(), 64);
 }
 
 #[test]

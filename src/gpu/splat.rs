@@ -1,0 +1,630 @@
+//! EWA surfel splatting on the GPU: the three passes of [`crate::splat`] (whose CPU functions are
+//! the specification) in `shaders/surfel_splat.wgsl`.
+//!
+//! Two ways to call it:
+//! - headless: [`render_gpu`] renders into its own textures and reads the image and the
+//!   accumulation buffers back;
+//! - inside a game: [`SplatRenderer::new`] on the game's `wgpu::Device` with the format of the
+//!   game's target, [`SplatRenderer::upload`] the surfels, then [`SplatRenderer::encode`] the three
+//!   passes into the game's command encoder, drawing into the game's texture view. The crate
+//!   creates no device and submits nothing there.
+
+use std::time::Instant;
+
+use serde::Serialize;
+use wgpu::util::DeviceExt;
+
+use super::{GpuContext, GpuError, REQUIRED_FEATURES};
+use crate::splat::{Camera, Light, Render, SplatError, SplatParams, Surfel, View};
+
+/// The WGSL source of the three passes.
+pub const SHADER: &str = include_str!("../../shaders/surfel_splat.wgsl");
+
+const ACCUMULATION: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
+const DEPTH: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+
+/// Surfels uploaded to the GPU (only the drawable ones; see [`Surfel::is_drawable`]), in chunks
+/// no larger than the device's buffer limit.
+pub struct SurfelBuffer {
+    chunks: Vec<(wgpu::Buffer, u32)>,
+    /// Surfels uploaded.
+    pub len: usize,
+    /// Surfels skipped as undrawable.
+    pub skipped: usize,
+}
+
+/// Wall-clock milliseconds of each pass (each submitted and waited for on its own).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct PassTimes {
+    pub visibility_ms: f64,
+    pub attributes_ms: f64,
+    pub shading_ms: f64,
+}
+
+impl PassTimes {
+    /// Sum of the three passes.
+    #[must_use]
+    pub fn total_ms(&self) -> f64 {
+        self.visibility_ms + self.attributes_ms + self.shading_ms
+    }
+}
+
+struct Targets {
+    width: u32,
+    height: u32,
+    depth: wgpu::TextureView,
+    colour: wgpu::Texture,
+    colour_view: wgpu::TextureView,
+    normal: wgpu::Texture,
+    normal_view: wgpu::TextureView,
+}
+
+/// The pipelines and intermediate targets of the three passes for one output format and size.
+pub struct SplatRenderer {
+    format: wgpu::TextureFormat,
+    splat_layout: wgpu::BindGroupLayout,
+    shade_layout: wgpu::BindGroupLayout,
+    visibility: wgpu::RenderPipeline,
+    attributes: wgpu::RenderPipeline,
+    shading: wgpu::RenderPipeline,
+    targets: Targets,
+}
+
+fn uniform_entry() -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding: 0,
+        visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Uniform,
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::FRAGMENT,
+        ty: wgpu::BindingType::Texture {
+            sample_type: wgpu::TextureSampleType::Float { filterable: false },
+            view_dimension: wgpu::TextureViewDimension::D2,
+            multisampled: false,
+        },
+        count: None,
+    }
+}
+
+fn create_targets(device: &wgpu::Device, width: u32, height: u32) -> Targets {
+    let texture = |label, format, usage| {
+        device.create_texture(&wgpu::TextureDescriptor {
+            label: Some(label),
+            size: wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format,
+            usage,
+            view_formats: &[],
+        })
+    };
+    let accumulation = wgpu::TextureUsages::RENDER_ATTACHMENT
+        | wgpu::TextureUsages::TEXTURE_BINDING
+        | wgpu::TextureUsages::COPY_SRC;
+    let depth = texture("splat depth", DEPTH, wgpu::TextureUsages::RENDER_ATTACHMENT);
+    let colour = texture("splat colour accumulation", ACCUMULATION, accumulation);
+    let normal = texture("splat normal accumulation", ACCUMULATION, accumulation);
+    Targets {
+        width,
+        height,
+        depth: depth.create_view(&Default::default()),
+        colour_view: colour.create_view(&Default::default()),
+        normal_view: normal.create_view(&Default::default()),
+        colour,
+        normal,
+    }
+}
+
+impl SplatRenderer {
+    /// Builds the pipelines for targets of `format` and the intermediate buffers for
+    /// `width` x `height`. The device needs [`REQUIRED_FEATURES`].
+    pub fn new(
+        device: &wgpu::Device,
+        format: wgpu::TextureFormat,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, SplatError> {
+        check_size(device, width, height)?;
+        if !device.features().contains(REQUIRED_FEATURES) {
+            return Err(GpuError::MissingFeature {
+                adapter: "the given device".into(),
+                feature: "FLOAT32_BLENDABLE (additive blending into 32-bit float targets)",
+            }
+            .into());
+        }
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("surfel_splat"),
+            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+        });
+        let splat_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("splat uniforms"),
+            entries: &[uniform_entry()],
+        });
+        let shade_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("splat shading"),
+            entries: &[uniform_entry(), texture_entry(1), texture_entry(2)],
+        });
+        let splat_pipeline_layout =
+            device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("splat"),
+                bind_group_layouts: &[Some(&splat_layout)],
+                ..Default::default()
+            });
+        let shade_pipeline_layout =
+            device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("splat shading"),
+                bind_group_layouts: &[Some(&shade_layout)],
+                ..Default::default()
+            });
+        let surfel_layout = [Some(wgpu::VertexBufferLayout {
+            array_stride: std::mem::size_of::<Surfel>() as u64,
+            step_mode: wgpu::VertexStepMode::Instance,
+            attributes: &wgpu::vertex_attr_array![0 => Float32x4, 1 => Float32x4, 2 => Float32x4, 3 => Float32x4],
+        })];
+        let additive = wgpu::BlendComponent {
+            src_factor: wgpu::BlendFactor::One,
+            dst_factor: wgpu::BlendFactor::One,
+            operation: wgpu::BlendOperation::Add,
+        };
+        let accumulate = Some(wgpu::ColorTargetState {
+            format: ACCUMULATION,
+            blend: Some(wgpu::BlendState {
+                color: additive,
+                alpha: additive,
+            }),
+            write_mask: wgpu::ColorWrites::ALL,
+        });
+        let splat_pipeline =
+            |label, fragment, targets: &[Option<wgpu::ColorTargetState>], write| {
+                device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                    label: Some(label),
+                    layout: Some(&splat_pipeline_layout),
+                    vertex: wgpu::VertexState {
+                        module: &module,
+                        entry_point: Some("vs_splat"),
+                        compilation_options: Default::default(),
+                        buffers: &surfel_layout,
+                    },
+                    primitive: wgpu::PrimitiveState::default(),
+                    depth_stencil: Some(wgpu::DepthStencilState {
+                        format: DEPTH,
+                        depth_write_enabled: Some(write),
+                        depth_compare: Some(wgpu::CompareFunction::LessEqual),
+                        stencil: Default::default(),
+                        bias: Default::default(),
+                    }),
+                    multisample: Default::default(),
+                    fragment: Some(wgpu::FragmentState {
+                        module: &module,
+                        entry_point: Some(fragment),
+                        compilation_options: Default::default(),
+                        targets,
+                    }),
+                    multiview_mask: None,
+                    cache: None,
+                })
+            };
+        let visibility = splat_pipeline("splat visibility", "fs_visibility", &[], true);
+        let attributes = splat_pipeline(
+            "splat attributes",
+            "fs_attributes",
+            &[accumulate.clone(), accumulate],
+            false,
+        );
+        let shading = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("splat shading"),
+            layout: Some(&shade_pipeline_layout),
+            vertex: wgpu::VertexState {
+                module: &module,
+                entry_point: Some("vs_fullscreen"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: wgpu::PrimitiveState::default(),
+            depth_stencil: None,
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &module,
+                entry_point: Some("fs_shade"),
+                compilation_options: Default::default(),
+                targets: &[Some(wgpu::ColorTargetState {
+                    format,
+                    blend: None,
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        let targets = create_targets(device, width, height);
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Validation(e.to_string()).into());
+        }
+        Ok(Self {
+            format,
+            splat_layout,
+            shade_layout,
+            visibility,
+            attributes,
+            shading,
+            targets,
+        })
+    }
+
+    /// The output format the shading pass writes.
+    #[must_use]
+    pub fn format(&self) -> wgpu::TextureFormat {
+        self.format
+    }
+
+    /// Image size the intermediate buffers have.
+    #[must_use]
+    pub fn size(&self) -> (u32, u32) {
+        (self.targets.width, self.targets.height)
+    }
+
+    /// Re-creates the intermediate buffers for a new image size.
+    pub fn resize(
+        &mut self,
+        device: &wgpu::Device,
+        width: u32,
+        height: u32,
+    ) -> Result<(), SplatError> {
+        check_size(device, width, height)?;
+        if (width, height) != self.size() {
+            self.targets = create_targets(device, width, height);
+        }
+        Ok(())
+    }
+
+    /// The accumulation textures after [`Self::encode`]: `(sum w colour, sum w)` and
+    /// `(sum w normal, sum w depth)`, `Rgba32Float` (what the optics stage reads).
+    #[must_use]
+    pub fn accumulation(&self) -> (&wgpu::TextureView, &wgpu::TextureView) {
+        (&self.targets.colour_view, &self.targets.normal_view)
+    }
+
+    /// Uploads the drawable surfels (the others are counted in `skipped`).
+    #[must_use]
+    pub fn upload(device: &wgpu::Device, surfels: &[Surfel]) -> SurfelBuffer {
+        let (kept, skipped) = crate::splat::drawable(surfels);
+        let per_chunk = (device.limits().max_buffer_size / std::mem::size_of::<Surfel>() as u64)
+            .clamp(1, u64::from(u32::MAX)) as usize;
+        let chunks = kept
+            .chunks(per_chunk)
+            .map(|c| {
+                let buffer = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("surfels"),
+                    contents: bytemuck::cast_slice(c),
+                    usage: wgpu::BufferUsages::VERTEX,
+                });
+                (buffer, c.len() as u32)
+            })
+            .collect();
+        SurfelBuffer {
+            chunks,
+            len: kept.len(),
+            skipped,
+        }
+    }
+
+    fn bind_groups(
+        &self,
+        device: &wgpu::Device,
+        view: &View,
+    ) -> (wgpu::BindGroup, wgpu::BindGroup) {
+        let uniforms = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("splat uniforms"),
+            contents: bytemuck::bytes_of(&view.to_raw()),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        let splat = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("splat uniforms"),
+            layout: &self.splat_layout,
+            entries: &[wgpu::BindGroupEntry {
+                binding: 0,
+                resource: uniforms.as_entire_binding(),
+            }],
+        });
+        let shade = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("splat shading"),
+            layout: &self.shade_layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: uniforms.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::TextureView(&self.targets.colour_view),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: wgpu::BindingResource::TextureView(&self.targets.normal_view),
+                },
+            ],
+        });
+        (splat, shade)
+    }
+
+    fn check_view(&self, view: &View) -> Result<(), SplatError> {
+        if (view.width, view.height) != self.size() {
+            return Err(SplatError::InvalidParameter {
+                name: "view",
+                reason: format!(
+                    "a {}x{} view for a renderer of {}x{}; call resize first",
+                    view.width, view.height, self.targets.width, self.targets.height
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// Records the three passes into `encoder`, the image going to `target` (a view of a texture
+    /// of [`Self::format`] and [`Self::size`]). Submitting is the caller's business.
+    pub fn encode(
+        &self,
+        device: &wgpu::Device,
+        encoder: &mut wgpu::CommandEncoder,
+        target: &wgpu::TextureView,
+        surfels: &SurfelBuffer,
+        view: &View,
+    ) -> Result<(), SplatError> {
+        self.check_view(view)?;
+        let (splat, shade) = self.bind_groups(device, view);
+        self.encode_visibility(encoder, surfels, &splat);
+        self.encode_attributes(encoder, surfels, &splat);
+        self.encode_shading(encoder, target, &shade);
+        Ok(())
+    }
+
+    fn draw_surfels(&self, pass: &mut wgpu::RenderPass<'_>, surfels: &SurfelBuffer) {
+        for (buffer, count) in &surfels.chunks {
+            pass.set_vertex_buffer(0, buffer.slice(..));
+            pass.draw(0..6, 0..*count);
+        }
+    }
+
+    fn encode_visibility(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        surfels: &SurfelBuffer,
+        bind: &wgpu::BindGroup,
+    ) {
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("splat visibility"),
+            color_attachments: &[],
+            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                view: &self.targets.depth,
+                depth_ops: Some(wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(1.0),
+                    store: wgpu::StoreOp::Store,
+                }),
+                stencil_ops: None,
+            }),
+            ..Default::default()
+        });
+        pass.set_pipeline(&self.visibility);
+        pass.set_bind_group(0, bind, &[]);
+        self.draw_surfels(&mut pass, surfels);
+    }
+
+    fn encode_attributes(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        surfels: &SurfelBuffer,
+        bind: &wgpu::BindGroup,
+    ) {
+        let clear = |view| {
+            Some(wgpu::RenderPassColorAttachment {
+                view,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                    store: wgpu::StoreOp::Store,
+                },
+            })
+        };
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("splat attributes"),
+            color_attachments: &[
+                clear(&self.targets.colour_view),
+                clear(&self.targets.normal_view),
+            ],
+            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                view: &self.targets.depth,
+                depth_ops: Some(wgpu::Operations {
+                    load: wgpu::LoadOp::Load,
+                    store: wgpu::StoreOp::Store,
+                }),
+                stencil_ops: None,
+            }),
+            ..Default::default()
+        });
+        pass.set_pipeline(&self.attributes);
+        pass.set_bind_group(0, bind, &[]);
+        self.draw_surfels(&mut pass, surfels);
+    }
+
+    fn encode_shading(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        target: &wgpu::TextureView,
+        bind: &wgpu::BindGroup,
+    ) {
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("splat shading"),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: target,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+                    store: wgpu::StoreOp::Store,
+                },
+            })],
+            ..Default::default()
+        });
+        pass.set_pipeline(&self.shading);
+        pass.set_bind_group(0, bind, &[]);
+        pass.draw(0..3, 0..1);
+    }
+}
+
+fn check_size(device: &wgpu::Device, width: u32, height: u32) -> Result<(), SplatError> {
+    let max = device
+        .limits()
+        .max_texture_dimension_2d
+        .min(crate::splat::MAX_SIZE);
+    if width == 0 || height == 0 || width > max || height > max {
+        return Err(SplatError::InvalidSize { width, height, max });
+    }
+    Ok(())
+}
+
+/// Renders headless: the image and the accumulation buffers read back.
+pub fn render_gpu(
+    ctx: &GpuContext,
+    surfels: &[Surfel],
+    camera: &Camera,
+    light: &Light,
+    params: &SplatParams,
+    width: u32,
+    height: u32,
+) -> Result<Render, SplatError> {
+    let view = View::new(camera, light, params, width, height)?;
+    let renderer = SplatRenderer::new(&ctx.device, wgpu::TextureFormat::Rgba8Unorm, width, height)?;
+    let buffer = SplatRenderer::upload(&ctx.device, surfels);
+    Ok(render_timed(ctx, &renderer, &buffer, &view)?.0)
+}
+
+/// Renders headless with each pass submitted and waited for on its own (for benchmarks), and
+/// reads the results back.
+pub fn render_timed(
+    ctx: &GpuContext,
+    renderer: &SplatRenderer,
+    surfels: &SurfelBuffer,
+    view: &View,
+) -> Result<(Render, PassTimes), SplatError> {
+    renderer.check_view(view)?;
+    let device = &ctx.device;
+    let (width, height) = renderer.size();
+    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let output = device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("splat image"),
+        size: wgpu::Extent3d {
+            width,
+            height,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: renderer.format,
+        usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+        view_formats: &[],
+    });
+    let output_view = output.create_view(&Default::default());
+    let (splat, shade) = renderer.bind_groups(device, view);
+    let mut times = PassTimes::default();
+    let run = |record: &dyn Fn(&mut wgpu::CommandEncoder)| -> Result<f64, GpuError> {
+        let mut encoder = device.create_command_encoder(&Default::default());
+        record(&mut encoder);
+        let start = Instant::now();
+        ctx.queue.submit([encoder.finish()]);
+        device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        Ok(start.elapsed().as_secs_f64() * 1e3)
+    };
+    times.visibility_ms = run(&|e| renderer.encode_visibility(e, surfels, &splat))?;
+    times.attributes_ms = run(&|e| renderer.encode_attributes(e, surfels, &splat))?;
+    times.shading_ms = run(&|e| renderer.encode_shading(e, &output_view, &shade))?;
+    let image = read_texture(ctx, &output, 4)?;
+    let colour = read_texture(ctx, &renderer.targets.colour, 16)?;
+    let normal = read_texture(ctx, &renderer.targets.normal, 16)?;
+    if let Some(e) = pollster::block_on(scope.pop()) {
+        return Err(GpuError::Validation(e.to_string()).into());
+    }
+    let render = Render {
+        width,
+        height,
+        image: image::RgbaImage::from_raw(width, height, image)
+            .ok_or_else(|| GpuError::Readback("image of the wrong size".into()))?,
+        colour: bytemuck::cast_slice(&colour).to_vec(),
+        normal_depth: bytemuck::cast_slice(&normal).to_vec(),
+    };
+    render.validate().map_err(GpuError::Readback)?;
+    Ok((render, times))
+}
+
+/// Copies a 2D texture back, rows unpadded.
+fn read_texture(
+    ctx: &GpuContext,
+    texture: &wgpu::Texture,
+    texel_bytes: u32,
+) -> Result<Vec<u8>, GpuError> {
+    let (width, height) = (texture.width(), texture.height());
+    let row = width * texel_bytes;
+    let padded =
+        row.div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+    let buffer = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("splat readback"),
+        size: u64::from(padded) * u64::from(height),
+        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+        mapped_at_creation: false,
+    });
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    encoder.copy_texture_to_buffer(
+        texture.as_image_copy(),
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(padded),
+                rows_per_image: Some(height),
+            },
+        },
+        texture.size(),
+    );
+    ctx.queue.submit([encoder.finish()]);
+    let slice = buffer.slice(..);
+    let (tx, rx) = std::sync::mpsc::channel();
+    slice.map_async(wgpu::MapMode::Read, move |r| {
+        let _ = tx.send(r);
+    });
+    ctx.device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .map_err(|e| GpuError::Readback(e.to_string()))?;
+    rx.recv()
+        .map_err(|e| GpuError::Readback(e.to_string()))?
+        .map_err(|e| GpuError::Readback(e.to_string()))?;
+    let data = slice
+        .get_mapped_range()
+        .map_err(|e| GpuError::Readback(format!("{e:?}")))?;
+    let mut out = Vec::with_capacity((row * height) as usize);
+    for y in 0..height as usize {
+        let start = y * padded as usize;
+        out.extend_from_slice(&data[start..start + row as usize]);
+    }
+    drop(data);
+    buffer.unmap();
+    Ok(out)
+}

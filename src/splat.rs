@@ -1,0 +1,912 @@
+//! Stage 4: surfel rendering by EWA surface splatting (Botsch, Hornung, Zwicker, Kobbelt 2005,
+//! "High-quality surface splatting on today's GPUs"; the EWA filter of Zwicker et al. 2001), the
+//! renderer that Iwasaki et al. §5.2 extend with optics.
+//!
+//! Three passes:
+//! 1. **visibility**: every surfel is drawn as a screen-aligned quad that bounds the projection of
+//!    its disk (the projected corners of the disk's bounding rectangle: perspective maps convex sets
+//!    to convex sets, so the bound is conservative, unlike the classic point-size estimate that
+//!    clips splats seen at an angle); per pixel the view ray meets the disk's plane, pixels outside
+//!    the disk are discarded, and the depth written is pushed back along the ray by
+//!    `epsilon = depth_offset * radius`;
+//! 2. **attributes**: depth-tested against pass 1 without writing, each fragment adds
+//!    `(colour * w, w)` and `(normal * w, depth * w)` into float targets, with
+//!    `w = exp(-sharpness * r^2)`, `r^2 = min(r3^2, r2^2)`: `r3` the object-space distance in the
+//!    disk (1 at the rim), `r2` the screen-space distance to the projected centre in units of the
+//!    low-pass radius (about one pixel). Botsch et al. approximate the EWA resampling kernel (the
+//!    object-space Gaussian convolved with the screen-space low-pass) by the smaller of the two
+//!    distances: a magnified splat keeps its exact elliptical footprint, a minified one still
+//!    covers about a pixel instead of falling between pixel centres;
+//! 3. **shading**: divide by the accumulated weight, Blinn-Phong with one directional light.
+//!
+//! [`render_cpu`] is the specification: a CPU implementation of the three passes whose functions
+//! ([`frame`], [`fragment`], [`shade`]) mirror, name for name and operation for operation, those
+//! of `shaders/surfel_splat.wgsl`, which [`crate::gpu::splat`] runs. Tests compare the two images.
+
+use glam::{Mat4, Vec2, Vec3, Vec3Swizzles, Vec4, Vec4Swizzles};
+use image::RgbaImage;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::gpu::GpuError;
+
+/// Errors of surfel rendering.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SplatError {
+    /// A parameter is out of range.
+    #[error("invalid splatting parameter `{name}`: {reason}")]
+    InvalidParameter { name: &'static str, reason: String },
+    /// The image size is zero or too large.
+    #[error("image size {width}x{height} must be between 1 and {max} on each side")]
+    InvalidSize { width: u32, height: u32, max: u32 },
+    /// The GPU path failed.
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+}
+
+/// A perspective look-at camera (right-handed, y up by default).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct Camera {
+    /// Eye position (world units).
+    pub eye: Vec3,
+    /// The point looked at.
+    pub target: Vec3,
+    /// The up direction.
+    pub up: Vec3,
+    /// Vertical field of view in degrees, in (0, 180).
+    pub fov_y_degrees: f32,
+    /// Near clipping distance (world units, > 0).
+    pub near: f32,
+    /// Far clipping distance (world units, > near).
+    pub far: f32,
+}
+
+impl Default for Camera {
+    fn default() -> Self {
+        Self {
+            eye: Vec3::new(0.0, 0.0, 3.0),
+            target: Vec3::ZERO,
+            up: Vec3::Y,
+            fov_y_degrees: 40.0,
+            near: 0.01,
+            far: 100.0,
+        }
+    }
+}
+
+impl Camera {
+    /// A camera that frames the box `[min, max]` from the front, right and above, the same
+    /// direction as the particle previews; near and far planes bracket the box.
+    #[must_use]
+    pub fn framing(min: Vec3, max: Vec3) -> Self {
+        let centre = (min + max) * 0.5;
+        let radius = ((max - min).length() * 0.5).max(1e-6);
+        let fov_y_degrees: f32 = 40.0;
+        let distance = radius / (fov_y_degrees.to_radians() * 0.5).sin() * 1.05;
+        let direction = Vec3::new(0.55, 0.5, 1.0).normalize();
+        Self {
+            eye: centre + direction * distance,
+            target: centre,
+            up: Vec3::Y,
+            fov_y_degrees,
+            near: (distance - 2.0 * radius).max(distance * 1e-3),
+            far: distance + 2.0 * radius,
+        }
+    }
+
+    fn validate(&self) -> Result<(), SplatError> {
+        let bad = |name, reason: &str| {
+            Err(SplatError::InvalidParameter {
+                name,
+                reason: reason.to_string(),
+            })
+        };
+        if !(self.eye.is_finite() && self.target.is_finite() && self.up.is_finite()) {
+            return bad("camera", "eye, target and up must be finite");
+        }
+        let forward = self.target - self.eye;
+        if forward.length_squared() < 1e-20 || forward.cross(self.up).length_squared() < 1e-20 {
+            return bad(
+                "camera",
+                "eye and target must differ and up must not be parallel to the view direction",
+            );
+        }
+        if !(self.fov_y_degrees > 0.0 && self.fov_y_degrees < 180.0) {
+            return bad("fov_y_degrees", "must lie in (0, 180)");
+        }
+        if !(self.near > 0.0 && self.far > self.near && self.far.is_finite()) {
+            return bad("near/far", "need 0 < near < far < infinity");
+        }
+        Ok(())
+    }
+
+    /// World to view transform.
+    #[must_use]
+    pub fn view(&self) -> Mat4 {
+        glam::camera::rh::view::look_at_mat4(self.eye, self.target, self.up)
+    }
+
+    /// View to clip transform (WebGPU depth range 0..1).
+    #[must_use]
+    pub fn projection(&self, aspect: f32) -> Mat4 {
+        glam::camera::rh::proj::directx::perspective(
+            self.fov_y_degrees.to_radians(),
+            aspect,
+            self.near,
+            self.far,
+        )
+    }
+}
+
+/// A directional light with Blinn-Phong shading.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct Light {
+    /// Direction towards the light (need not be unit length).
+    pub direction: Vec3,
+    /// Light colour (linear RGB).
+    pub colour: Vec3,
+    /// Ambient fraction of the diffuse term, in [0, 1].
+    pub ambient: f32,
+    /// Specular strength.
+    pub specular: f32,
+    /// Blinn-Phong exponent.
+    pub shininess: f32,
+}
+
+impl Default for Light {
+    fn default() -> Self {
+        Self {
+            direction: Vec3::new(0.3, 1.0, 0.5),
+            colour: Vec3::ONE,
+            ambient: 0.25,
+            specular: 0.35,
+            shininess: 48.0,
+        }
+    }
+}
+
+/// What the splats are drawn as.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SplatMode {
+    /// EWA surface splatting (the method).
+    #[default]
+    Ewa,
+    /// Plain point sprites: round screen disks of the projected radius, the nearest wins, no
+    /// blending (the baseline the method improves on).
+    Sprites,
+}
+
+/// Parameters of the splatting passes.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct SplatParams {
+    /// Pass 1 depth offset epsilon as a multiple of each surfel's radius. Surfaces closer than
+    /// epsilon along the view ray blend; farther behind they are hidden. Default 1.0: neighbouring
+    /// disks of one smooth surface differ in depth by a fraction of a radius, while the two sides
+    /// of a sheet are at least a particle apart (about two surfel radii for density surfels).
+    pub depth_offset: f32,
+    /// Radius of the screen-space low-pass filter in pixels (0 switches it off). Default 1.0, the
+    /// "about one pixel" of Botsch et al.
+    pub low_pass_px: f32,
+    /// Gaussian weight `exp(-sharpness * r^2)`, `r = 1` at the disk's rim. Default 2.0 (the rim
+    /// at two standard deviations, weight 0.135).
+    pub sharpness: f32,
+    /// Colour of pixels no surfel covers (linear RGBA).
+    pub background: [f32; 4],
+    /// EWA splats or plain point sprites.
+    pub mode: SplatMode,
+}
+
+impl Default for SplatParams {
+    fn default() -> Self {
+        Self {
+            depth_offset: 1.0,
+            low_pass_px: 1.0,
+            sharpness: 2.0,
+            background: [0.08, 0.09, 0.11, 1.0],
+            mode: SplatMode::Ewa,
+        }
+    }
+}
+
+impl SplatParams {
+    fn validate(&self) -> Result<(), SplatError> {
+        let check = |name, ok: bool, reason: &str| {
+            if ok {
+                Ok(())
+            } else {
+                Err(SplatError::InvalidParameter {
+                    name,
+                    reason: reason.to_string(),
+                })
+            }
+        };
+        check(
+            "depth_offset",
+            self.depth_offset >= 0.0 && self.depth_offset.is_finite(),
+            "must be finite and >= 0",
+        )?;
+        check(
+            "low_pass_px",
+            self.low_pass_px >= 0.0 && self.low_pass_px.is_finite(),
+            "must be finite and >= 0",
+        )?;
+        check(
+            "sharpness",
+            self.sharpness >= 0.0 && self.sharpness.is_finite(),
+            "must be finite and >= 0",
+        )?;
+        check(
+            "background",
+            self.background.iter().all(|c| c.is_finite()),
+            "must be finite",
+        )
+    }
+}
+
+/// One surfel as the GPU stores it (64 bytes, `SurfelIn` in the WGSL): position and radius,
+/// normal and stretch (minor / major axis; 1 for a circle), the major axis direction (ignored
+/// for circles), colour (linear RGBA).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct Surfel {
+    pub position: [f32; 3],
+    pub radius: f32,
+    pub normal: [f32; 3],
+    pub stretch: f32,
+    pub tangent: [f32; 3],
+    pub _pad: f32,
+    pub colour: [f32; 4],
+}
+
+const _: () = assert!(std::mem::size_of::<Surfel>() == 64);
+
+/// The colour surfels get when none is given: a light water blue.
+pub const WATER: [f32; 4] = [0.35, 0.58, 0.86, 1.0];
+
+impl Surfel {
+    /// A circular disk.
+    #[must_use]
+    pub fn disk(position: Vec3, normal: Vec3, radius: f32, colour: [f32; 4]) -> Self {
+        Self {
+            position: position.to_array(),
+            radius,
+            normal: normal.to_array(),
+            stretch: 1.0,
+            tangent: [0.0; 3],
+            _pad: 0.0,
+            colour,
+        }
+    }
+
+    /// An elliptical disk with semi-axes `major` along `tangent` and `minor` across it.
+    #[must_use]
+    pub fn ellipse(
+        position: Vec3,
+        normal: Vec3,
+        tangent: Vec3,
+        major: f32,
+        minor: f32,
+        colour: [f32; 4],
+    ) -> Self {
+        Self {
+            position: position.to_array(),
+            radius: major,
+            normal: normal.to_array(),
+            stretch: if major > 0.0 { minor / major } else { 0.0 },
+            tangent: tangent.to_array(),
+            _pad: 0.0,
+            colour,
+        }
+    }
+
+    /// True when the surfel can be drawn: finite, radius and stretch > 0, normal not zero.
+    /// Others are skipped by both renderers.
+    #[must_use]
+    pub fn is_drawable(&self) -> bool {
+        let n = Vec3::from(self.normal);
+        Vec3::from(self.position).is_finite()
+            && n.is_finite()
+            && n.length_squared() > 1e-20
+            && self.radius.is_finite()
+            && self.radius > 0.0
+            && self.stretch.is_finite()
+            && self.stretch > 0.0
+            && Vec3::from(self.tangent).is_finite()
+            && self.colour.iter().all(|c| c.is_finite())
+    }
+}
+
+/// Surfels from positions, normals and radii, all of one colour.
+#[must_use]
+pub fn surfels_from(
+    positions: &[Vec3],
+    normals: &[Vec3],
+    radii: &[f32],
+    colour: [f32; 4],
+) -> Vec<Surfel> {
+    positions
+        .iter()
+        .zip(normals)
+        .zip(radii)
+        .map(|((&p, &n), &r)| Surfel::disk(p, n, r, colour))
+        .collect()
+}
+
+/// The drawable surfels (see [`Surfel::is_drawable`]) in their order, and how many were skipped.
+#[must_use]
+pub fn drawable(surfels: &[Surfel]) -> (Vec<Surfel>, usize) {
+    let kept: Vec<Surfel> = surfels
+        .iter()
+        .copied()
+        .filter(Surfel::is_drawable)
+        .collect();
+    let skipped = surfels.len() - kept.len();
+    (kept, skipped)
+}
+
+/// The uniforms of the three passes, as the shader reads them (`Uniforms` in the WGSL, 288 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RawUniforms {
+    pub view: [[f32; 4]; 4],
+    pub proj: [[f32; 4]; 4],
+    pub inv_view: [[f32; 4]; 4],
+    pub viewport: [f32; 2],
+    pub tan_half: [f32; 2],
+    pub light_dir: [f32; 4],
+    pub light_colour: [f32; 4],
+    pub background: [f32; 4],
+    pub material: [f32; 4],
+    pub depth_offset: f32,
+    pub low_pass: f32,
+    pub sharpness: f32,
+    pub mode: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<RawUniforms>() == 288);
+
+/// Largest image side.
+pub const MAX_SIZE: u32 = 16384;
+
+/// Everything a render needs besides the surfels: camera, light, parameters and image size,
+/// checked, in the form both renderers read.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct View {
+    pub width: u32,
+    pub height: u32,
+    view: Mat4,
+    proj: Mat4,
+    inv_view: Mat4,
+    tan_half: Vec2,
+    light_dir: Vec4,
+    light_colour: Vec4,
+    background: Vec4,
+    shininess: f32,
+    depth_offset: f32,
+    low_pass: f32,
+    sharpness: f32,
+    sprites: bool,
+}
+
+impl View {
+    /// Checks the inputs and prepares the uniforms.
+    pub fn new(
+        camera: &Camera,
+        light: &Light,
+        params: &SplatParams,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, SplatError> {
+        if width == 0 || height == 0 || width > MAX_SIZE || height > MAX_SIZE {
+            return Err(SplatError::InvalidSize {
+                width,
+                height,
+                max: MAX_SIZE,
+            });
+        }
+        camera.validate()?;
+        params.validate()?;
+        let direction =
+            light
+                .direction
+                .try_normalize()
+                .ok_or_else(|| SplatError::InvalidParameter {
+                    name: "light.direction",
+                    reason: "must be finite and non-zero".into(),
+                })?;
+        if !(light.colour.is_finite()
+            && light.ambient.is_finite()
+            && (0.0..=1.0).contains(&light.ambient)
+            && light.specular.is_finite()
+            && light.specular >= 0.0
+            && light.shininess.is_finite()
+            && light.shininess >= 0.0)
+        {
+            return Err(SplatError::InvalidParameter {
+                name: "light",
+                reason: "colour finite, ambient in [0, 1], specular and shininess finite and >= 0"
+                    .into(),
+            });
+        }
+        let aspect = width as f32 / height as f32;
+        let view = camera.view();
+        let tan = (camera.fov_y_degrees.to_radians() * 0.5).tan();
+        Ok(Self {
+            width,
+            height,
+            view,
+            proj: camera.projection(aspect),
+            inv_view: view.inverse(),
+            tan_half: Vec2::new(tan * aspect, tan),
+            light_dir: direction.extend(light.ambient),
+            light_colour: light.colour.extend(light.specular),
+            background: Vec4::from(params.background),
+            shininess: light.shininess,
+            depth_offset: params.depth_offset,
+            low_pass: params.low_pass_px,
+            sharpness: params.sharpness,
+            sprites: params.mode == SplatMode::Sprites,
+        })
+    }
+
+    /// The shader's uniforms.
+    #[must_use]
+    pub fn to_raw(&self) -> RawUniforms {
+        RawUniforms {
+            view: self.view.to_cols_array_2d(),
+            proj: self.proj.to_cols_array_2d(),
+            inv_view: self.inv_view.to_cols_array_2d(),
+            viewport: [self.width as f32, self.height as f32],
+            tan_half: self.tan_half.to_array(),
+            light_dir: self.light_dir.to_array(),
+            light_colour: self.light_colour.to_array(),
+            background: self.background.to_array(),
+            material: [self.shininess, 0.0, 0.0, 0.0],
+            depth_offset: self.depth_offset,
+            low_pass: self.low_pass,
+            sharpness: self.sharpness,
+            mode: u32::from(self.sprites),
+        }
+    }
+
+    fn viewport(&self) -> Vec2 {
+        Vec2::new(self.width as f32, self.height as f32)
+    }
+
+    /// Pixel coordinates (origin top left) of a view-space point, and its clip w.
+    fn pixels_of(&self, p: Vec3) -> Vec3 {
+        let clip = self.proj * p.extend(1.0);
+        let ndc = clip.xy() / clip.w;
+        let vp = self.viewport();
+        Vec3::new(
+            (ndc.x + 1.0) * 0.5 * vp.x,
+            (1.0 - ndc.y) * 0.5 * vp.y,
+            clip.w,
+        )
+    }
+
+    fn ndc_depth(&self, p: Vec3) -> f32 {
+        let clip = self.proj * p.extend(1.0);
+        clip.z / clip.w
+    }
+
+    /// View ray direction through a pixel position (z = -1), in view space.
+    fn ray(&self, pixel: Vec2) -> Vec3 {
+        let vp = self.viewport();
+        let ndc = Vec2::new(pixel.x / vp.x * 2.0 - 1.0, 1.0 - pixel.y / vp.y * 2.0);
+        (ndc * self.tan_half).extend(-1.0)
+    }
+}
+
+/// Orthonormal tangent of a unit normal (Duff et al. 2017), as `basis_tangent` in the WGSL.
+fn basis_tangent(n: Vec3) -> Vec3 {
+    let s = if n.z >= 0.0 { 1.0 } else { -1.0 };
+    let a = -1.0 / (s + n.z);
+    let b = n.x * n.y * a;
+    Vec3::new(1.0 + s * n.x * n.x * a, s * b, -s * n.x)
+}
+
+/// The per-surfel set-up of passes 1 and 2 (`splat_frame` in the WGSL). `None`: culled (back
+/// facing, behind the camera, or off screen).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Frame {
+    /// Pixel rectangle: min x, min y, max x, max y.
+    pub rect: Vec4,
+    centre: Vec3,
+    axis_u: Vec3,
+    axis_v: Vec3,
+    normal_view: Vec3,
+    /// Projected centre (pixels), sprite radius (pixels), epsilon.
+    screen: Vec4,
+}
+
+/// Sets up one drawable surfel for the view, as `splat_frame` in the WGSL.
+#[must_use]
+pub fn frame(s: &Surfel, v: &View) -> Option<Frame> {
+    let n = Vec3::from(s.normal).normalize();
+    let tangent = Vec3::from(s.tangent);
+    let mut t = tangent - n * n.dot(tangent);
+    if s.stretch == 1.0 || t.dot(t) < 1e-12 {
+        t = basis_tangent(n);
+    } else {
+        t = t.normalize();
+    }
+    let big_u = t * s.radius;
+    let big_v = n.cross(t) * (s.radius * s.stretch);
+    let c = (v.view * Vec3::from(s.position).extend(1.0)).xyz();
+    let uv = (v.view * big_u.extend(0.0)).xyz();
+    let vv = (v.view * big_v.extend(0.0)).xyz();
+    let nv = (v.view * n.extend(0.0)).xyz();
+    if nv.dot(c) >= 0.0 {
+        return None;
+    }
+    let eps = v.depth_offset * s.radius;
+    let vp = v.viewport();
+    let mut lo = Vec2::ZERO;
+    let mut hi = vp;
+    let centre_px = v.pixels_of(c);
+    let screen;
+    if v.sprites {
+        if centre_px.z <= 0.0 {
+            return None;
+        }
+        let r_px = s.radius * v.proj.y_axis.y * 0.5 * vp.y / centre_px.z;
+        screen = Vec4::new(centre_px.x, centre_px.y, r_px, 0.0);
+        lo = lo.max(centre_px.xy() - Vec2::splat(r_px + 1.0));
+        hi = hi.min(centre_px.xy() + Vec2::splat(r_px + 1.0));
+    } else {
+        let mut all_front = true;
+        let mut mn = Vec2::splat(3.0e38);
+        let mut mx = Vec2::splat(-3.0e38);
+        for k in 0..4u32 {
+            let su = if k & 1 == 0 { 1.0 } else { -1.0 };
+            let sv = if k & 2 == 0 { 1.0 } else { -1.0 };
+            let q = v.pixels_of(c + su * uv + sv * vv);
+            if q.z <= 1e-6 {
+                all_front = false;
+            }
+            mn = mn.min(q.xy());
+            mx = mx.max(q.xy());
+        }
+        let margin = v.low_pass + 1.0;
+        if all_front {
+            lo = lo.max(mn - Vec2::splat(margin));
+            hi = hi.min(mx + Vec2::splat(margin));
+        }
+        let centre = if centre_px.z > 0.0 {
+            centre_px.xy()
+        } else {
+            Vec2::splat(-1.0e15)
+        };
+        screen = Vec4::new(centre.x, centre.y, 0.0, eps);
+    }
+    // NaN-safe: a NaN bound culls
+    if !(hi.x > lo.x && hi.y > lo.y) {
+        return None;
+    }
+    Some(Frame {
+        rect: Vec4::new(lo.x, lo.y, hi.x, hi.y),
+        centre: c,
+        axis_u: uv / uv.dot(uv),
+        axis_v: vv / vv.dot(vv),
+        normal_view: nv,
+        screen,
+    })
+}
+
+/// One fragment of passes 1 and 2 (`Fragment` in the WGSL).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Fragment {
+    /// `r^2` of the weight.
+    pub r2: f32,
+    /// View depth (distance along the view axis).
+    pub depth: f32,
+    /// Depth-buffer value without offset (pass 2).
+    pub ndc: f32,
+    /// Depth-buffer value pushed back by epsilon (pass 1).
+    pub ndc_offset: f32,
+}
+
+/// Evaluates a surfel at a pixel centre, as `splat_fragment` in the WGSL. `None`: discarded.
+#[must_use]
+pub fn fragment(pixel: Vec2, f: &Frame, v: &View) -> Option<Fragment> {
+    let d = v.ray(pixel);
+    let mut depth = -f.centre.z;
+    let r2;
+    if v.sprites {
+        let e = (pixel - f.screen.xy()) / f.screen.z;
+        r2 = e.dot(e);
+    } else {
+        let mut r3 = 3.0e38f32;
+        let denom = f.normal_view.dot(d);
+        let t = if denom != 0.0 {
+            f.normal_view.dot(f.centre) / denom
+        } else {
+            0.0
+        };
+        if t > 0.0 {
+            let q = t * d - f.centre;
+            let a = q.dot(f.axis_u);
+            let b = q.dot(f.axis_v);
+            r3 = a * a + b * b;
+        }
+        let mut r2d = 3.0e38f32;
+        if v.low_pass > 0.0 {
+            let e = (pixel - f.screen.xy()) / v.low_pass;
+            r2d = e.dot(e);
+        }
+        r2 = r3.min(r2d);
+        // the hit on the disk's plane, also where the filter decides the weight (see the WGSL)
+        if t > 0.0 {
+            depth = t;
+        }
+    }
+    // NaN-safe: NaN fails both comparisons and is discarded
+    if !(r2 <= 1.0 && depth > 0.0) {
+        return None;
+    }
+    let p = d * depth;
+    let ndc = v.ndc_depth(p);
+    if !(0.0..=1.0).contains(&ndc) {
+        return None;
+    }
+    let ndc_offset = v.ndc_depth(p + d.normalize() * f.screen.w).min(1.0);
+    Some(Fragment {
+        r2,
+        depth,
+        ndc,
+        ndc_offset,
+    })
+}
+
+/// The Gaussian weight of a fragment (`splat_weight` in the WGSL).
+#[must_use]
+pub fn weight(r2: f32, v: &View) -> f32 {
+    if v.sprites {
+        1.0
+    } else {
+        (-v.sharpness * r2).exp()
+    }
+}
+
+/// Normalisation and Blinn-Phong shading of one pixel (`shade` in the WGSL): `colour` holds
+/// `(sum w c, sum w)`, `normal_depth` `(sum w n, sum w depth)`.
+#[must_use]
+pub fn shade(pixel: Vec2, colour: Vec4, normal_depth: Vec4, v: &View) -> Vec4 {
+    let w = colour.w;
+    if w.is_nan() || w <= 0.0 {
+        return v.background;
+    }
+    let base = colour.xyz() / w;
+    let mut n = normal_depth.xyz() / w;
+    let d = (v.inv_view * v.ray(pixel).extend(0.0)).xyz();
+    let view = -d.normalize();
+    n = if n.dot(n) > 1e-12 {
+        n.normalize()
+    } else {
+        view
+    };
+    let l = v.light_dir.xyz();
+    let half_vector = (l + view).normalize();
+    let diffuse = n.dot(l).max(0.0);
+    let specular = n.dot(half_vector).max(0.0).powf(v.shininess);
+    let lit = base * (v.light_dir.w + (1.0 - v.light_dir.w) * diffuse) * v.light_colour.xyz()
+        + v.light_colour.w * specular * v.light_colour.xyz();
+    lit.clamp(Vec3::ZERO, Vec3::ONE).extend(1.0)
+}
+
+/// A rendered image with the buffers it was made from.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Render {
+    pub width: u32,
+    pub height: u32,
+    /// The shaded image (8-bit, linear RGB as stored by an `Rgba8Unorm` target).
+    pub image: RgbaImage,
+    /// Per pixel, row-major from the top: `(sum w colour, sum w)`.
+    pub colour: Vec<[f32; 4]>,
+    /// Per pixel: `(sum w normal, sum w depth)`.
+    pub normal_depth: Vec<[f32; 4]>,
+}
+
+impl Render {
+    /// Accumulated weight of pixel `i` (0: no surfel covers it).
+    #[must_use]
+    pub fn weight(&self, i: usize) -> f32 {
+        self.colour[i][3]
+    }
+
+    /// Normalised world normal of pixel `i`, if covered.
+    #[must_use]
+    pub fn normal(&self, i: usize) -> Option<Vec3> {
+        let w = self.weight(i);
+        (w > 0.0).then(|| (Vec3::from_slice(&self.normal_depth[i][..3]) / w).normalize_or_zero())
+    }
+
+    /// Normalised view depth of pixel `i`, if covered.
+    #[must_use]
+    pub fn depth(&self, i: usize) -> Option<f32> {
+        let w = self.weight(i);
+        (w > 0.0).then(|| self.normal_depth[i][3] / w)
+    }
+
+    /// Checks the buffers: right sizes, every value finite, weights >= 0.
+    pub fn validate(&self) -> Result<(), String> {
+        let n = self.width as usize * self.height as usize;
+        if self.colour.len() != n || self.normal_depth.len() != n {
+            return Err(format!(
+                "buffers of {} and {} pixels for {n}",
+                self.colour.len(),
+                self.normal_depth.len()
+            ));
+        }
+        for (i, (c, nd)) in self.colour.iter().zip(&self.normal_depth).enumerate() {
+            if c.iter().chain(nd).any(|x| !x.is_finite()) || c[3] < 0.0 {
+                return Err(format!(
+                    "pixel {i} (x {}, y {}): colour {c:?}, normal/depth {nd:?}",
+                    i % self.width as usize,
+                    i / self.width as usize
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Converts a shaded pixel to 8 bits as an `Rgba8Unorm` store does (round to nearest).
+fn to_unorm8(c: Vec4) -> [u8; 4] {
+    c.to_array()
+        .map(|x| (x.clamp(0.0, 1.0) * 255.0).round() as u8)
+}
+
+/// Rows per parallel band of the CPU renderer.
+const BAND: usize = 8;
+
+/// The CPU reference of the three passes (the specification of the GPU path). Undrawable
+/// surfels (see [`Surfel::is_drawable`]) are skipped.
+pub fn render_cpu(
+    surfels: &[Surfel],
+    camera: &Camera,
+    light: &Light,
+    params: &SplatParams,
+    width: u32,
+    height: u32,
+) -> Result<Render, SplatError> {
+    let v = View::new(camera, light, params, width, height)?;
+    Ok(render_view_cpu(surfels, &v))
+}
+
+/// [`render_cpu`] for a prepared view.
+#[must_use]
+pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Render {
+    let (w, h) = (v.width as usize, v.height as usize);
+    // frame, colour and unit normal of every surfel that is drawn, in input order
+    let frames: Vec<(Frame, [f32; 4], Vec3)> = surfels
+        .par_iter()
+        .filter(|s| s.is_drawable())
+        .filter_map(|s| frame(s, v).map(|f| (f, s.colour, Vec3::from(s.normal).normalize())))
+        .collect();
+    // the pixel columns and rows whose centres lie in a frame's rectangle
+    let span = |lo: f32, hi: f32, n: usize| -> (usize, usize) {
+        let a = (lo - 0.5).ceil().clamp(0.0, n as f32) as usize;
+        let b = (hi - 0.5).ceil().clamp(0.0, n as f32) as usize;
+        (a, b)
+    };
+    // pass 1: visibility
+    let mut depth = vec![1.0f32; w * h];
+    depth
+        .par_chunks_mut(w * BAND)
+        .enumerate()
+        .for_each(|(band, rows)| {
+            let y0 = band * BAND;
+            let y1 = y0 + rows.len() / w;
+            for (f, _, _) in &frames {
+                let (ya, yb) = span(f.rect.y, f.rect.w, h);
+                let (xa, xb) = span(f.rect.x, f.rect.z, w);
+                for y in ya.max(y0)..yb.min(y1) {
+                    for x in xa..xb {
+                        let pixel = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+                        if let Some(frag) = fragment(pixel, f, v) {
+                            let d = &mut rows[(y - y0) * w + x];
+                            *d = d.min(frag.ndc_offset);
+                        }
+                    }
+                }
+            }
+        });
+    // pass 2: attributes, blended in surfel order like the GPU's ordered blending
+    let mut colour = vec![[0.0f32; 4]; w * h];
+    let mut normal_depth = vec![[0.0f32; 4]; w * h];
+    colour
+        .par_chunks_mut(w * BAND)
+        .zip(normal_depth.par_chunks_mut(w * BAND))
+        .enumerate()
+        .for_each(|(band, (crow, nrow))| {
+            let y0 = band * BAND;
+            let y1 = y0 + crow.len() / w;
+            for (f, c, n) in &frames {
+                let (ya, yb) = span(f.rect.y, f.rect.w, h);
+                let (xa, xb) = span(f.rect.x, f.rect.z, w);
+                for y in ya.max(y0)..yb.min(y1) {
+                    for x in xa..xb {
+                        let pixel = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+                        let Some(frag) = fragment(pixel, f, v) else {
+                            continue;
+                        };
+                        if frag.ndc > depth[y * w + x] {
+                            continue;
+                        }
+                        let wt = weight(frag.r2, v);
+                        let i = (y - y0) * w + x;
+                        let acc = &mut crow[i];
+                        for ch in 0..3 {
+                            acc[ch] += c[ch] * wt;
+                        }
+                        acc[3] += wt;
+                        let acc = &mut nrow[i];
+                        for ch in 0..3 {
+                            acc[ch] += n[ch] * wt;
+                        }
+                        acc[3] += frag.depth * wt;
+                    }
+                }
+            }
+        });
+    // pass 3: normalisation and shading
+    let mut image = RgbaImage::new(v.width, v.height);
+    image
+        .as_mut()
+        .par_chunks_mut(4 * w)
+        .enumerate()
+        .for_each(|(y, row)| {
+            for x in 0..w {
+                let i = y * w + x;
+                let pixel = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+                let c = shade(pixel, Vec4::from(colour[i]), Vec4::from(normal_depth[i]), v);
+                row[4 * x..4 * x + 4].copy_from_slice(&to_unorm8(c));
+            }
+        });
+    Render {
+        width: v.width,
+        height: v.height,
+        image,
+        colour,
+        normal_depth,
+    }
+}
+
+/// Peak signal-to-noise ratio of two images' RGB channels in dB (infinite when equal).
+///
+/// # Panics
+/// When the sizes differ.
+#[must_use]
+pub fn psnr(a: &RgbaImage, b: &RgbaImage) -> f64 {
+    assert_eq!(a.dimensions(), b.dimensions(), "images of different sizes");
+    let (mut sum, mut n) = (0.0f64, 0usize);
+    for (p, q) in a.pixels().zip(b.pixels()) {
+        for c in 0..3 {
+            let d = f64::from(p[c]) - f64::from(q[c]);
+            sum += d * d;
+            n += 1;
+        }
+    }
+    let mse = sum / n.max(1) as f64;
+    if mse == 0.0 {
+        f64::INFINITY
+    } else {
+        10.0 * (255.0f64 * 255.0 / mse).log10()
+    }
+}
+
+/// The absolute difference of two images, scaled by `gain`, for failure reports.
+#[must_use]
+pub fn difference_image(a: &RgbaImage, b: &RgbaImage, gain: u8) -> RgbaImage {
+    RgbaImage::from_fn(a.width(), a.height(), |x, y| {
+        let (p, q) = (a.get_pixel(x, y), b.get_pixel(x, y));
+        let d = |c: usize| p[c].abs_diff(q[c]).saturating_mul(gain);
+        image::Rgba([d(0), d(1), d(2), 255])
+    })
+}
