@@ -36,6 +36,9 @@ enum Command {
     /// Density grid and iso-surface surfels (Iwasaki et al., §4) of a file, a frame sequence or
     /// a built-in scene.
     Surfels(cli::surfels::SurfelsArgs),
+    /// EWA surfel splatting (Botsch et al. 2005) to a PNG: particles through the pipeline to
+    /// surfels, or a file of surfels as they are.
+    Render(cli::render::RenderArgs),
     /// What a particle file holds: format, count, attributes and their ranges, bounds, spacing.
     Info(InfoArgs),
     /// Benchmarks.
@@ -56,9 +59,31 @@ enum BenchCommand {
     /// The density grid (the paper's case: 150,000 particles into 256^3), against a naive
     /// single-threaded reference.
     Density(cli::bench::BenchDensityArgs),
+    /// EWA surfel splatting: splats per second and ms per pass, GPU (when an adapter exists) and
+    /// the CPU reference in the same run.
+    Splat(cli::bench::BenchSplatArgs),
+}
+
+/// Mesa's software Vulkan driver (lavapipe) prints "XDG_RUNTIME_DIR is invalid" on stderr when
+/// the variable is unset, which reads like a failure of ours: point it at a private folder.
+fn quiet_lavapipe() {
+    #[cfg(unix)]
+    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
+        use std::os::unix::fs::{DirBuilderExt, PermissionsExt};
+        let dir = std::env::temp_dir().join("fluid-surfels-runtime");
+        let _ = std::fs::DirBuilder::new().mode(0o700).create(&dir);
+        // only a folder nobody else can enter
+        let ours = std::fs::metadata(&dir)
+            .is_ok_and(|m| m.is_dir() && m.permissions().mode() & 0o077 == 0);
+        if ours {
+            // SAFETY: called first thing in main, before any other thread exists
+            unsafe { std::env::set_var("XDG_RUNTIME_DIR", &dir) };
+        }
+    }
 }
 
 fn main() -> ExitCode {
+    quiet_lavapipe();
     let cli = Cli::parse();
     let result = match cli.command {
         None => cli::run::run(&RunArgs {
@@ -70,10 +95,12 @@ fn main() -> ExitCode {
         Some(Command::Info(args)) => cli::info::info(&args),
         Some(Command::Refine(args)) => cli::refine::refine_command(&args),
         Some(Command::Surfels(args)) => cli::surfels::surfels_command(&args),
+        Some(Command::Render(args)) => cli::render::render_command(&args),
         Some(Command::Bench(BenchCommand::Detect(args))) => cli::bench::bench_detect(&args),
         Some(Command::Bench(BenchCommand::Io(args))) => cli::bench::bench_io(&args),
         Some(Command::Bench(BenchCommand::Refine(args))) => cli::bench::bench_refine(&args),
         Some(Command::Bench(BenchCommand::Density(args))) => cli::bench::bench_density(&args),
+        Some(Command::Bench(BenchCommand::Splat(args))) => cli::bench::bench_splat(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -336,6 +336,57 @@ pub fn surfels_from(
         .collect()
 }
 
+/// Surfels from a point set read from a file: positions, normals (required), a `radius`
+/// attribute (required; `radii` and `r` are accepted too) and the colours when present.
+pub fn surfels_from_particles(set: &crate::ParticleSet) -> Result<Vec<Surfel>, SplatError> {
+    let normals = set
+        .normals
+        .as_ref()
+        .ok_or_else(|| SplatError::InvalidParameter {
+            name: "surfels",
+            reason: "the file has no normals (nx, ny, nz)".into(),
+        })?;
+    let radius = ["radius", "radii", "r"]
+        .iter()
+        .find_map(|n| set.attribute(n).filter(|a| a.components == 1))
+        .ok_or_else(|| SplatError::InvalidParameter {
+            name: "surfels",
+            reason: "the file has no scalar `radius` attribute".into(),
+        })?;
+    Ok((0..set.len())
+        .map(|i| {
+            let colour = set.colours.as_ref().map_or(WATER, |c| {
+                let [r, g, b] = c[i];
+                [
+                    f32::from(r) / 255.0,
+                    f32::from(g) / 255.0,
+                    f32::from(b) / 255.0,
+                    1.0,
+                ]
+            });
+            Surfel::disk(
+                set.positions[i],
+                normals[i],
+                radius.values[i] as f32,
+                colour,
+            )
+        })
+        .collect())
+}
+
+/// Bounds of the drawable surfels' centres, widened by their radii; `None` when there is none.
+#[must_use]
+pub fn bounds(surfels: &[Surfel]) -> Option<(Vec3, Vec3)> {
+    surfels
+        .iter()
+        .filter(|s| s.is_drawable())
+        .map(|s| {
+            let p = Vec3::from(s.position);
+            (p - s.radius, p + s.radius)
+        })
+        .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)))
+}
+
 /// The drawable surfels (see [`Surfel::is_drawable`]) in their order, and how many were skipped.
 #[must_use]
 pub fn drawable(surfels: &[Surfel]) -> (Vec<Surfel>, usize) {

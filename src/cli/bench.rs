@@ -573,3 +573,178 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
     }
     Ok(())
 }
+
+/// Arguments of `bench splat`.
+#[derive(clap::Args)]
+pub struct BenchSplatArgs {
+    /// Number of surfels (a sphere of surfels filling most of the image; half face the camera).
+    #[arg(long, default_value_t = 1_000_000)]
+    pub surfels: usize,
+    /// Image size, WIDTHxHEIGHT (default: 1920x1080, the goal's case).
+    #[arg(long, default_value = "1920x1080", value_parser = super::render::parse_size)]
+    pub size: (u32, u32),
+    /// Timed GPU frames (the median is reported), after one untimed frame.
+    #[arg(long, default_value_t = 5)]
+    pub repeat: usize,
+    /// Skip the CPU reference.
+    #[arg(long)]
+    pub no_cpu: bool,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct SplatGpuReport {
+    adapter: String,
+    visibility_ms: f64,
+    attributes_ms: f64,
+    shading_ms: f64,
+    total_ms: f64,
+    splats_per_second: f64,
+    psnr_against_cpu_db: Option<f64>,
+}
+
+#[derive(Serialize)]
+struct SplatBenchReport {
+    surfels: usize,
+    width: u32,
+    height: u32,
+    threads: usize,
+    covered_pixels: usize,
+    gpu: Option<SplatGpuReport>,
+    cpu_ms: Option<f64>,
+    cpu_splats_per_second: Option<f64>,
+    gpu_speedup_over_cpu: Option<f64>,
+}
+
+/// `n` surfels on a unit sphere (Fibonacci points), radius such that the disks overlap without
+/// gaps, colours varying with position.
+pub fn sphere_of_surfels(n: usize) -> Vec<fluid_surfels::splat::Surfel> {
+    use glam::Vec3;
+    let n = n.max(1);
+    let spacing = (4.0 * std::f32::consts::PI / n as f32).sqrt();
+    let golden = std::f32::consts::PI * (3.0 - 5.0f32.sqrt());
+    (0..n)
+        .map(|i| {
+            let y = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
+            let r = (1.0 - y * y).max(0.0).sqrt();
+            let a = golden * i as f32;
+            let p = Vec3::new(r * a.cos(), y, r * a.sin());
+            let c = (p * 0.5 + 0.5) * 0.6 + 0.3;
+            fluid_surfels::splat::Surfel::disk(p, p, 0.9 * spacing, [c.x, c.y, c.z, 1.0])
+        })
+        .collect()
+}
+
+pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
+    use fluid_surfels::gpu::splat::{SplatRenderer, render_timed};
+    use fluid_surfels::splat::{self, Camera, Light, SplatParams, View};
+    let (width, height) = args.size;
+    let surfels = sphere_of_surfels(args.surfels);
+    let camera = Camera {
+        eye: glam::Vec3::new(0.0, 0.0, 3.2),
+        target: glam::Vec3::ZERO,
+        near: 1.0,
+        far: 5.0,
+        ..Camera::default()
+    };
+    let view = View::new(
+        &camera,
+        &Light::default(),
+        &SplatParams::default(),
+        width,
+        height,
+    )?;
+    let cpu = if args.no_cpu {
+        None
+    } else {
+        let t = Instant::now();
+        let r = splat::render_view_cpu(&surfels, &view);
+        Some((ms(t), r))
+    };
+    let gpu = match fluid_surfels::gpu::GpuContext::headless() {
+        Ok(ctx) => {
+            let renderer =
+                SplatRenderer::new(&ctx.device, wgpu::TextureFormat::Rgba8Unorm, width, height)?;
+            let buffer = SplatRenderer::upload(&ctx.device, &surfels);
+            // one untimed frame: shader compilation, first-use allocations
+            let (first, _) = render_timed(&ctx, &renderer, &buffer, &view)?;
+            let mut runs = Vec::new();
+            for _ in 0..args.repeat.max(1) {
+                runs.push(render_timed(&ctx, &renderer, &buffer, &view)?.1);
+            }
+            runs.sort_by(|a, b| a.total_ms().total_cmp(&b.total_ms()));
+            let t = runs[runs.len() / 2];
+            Some(SplatGpuReport {
+                adapter: ctx.adapter.map(|a| a.name).unwrap_or_default(),
+                visibility_ms: t.visibility_ms,
+                attributes_ms: t.attributes_ms,
+                shading_ms: t.shading_ms,
+                total_ms: t.total_ms(),
+                splats_per_second: surfels.len() as f64 / (t.total_ms() * 1e-3),
+                psnr_against_cpu_db: cpu
+                    .as_ref()
+                    .map(|(_, c)| splat::psnr(&c.image, &first.image)),
+            })
+        }
+        Err(e) => {
+            if !args.json {
+                println!("  (no GPU: {e})");
+            }
+            None
+        }
+    };
+    let covered = cpu
+        .as_ref()
+        .map(|(_, r)| (0..r.colour.len()).filter(|&i| r.weight(i) > 0.0).count())
+        .unwrap_or(0);
+    let cpu_ms = cpu.as_ref().map(|c| c.0);
+    let report = SplatBenchReport {
+        surfels: surfels.len(),
+        width,
+        height,
+        threads: rayon::current_num_threads(),
+        covered_pixels: covered,
+        cpu_ms,
+        cpu_splats_per_second: cpu_ms.map(|c| surfels.len() as f64 / (c * 1e-3)),
+        gpu_speedup_over_cpu: match (&gpu, cpu_ms) {
+            (Some(g), Some(c)) => Some(c / g.total_ms),
+            _ => None,
+        },
+        gpu,
+    };
+    if args.json {
+        super::print_json(&report);
+    } else {
+        println!(
+            "bench splat: {} surfels on a sphere, {width}x{height}, {} pixels covered, {} threads",
+            report.surfels, report.covered_pixels, report.threads
+        );
+        if let (Some(c), Some(r)) = (report.cpu_ms, report.cpu_splats_per_second) {
+            println!(
+                "  CPU reference (3 passes)  {c:>9.1} ms   {:.2} M splats/s",
+                r / 1e6
+            );
+        }
+        if let Some(g) = &report.gpu {
+            println!(
+                "  GPU ({})  {:>9.1} ms   {:.2} M splats/s (visibility {:.1}, attributes {:.1}, shading {:.1} ms){}",
+                g.adapter,
+                g.total_ms,
+                g.splats_per_second / 1e6,
+                g.visibility_ms,
+                g.attributes_ms,
+                g.shading_ms,
+                report
+                    .gpu_speedup_over_cpu
+                    .map(|s| format!(", {s:.2}x the CPU reference"))
+                    .unwrap_or_default()
+            );
+            if let Some(p) = g.psnr_against_cpu_db {
+                println!("  GPU image against the CPU reference: PSNR {p:.1} dB");
+            }
+        }
+    }
+    Ok(())
+}

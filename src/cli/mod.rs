@@ -4,6 +4,7 @@ pub mod bench;
 pub mod detect;
 pub mod info;
 pub mod refine;
+pub mod render;
 pub mod run;
 pub mod surfels;
 

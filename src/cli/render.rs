@@ -1,0 +1,293 @@
+//! `fluid-surfels render`: particles through the pipeline to surfels, or a user's own surfels,
+//! rendered by EWA splatting (Botsch et al. 2005) to a PNG.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use fluid_surfels::Error;
+use fluid_surfels::gpu::{self, GpuContext};
+use fluid_surfels::io::{self, Format};
+use fluid_surfels::neighbours;
+use fluid_surfels::scenes::{self, ColumnParams, SceneName};
+use fluid_surfels::splat::{self, Camera, Light, Render, SplatMode, SplatParams, Surfel};
+use fluid_surfels::surfels::SurfelParams;
+use glam::Vec3;
+use serde::Serialize;
+
+use super::{check_output, ms};
+
+/// Arguments of `render`.
+#[derive(clap::Args)]
+#[command(group = clap::ArgGroup::new("what").required(true).args(["input", "scene", "surfels"]))]
+pub struct RenderArgs {
+    /// Particle file: density grid and surfels are made from it, then rendered.
+    #[arg(long)]
+    pub input: Option<PathBuf>,
+    /// Built-in scene (particles).
+    #[arg(long, value_enum)]
+    pub scene: Option<SceneName>,
+    /// A file of surfels to render as they are: positions, normals (nx ny nz), a `radius`
+    /// attribute, optional colours (red green blue).
+    #[arg(long)]
+    pub surfels: Option<PathBuf>,
+    /// Format of --input or --surfels (default: from the extension).
+    #[arg(long, value_enum)]
+    pub format: Option<Format>,
+    /// Frame of the `column` scene (default: the splash).
+    #[arg(long)]
+    pub frame: Option<usize>,
+    /// Support radius of the particles, the density kernel's h (default: the scene's, or twice
+    /// the spacing estimated from the file).
+    #[arg(long)]
+    pub radius: Option<f32>,
+    /// Density grid points along the longest axis.
+    #[arg(long, default_value_t = 128)]
+    pub resolution: u32,
+    /// Image size, WIDTHxHEIGHT.
+    #[arg(long, default_value = "800x600", value_parser = parse_size)]
+    pub size: (u32, u32),
+    /// Camera: EYE_X,EYE_Y,EZE_Z,TARGET_X,TARGET_Y,TARGET_Z[,FOV_Y_DEGREES] (default: framing
+    /// the surfels from the front, right and above).
+    #[arg(long, value_parser = parse_camera, allow_hyphen_values = true)]
+    pub camera: Option<Camera>,
+    /// Draw plain point sprites instead of EWA splats (for comparison).
+    #[arg(long)]
+    pub sprites: bool,
+    /// Depth offset epsilon in surfel radii (default 1).
+    #[arg(long)]
+    pub depth_offset: Option<f32>,
+    /// Screen-space low-pass radius in pixels (default 1; 0 switches it off).
+    #[arg(long)]
+    pub low_pass: Option<f32>,
+    /// Render on the GPU (an error without an adapter). Default: the GPU when one is found,
+    /// otherwise the CPU reference.
+    #[arg(long, conflicts_with = "cpu")]
+    pub gpu: bool,
+    /// Render with the CPU reference.
+    #[arg(long)]
+    pub cpu: bool,
+    /// The PNG to write.
+    #[arg(long, default_value = "render.png")]
+    pub out: PathBuf,
+    /// Replace an existing output file.
+    #[arg(long)]
+    pub force: bool,
+    /// Print one JSON object of statistics on stdout instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("`{s}`: expected WIDTHxHEIGHT, such as 800x600"))?;
+    let parse = |v: &str| {
+        v.trim()
+            .parse::<u32>()
+            .map_err(|e| format!("`{s}`: `{v}` is not a size in pixels ({e})"))
+    };
+    let (w, h) = (parse(w)?, parse(h)?);
+    if w == 0 || h == 0 || w > splat::MAX_SIZE || h > splat::MAX_SIZE {
+        return Err(format!(
+            "`{s}`: each side must be between 1 and {}",
+            splat::MAX_SIZE
+        ));
+    }
+    Ok((w, h))
+}
+
+fn parse_camera(s: &str) -> Result<Camera, String> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|x| {
+            x.trim()
+                .parse::<f32>()
+                .map_err(|e| format!("`{x}` is not a number ({e})"))
+        })
+        .collect::<Result<_, _>>()?;
+    if v.len() != 6 && v.len() != 7 {
+        return Err(format!(
+            "expected 6 or 7 numbers (eye, target, optional field of view), got {}",
+            v.len()
+        ));
+    }
+    let eye = Vec3::new(v[0], v[1], v[2]);
+    let target = Vec3::new(v[3], v[4], v[5]);
+    let distance = (target - eye).length();
+    Ok(Camera {
+        eye,
+        target,
+        fov_y_degrees: v.get(6).copied().unwrap_or(40.0),
+        near: (distance * 1e-3).max(1e-4),
+        far: distance * 100.0 + 1.0,
+        ..Camera::default()
+    })
+}
+
+/// The GPU context to render with: `--gpu` needs one, `--cpu` takes none, otherwise one when
+/// an adapter is found.
+pub fn choose_gpu(cpu: bool, gpu: bool) -> Result<Option<GpuContext>, Error> {
+    if cpu {
+        return Ok(None);
+    }
+    match GpuContext::headless() {
+        Ok(c) => Ok(Some(c)),
+        Err(e) if gpu => Err(e.into()),
+        Err(_) => Ok(None),
+    }
+}
+
+/// Renders on the GPU when a context is given, else with the CPU reference.
+pub fn render_with(
+    ctx: Option<&GpuContext>,
+    surfels: &[Surfel],
+    camera: &Camera,
+    params: &SplatParams,
+    (width, height): (u32, u32),
+) -> Result<Render, Error> {
+    let light = Light::default();
+    Ok(match ctx {
+        Some(ctx) => gpu::splat::render_gpu(ctx, surfels, camera, &light, params, width, height)?,
+        None => splat::render_cpu(surfels, camera, &light, params, width, height)?,
+    })
+}
+
+/// A camera framing the surfels (or the unit box when none is drawable).
+pub fn framing(surfels: &[Surfel]) -> Camera {
+    let (lo, hi) = splat::bounds(surfels).unwrap_or((Vec3::ZERO, Vec3::ONE));
+    Camera::framing(lo, hi)
+}
+
+#[derive(Serialize)]
+struct RenderReport {
+    source: String,
+    particles: Option<usize>,
+    surfels: usize,
+    skipped_surfels: usize,
+    width: u32,
+    height: u32,
+    mode: SplatMode,
+    backend: String,
+    camera: Camera,
+    covered_pixels: usize,
+    surfels_ms: f64,
+    render_ms: f64,
+    output: String,
+}
+
+pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
+    let input = args.input.as_deref().or(args.surfels.as_deref());
+    check_output(&args.out, input, args.force)?;
+    let t = Instant::now();
+    let (source, particles, surfels) = if let Some(path) = &args.surfels {
+        let set = io::read_particles(path, args.format)?;
+        (
+            path.display().to_string(),
+            None,
+            splat::surfels_from_particles(&set)?,
+        )
+    } else {
+        let (source, positions, radius) = match (&args.input, args.scene) {
+            (Some(path), _) => {
+                let set = io::read_particles(path, args.format)?;
+                let r = match args.radius {
+                    Some(r) => r,
+                    None => 2.0 * neighbours::estimate_spacing(&set.positions)?,
+                };
+                (path.display().to_string(), set.positions, r)
+            }
+            (None, Some(name)) => {
+                let frame = if name == SceneName::Column {
+                    Some(args.frame.unwrap_or(ColumnParams::SPLASH_FRAME))
+                } else {
+                    args.frame
+                };
+                let scene = scenes::build(name, frame)?;
+                (
+                    format!("scene {}", name.as_str()),
+                    scene.particles.positions,
+                    args.radius.unwrap_or(scene.support_radius),
+                )
+            }
+            (None, None) => unreachable!("clap requires --input, --scene or --surfels"),
+        };
+        let (s, ..) = super::surfels::surfels_of(
+            &positions,
+            radius,
+            args.resolution,
+            SurfelParams::default().iso_fraction,
+        )?;
+        (
+            source,
+            Some(positions.len()),
+            splat::surfels_from(&s.positions, &s.normals, &s.radii, splat::WATER),
+        )
+    };
+    let surfels_ms = ms(t);
+    let defaults = SplatParams::default();
+    let params = SplatParams {
+        mode: if args.sprites {
+            SplatMode::Sprites
+        } else {
+            SplatMode::Ewa
+        },
+        depth_offset: args.depth_offset.unwrap_or(defaults.depth_offset),
+        low_pass_px: args.low_pass.unwrap_or(defaults.low_pass_px),
+        ..defaults
+    };
+    let camera = args.camera.unwrap_or_else(|| framing(&surfels));
+    let ctx = choose_gpu(args.cpu, args.gpu)?;
+    let t = Instant::now();
+    let render = render_with(ctx.as_ref(), &surfels, &camera, &params, args.size)?;
+    let render_ms = ms(t);
+    fluid_surfels::preview::save_png(
+        &image::DynamicImage::ImageRgba8(render.image.clone()).to_rgb8(),
+        &args.out,
+    )?;
+    let (_, skipped) = splat::drawable(&surfels);
+    let report = RenderReport {
+        source,
+        particles,
+        surfels: surfels.len(),
+        skipped_surfels: skipped,
+        width: args.size.0,
+        height: args.size.1,
+        mode: params.mode,
+        backend: match ctx.as_ref().and_then(|c| c.adapter.as_ref()) {
+            Some(a) => format!("gpu: {} ({})", a.name, a.backend),
+            None => "cpu reference".into(),
+        },
+        camera,
+        covered_pixels: (0..render.colour.len())
+            .filter(|&i| render.weight(i) > 0.0)
+            .count(),
+        surfels_ms,
+        render_ms,
+        output: args.out.display().to_string(),
+    };
+    if args.json {
+        super::print_json(&report);
+    } else {
+        println!(
+            "{}: {} surfels ({} skipped as undrawable){}",
+            report.source,
+            report.surfels,
+            report.skipped_surfels,
+            report
+                .particles
+                .map(|p| format!(" from {p} particles in {surfels_ms:.0} ms"))
+                .unwrap_or_default()
+        );
+        println!(
+            "  {}x{} {:?} on the {}: {:.1} ms, {} pixels covered",
+            report.width,
+            report.height,
+            report.mode,
+            report.backend,
+            render_ms,
+            report.covered_pixels
+        );
+        println!("  wrote {}", report.output);
+    }
+    Ok(())
+}
