@@ -32,3 +32,8 @@ RUSTDOCFLAGS="-D warnings" cargo doc --locked --no-deps
 echo "== cargo test (unit, integration, doc tests; examples and benches built)"
 cargo test --locked --all-targets
 cargo test --locked --doc
+echo "== example: the renderer on a caller's own device (game style)"
+example_out="$(mktemp -d)"
+cargo run --locked --quiet --example game_style -- "$example_out/game_style.png"
+test -s "$example_out/game_style.png"
+rm -rf "$example_out"

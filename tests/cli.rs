@@ -49,6 +49,7 @@ fn main_job_writes_surface_ply_and_picture() {
         "classes.png",
         "refine.png",
         "surfels.png",
+        "splats.png",
     ] {
         assert!(dir.path().join(file).exists(), "{file}");
     }
@@ -558,5 +559,152 @@ fn surfels_command_writes_surfels_on_cpu_and_gpu() {
             std::env::var("FLUID_SURFELS_REQUIRE_GPU").map_or(true, |v| v != "1"),
             "a GPU is required here: {err}"
         );
+    }
+}
+
+#[test]
+fn render_draws_particles_and_users_surfels_and_refuses_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("sphere.png");
+    let v = json_of(
+        &bin()
+            .args([
+                "render",
+                "--scene",
+                "sphere",
+                "--resolution",
+                "40",
+                "--size",
+                "96x64",
+                "--cpu",
+                "--json",
+                "--out",
+            ])
+            .arg(&png)
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(v["backend"], "cpu reference");
+    assert_eq!(
+        (v["width"].as_u64(), v["height"].as_u64()),
+        (Some(96), Some(64))
+    );
+    let covered = v["covered_pixels"].as_u64().unwrap();
+    assert!(covered > 800 && covered < 96 * 64, "{covered}");
+    let picture = image::open(&png).unwrap().to_rgb8();
+    assert_eq!(picture.dimensions(), (96, 64));
+    // the sphere is water blue in the middle
+    let centre = picture.get_pixel(48, 32);
+    assert!(centre[2] > centre[0] + 40, "{centre:?}");
+    // a user's own surfels: a PLY with normals and radius
+    let surfels = dir.path().join("own.ply");
+    let mut set = fluid_surfels::ParticleSet::from_positions(vec![glam::Vec3::ZERO, glam::Vec3::X]);
+    set.normals = Some(vec![glam::Vec3::Z; 2]);
+    set.extra.push(fluid_surfels::Attribute::scalar(
+        "radius",
+        fluid_surfels::ScalarKind::F32,
+        vec![0.4, 0.4],
+    ));
+    fluid_surfels::io::write_particles(&surfels, &set, None).unwrap();
+    let own_png = dir.path().join("own.png");
+    let v = json_of(
+        &bin()
+            .args([
+                "render",
+                "--size",
+                "64x64",
+                "--cpu",
+                "--json",
+                "--camera",
+                "0.5,0,3,0.5,0,0",
+                "--surfels",
+            ])
+            .arg(&surfels)
+            .arg("--out")
+            .arg(&own_png)
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(v["surfels"], 2);
+    assert!(v["covered_pixels"].as_u64().unwrap() > 100);
+    // refusals: an existing output, surfels without radius, a bad size
+    let again = bin()
+        .args(["render", "--size", "64x64", "--cpu", "--surfels"])
+        .arg(&surfels)
+        .arg("--out")
+        .arg(&own_png)
+        .output()
+        .unwrap();
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("--force"));
+    set.extra.clear();
+    let no_radius = dir.path().join("no-radius.ply");
+    fluid_surfels::io::write_particles(&no_radius, &set, None).unwrap();
+    for args in [
+        vec!["--surfels".to_string(), no_radius.display().to_string()],
+        vec![
+            "--scene".into(),
+            "sphere".into(),
+            "--size".into(),
+            "0x10".into(),
+        ],
+        vec![
+            "--scene".into(),
+            "sphere".into(),
+            "--camera".into(),
+            "1,2,3".into(),
+        ],
+    ] {
+        let out = bin()
+            .arg("render")
+            .args(&args)
+            .arg("--out")
+            .arg(dir.path().join("x.png"))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && !err.contains("panicked"),
+            "{args:?}: {err}"
+        );
+        println!("{args:?}: {err}");
+    }
+}
+
+#[test]
+fn bench_splat_reports_rates_and_agreement() {
+    let v = json_of(
+        &bin()
+            .args([
+                "bench",
+                "splat",
+                "--surfels",
+                "20000",
+                "--size",
+                "160x120",
+                "--repeat",
+                "1",
+                "--json",
+            ])
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(v["surfels"], 20000);
+    assert!(v["cpu_splats_per_second"].as_f64().unwrap() > 0.0);
+    assert!(v["covered_pixels"].as_u64().unwrap() > 5000);
+    match v["gpu"].as_object() {
+        Some(g) => {
+            assert!(g["splats_per_second"].as_f64().unwrap() > 0.0);
+            // null when the images are identical
+            assert!(
+                g["psnr_against_cpu_db"].as_f64().is_none_or(|p| p >= 40.0),
+                "{g:?}"
+            );
+            assert!(g["max_difference_from_cpu"].as_u64().unwrap() < 64, "{g:?}");
+        }
+        None => assert!(
+            std::env::var("FLUID_SURFELS_REQUIRE_GPU").map_or(true, |v| v != "1"),
+            "a GPU is required here"
+        ),
     }
 }

@@ -602,7 +602,11 @@ struct SplatGpuReport {
     shading_ms: f64,
     total_ms: f64,
     splats_per_second: f64,
+    /// PSNR of the GPU image against the CPU reference; null when they are identical (or the
+    /// reference was skipped).
     psnr_against_cpu_db: Option<f64>,
+    /// Largest difference of one 8-bit channel between the GPU and the CPU images.
+    max_difference_from_cpu: Option<u8>,
 }
 
 #[derive(Serialize)]
@@ -685,7 +689,17 @@ pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
                 splats_per_second: surfels.len() as f64 / (t.total_ms() * 1e-3),
                 psnr_against_cpu_db: cpu
                     .as_ref()
-                    .map(|(_, c)| splat::psnr(&c.image, &first.image)),
+                    .map(|(_, c)| splat::psnr(&c.image, &first.image))
+                    .filter(|p| p.is_finite()),
+                max_difference_from_cpu: cpu.as_ref().map(|(_, c)| {
+                    c.image
+                        .as_raw()
+                        .iter()
+                        .zip(first.image.as_raw())
+                        .map(|(a, b)| a.abs_diff(*b))
+                        .max()
+                        .unwrap_or(0)
+                }),
             })
         }
         Err(e) => {
@@ -741,8 +755,12 @@ pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
                     .map(|s| format!(", {s:.2}x the CPU reference"))
                     .unwrap_or_default()
             );
-            if let Some(p) = g.psnr_against_cpu_db {
-                println!("  GPU image against the CPU reference: PSNR {p:.1} dB");
+            if let Some(d) = g.max_difference_from_cpu {
+                println!(
+                    "  GPU image against the CPU reference: PSNR {}, largest channel difference {d}",
+                    g.psnr_against_cpu_db
+                        .map_or("infinite (identical)".into(), |p| format!("{p:.1} dB"))
+                );
             }
         }
     }
