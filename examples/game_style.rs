@@ -105,7 +105,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         pixels.extend_from_slice(&data[y * row as usize..][..(WIDTH * 4) as usize]);
     }
     let image = image::RgbaImage::from_raw(WIDTH, HEIGHT, pixels).ok_or("screenshot size")?;
-    let out = std::env::args().nth(1).unwrap_or_else(|| "game_style.png".into());
+    let out = std::env::args()
+        .nth(1)
+        .unwrap_or_else(|| "game_style.png".into());
     image.save(&out)?;
     println!(
         "{} surfels splatted into the game's {WIDTH}x{HEIGHT} {:?} target; wrote {out}",
