@@ -4,7 +4,7 @@
 // planes to the R, G, B and A channels of a float target with additive blending.
 //
 // The arithmetic is the CPU path's (src/density.rs): grid point x = origin.x + i * spacing,
-// r^2 = dx^2 + (dy^2 + dz^2), Wyvill's kernel as a polynomial in a^2 = r^2 / h^2.
+// r^2 = dx^2 + (dy^2 + dz^2); the kernels are in density_kernel.wgsl, prepended.
 
 struct Params {
     origin: vec3<f32>,
@@ -46,20 +46,7 @@ fn vs_main(@builtin(vertex_index) vertex: u32, @location(0) particle: vec4<f32>)
 }
 
 fn kernel_r2(r2: f32) -> f32 {
-    if params.kernel == 0u {
-        let a2 = r2 * (1.0 / (params.h * params.h));
-        let poly = ((-4.0 / 9.0 * a2 + 17.0 / 9.0) * a2 - 22.0 / 9.0) * a2 + 1.0;
-        return select(0.0, params.constant * poly, a2 < 1.0);
-    }
-    let q = 2.0 * sqrt(r2) / params.h;
-    if q >= 2.0 {
-        return 0.0;
-    }
-    if q < 1.0 {
-        return params.constant * (1.0 - 1.5 * q * q + 0.75 * q * q * q);
-    }
-    let t = 2.0 - q;
-    return params.constant * 0.25 * t * t * t;
+    return density_kernel_r2(r2, params.h, params.constant, params.kernel);
 }
 
 @fragment

@@ -2,6 +2,7 @@
 //! tests skip with a message, unless FLUID_SURFELS_REQUIRE_GPU=1 makes that a failure.
 
 use fluid_surfels::density::{self, GridSpec, Kernel, Resolution};
+use fluid_surfels::gpu::density::GpuDensityMethod;
 use fluid_surfels::gpu::{self, density as gpu_density, splat as gpu_splat};
 use fluid_surfels::scenes;
 use fluid_surfels::splat;
@@ -14,6 +15,12 @@ fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
             gpu_density::SHADER,
             "Params",
             std::mem::size_of::<gpu_density::RawParams>(),
+        ),
+        (
+            "density_gather.wgsl",
+            gpu_density::GATHER_SHADER,
+            "GatherParams",
+            std::mem::size_of::<gpu_density::RawGatherParams>(),
         ),
         (
             "surfel_splat.wgsl",
@@ -58,11 +65,15 @@ fn gpu_density_matches_the_cpu_path() {
     .unwrap();
     let p = &scene.particles.positions;
     let h = 2.0 * scene.spacing;
-    for kernel in [Kernel::Wyvill, Kernel::CubicSpline] {
+    let methods = [GpuDensityMethod::Splat, GpuDensityMethod::Gather];
+    for (kernel, method) in [Kernel::Wyvill, Kernel::CubicSpline]
+        .into_iter()
+        .flat_map(|k| methods.map(|m| (k, m)))
+    {
         // a grid whose plane count is not a multiple of 4 and whose rows are not 256-byte aligned
         let spec = GridSpec::around(p, h, Resolution::LongestAxis(45)).unwrap();
         let cpu = density::density_grid(p, &spec, kernel, h, 1 << 30).unwrap();
-        let gpu = gpu_density::density_grid_gpu(&ctx, p, &spec, kernel, h).unwrap();
+        let gpu = gpu_density::density_grid_gpu_with(&ctx, p, &spec, kernel, h, method).unwrap();
         assert_eq!(gpu.values.len(), cpu.values.len());
         let max = cpu.max();
         let (worst, at) = cpu
@@ -73,19 +84,53 @@ fn gpu_density_matches_the_cpu_path() {
             .map(|(i, (a, b))| ((a - b).abs(), i))
             .fold((0.0f32, 0), |m, x| if x.0 > m.0 { x } else { m });
         println!(
-            "{kernel:?}: grid {:?}, max density {max}, largest GPU-CPU difference {worst:e} ({:e} of the max) at {at}",
+            "{kernel:?}, {method:?}: grid {:?}, max density {max}, largest GPU-CPU difference {worst:e} ({:e} of the max) at {at}",
             spec.dims,
             worst / max
         );
         assert!(
             worst <= 1e-4 * max,
-            "{kernel:?}: {worst} at {at} (cpu {}, gpu {})",
+            "{kernel:?}, {method:?}: {worst} at {at} (cpu {}, gpu {})",
             cpu.values[at],
             gpu.values[at]
         );
     }
     // an empty set gives an empty grid, no error
     let spec = GridSpec::around(p, h, Resolution::LongestAxis(8)).unwrap();
-    let empty = gpu_density::density_grid_gpu(&ctx, &[], &spec, Kernel::Wyvill, h).unwrap();
-    assert!(empty.values.iter().all(|&v| v == 0.0));
+    for method in methods {
+        let empty = gpu_density::density_grid_gpu_with(&ctx, &[], &spec, Kernel::Wyvill, h, method)
+            .unwrap();
+        assert_eq!(empty.values.len() as u128, spec.cells());
+        assert!(empty.values.iter().all(|&v| v == 0.0));
+    }
+    // particles outside the grid's box (within h and far away) are binned at its edges
+    let mut outside = p.clone();
+    outside.push(glam::Vec3::splat(-50.0));
+    outside.push(spec.origin - glam::Vec3::splat(0.5 * h));
+    let small = GridSpec::for_box(
+        spec.origin,
+        spec.origin + glam::Vec3::splat(6.0 * h),
+        Resolution::LongestAxis(20),
+    )
+    .unwrap();
+    let cpu = density::density_grid(&outside, &small, Kernel::Wyvill, h, 1 << 30).unwrap();
+    let gather = gpu_density::density_grid_gpu_with(
+        &ctx,
+        &outside,
+        &small,
+        Kernel::Wyvill,
+        h,
+        GpuDensityMethod::Gather,
+    )
+    .unwrap();
+    let worst = cpu
+        .values
+        .iter()
+        .zip(&gather.values)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(
+        worst <= 1e-4 * cpu.max(),
+        "gather with particles outside the box: {worst}"
+    );
 }

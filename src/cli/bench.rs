@@ -419,7 +419,14 @@ struct DensityBenchReport {
     threads: usize,
     cpu_density_ms: f64,
     cpu_extract_ms: Option<f64>,
+    /// GPU time of the default method (`gpu_method`).
     gpu_density_ms: Option<f64>,
+    gpu_method: Option<fluid_surfels::gpu::density::GpuDensityMethod>,
+    /// The paper's slice splatting.
+    gpu_splat_ms: Option<f64>,
+    /// The compute-shader gather.
+    gpu_gather_ms: Option<f64>,
+    /// Largest difference of either GPU method from the CPU grid, relative to the peak.
     gpu_difference_from_cpu: Option<f32>,
     gpu_adapter: Option<String>,
     naive_density_ms: Option<f64>,
@@ -465,37 +472,29 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
     let cpu = ms(t);
     // the GPU path, when an adapter exists: one untimed run (pipeline creation, shader
     // compilation), then the timed one
+    // the GPU paths, when an adapter exists: one untimed run each (pipeline creation, shader
+    // compilation), then the timed one
     let gpu = match fluid_surfels::gpu::GpuContext::headless() {
         Ok(ctx) => {
-            let _ = fluid_surfels::gpu::density::density_grid_gpu(
-                &ctx,
-                &positions[..positions.len().min(1000)],
-                &spec,
-                Kernel::Wyvill,
-                h,
-            )?;
-            let t = Instant::now();
-            let g = fluid_surfels::gpu::density::density_grid_gpu(
-                &ctx,
-                &positions,
-                &spec,
-                Kernel::Wyvill,
-                h,
-            )?;
-            let gpu_ms = ms(t);
+            use fluid_surfels::gpu::density::{GpuDensityMethod, density_grid_gpu_with};
             let max = grid.max().max(f32::MIN_POSITIVE);
-            let diff = g
-                .values
-                .iter()
-                .zip(&grid.values)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0f32, f32::max)
-                / max;
-            Some((
-                gpu_ms,
-                diff,
-                ctx.adapter.map(|a| a.name).unwrap_or_default(),
-            ))
+            let mut timed = Vec::new();
+            for method in [GpuDensityMethod::Splat, GpuDensityMethod::Gather] {
+                let few = &positions[..positions.len().min(1000)];
+                let _ = density_grid_gpu_with(&ctx, few, &spec, Kernel::Wyvill, h, method)?;
+                let t = Instant::now();
+                let g = density_grid_gpu_with(&ctx, &positions, &spec, Kernel::Wyvill, h, method)?;
+                let gpu_ms = ms(t);
+                let diff = g
+                    .values
+                    .iter()
+                    .zip(&grid.values)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0f32, f32::max)
+                    / max;
+                timed.push((method, gpu_ms, diff));
+            }
+            Some((timed, ctx.adapter.map(|a| a.name).unwrap_or_default()))
         }
         Err(e) => {
             if !args.json {
@@ -503,6 +502,15 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
             }
             None
         }
+    };
+    let default_gpu = gpu.as_ref().and_then(|(t, _)| {
+        t.iter()
+            .find(|x| x.0 == fluid_surfels::gpu::density::GpuDensityMethod::default())
+            .copied()
+    });
+    let gpu_ms_of = |m: fluid_surfels::gpu::density::GpuDensityMethod| {
+        gpu.as_ref()
+            .and_then(|(t, _)| t.iter().find(|x| x.0 == m).map(|x| x.1))
     };
     let t = Instant::now();
     let surfels = fluid_surfels::surfels::extract(
@@ -538,9 +546,14 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
         threads: rayon::current_num_threads(),
         cpu_density_ms: cpu,
         cpu_extract_ms: Some(extract_ms),
-        gpu_density_ms: gpu.as_ref().map(|g| g.0),
-        gpu_difference_from_cpu: gpu.as_ref().map(|g| g.1),
-        gpu_adapter: gpu.as_ref().map(|g| g.2.clone()),
+        gpu_density_ms: default_gpu.map(|g| g.1),
+        gpu_method: default_gpu.map(|g| g.0),
+        gpu_splat_ms: gpu_ms_of(fluid_surfels::gpu::density::GpuDensityMethod::Splat),
+        gpu_gather_ms: gpu_ms_of(fluid_surfels::gpu::density::GpuDensityMethod::Gather),
+        gpu_difference_from_cpu: gpu
+            .as_ref()
+            .map(|(t, _)| t.iter().map(|x| x.2).fold(0.0f32, f32::max)),
+        gpu_adapter: gpu.as_ref().map(|g| g.1.clone()),
         naive_density_ms: naive_ms,
         speedup_over_naive: naive_ms.map(|n| n / cpu),
         max_difference_from_naive: diff,
@@ -564,11 +577,13 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
             "  surfel extraction (CPU)            {extract_ms:>9.1} ms   {} surfels",
             surfels.len()
         );
-        if let Some((g, d, name)) = &gpu {
-            println!(
-                "  GPU ({name})  {g:>9.1} ms   ratio to CPU {:.2}x, max difference {d:e} of the peak",
-                cpu / g
-            );
+        if let Some((timed, name)) = &gpu {
+            for (method, g, d) in timed {
+                println!(
+                    "  GPU {method:?} ({name})  {g:>9.1} ms   ratio to CPU {:.2}x, max difference {d:e} of the peak",
+                    cpu / g
+                );
+            }
         }
     }
     Ok(())

@@ -1,0 +1,64 @@
+// Density grid by gathering (the compute-shader variant of Iwasaki et al. §4.1): the particles are
+// binned on the CPU into cubic bins of side >= h / reach (sorted by bin, with the start of every
+// bin), and one invocation per grid point of a group of planes sums the kernel over the particles
+// of the (2 reach + 1)^3 bins around it. Each row of bins is one contiguous range of the sorted
+// array, so a grid point reads (2 reach + 1)^2 ranges. The result is written, not blended: no float atomics, and the
+// sum's order is fixed (the particles' sorted order), so runs are reproducible.
+
+struct GatherParams {
+    // grid origin and spacing
+    origin: vec3<f32>,
+    spacing: f32,
+    // grid points along x, y, z; first plane of this dispatch
+    dims: vec3<u32>,
+    k0: u32,
+    // bin grid origin and side
+    bin_origin: vec3<f32>,
+    bin_size: f32,
+    // bins along x, y, z; planes in this dispatch
+    bins: vec3<u32>,
+    planes: u32,
+    h: f32,
+    // 2835 / (736 pi h^3) for Wyvill, 8 / (pi h^3) for the cubic spline
+    constant: f32,
+    // 0: Wyvill, 1: cubic spline
+    kernel: u32,
+    // bins searched on each side: bin_size * reach >= h
+    reach: u32,
+}
+
+@group(0) @binding(0) var<uniform> params: GatherParams;
+// particles sorted by bin (xyz, w unused)
+@group(0) @binding(1) var<storage, read> particles: array<vec4<f32>>;
+// bin_start[b] .. bin_start[b + 1]: the particles of bin b (x fastest, then y, then z)
+@group(0) @binding(2) var<storage, read> bin_start: array<u32>;
+// densities of the dispatch's planes, x fastest
+@group(0) @binding(3) var<storage, read_write> densities: array<f32>;
+
+@compute @workgroup_size(8, 8, 1)
+fn gather(@builtin(global_invocation_id) id: vec3<u32>) {
+    if id.x >= params.dims.x || id.y >= params.dims.y || id.z >= params.planes {
+        return;
+    }
+    let k = params.k0 + id.z;
+    let x = params.origin + vec3<f32>(f32(id.x), f32(id.y), f32(k)) * params.spacing;
+    let b = vec3<i32>(floor((x - params.bin_origin) / params.bin_size));
+    let last = vec3<i32>(params.bins) - vec3<i32>(1);
+    let reach = vec3<i32>(i32(params.reach));
+    let lo = clamp(b - reach, vec3<i32>(0), last);
+    let hi = clamp(b + reach, vec3<i32>(0), last);
+    var sum = 0.0;
+    for (var bz = lo.z; bz <= hi.z; bz++) {
+        for (var by = lo.y; by <= hi.y; by++) {
+            let row = (u32(bz) * params.bins.y + u32(by)) * params.bins.x;
+            let first = bin_start[row + u32(lo.x)];
+            let end = bin_start[row + u32(hi.x) + 1u];
+            for (var i = first; i < end; i++) {
+                let d = x - particles[i].xyz;
+                let r2 = d.x * d.x + (d.y * d.y + d.z * d.z);
+                sum += density_kernel_r2(r2, params.h, params.constant, params.kernel);
+            }
+        }
+    }
+    densities[(id.z * params.dims.y + id.y) * params.dims.x + id.x] = sum;
+}

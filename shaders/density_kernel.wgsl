@@ -1,0 +1,20 @@
+// The density kernels shared by the density passes (prepended to density_splat.wgsl and
+// density_gather.wgsl). The arithmetic is the CPU path's (`Kernel::value_r2` in src/density.rs):
+// Wyvill's kernel as a polynomial in a^2 = r^2 / h^2, the cubic spline in q = 2 r / h.
+// kernel 0: Wyvill, 1: cubic spline; constant: 2835 / (736 pi h^3) or 8 / (pi h^3).
+fn density_kernel_r2(r2: f32, h: f32, constant: f32, kernel: u32) -> f32 {
+    if kernel == 0u {
+        let a2 = r2 * (1.0 / (h * h));
+        let poly = ((-4.0 / 9.0 * a2 + 17.0 / 9.0) * a2 - 22.0 / 9.0) * a2 + 1.0;
+        return select(0.0, constant * poly, a2 < 1.0);
+    }
+    let q = 2.0 * sqrt(r2) / h;
+    if q >= 2.0 {
+        return 0.0;
+    }
+    if q < 1.0 {
+        return constant * (1.0 - 1.5 * q * q + 0.75 * q * q * q);
+    }
+    let t = 2.0 - q;
+    return constant * 0.25 * t * t * t;
+}
