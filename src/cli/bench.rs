@@ -637,30 +637,11 @@ struct SplatBenchReport {
     gpu_speedup_over_cpu: Option<f64>,
 }
 
-/// `n` surfels on a unit sphere (Fibonacci points), radius such that the disks overlap without
-/// gaps, colours varying with position.
-pub fn sphere_of_surfels(n: usize) -> Vec<fluid_surfels::splat::Surfel> {
-    use glam::Vec3;
-    let n = n.max(1);
-    let spacing = (4.0 * std::f32::consts::PI / n as f32).sqrt();
-    let golden = std::f32::consts::PI * (3.0 - 5.0f32.sqrt());
-    (0..n)
-        .map(|i| {
-            let y = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
-            let r = (1.0 - y * y).max(0.0).sqrt();
-            let a = golden * i as f32;
-            let p = Vec3::new(r * a.cos(), y, r * a.sin());
-            let c = (p * 0.5 + 0.5) * 0.6 + 0.3;
-            fluid_surfels::splat::Surfel::disk(p, p, 0.9 * spacing, [c.x, c.y, c.z, 1.0])
-        })
-        .collect()
-}
-
 pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
     use fluid_surfels::gpu::splat::{SplatRenderer, render_timed};
     use fluid_surfels::splat::{self, Camera, Light, SplatParams, View};
     let (width, height) = args.size;
-    let surfels = sphere_of_surfels(args.surfels);
+    let surfels = fluid_surfels::scenes::surfel_sphere(args.surfels);
     let camera = Camera {
         eye: glam::Vec3::new(0.0, 0.0, 3.2),
         target: glam::Vec3::ZERO,
