@@ -374,6 +374,25 @@ pub fn build(name: SceneName, frame: Option<usize>) -> Result<Scene, SceneError>
     }
 }
 
+/// `n` surfels on a unit sphere (Fibonacci points), radius such that the disks overlap without
+/// gaps, colours varying with position.
+#[must_use]
+pub fn surfel_sphere(n: usize) -> Vec<crate::splat::Surfel> {
+    let n = n.max(1);
+    let spacing = (4.0 * std::f32::consts::PI / n as f32).sqrt();
+    let golden = std::f32::consts::PI * (3.0 - 5.0f32.sqrt());
+    (0..n)
+        .map(|i| {
+            let y = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
+            let r = (1.0 - y * y).max(0.0).sqrt();
+            let a = golden * i as f32;
+            let p = Vec3::new(r * a.cos(), y, r * a.sin());
+            let c = (p * 0.5 + 0.5) * 0.6 + 0.3;
+            crate::splat::Surfel::disk(p, p, 0.9 * spacing, [c.x, c.y, c.z, 1.0])
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -421,23 +440,4 @@ mod tests {
         let p = BlockParams::with_particles(1);
         assert_eq!(p.counts, [1, 1, 1]);
     }
-}
-
-/// `n` surfels on a unit sphere (Fibonacci points), radius such that the disks overlap without
-/// gaps, colours varying with position.
-#[must_use]
-pub fn surfel_sphere(n: usize) -> Vec<crate::splat::Surfel> {
-    let n = n.max(1);
-    let spacing = (4.0 * std::f32::consts::PI / n as f32).sqrt();
-    let golden = std::f32::consts::PI * (3.0 - 5.0f32.sqrt());
-    (0..n)
-        .map(|i| {
-            let y = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
-            let r = (1.0 - y * y).max(0.0).sqrt();
-            let a = golden * i as f32;
-            let p = Vec3::new(r * a.cos(), y, r * a.sin());
-            let c = (p * 0.5 + 0.5) * 0.6 + 0.3;
-            crate::splat::Surfel::disk(p, p, 0.9 * spacing, [c.x, c.y, c.z, 1.0])
-        })
-        .collect()
 }
