@@ -48,6 +48,24 @@ const PLANES: u32 = 4;
 /// Groups read back per submission.
 const BATCH: u32 = 8;
 
+/// Both GPU methods refuse a non-positive or non-finite `h` and non-finite positions.
+fn check_inputs(positions: &[Vec3], h: f32) -> Result<(), GpuError> {
+    if !(h.is_finite() && h > 0.0) || positions.iter().any(|p| !p.is_finite()) {
+        return Err(GpuError::Validation(
+            "h must be finite and > 0 and positions finite".into(),
+        ));
+    }
+    Ok(())
+}
+
+/// The shaders' kernel selector.
+fn kernel_code(kernel: Kernel) -> u32 {
+    match kernel {
+        Kernel::Wyvill => 0,
+        Kernel::CubicSpline => 1,
+    }
+}
+
 fn kernel_constant(kernel: Kernel, h: f32) -> f32 {
     match kernel {
         // the same expressions as `Kernel::value_r2` / `Kernel::value`
@@ -66,11 +84,7 @@ pub fn splat_slabs_gpu(
     h: f32,
     mut sink: impl FnMut(u32, Vec<f32>),
 ) -> Result<(), GpuError> {
-    if !(h.is_finite() && h > 0.0) || positions.iter().any(|p| !p.is_finite()) {
-        return Err(GpuError::Validation(
-            "h must be finite and > 0 and positions finite".into(),
-        ));
-    }
+    check_inputs(positions, h)?;
     let device = &ctx.device;
     let [nx, ny, nz] = spec.dims;
     let max_dim = device.limits().max_texture_dimension_2d;
@@ -193,10 +207,7 @@ pub fn splat_slabs_gpu(
                 h,
                 constant,
                 planes,
-                kernel: match kernel {
-                    Kernel::Wyvill => 0,
-                    Kernel::CubicSpline => 1,
-                },
+                kernel: kernel_code(kernel),
                 _pad: [0; 3],
             };
             let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -264,16 +275,7 @@ pub fn splat_slabs_gpu(
         }
         ctx.queue.submit([encoder.finish()]);
         let slice = readback.slice(..);
-        let (tx, rx) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
-        });
-        device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Readback(e.to_string()))?;
-        rx.recv()
-            .map_err(|e| GpuError::Readback(e.to_string()))?
-            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        super::map_read_and_wait(device, &slice)?;
         {
             let data = slice
                 .get_mapped_range()
@@ -420,11 +422,7 @@ pub fn gather_slabs_gpu(
     h: f32,
     mut sink: impl FnMut(u32, Vec<f32>),
 ) -> Result<(), GpuError> {
-    if !(h.is_finite() && h > 0.0) || positions.iter().any(|p| !p.is_finite()) {
-        return Err(GpuError::Validation(
-            "h must be finite and > 0 and positions finite".into(),
-        ));
-    }
+    check_inputs(positions, h)?;
     let device = &ctx.device;
     let limits = device.limits();
     let [nx, ny, nz] = spec.dims;
@@ -506,10 +504,7 @@ pub fn gather_slabs_gpu(
             planes,
             h,
             constant,
-            kernel: match kernel {
-                Kernel::Wyvill => 0,
-                Kernel::CubicSpline => 1,
-            },
+            kernel: kernel_code(kernel),
             reach: GATHER_REACH,
         };
         let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -550,16 +545,7 @@ pub fn gather_slabs_gpu(
         encoder.copy_buffer_to_buffer(&densities, 0, &readback, 0, bytes);
         ctx.queue.submit([encoder.finish()]);
         let slice = readback.slice(..bytes);
-        let (tx, rx) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
-        });
-        device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Readback(e.to_string()))?;
-        rx.recv()
-            .map_err(|e| GpuError::Readback(e.to_string()))?
-            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        super::map_read_and_wait(device, &slice)?;
         let slab: Vec<f32> = {
             let data = slice
                 .get_mapped_range()

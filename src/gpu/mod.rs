@@ -100,6 +100,24 @@ impl GpuContext {
     }
 }
 
+/// Maps `slice` of a `MAP_READ` buffer for reading and waits until it is mapped (the work
+/// submitted before it included).
+pub(crate) fn map_read_and_wait(
+    device: &wgpu::Device,
+    slice: &wgpu::BufferSlice<'_>,
+) -> Result<(), GpuError> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    slice.map_async(wgpu::MapMode::Read, move |r| {
+        let _ = tx.send(r);
+    });
+    device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .map_err(|e| GpuError::Readback(e.to_string()))?;
+    rx.recv()
+        .map_err(|e| GpuError::Readback(e.to_string()))?
+        .map_err(|e| GpuError::Readback(e.to_string()))
+}
+
 /// For tests and benchmarks: a headless context, or `None` with a message on stderr when there
 /// is no adapter. With `FLUID_SURFELS_REQUIRE_GPU=1` a missing adapter is an error instead.
 pub fn context_or_skip(what: &str) -> Result<Option<GpuContext>, GpuError> {

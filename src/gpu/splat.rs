@@ -401,6 +401,21 @@ impl SplatRenderer {
         }
     }
 
+    /// The depth buffer as passes 1 (cleared) and 2 (loaded) attach it.
+    fn depth_attachment(
+        &self,
+        load: wgpu::LoadOp<f32>,
+    ) -> wgpu::RenderPassDepthStencilAttachment<'_> {
+        wgpu::RenderPassDepthStencilAttachment {
+            view: &self.targets.depth,
+            depth_ops: Some(wgpu::Operations {
+                load,
+                store: wgpu::StoreOp::Store,
+            }),
+            stencil_ops: None,
+        }
+    }
+
     fn encode_visibility(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -410,14 +425,7 @@ impl SplatRenderer {
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("splat visibility"),
             color_attachments: &[],
-            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                view: &self.targets.depth,
-                depth_ops: Some(wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(1.0),
-                    store: wgpu::StoreOp::Store,
-                }),
-                stencil_ops: None,
-            }),
+            depth_stencil_attachment: Some(self.depth_attachment(wgpu::LoadOp::Clear(1.0))),
             ..Default::default()
         });
         pass.set_pipeline(&self.visibility);
@@ -448,14 +456,7 @@ impl SplatRenderer {
                 clear(&self.targets.colour_view),
                 clear(&self.targets.normal_view),
             ],
-            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                view: &self.targets.depth,
-                depth_ops: Some(wgpu::Operations {
-                    load: wgpu::LoadOp::Load,
-                    store: wgpu::StoreOp::Store,
-                }),
-                stencil_ops: None,
-            }),
+            depth_stencil_attachment: Some(self.depth_attachment(wgpu::LoadOp::Load)),
             ..Default::default()
         });
         pass.set_pipeline(&self.attributes);
@@ -606,16 +607,7 @@ fn read_texture(
     );
     ctx.queue.submit([encoder.finish()]);
     let slice = buffer.slice(..);
-    let (tx, rx) = std::sync::mpsc::channel();
-    slice.map_async(wgpu::MapMode::Read, move |r| {
-        let _ = tx.send(r);
-    });
-    ctx.device
-        .poll(wgpu::PollType::wait_indefinitely())
-        .map_err(|e| GpuError::Readback(e.to_string()))?;
-    rx.recv()
-        .map_err(|e| GpuError::Readback(e.to_string()))?
-        .map_err(|e| GpuError::Readback(e.to_string()))?;
+    super::map_read_and_wait(&ctx.device, &slice)?;
     let data = slice
         .get_mapped_range()
         .map_err(|e| GpuError::Readback(format!("{e:?}")))?;
