@@ -7,18 +7,12 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use fluid_surfels::scenes::surfel_sphere;
-use fluid_surfels::splat::{Camera, Light, SplatParams, View, render_view_cpu};
-use glam::Vec3;
+use fluid_surfels::scenes::{surfel_sphere, surfel_sphere_camera};
+use fluid_surfels::splat::{Light, SplatParams, View, render_view_cpu};
 
 fn splat_cpu(c: &mut Criterion) {
     let surfels = surfel_sphere(100_000);
-    let camera = Camera {
-        eye: Vec3::new(0.0, 0.0, 3.2),
-        near: 1.0,
-        far: 5.0,
-        ..Camera::default()
-    };
+    let camera = surfel_sphere_camera();
     // prepared outside the timed region
     let view = View::new(
         &camera,

@@ -42,15 +42,12 @@ impl PreviewCamera {
     /// (y is up), the same direction for every scene.
     #[must_use]
     pub fn framing(min: Vec3, max: Vec3) -> Self {
-        let centre = (min + max) * 0.5;
-        let radius = ((max - min).length() * 0.5).max(1e-6);
-        let fov_y_degrees: f32 = 40.0;
-        let distance = radius / (fov_y_degrees.to_radians() * 0.5).sin() * 1.05;
-        let direction = Vec3::new(0.55, 0.5, 1.0).normalize();
+        // the renderer's framing, so previews and renders of a scene show the same view
+        let c = crate::splat::Camera::framing(min, max);
         Self {
-            eye: centre + direction * distance,
-            target: centre,
-            fov_y_degrees,
+            eye: c.eye,
+            target: c.target,
+            fov_y_degrees: c.fov_y_degrees,
         }
     }
 }

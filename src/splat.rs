@@ -770,6 +770,12 @@ impl Render {
         self.colour[i][3]
     }
 
+    /// Number of pixels some surfel covers (weight > 0).
+    #[must_use]
+    pub fn covered_pixels(&self) -> usize {
+        self.colour.iter().filter(|c| c[3] > 0.0).count()
+    }
+
     /// Normalised world normal of pixel `i`, if covered.
     #[must_use]
     pub fn normal(&self, i: usize) -> Option<Vec3> {

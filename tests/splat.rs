@@ -373,11 +373,10 @@ fn gpu_and_cpu_reference_images_agree() {
             let gpu =
                 gpu_splat::render_gpu(&ctx, surfels, camera, &light, &params, SIZE, SIZE).unwrap();
             let psnr = splat::psnr(&cpu.image, &gpu.image);
-            let covered = |r: &Render| (0..r.colour.len()).filter(|&i| r.weight(i) > 0.0).count();
             println!(
                 "{name} ({mode:?}): PSNR {psnr:.1} dB, covered pixels CPU {} GPU {}",
-                covered(&cpu),
-                covered(&gpu)
+                cpu.covered_pixels(),
+                gpu.covered_pixels()
             );
             if psnr < 40.0 {
                 let dir = output_dir();
@@ -518,10 +517,7 @@ fn degenerate_surfels_and_cameras_give_finite_images() {
         let light = Light::default();
         let cpu = splat::render_cpu(&surfels, &camera, &light, &params, 64, 48).unwrap();
         cpu.validate().unwrap_or_else(|e| panic!("{what}: {e}"));
-        let covered = (0..cpu.colour.len())
-            .filter(|&i| cpu.weight(i) > 0.0)
-            .count();
-        println!("{what}: {covered} pixels covered");
+        println!("{what}: {} pixels covered", cpu.covered_pixels());
         if let Some(ctx) = &gpu {
             let g = gpu_splat::render_gpu(ctx, &surfels, &camera, &light, &params, 64, 48).unwrap();
             g.validate().unwrap_or_else(|e| panic!("{what} (GPU): {e}"));

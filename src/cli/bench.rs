@@ -639,16 +639,10 @@ struct SplatBenchReport {
 
 pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
     use fluid_surfels::gpu::splat::{SplatRenderer, render_timed};
-    use fluid_surfels::splat::{self, Camera, Light, SplatParams, View};
+    use fluid_surfels::splat::{self, Light, SplatParams, View};
     let (width, height) = args.size;
     let surfels = fluid_surfels::scenes::surfel_sphere(args.surfels);
-    let camera = Camera {
-        eye: glam::Vec3::new(0.0, 0.0, 3.2),
-        target: glam::Vec3::ZERO,
-        near: 1.0,
-        far: 5.0,
-        ..Camera::default()
-    };
+    let camera = fluid_surfels::scenes::surfel_sphere_camera();
     let view = View::new(
         &camera,
         &Light::default(),
@@ -705,10 +699,7 @@ pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
             None
         }
     };
-    let covered = cpu
-        .as_ref()
-        .map(|(_, r)| (0..r.colour.len()).filter(|&i| r.weight(i) > 0.0).count())
-        .unwrap_or(0);
+    let covered = cpu.as_ref().map(|(_, r)| r.covered_pixels()).unwrap_or(0);
     let cpu_ms = cpu.as_ref().map(|c| c.0);
     let report = SplatBenchReport {
         surfels: surfels.len(),

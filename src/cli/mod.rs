@@ -87,6 +87,45 @@ pub struct OutputArgs {
     pub json: bool,
 }
 
+/// The positions of a particle file or a built-in scene (the `column` scene at `frame`, by
+/// default the splash), with a description of the source and the support radius: `radius` when
+/// given, else the scene's, else twice the spacing estimated from the file.
+pub fn positions_of(
+    input: Option<&Path>,
+    scene: Option<SceneName>,
+    format: Option<Format>,
+    frame: Option<usize>,
+    radius: Option<f32>,
+) -> Result<(String, Vec<glam::Vec3>, f32), Error> {
+    match (input, scene) {
+        (Some(path), _) => {
+            let particles = io::read_particles(path, format)?;
+            let r = match radius {
+                Some(r) => r,
+                None => 2.0 * fluid_surfels::neighbours::estimate_spacing(&particles.positions)?,
+            };
+            Ok((path.display().to_string(), particles.positions, r))
+        }
+        (None, Some(name)) => {
+            let frame = if name == SceneName::Column {
+                Some(frame.unwrap_or(fluid_surfels::scenes::ColumnParams::SPLASH_FRAME))
+            } else {
+                frame
+            };
+            let scene = fluid_surfels::scenes::build(name, frame)?;
+            Ok((
+                format!("scene {}", name.as_str()),
+                scene.particles.positions,
+                radius.unwrap_or(scene.support_radius),
+            ))
+        }
+        (None, None) => Err(Error::InvalidArgument {
+            argument: "--input/--scene",
+            reason: "one of them is needed".into(),
+        }),
+    }
+}
+
 /// Prints a report as one JSON object on stdout (`--json`).
 pub fn print_json(report: &impl serde::Serialize) {
     println!(

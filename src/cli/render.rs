@@ -7,8 +7,7 @@ use std::time::Instant;
 use fluid_surfels::Error;
 use fluid_surfels::gpu::{self, GpuContext};
 use fluid_surfels::io::{self, Format};
-use fluid_surfels::neighbours;
-use fluid_surfels::scenes::{self, ColumnParams, SceneName};
+use fluid_surfels::scenes::SceneName;
 use fluid_surfels::splat::{self, Camera, Light, Render, SplatMode, SplatParams, Surfel};
 use fluid_surfels::surfels::SurfelParams;
 use glam::Vec3;
@@ -187,30 +186,13 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
             splat::surfels_from_particles(&set)?,
         )
     } else {
-        let (source, positions, radius) = match (&args.input, args.scene) {
-            (Some(path), _) => {
-                let set = io::read_particles(path, args.format)?;
-                let r = match args.radius {
-                    Some(r) => r,
-                    None => 2.0 * neighbours::estimate_spacing(&set.positions)?,
-                };
-                (path.display().to_string(), set.positions, r)
-            }
-            (None, Some(name)) => {
-                let frame = if name == SceneName::Column {
-                    Some(args.frame.unwrap_or(ColumnParams::SPLASH_FRAME))
-                } else {
-                    args.frame
-                };
-                let scene = scenes::build(name, frame)?;
-                (
-                    format!("scene {}", name.as_str()),
-                    scene.particles.positions,
-                    args.radius.unwrap_or(scene.support_radius),
-                )
-            }
-            (None, None) => unreachable!("clap requires --input, --scene or --surfels"),
-        };
+        let (source, positions, radius) = super::positions_of(
+            args.input.as_deref(),
+            args.scene,
+            args.format,
+            args.frame,
+            args.radius,
+        )?;
         let (s, ..) = super::surfels::surfels_of(
             &positions,
             radius,
@@ -244,7 +226,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         &image::DynamicImage::ImageRgba8(render.image.clone()).to_rgb8(),
         &args.out,
     )?;
-    let (_, skipped) = splat::drawable(&surfels);
+    let skipped = surfels.iter().filter(|s| !s.is_drawable()).count();
     let report = RenderReport {
         source,
         particles,
@@ -258,9 +240,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
             None => "cpu reference".into(),
         },
         camera,
-        covered_pixels: (0..render.colour.len())
-            .filter(|&i| render.weight(i) > 0.0)
-            .count(),
+        covered_pixels: render.covered_pixels(),
         surfels_ms,
         render_ms,
         output: args.out.display().to_string(),

@@ -6,9 +6,7 @@ use std::time::Instant;
 use fluid_surfels::Error;
 use fluid_surfels::density::{self, GridSpec, Kernel, Resolution};
 use fluid_surfels::io;
-use fluid_surfels::neighbours;
 use fluid_surfels::preview::{self, PreviewCamera};
-use fluid_surfels::scenes::{self, ColumnParams, SceneName};
 use fluid_surfels::sequence::FramePattern;
 use fluid_surfels::surfels::{self, SurfelParams, Surfels};
 use glam::Vec3;
@@ -157,30 +155,13 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
     for o in [&out, &png].into_iter().flatten() {
         check_output(o, input.as_deref(), out_args.force)?;
     }
-    let (source, positions, radius) = match (&input, src.scene) {
-        (Some(path), _) => {
-            let particles = io::read_particles(path, src.format)?;
-            let r = match src.radius {
-                Some(r) => r,
-                None => 2.0 * neighbours::estimate_spacing(&particles.positions)?,
-            };
-            (path.display().to_string(), particles.positions, r)
-        }
-        (None, Some(name)) => {
-            let frame = if name == SceneName::Column {
-                Some(src.frame.unwrap_or(ColumnParams::SPLASH_FRAME))
-            } else {
-                src.frame
-            };
-            let scene = scenes::build(name, frame)?;
-            (
-                format!("scene {}", name.as_str()),
-                scene.particles.positions,
-                src.radius.unwrap_or(scene.support_radius),
-            )
-        }
-        (None, None) => unreachable!("clap requires --input or --scene"),
-    };
+    let (source, positions, radius) = super::positions_of(
+        input.as_deref(),
+        src.scene,
+        src.format,
+        src.frame,
+        src.radius,
+    )?;
     let h = args.h.unwrap_or(radius);
     let gpu = if args.gpu {
         Some(fluid_surfels::gpu::GpuContext::headless()?)

@@ -374,6 +374,19 @@ pub fn build(name: SceneName, frame: Option<usize>) -> Result<Scene, SceneError>
     }
 }
 
+/// A camera on the z axis that shows the whole of [`surfel_sphere`], filling most of a 16:9 or
+/// 4:3 image (the benchmarks' view).
+#[must_use]
+pub fn surfel_sphere_camera() -> crate::splat::Camera {
+    crate::splat::Camera {
+        eye: Vec3::new(0.0, 0.0, 3.2),
+        target: Vec3::ZERO,
+        near: 1.0,
+        far: 5.0,
+        ..crate::splat::Camera::default()
+    }
+}
+
 /// `n` surfels on a unit sphere (Fibonacci points), radius such that the disks overlap without
 /// gaps, colours varying with position.
 #[must_use]
