@@ -822,6 +822,16 @@ fn to_unorm8(c: Vec4) -> [u8; 4] {
 /// Rows per parallel band of the CPU renderer.
 const BAND: usize = 8;
 
+/// A surfel as the CPU renderer places it: its frame, colour, unit normal, and the pixel
+/// columns and rows (half-open) whose centres lie in its rectangle.
+struct Placed {
+    frame: Frame,
+    colour: [f32; 4],
+    normal: Vec3,
+    xs: (usize, usize),
+    ys: (usize, usize),
+}
+
 /// The CPU reference of the three passes (the specification of the GPU path). Undrawable
 /// surfels (see [`Surfel::is_drawable`]) are skipped.
 pub fn render_cpu(
@@ -840,33 +850,51 @@ pub fn render_cpu(
 #[must_use]
 pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Render {
     let (w, h) = (v.width as usize, v.height as usize);
-    // frame, colour and unit normal of every surfel that is drawn, in input order
-    let frames: Vec<(Frame, [f32; 4], Vec3)> = surfels
-        .par_iter()
-        .filter(|s| s.is_drawable())
-        .filter_map(|s| frame(s, v).map(|f| (f, s.colour, Vec3::from(s.normal).normalize())))
-        .collect();
     // the pixel columns and rows whose centres lie in a frame's rectangle
     let span = |lo: f32, hi: f32, n: usize| -> (usize, usize) {
         let a = (lo - 0.5).ceil().clamp(0.0, n as f32) as usize;
         let b = (hi - 0.5).ceil().clamp(0.0, n as f32) as usize;
         (a, b)
     };
+    // frame, colour, unit normal and pixel spans of every surfel that is drawn, in input order
+    let placed: Vec<Placed> = surfels
+        .par_iter()
+        .filter(|s| s.is_drawable())
+        .filter_map(|s| {
+            let f = frame(s, v)?;
+            Some(Placed {
+                xs: span(f.rect.x, f.rect.z, w),
+                ys: span(f.rect.y, f.rect.w, h),
+                colour: s.colour,
+                normal: Vec3::from(s.normal).normalize(),
+                frame: f,
+            })
+        })
+        .collect();
+    // the surfels of each band of rows, in input order (so each band reads only its own)
+    let mut in_band: Vec<Vec<u32>> = vec![Vec::new(); h.div_ceil(BAND)];
+    for (k, p) in placed.iter().enumerate() {
+        if p.xs.0 < p.xs.1 && p.ys.0 < p.ys.1 {
+            for list in &mut in_band[p.ys.0 / BAND..=(p.ys.1 - 1) / BAND] {
+                list.push(k as u32);
+            }
+        }
+    }
     // pass 1: visibility
     let mut depth = vec![1.0f32; w * h];
     depth
         .par_chunks_mut(w * BAND)
+        .zip(&in_band)
         .enumerate()
-        .for_each(|(band, rows)| {
+        .for_each(|(band, (rows, members))| {
             let y0 = band * BAND;
             let y1 = y0 + rows.len() / w;
-            for (f, _, _) in &frames {
-                let (ya, yb) = span(f.rect.y, f.rect.w, h);
-                let (xa, xb) = span(f.rect.x, f.rect.z, w);
-                for y in ya.max(y0)..yb.min(y1) {
-                    for x in xa..xb {
+            for &k in members {
+                let p = &placed[k as usize];
+                for y in p.ys.0.max(y0)..p.ys.1.min(y1) {
+                    for x in p.xs.0..p.xs.1 {
                         let pixel = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
-                        if let Some(frag) = fragment(pixel, f, v) {
+                        if let Some(frag) = fragment(pixel, &p.frame, v) {
                             let d = &mut rows[(y - y0) * w + x];
                             *d = d.min(frag.ndc_offset);
                         }
@@ -880,17 +908,18 @@ pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Render {
     colour
         .par_chunks_mut(w * BAND)
         .zip(normal_depth.par_chunks_mut(w * BAND))
+        .zip(&in_band)
         .enumerate()
-        .for_each(|(band, (crow, nrow))| {
+        .for_each(|(band, ((crow, nrow), members))| {
             let y0 = band * BAND;
             let y1 = y0 + crow.len() / w;
-            for (f, c, n) in &frames {
-                let (ya, yb) = span(f.rect.y, f.rect.w, h);
-                let (xa, xb) = span(f.rect.x, f.rect.z, w);
-                for y in ya.max(y0)..yb.min(y1) {
-                    for x in xa..xb {
+            for &k in members {
+                let p = &placed[k as usize];
+                let (c, n) = (p.colour, p.normal);
+                for y in p.ys.0.max(y0)..p.ys.1.min(y1) {
+                    for x in p.xs.0..p.xs.1 {
                         let pixel = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
-                        let Some(frag) = fragment(pixel, f, v) else {
+                        let Some(frag) = fragment(pixel, &p.frame, v) else {
                             continue;
                         };
                         if frag.ndc > depth[y * w + x] {
