@@ -144,40 +144,40 @@ fn check_sphere(render: &Render, camera: &Camera, surfels: &[Surfel], centre: Ve
     );
 }
 
+/// A renderer under test at SIZE x SIZE.
+type RenderFn = Box<dyn Fn(&[Surfel], &Camera, &Light, &SplatParams) -> Render>;
+
+/// The CPU reference, and the GPU path when an adapter exists (otherwise a skip message, or a
+/// failure with FLUID_SURFELS_REQUIRE_GPU=1).
+fn renderers(test: &str) -> Vec<(&'static str, RenderFn)> {
+    let mut out: Vec<(&'static str, RenderFn)> = vec![(
+        "CPU reference",
+        Box::new(|s, c, l, p| splat::render_cpu(s, c, l, p, SIZE, SIZE).unwrap()),
+    )];
+    if let Some(ctx) = gpu::context_or_skip(test).unwrap() {
+        out.push((
+            "GPU",
+            Box::new(move |s, c, l, p| {
+                gpu_splat::render_gpu(&ctx, s, c, l, p, SIZE, SIZE).unwrap()
+            }),
+        ));
+    }
+    out
+}
+
 #[test]
 fn sphere_of_density_surfels_has_no_holes_and_analytic_normals() {
     let (surfels, centre) = density_sphere();
     let camera = sphere_camera(centre, 1.6);
-    let render = splat::render_cpu(
-        &surfels,
-        &camera,
-        &Light::default(),
-        &SplatParams::default(),
-        SIZE,
-        SIZE,
-    )
-    .unwrap();
-    check_sphere(&render, &camera, &surfels, centre, "CPU reference");
-}
-
-#[test]
-fn gpu_sphere_of_density_surfels_has_no_holes_and_analytic_normals() {
-    let Some(ctx) = gpu::context_or_skip("gpu_sphere_of_density_surfels").unwrap() else {
-        return;
-    };
-    let (surfels, centre) = density_sphere();
-    let camera = sphere_camera(centre, 1.6);
-    let render = gpu_splat::render_gpu(
-        &ctx,
-        &surfels,
-        &camera,
-        &Light::default(),
-        &SplatParams::default(),
-        SIZE,
-        SIZE,
-    )
-    .unwrap();
-    check_sphere(&render, &camera, &surfels, centre, "GPU");
+    for (what, render) in renderers("sphere_of_density_surfels (GPU part)") {
+        let r = render(
+            &surfels,
+            &camera,
+            &Light::default(),
+            &SplatParams::default(),
+        );
+        check_sphere(&r, &camera, &surfels, centre, what);
+    }
 }
 
 /// Relative spread (max - min) / mean of the red channel over the central pixels.
@@ -402,10 +402,7 @@ fn gpu_and_cpu_reference_images_agree() {
 
 /// Two parallel planes `gap` apart facing the camera: front red, back green; the green share of
 /// the centre pixel.
-fn green_share(
-    gap_in_epsilons: f32,
-    render: impl Fn(&[Surfel], &Camera, &SplatParams) -> Render,
-) -> f32 {
+fn green_share(gap_in_epsilons: f32, render: &RenderFn) -> f32 {
     let params = SplatParams::default();
     let n = 40;
     let radius = 1.5 * 2.0 / n as f32;
@@ -424,7 +421,7 @@ fn green_share(
         target: Vec3::ZERO,
         ..Default::default()
     };
-    let r = render(&surfels, &camera, &params);
+    let r = render(&surfels, &camera, &Light::default(), &params);
     r.validate().unwrap();
     let i = (SIZE / 2 * SIZE + SIZE / 2) as usize;
     let c = r.colour[i];
@@ -433,37 +430,18 @@ fn green_share(
 
 #[test]
 fn surfaces_closer_than_epsilon_blend_and_farther_ones_hide() {
-    let cpu = |s: &[Surfel], c: &Camera, p: &SplatParams| {
-        splat::render_cpu(s, c, &Light::default(), p, SIZE, SIZE).unwrap()
-    };
-    let near = green_share(0.3, cpu);
-    let far = green_share(3.0, cpu);
-    println!(
-        "green share of the centre pixel: {near:.3} with planes 0.3 epsilon apart, {far:.3} at 3 epsilon"
-    );
-    assert!(
-        near > 0.2 && near < 0.8,
-        "close surfaces do not blend: {near}"
-    );
-    assert_eq!(far, 0.0, "the hidden surface shows through");
-}
-
-#[test]
-fn gpu_surfaces_closer_than_epsilon_blend_and_farther_ones_hide() {
-    let Some(ctx) = gpu::context_or_skip("gpu_surfaces_closer_than_epsilon_blend").unwrap() else {
-        return;
-    };
-    let gpu = |s: &[Surfel], c: &Camera, p: &SplatParams| {
-        gpu_splat::render_gpu(&ctx, s, c, &Light::default(), p, SIZE, SIZE).unwrap()
-    };
-    let near = green_share(0.3, gpu);
-    let far = green_share(3.0, gpu);
-    println!("GPU green share: {near:.3} at 0.3 epsilon, {far:.3} at 3 epsilon");
-    assert!(
-        near > 0.2 && near < 0.8,
-        "close surfaces do not blend: {near}"
-    );
-    assert_eq!(far, 0.0, "the hidden surface shows through");
+    for (what, render) in renderers("surfaces_closer_than_epsilon_blend (GPU part)") {
+        let near = green_share(0.3, &render);
+        let far = green_share(3.0, &render);
+        println!(
+            "{what}: green share of the centre pixel {near:.3} with planes 0.3 epsilon apart, {far:.3} at 3 epsilon"
+        );
+        assert!(
+            near > 0.2 && near < 0.8,
+            "{what}: close surfaces do not blend: {near}"
+        );
+        assert_eq!(far, 0.0, "{what}: the hidden surface shows through");
+    }
 }
 
 fn degenerate_cases() -> Vec<(&'static str, Vec<Surfel>, Camera)> {

@@ -328,8 +328,8 @@ pub fn density_grid_gpu(
 #[serde(rename_all = "kebab-case")]
 pub enum GpuDensityMethod {
     /// The paper's method: particles drawn as point sprites into four planes per RGBA pass with
-    /// additive blending ([`splat_slabs_gpu`]). The default: the faster of the two on every
-    /// adapter measured so far (lavapipe, 150,000 particles into 256^3: 2.0-2.4 s against
+    /// additive blending ([`splat_slabs_gpu`]). The default: the faster of the two on lavapipe,
+    /// the only adapter measured so far (150,000 particles into 256^3: 2.0-2.4 s against
     /// 5.1-6.2 s for the gather; see ARCHITECTURE.md).
     #[default]
     Splat,
@@ -359,8 +359,8 @@ pub struct RawGatherParams {
 const _: () = assert!(std::mem::size_of::<RawGatherParams>() == 80);
 
 /// Bins per `h` of the gather path: bins of side `h / GATHER_REACH`, searched `GATHER_REACH`
-/// bins to each side; smaller bins waste fewer kernel evaluations on particles beyond h (0.58 as
-/// many as with bins of side h). On lavapipe (150k particles into 256^3) 1 and 2 measured alike,
+/// bins to each side; smaller bins waste fewer kernel evaluations on particles beyond h (a
+/// searched volume of `(2.5 h)^3` instead of `(3 h)^3`, 0.58 as much). On lavapipe (150k particles into 256^3) 1 and 2 measured alike,
 /// 5.1-6.2 s, within the run-to-run spread.
 pub const GATHER_REACH: u32 = 2;
 
