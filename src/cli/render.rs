@@ -223,7 +223,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     let render = render_with(ctx.as_ref(), &surfels, &camera, &params, args.size)?;
     let render_ms = ms(t);
     fluid_surfels::preview::save_png(
-        &image::DynamicImage::ImageRgba8(render.image.clone()).to_rgb8(),
+        &image::buffer::ConvertBuffer::convert(&render.image),
         &args.out,
     )?;
     let skipped = surfels.iter().filter(|s| !s.is_drawable()).count();

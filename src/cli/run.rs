@@ -231,7 +231,7 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
         (&density_surfels, &sprites),
     ] {
         let r = super::render::render_with(ctx.as_ref(), s, &splat_camera, p, (480, 480))?;
-        panels.push(image::DynamicImage::ImageRgba8(r.image).to_rgb8());
+        panels.push(image::buffer::ConvertBuffer::convert(&r.image));
     }
     let splat_ms = ms(t);
     let splats_png = args.out_dir.join("splats.png");
