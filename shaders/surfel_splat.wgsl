@@ -35,7 +35,7 @@ struct Uniforms {
     light_colour: vec4<f32>,
     // colour where no surfel covers the pixel
     background: vec4<f32>,
-    // x = shininess
+    // x = shininess, y = 1 for an orthographic view (a directional light's virtual screen)
     material: vec4<f32>,
     // epsilon / radius
     depth_offset: f32,
@@ -89,6 +89,26 @@ fn pixels_of(p: vec3<f32>) -> vec3<f32> {
     return vec3<f32>((ndc.x + 1.0) * 0.5 * u.viewport.x, (1.0 - ndc.y) * 0.5 * u.viewport.y, clip.w);
 }
 
+// The view ray through a pixel position, in view space: perspective rays start at the eye and
+// have z = -1; orthographic rays start on the plane z = 0 and run along -z (mirror: `View::ray`).
+struct Ray {
+    origin: vec3<f32>,
+    dir: vec3<f32>,
+}
+
+fn view_ray(pixel: vec2<f32>) -> Ray {
+    let ndc = vec2<f32>(pixel.x / u.viewport.x * 2.0 - 1.0, 1.0 - pixel.y / u.viewport.y * 2.0);
+    var r: Ray;
+    if (u.material.y == 1.0) {
+        r.origin = vec3<f32>(ndc * u.tan_half, 0.0);
+        r.dir = vec3<f32>(0.0, 0.0, -1.0);
+    } else {
+        r.origin = vec3<f32>(0.0);
+        r.dir = vec3<f32>(ndc * u.tan_half, -1.0);
+    }
+    return r;
+}
+
 struct Frame {
     // visible: 1, culled: 0
     keep: bool,
@@ -122,8 +142,8 @@ fn splat_frame(position: vec3<f32>, radius: f32, normal: vec3<f32>, stretch: f32
     f.axis_u = uv / dot(uv, uv);
     f.axis_v = vv / dot(vv, vv);
     f.normal_view = nv;
-    // back faces culled (the camera is at the view-space origin)
-    if (dot(nv, c) >= 0.0) {
+    // back faces culled (the camera is at the view-space origin; orthographic views look along -z)
+    if (dot(nv, select(c, vec3<f32>(0.0, 0.0, -1.0), u.material.y == 1.0)) >= 0.0) {
         return f;
     }
     let eps = u.depth_offset * radius;
@@ -212,8 +232,9 @@ fn ndc_depth(p: vec3<f32>) -> f32 {
 fn splat_fragment(pixel: vec2<f32>, centre: vec3<f32>, axis_u: vec3<f32>, axis_v: vec3<f32>, nv: vec3<f32>, screen: vec4<f32>) -> Fragment {
     var f: Fragment;
     f.keep = false;
-    let ndc = vec2<f32>(pixel.x / u.viewport.x * 2.0 - 1.0, 1.0 - pixel.y / u.viewport.y * 2.0);
-    let d = vec3<f32>(ndc * u.tan_half, -1.0);
+    let ray = view_ray(pixel);
+    let o = ray.origin;
+    let d = ray.dir;
     var r2 = 3.0e38;
     var depth = -centre.z;
     if (u.mode == 1u) {
@@ -224,10 +245,10 @@ fn splat_fragment(pixel: vec2<f32>, centre: vec3<f32>, axis_u: vec3<f32>, axis_v
         let denom = dot(nv, d);
         var t = 0.0;
         if (denom != 0.0) {
-            t = dot(nv, centre) / denom;
+            t = dot(nv, centre - o) / denom;
         }
         if (t > 0.0) {
-            let q = t * d - centre;
+            let q = o + t * d - centre;
             let a = dot(q, axis_u);
             let b = dot(q, axis_v);
             r3 = a * a + b * b;
@@ -249,7 +270,7 @@ fn splat_fragment(pixel: vec2<f32>, centre: vec3<f32>, axis_u: vec3<f32>, axis_v
     if (!(r2 <= 1.0) || !(depth > 0.0)) {
         return f;
     }
-    let p = d * depth;
+    let p = o + d * depth;
     f.ndc = ndc_depth(p);
     f.ndc_offset = ndc_depth(p + normalize(d) * screen.w);
     if (!(f.ndc >= 0.0 && f.ndc <= 1.0)) {
@@ -315,8 +336,7 @@ fn shade(pixel: vec2<f32>, colour: vec4<f32>, normal_depth: vec4<f32>) -> vec4<f
     }
     let base = colour.rgb / w;
     var n = normal_depth.xyz / w;
-    let ndc = vec2<f32>(pixel.x / u.viewport.x * 2.0 - 1.0, 1.0 - pixel.y / u.viewport.y * 2.0);
-    let d = (u.inv_view * vec4<f32>(ndc * u.tan_half, -1.0, 0.0)).xyz;
+    let d = (u.inv_view * vec4<f32>(view_ray(pixel).dir, 0.0)).xyz;
     let view = -normalize(d);
     if (dot(n, n) > 1e-12) {
         n = normalize(n);

@@ -437,6 +437,7 @@ pub struct View {
     light_colour: Vec4,
     background: Vec4,
     shininess: f32,
+    orthographic: bool,
     depth_offset: f32,
     low_pass: f32,
     sharpness: f32,
@@ -497,6 +498,7 @@ impl View {
             light_colour: light.colour.extend(light.specular),
             background: Vec4::from(params.background),
             shininess: light.shininess,
+            orthographic: false,
             depth_offset: params.depth_offset,
             low_pass: params.low_pass_px,
             sharpness: params.sharpness,
@@ -516,7 +518,12 @@ impl View {
             light_dir: self.light_dir.to_array(),
             light_colour: self.light_colour.to_array(),
             background: self.background.to_array(),
-            material: [self.shininess, 0.0, 0.0, 0.0],
+            material: [
+                self.shininess,
+                if self.orthographic { 1.0 } else { 0.0 },
+                0.0,
+                0.0,
+            ],
             depth_offset: self.depth_offset,
             low_pass: self.low_pass,
             sharpness: self.sharpness,
@@ -545,11 +552,86 @@ impl View {
         clip.z / clip.w
     }
 
-    /// View ray direction through a pixel position (z = -1), in view space.
-    fn ray(&self, pixel: Vec2) -> Vec3 {
+    /// The view ray through a pixel position, in view space (`view_ray` in the WGSL): origin and
+    /// direction. Perspective rays start at the eye with z = -1, so that `origin + t dir` has view
+    /// depth `t`; orthographic rays start on the plane z = 0 and run along -z.
+    #[must_use]
+    pub fn ray(&self, pixel: Vec2) -> (Vec3, Vec3) {
         let vp = self.viewport();
         let ndc = Vec2::new(pixel.x / vp.x * 2.0 - 1.0, 1.0 - pixel.y / vp.y * 2.0);
-        (ndc * self.tan_half).extend(-1.0)
+        if self.orthographic {
+            ((ndc * self.tan_half).extend(0.0), Vec3::NEG_Z)
+        } else {
+            (Vec3::ZERO, (ndc * self.tan_half).extend(-1.0))
+        }
+    }
+
+    /// The world-space ray through a pixel position: origin and direction (not normalised;
+    /// `origin + t dir` lies at view depth `t`).
+    #[must_use]
+    pub fn world_ray(&self, pixel: Vec2) -> (Vec3, Vec3) {
+        let (o, d) = self.ray(pixel);
+        (
+            (self.inv_view * o.extend(1.0)).xyz(),
+            (self.inv_view * d.extend(0.0)).xyz(),
+        )
+    }
+
+    /// Pixel coordinates (origin top left) and view depth of a world point (depth <= 0: behind).
+    #[must_use]
+    pub fn project(&self, world: Vec3) -> Vec3 {
+        let p = (self.view * world.extend(1.0)).xyz();
+        let q = self.pixels_of(p);
+        Vec3::new(q.x, q.y, -p.z)
+    }
+
+    /// Whether the view is orthographic.
+    #[must_use]
+    pub fn is_orthographic(&self) -> bool {
+        self.orthographic
+    }
+
+    /// An orthographic view looking from `eye` along `forward` (unit or not), `up` roughly up,
+    /// covering `half_extent` (world units) either side of the axis, depths `near..far` from
+    /// the eye's plane: a directional light's virtual screen (Iwasaki et al. §5.1, Fig. 3).
+    #[allow(clippy::too_many_arguments)]
+    pub fn orthographic(
+        eye: Vec3,
+        forward: Vec3,
+        up: Vec3,
+        half_extent: Vec2,
+        near: f32,
+        far: f32,
+        params: &SplatParams,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, SplatError> {
+        let camera = Camera {
+            eye,
+            target: eye + forward,
+            up,
+            fov_y_degrees: 60.0,
+            near,
+            far,
+        };
+        let mut v = Self::new(&camera, &Light::default(), params, width, height)?;
+        if !(half_extent.x > 0.0 && half_extent.y > 0.0 && half_extent.is_finite()) {
+            return Err(SplatError::InvalidParameter {
+                name: "half_extent",
+                reason: "must be finite and > 0".into(),
+            });
+        }
+        v.orthographic = true;
+        v.tan_half = half_extent;
+        v.proj = glam::camera::rh::proj::directx::orthographic(
+            -half_extent.x,
+            half_extent.x,
+            -half_extent.y,
+            half_extent.y,
+            near,
+            far,
+        );
+        Ok(v)
     }
 }
 
@@ -592,7 +674,8 @@ pub fn frame(s: &Surfel, v: &View) -> Option<Frame> {
     let uv = (v.view * big_u.extend(0.0)).xyz();
     let vv = (v.view * big_v.extend(0.0)).xyz();
     let nv = (v.view * n.extend(0.0)).xyz();
-    if nv.dot(c) >= 0.0 {
+    let towards = if v.orthographic { Vec3::NEG_Z } else { c };
+    if nv.dot(towards) >= 0.0 {
         return None;
     }
     let eps = v.depth_offset * s.radius;
@@ -665,7 +748,7 @@ pub struct Fragment {
 /// Evaluates a surfel at a pixel centre, as `splat_fragment` in the WGSL. `None`: discarded.
 #[must_use]
 pub fn fragment(pixel: Vec2, f: &Frame, v: &View) -> Option<Fragment> {
-    let d = v.ray(pixel);
+    let (o, d) = v.ray(pixel);
     let mut depth = -f.centre.z;
     let r2;
     if v.sprites {
@@ -675,12 +758,12 @@ pub fn fragment(pixel: Vec2, f: &Frame, v: &View) -> Option<Fragment> {
         let mut r3 = 3.0e38f32;
         let denom = f.normal_view.dot(d);
         let t = if denom != 0.0 {
-            f.normal_view.dot(f.centre) / denom
+            f.normal_view.dot(f.centre - o) / denom
         } else {
             0.0
         };
         if t > 0.0 {
-            let q = t * d - f.centre;
+            let q = o + t * d - f.centre;
             let a = q.dot(f.axis_u);
             let b = q.dot(f.axis_v);
             r3 = a * a + b * b;
@@ -700,7 +783,7 @@ pub fn fragment(pixel: Vec2, f: &Frame, v: &View) -> Option<Fragment> {
     if !(r2 <= 1.0 && depth > 0.0) {
         return None;
     }
-    let p = d * depth;
+    let p = o + d * depth;
     let ndc = v.ndc_depth(p);
     if !(0.0..=1.0).contains(&ndc) {
         return None;
@@ -734,7 +817,7 @@ pub fn shade(pixel: Vec2, colour: Vec4, normal_depth: Vec4, v: &View) -> Vec4 {
     }
     let base = colour.xyz() / w;
     let mut n = normal_depth.xyz() / w;
-    let d = (v.inv_view * v.ray(pixel).extend(0.0)).xyz();
+    let d = (v.inv_view * v.ray(pixel).1.extend(0.0)).xyz();
     let view = -d.normalize();
     n = if n.dot(n) > 1e-12 {
         n.normalize()
