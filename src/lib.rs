@@ -8,7 +8,8 @@
 //! 2. [`refine`]: upsampling of the surface points by spherical interpolation with collision
 //!    avoidance and incremental neighbourhoods (Solenthaler et al. 2007, §3.2-3.4).
 //! 3. [`density`]: the density grid (Iwasaki et al., §4) on the CPU, slab by slab; the GPU path
-//!    and surfel extraction follow, then 4. surfel splatting and 5. optics.
+//!    and surfel extraction ([`surfels`]) follow, then 4. surfel splatting ([`splat`]) and
+//!    5. optics ([`optics`]: caustics, refraction, reflection).
 //!
 //! Supporting modules: [`particles`] (the [`ParticleSet`] every stage reads), [`io`] (readers and
 //! writers for PLY, legacy VTK, VTU, BGEO, XYZ, CSV and JSON), [`sequence`] (numbered frame
@@ -33,6 +34,7 @@ pub mod io;
 pub mod kernels;
 pub mod linalg;
 pub mod neighbours;
+pub mod optics;
 pub mod particles;
 pub mod preview;
 pub mod refine;
@@ -87,6 +89,9 @@ pub enum Error {
     /// Surfel rendering.
     #[error(transparent)]
     Splat(#[from] splat::SplatError),
+    /// Optics: caustics, refraction and reflection.
+    #[error(transparent)]
+    Optics(#[from] optics::OpticsError),
     /// Frame patterns and ranges.
     #[error(transparent)]
     Sequence(#[from] sequence::SequenceError),

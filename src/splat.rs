@@ -591,15 +591,17 @@ impl View {
         self.orthographic
     }
 
-    /// An orthographic view looking from `eye` along `forward` (unit or not), `up` roughly up,
-    /// covering `half_extent` (world units) either side of the axis, depths `near..far` from
-    /// the eye's plane: a directional light's virtual screen (Iwasaki et al. §5.1, Fig. 3).
+    /// A view looking from `eye` along `forward`, `up` roughly up, whose window spans
+    /// `half_extent` either side of the axis: world units for an orthographic view (a directional
+    /// light's virtual screen, Iwasaki et al. §5.1, Fig. 3), tangents of the half angles for a
+    /// perspective one (a point light's). Depths `near..far` from the eye('s plane).
     #[allow(clippy::too_many_arguments)]
-    pub fn orthographic(
+    pub fn window(
         eye: Vec3,
         forward: Vec3,
         up: Vec3,
         half_extent: Vec2,
+        orthographic: bool,
         near: f32,
         far: f32,
         params: &SplatParams,
@@ -621,17 +623,41 @@ impl View {
                 reason: "must be finite and > 0".into(),
             });
         }
-        v.orthographic = true;
+        v.orthographic = orthographic;
         v.tan_half = half_extent;
-        v.proj = glam::camera::rh::proj::directx::orthographic(
-            -half_extent.x,
-            half_extent.x,
-            -half_extent.y,
-            half_extent.y,
-            near,
-            far,
-        );
+        let (x, y) = (half_extent.x, half_extent.y);
+        v.proj = if orthographic {
+            glam::camera::rh::proj::directx::orthographic(-x, x, -y, y, near, far)
+        } else {
+            // glam's right-handed 0..1 perspective with separate horizontal and vertical scales
+            let r = far / (near - far);
+            Mat4::from_cols(
+                Vec4::new(1.0 / x, 0.0, 0.0, 0.0),
+                Vec4::new(0.0, 1.0 / y, 0.0, 0.0),
+                Vec4::new(0.0, 0.0, r, -1.0),
+                Vec4::new(0.0, 0.0, r * near, 0.0),
+            )
+        };
         Ok(v)
+    }
+
+    /// Half extents of the window: tangents of the half angles (perspective) or world units
+    /// (orthographic).
+    #[must_use]
+    pub fn half_extent(&self) -> Vec2 {
+        self.tan_half
+    }
+
+    /// World-space direction of the view axis (unit).
+    #[must_use]
+    pub fn forward(&self) -> Vec3 {
+        (self.inv_view * Vec4::new(0.0, 0.0, -1.0, 0.0)).xyz()
+    }
+
+    /// The view's matrices: world to view, view to world, view to clip.
+    #[must_use]
+    pub fn matrices(&self) -> (Mat4, Mat4, Mat4) {
+        (self.view, self.inv_view, self.proj)
     }
 }
 

@@ -406,6 +406,55 @@ pub fn surfel_sphere(n: usize) -> Vec<crate::splat::Surfel> {
         .collect()
 }
 
+/// A water surface `y = height(x, z)` over the square `|x|, |z| <= half`, sampled by surfels on a
+/// grid of `spacing` (capped at 1,000 per side) whose normals are the surface's
+/// (`(-dh/dx, 1, -dh/dz)`, by central differences) and whose radius covers the grid without gaps.
+/// The optics tests and benchmarks build their water with it.
+pub fn height_field(
+    half: f32,
+    spacing: f32,
+    height: impl Fn(f32, f32) -> f32,
+) -> Vec<crate::splat::Surfel> {
+    let n = ((2.0 * half / spacing).round() as usize).clamp(1, 1000);
+    let step = 2.0 * half / n as f32;
+    let e = step * 0.25;
+    let mut out = Vec::with_capacity((n + 1) * (n + 1));
+    for j in 0..=n {
+        for i in 0..=n {
+            let x = -half + step * i as f32;
+            let z = -half + step * j as f32;
+            let y = height(x, z);
+            let dx = (height(x + e, z) - height(x - e, z)) / (2.0 * e);
+            let dz = (height(x, z + e) - height(x, z - e)) / (2.0 * e);
+            let normal = Vec3::new(-dx, 1.0, -dz);
+            out.push(crate::splat::Surfel::disk(
+                Vec3::new(x, y, z),
+                normal,
+                step,
+                crate::splat::WATER,
+            ));
+        }
+    }
+    out
+}
+
+/// A spherical cap of curvature radius `radius` with its vertex at `(0, vertex, 0)`, seen as a
+/// height field over `|x|, |z| <= half` (`half < radius`): a lens of water whose paraxial focus
+/// lies `ior radius / (ior - 1)` below the vertex. Normals are the sphere's, exactly.
+#[must_use]
+pub fn water_lens(radius: f32, half: f32, vertex: f32, spacing: f32) -> Vec<crate::splat::Surfel> {
+    let centre = Vec3::new(0.0, vertex - radius, 0.0);
+    height_field(half, spacing, |x, z| {
+        vertex - radius + (radius * radius - x * x - z * z).max(0.0).sqrt()
+    })
+    .into_iter()
+    .map(|mut s| {
+        s.normal = (Vec3::from(s.position) - centre).normalize().to_array();
+        s
+    })
+    .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,0 +1,537 @@
+//! The CPU reference of the optics stage: caustics (§5.1) and the final image (§5.2), with exact
+//! ray-triangle intersection in the receiver's BVH.
+
+use glam::{Vec2, Vec3, Vec4};
+use image::RgbaImage;
+use rayon::prelude::*;
+
+use super::{OpticsError, Stage, encode, fresnel_reflectance, refract, texel_area};
+use crate::splat::{Light, Render, Surfel, View, render_view_cpu};
+
+/// One pixel of the virtual screen: the water point, its depth from the light, where its
+/// refracted ray meets the receiver, and `T exp(-sigma_t l)` per channel.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct CausticVertex {
+    /// Water point `s` and its view depth from the light (`w <= 0`: no water at this pixel).
+    pub surface: Vec4,
+    /// Receiver point `c` (`w = 1`: the refracted ray met the receiver, `0`: it missed).
+    pub hit: Vec4,
+    /// `T(theta_i, theta_t) exp(-sigma_t l_c)` per colour channel.
+    pub transmit: Vec3,
+}
+
+/// The caustics of one frame (§5.1): the light's view of the water and the caustics map.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Caustics {
+    /// The virtual screen (light's view of the water).
+    pub screen: View,
+    /// The caustics map's view (light's view of receiver and water).
+    pub map: View,
+    /// Per screen pixel, row-major from the top.
+    pub vertices: Vec<CausticVertex>,
+    /// Per map texel: flux (linear RGB, per unit of the light's colour units times area).
+    pub flux: Vec<[f32; 4]>,
+    /// Per map texel: caustics irradiance (RGB), `w = 1` where the texel sees the receiver.
+    pub irradiance: Vec<[f32; 4]>,
+    /// Per map texel: receiver point (xyz) and depth (`w`, 0: no receiver), the geometry map.
+    pub geometry: Vec<[f32; 4]>,
+    /// Per map texel: receiver normal facing the light.
+    pub normals: Vec<[f32; 4]>,
+    /// Flux through the water triangles, before transmission.
+    pub incident: Vec3,
+    /// Flux the caustics triangles carried into the map.
+    pub transmitted: Vec3,
+    /// Caustics triangles drawn.
+    pub triangles: usize,
+    /// Water triangles skipped as spanning a depth discontinuity.
+    pub discontinuous: usize,
+    /// Water triangles whose refracted rays missed the receiver.
+    pub missed: usize,
+}
+
+/// World point and view depth of a screen pixel seen with `depth`.
+fn point_at(v: &View, x: u32, y: u32, depth: f32) -> Vec3 {
+    let (o, d) = v.world_ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
+    o + d * depth
+}
+
+/// Size of a pixel of `v` at view depth `depth` (world units).
+pub(crate) fn pixel_size(v: &View, depth: f32) -> f32 {
+    let s = 2.0 * v.half_extent().x / v.width as f32;
+    if v.is_orthographic() { s } else { s * depth }
+}
+
+/// Water normal and depth of a splatted pixel (eq. 2), `None` where no surfel covers it.
+fn water_at(r: &Render, i: usize) -> Option<(Vec3, f32)> {
+    let w = r.colour[i][3];
+    if !(w > 0.0) {
+        return None;
+    }
+    let nd = Vec4::from(r.normal_depth[i]) / w;
+    let depth = nd.w;
+    if !(depth.is_finite() && depth > 0.0) {
+        return None;
+    }
+    Some((nd.truncate(), depth))
+}
+
+/// Unit normal of an accumulated normal, or `fallback` where it vanishes.
+fn unit_or(n: Vec3, fallback: Vec3) -> Vec3 {
+    n.try_normalize().unwrap_or(fallback)
+}
+
+/// Clips a convex polygon (`n` points in `p`) to the half-plane `sign * (q[axis] - bound) >= 0`,
+/// in place (Sutherland-Hodgman); returns the new count. `clip_polygon` in the WGSL.
+fn clip_polygon(p: &mut [Vec2; 8], n: usize, axis: usize, bound: f32, sign: f32) -> usize {
+    let mut out = [Vec2::ZERO; 8];
+    let mut m = 0;
+    for i in 0..n {
+        let a = p[i];
+        let b = p[(i + 1) % n];
+        let da = sign * (a[axis] - bound);
+        let db = sign * (b[axis] - bound);
+        if da >= 0.0 && m < 8 {
+            out[m] = a;
+            m += 1;
+        }
+        if (da >= 0.0) != (db >= 0.0) && m < 8 {
+            out[m] = a + (b - a) * (da / (da - db));
+            m += 1;
+        }
+    }
+    *p = out;
+    m
+}
+
+/// Twice the signed area of a polygon.
+fn polygon_area2(p: &[Vec2; 8], n: usize) -> f32 {
+    (0..n).map(|i| p[i].perp_dot(p[(i + 1) % n])).sum()
+}
+
+/// Adds `value` (a flux) to the map texels a triangle (in pixel coordinates) overlaps, each in
+/// proportion to the exact area of the overlap: box-filtered rasterisation. Unlike drawing the
+/// irradiance `value / S_c` at texel centres (the paper's hardware rasterisation), it loses no
+/// flux to triangles smaller than a texel, so the map conserves flux exactly, and a uniform
+/// tiling of triangles still gives a uniform map. A degenerate triangle gives its flux to the
+/// texel of its centroid. `deposit_triangle` in the WGSL.
+pub fn deposit(map: &mut [[f32; 4]], width: u32, height: u32, p: [Vec2; 3], value: Vec3) {
+    let mut add = |x: u32, y: u32, v: Vec3| {
+        let t = &mut map[(y * width + x) as usize];
+        t[0] += v.x;
+        t[1] += v.y;
+        t[2] += v.z;
+    };
+    if !(p[0].is_finite() && p[1].is_finite() && p[2].is_finite()) {
+        return;
+    }
+    let total = (p[1] - p[0]).perp_dot(p[2] - p[0]).abs();
+    let lo = p[0].min(p[1]).min(p[2]);
+    let hi = p[0].max(p[1]).max(p[2]);
+    if !(total > 1e-12) {
+        let m = (p[0] + p[1] + p[2]) / 3.0;
+        if m.x >= 0.0 && m.y >= 0.0 && m.x < width as f32 && m.y < height as f32 {
+            add(m.x as u32, m.y as u32, value);
+        }
+        return;
+    }
+    let y0 = lo.y.floor().max(0.0) as u32;
+    let y1 = (hi.y.ceil().min(height as f32) as u32).max(y0);
+    let x0 = lo.x.floor().max(0.0) as u32;
+    let x1 = (hi.x.ceil().min(width as f32) as u32).max(x0);
+    // clipped and measured relative to the first texel: with coordinates of hundreds of pixels,
+    // the shoelace formula loses ~0.2 % of a texel's area to f32 rounding
+    let origin = Vec2::new(x0 as f32, y0 as f32);
+    let local = p.map(|q| q - origin);
+    for y in y0..y1 {
+        let ly = (y - y0) as f32;
+        let mut row = [Vec2::ZERO; 8];
+        row[..3].copy_from_slice(&local);
+        let mut n = clip_polygon(&mut row, 3, 1, ly, 1.0);
+        n = clip_polygon(&mut row, n, 1, ly + 1.0, -1.0);
+        if n < 3 {
+            continue;
+        }
+        for x in x0..x1 {
+            let lx = (x - x0) as f32;
+            let mut cell = row;
+            let mut m = clip_polygon(&mut cell, n, 0, lx, 1.0);
+            m = clip_polygon(&mut cell, m, 0, lx + 1.0, -1.0);
+            if m < 3 {
+                continue;
+            }
+            let a = polygon_area2(&cell, m).abs();
+            if a > 0.0 {
+                add(x, y, value * (a / total));
+            }
+        }
+    }
+}
+
+/// The caustics of the surfels under the stage's light (§5.1), CPU reference.
+pub fn caustics_cpu(stage: &Stage, surfels: &[Surfel]) -> Result<Caustics, OpticsError> {
+    let screen = stage.views.screen;
+    let map = stage.views.map;
+    let water = render_view_cpu(surfels, &screen);
+    let ior = stage.scene.water.ior;
+    let sigma = stage.scene.water.extinction;
+    let eps = 1e-5 * stage.size;
+    let (sw, sh) = (screen.width, screen.height);
+    // 1.-3. water point, refracted ray and its hit on the receiver, per screen pixel
+    let vertices: Vec<CausticVertex> = (0..(sw * sh) as usize)
+        .into_par_iter()
+        .map(|i| {
+            let Some((n_acc, depth)) = water_at(&water, i) else {
+                return CausticVertex::default();
+            };
+            let (x, y) = (i as u32 % sw, i as u32 / sw);
+            let s = point_at(&screen, x, y, depth);
+            let (inc, _) = stage.incoming(s);
+            let n = unit_or(n_acc, -inc);
+            let cos_i = -n.dot(inc);
+            let (dir, transmittance) = match refract(inc, n, 1.0, ior) {
+                Some(t) if cos_i > 0.0 => (t, 1.0 - fresnel_reflectance(cos_i, 1.0, ior)),
+                _ => (inc, 0.0),
+            };
+            let mut v = CausticVertex {
+                surface: s.extend(depth),
+                ..Default::default()
+            };
+            if let Some(h) = stage.receiver.intersect(s, dir, eps) {
+                v.hit = h.position.extend(1.0);
+                v.transmit = transmittance * (-sigma * h.t).exp();
+            }
+            v
+        })
+        .collect();
+    // the geometry map: the receiver seen from the light, per map texel
+    let (mw, mh) = (map.width, map.height);
+    let (geometry, normals): (Vec<[f32; 4]>, Vec<[f32; 4]>) = (0..(mw * mh) as usize)
+        .into_par_iter()
+        .map(|i| {
+            let (x, y) = (i as u32 % mw, i as u32 / mw);
+            let (o, d) = map.world_ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
+            match stage.receiver.intersect(o, d, 0.0) {
+                Some(h) => (
+                    h.position.extend(h.t).to_array(),
+                    h.normal.extend(0.0).to_array(),
+                ),
+                None => ([0.0; 4], [0.0; 4]),
+            }
+        })
+        .unzip();
+    // 4. caustics triangles, drawn in order (deterministic)
+    let mut flux = vec![[0.0f32; 4]; (mw * mh) as usize];
+    let mut out = Caustics {
+        screen,
+        map,
+        vertices: Vec::new(),
+        flux: Vec::new(),
+        irradiance: Vec::new(),
+        geometry,
+        normals,
+        incident: Vec3::ZERO,
+        transmitted: Vec3::ZERO,
+        triangles: 0,
+        discontinuous: 0,
+        missed: 0,
+    };
+    let limit = stage.scene.optics.discontinuity;
+    for y in 0..sh.saturating_sub(1) {
+        for x in 0..sw.saturating_sub(1) {
+            let k = |dx: u32, dy: u32| ((y + dy) * sw + x + dx) as usize;
+            for tri in [[k(0, 0), k(1, 0), k(0, 1)], [k(1, 1), k(0, 1), k(1, 0)]] {
+                let v = tri.map(|j| vertices[j]);
+                match triangle_flux(stage, &screen, &v, limit) {
+                    TriangleFlux::NoWater => {}
+                    TriangleFlux::Discontinuous(incident) => {
+                        out.incident += incident;
+                        out.discontinuous += 1;
+                    }
+                    TriangleFlux::Missed(incident) => {
+                        out.incident += incident;
+                        out.missed += 1;
+                    }
+                    TriangleFlux::Lit { incident, flux: f } => {
+                        out.incident += incident;
+                        out.transmitted += f;
+                        out.triangles += 1;
+                        let p = v.map(|c| map.project(c.hit.truncate()).truncate());
+                        deposit(&mut flux, mw, mh, p, f);
+                    }
+                }
+            }
+        }
+    }
+    out.irradiance = flux
+        .iter()
+        .enumerate()
+        .map(|(i, f)| irradiance_of(&map, i, *f, out.geometry[i], out.normals[i]))
+        .collect();
+    out.flux = flux;
+    out.vertices = vertices;
+    Ok(out)
+}
+
+/// Irradiance of a map texel from its flux, `texel_irradiance` in the WGSL.
+pub(crate) fn irradiance_of(
+    map: &View,
+    i: usize,
+    flux: [f32; 4],
+    geometry: [f32; 4],
+    normal: [f32; 4],
+) -> [f32; 4] {
+    if !(geometry[3] > 0.0) {
+        return [0.0; 4];
+    }
+    let (x, y) = (i as u32 % map.width, i as u32 / map.width);
+    let (_, d) = map.world_ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
+    let area = texel_area(map, d, geometry[3], Vec4::from(normal).truncate());
+    let e = Vec3::new(flux[0], flux[1], flux[2]) / area;
+    e.extend(1.0).to_array()
+}
+
+/// What one water triangle contributes.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum TriangleFlux {
+    /// A vertex without water: not part of the surface.
+    NoWater,
+    /// Spans a depth discontinuity: its incident flux, dropped.
+    Discontinuous(Vec3),
+    /// A refracted ray missed the receiver: its incident flux, lost.
+    Missed(Vec3),
+    /// Incident flux and the flux it carries to the receiver.
+    Lit { incident: Vec3, flux: Vec3 },
+}
+
+/// Eq. 3 for one triangle (see the module docs): `triangle_flux` in the WGSL.
+pub fn triangle_flux(
+    stage: &Stage,
+    screen: &View,
+    v: &[CausticVertex; 3],
+    discontinuity: f32,
+) -> TriangleFlux {
+    if v.iter().any(|c| !(c.surface.w > 0.0)) {
+        return TriangleFlux::NoWater;
+    }
+    let s = v.map(|c| c.surface.truncate());
+    let centroid = (s[0] + s[1] + s[2]) / 3.0;
+    let (inc, e_perp) = stage.incoming(centroid);
+    let area = 0.5 * (s[1] - s[0]).cross(s[2] - s[0]).dot(inc).abs();
+    let incident = e_perp * area;
+    let (d0, d1) = v.iter().fold((f32::MAX, f32::MIN), |(a, b), c| {
+        (a.min(c.surface.w), b.max(c.surface.w))
+    });
+    if d1 - d0 > discontinuity * pixel_size(screen, d1) {
+        return TriangleFlux::Discontinuous(incident);
+    }
+    if v.iter().any(|c| !(c.hit.w > 0.0)) {
+        return TriangleFlux::Missed(incident);
+    }
+    let transmit = (v[0].transmit + v[1].transmit + v[2].transmit) / 3.0;
+    TriangleFlux::Lit {
+        incident,
+        flux: incident * transmit,
+    }
+}
+
+impl Caustics {
+    /// Total flux in the map.
+    #[must_use]
+    pub fn total_flux(&self) -> Vec3 {
+        self.flux
+            .iter()
+            .fold(Vec3::ZERO, |a, f| a + Vec3::new(f[0], f[1], f[2]))
+    }
+
+    /// Caustics irradiance at a world point, bilinear in the map (`caustics_at` in the WGSL).
+    #[must_use]
+    pub fn irradiance_at(&self, p: Vec3) -> Vec3 {
+        bilinear(&self.irradiance, &self.map, self.map.project(p).truncate())
+    }
+
+    /// Whether the light reaches `p` through the water (`under_water` in the WGSL): the screen
+    /// pixel over `p` sees water nearer the light than `p`.
+    #[must_use]
+    pub fn under_water(&self, p: Vec3) -> bool {
+        let q = self.screen.project(p);
+        if !(q.x >= 0.0 && q.y >= 0.0) {
+            return false;
+        }
+        let (x, y) = (q.x as u32, q.y as u32);
+        if x >= self.screen.width || y >= self.screen.height {
+            return false;
+        }
+        let w = self.vertices[(y * self.screen.width + x) as usize]
+            .surface
+            .w;
+        w > 0.0 && w < q.z
+    }
+
+    /// Whether the receiver shadows `p` from the light (`shadowed` in the WGSL): the geometry map
+    /// sees the receiver nearer the light than `p` by more than two texels.
+    #[must_use]
+    pub fn shadowed(&self, p: Vec3) -> bool {
+        let q = self.map.project(p);
+        if !(q.x >= 0.0 && q.y >= 0.0) {
+            return false;
+        }
+        let (x, y) = (q.x as u32, q.y as u32);
+        if x >= self.map.width || y >= self.map.height {
+            return false;
+        }
+        let g = self.geometry[(y * self.map.width + x) as usize][3];
+        g > 0.0 && g < q.z - 2.0 * pixel_size(&self.map, q.z)
+    }
+
+    /// A picture of the map: the irradiance arriving on the receiver as the light sees it
+    /// (direct light where no water covers it, plus the caustics), the light's own irradiance
+    /// shown as mid grey, gamma-encoded.
+    #[must_use]
+    pub fn image(&self, stage: &Stage) -> RgbaImage {
+        let centre = (stage.receiver.bounds().0 + stage.receiver.bounds().1) * 0.5;
+        let reference = stage.incoming(centre).1.max_element().max(1e-30);
+        RgbaImage::from_fn(self.map.width, self.map.height, |x, y| {
+            let i = (y * self.map.width + x) as usize;
+            let g = self.geometry[i];
+            if !(g[3] > 0.0) {
+                return image::Rgba([0, 0, 0, 255]);
+            }
+            let p = Vec3::new(g[0], g[1], g[2]);
+            let n = Vec4::from(self.normals[i]).truncate();
+            let e = receiver_irradiance(stage, self, p, n);
+            let [r, g, b] = encode(e * (0.5 / reference));
+            image::Rgba([r, g, b, 255])
+        })
+    }
+}
+
+/// Bilinear sample of an RGB map at pixel coordinates (texel centres at `i + 0.5`), clamped to the
+/// edge. `bilinear` in the WGSL.
+pub(crate) fn bilinear(map: &[[f32; 4]], v: &View, q: Vec2) -> Vec3 {
+    if !q.is_finite() {
+        return Vec3::ZERO;
+    }
+    let (w, h) = (v.width as i64, v.height as i64);
+    let x = q.x - 0.5;
+    let y = q.y - 0.5;
+    if x < -1.0 || y < -1.0 || x > w as f32 || y > h as f32 {
+        return Vec3::ZERO;
+    }
+    let (fx, fy) = (x.floor(), y.floor());
+    let (tx, ty) = (x - fx, y - fy);
+    let at = |i: i64, j: i64| {
+        let t = map[(j.clamp(0, h - 1) * w + i.clamp(0, w - 1)) as usize];
+        Vec3::new(t[0], t[1], t[2])
+    };
+    let (i, j) = (fx as i64, fy as i64);
+    let top = at(i, j).lerp(at(i + 1, j), tx);
+    let bottom = at(i, j + 1).lerp(at(i + 1, j + 1), tx);
+    top.lerp(bottom, ty)
+}
+
+/// Irradiance arriving at the receiver point `p` (normal `n`, either side): direct light where
+/// neither the water nor the receiver covers it, plus the caustics. `receiver_irradiance` in
+/// the WGSL.
+#[must_use]
+pub fn receiver_irradiance(stage: &Stage, c: &Caustics, p: Vec3, n: Vec3) -> Vec3 {
+    let (inc, e) = stage.incoming(p);
+    let facing = n.dot(-inc);
+    let direct = if facing > 0.0 && !c.under_water(p) && !c.shadowed(p) {
+        e * facing
+    } else {
+        Vec3::ZERO
+    };
+    direct + c.irradiance_at(p)
+}
+
+/// Radiance of the receiver at `p` seen along `view_dir` (eq. 3's `f_r E + L_a`).
+fn receiver_radiance(stage: &Stage, c: &Caustics, p: Vec3, n: Vec3) -> Vec3 {
+    stage.albedo(p, n) * receiver_irradiance(stage, c, p, n) + stage.scene.light.ambient
+}
+
+/// A finished frame.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameImage {
+    /// Display image (gamma-encoded).
+    pub image: RgbaImage,
+    /// Linear radiance per pixel, row-major from the top (`w = 1` where water covers it).
+    pub linear: Vec<[f32; 4]>,
+    /// The camera's splatting of the water (eq. 2 buffers).
+    pub water: Render,
+}
+
+/// The final image (§5.2), CPU reference: splatted water from the camera, per pixel Fresnel blend
+/// of the reflected ray's environment and the refracted ray's receiver (with caustics),
+/// attenuated by `exp(-sigma_t l)`; the receiver and environment where there is no water.
+pub fn frame_cpu(
+    stage: &Stage,
+    surfels: &[Surfel],
+    caustics: &Caustics,
+    size: (u32, u32),
+) -> Result<FrameImage, OpticsError> {
+    let view = View::new(
+        &stage.camera,
+        &Light::default(),
+        &stage.scene.optics.splat,
+        size.0,
+        size.1,
+    )?;
+    let water = render_view_cpu(surfels, &view);
+    let linear: Vec<[f32; 4]> = (0..(size.0 * size.1) as usize)
+        .into_par_iter()
+        .map(|i| {
+            let (x, y) = (i as u32 % size.0, i as u32 / size.0);
+            let (o, d) = view.world_ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
+            let dn = d.normalize();
+            match water_at(&water, i) {
+                Some((n_acc, depth)) => {
+                    let p = o + d * depth;
+                    water_pixel(stage, caustics, p, dn, unit_or(n_acc, -dn)).extend(1.0)
+                }
+                None => dry_pixel(stage, caustics, o, dn).extend(0.0),
+            }
+            .to_array()
+        })
+        .collect();
+    let image = RgbaImage::from_fn(size.0, size.1, |x, y| {
+        let [r, g, b] = encode(Vec4::from(linear[(y * size.0 + x) as usize]).truncate());
+        image::Rgba([r, g, b, 255])
+    });
+    Ok(FrameImage {
+        image,
+        linear,
+        water,
+    })
+}
+
+fn dry_pixel(stage: &Stage, caustics: &Caustics, o: Vec3, dn: Vec3) -> Vec3 {
+    match stage.receiver.intersect(o, dn, 0.0) {
+        Some(h) => receiver_radiance(stage, caustics, h.position, h.normal),
+        None => stage.scene.environment.colour(dn),
+    }
+}
+
+/// One water pixel: `water_pixel` in the WGSL (there the refracted ray's hit comes from the
+/// geometry-map search instead of the BVH).
+fn water_pixel(stage: &Stage, caustics: &Caustics, p: Vec3, dn: Vec3, n: Vec3) -> Vec3 {
+    let ior = stage.scene.water.ior;
+    let sigma = stage.scene.water.extinction;
+    let mut n = n;
+    let mut cos_i = -n.dot(dn);
+    if cos_i < 0.0 {
+        n = -n;
+        cos_i = -cos_i;
+    }
+    let reflected = stage.scene.environment.colour(dn + 2.0 * cos_i * n);
+    let r = fresnel_reflectance(cos_i, 1.0, ior);
+    let refracted = match refract(dn, n, 1.0, ior) {
+        Some(t) => match stage.receiver.intersect(p, t, 1e-5 * stage.size) {
+            Some(h) => {
+                receiver_radiance(stage, caustics, h.position, h.normal) * (-sigma * h.t).exp()
+            }
+            None => stage.scene.environment.colour(t) * (-sigma * stage.size).exp(),
+        },
+        None => Vec3::ZERO,
+    };
+    reflected * r + refracted * (1.0 - r)
+}

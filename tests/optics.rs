@@ -1,0 +1,343 @@
+//! The optics stage (Iwasaki et al. §5): caustics and the final image, CPU reference and GPU.
+
+use fluid_surfels::optics::{
+    Caustics, LightKind, OpticsScene, ReceiverKind, Stage, caustics_cpu, frame_cpu,
+    fresnel_reflectance, refract,
+};
+use fluid_surfels::scenes::{height_field, water_lens};
+use fluid_surfels::splat::Surfel;
+use glam::{Vec2, Vec3};
+
+/// Flat water at `depth` over a floor at y = 0, light from straight above; the screen covers
+/// `|x|, |z| <= window` inside the water.
+fn flat_scene(depth: f32, window: f32, screen: u32, map: u32) -> (OpticsScene, Vec<Surfel>) {
+    let surfels = height_field(1.0, 0.02, |_, _| depth);
+    let mut scene = OpticsScene::default();
+    scene.light.direction = Vec3::Y;
+    scene.light.colour = Vec3::new(1.0, 0.8, 0.6);
+    scene.water.extinction = Vec3::new(0.4, 0.2, 0.1);
+    scene.receiver.kind = ReceiverKind::Plane;
+    scene.receiver.min = Vec3::new(-1.2, 0.0, -1.2);
+    scene.receiver.max = Vec3::new(1.2, 1.0, 1.2);
+    scene.optics.screen_bounds = Some([
+        Vec3::new(-window, 0.0, -window),
+        Vec3::new(window, 1.0, window),
+    ]);
+    scene.optics.caustics_resolution = Some([screen, screen]);
+    scene.optics.map_resolution = Some([map, map]);
+    (scene, surfels)
+}
+
+fn normal_transmittance(ior: f32) -> f32 {
+    1.0 - ((ior - 1.0) / (ior + 1.0)).powi(2)
+}
+
+/// Side of the square the water triangles cover: they join pixel centres, so the window's outer
+/// half-pixel ring is not sampled.
+fn sampled_side(window: f32, pixels: u32) -> f32 {
+    2.0 * window * (pixels - 1) as f32 / pixels as f32
+}
+
+#[test]
+fn flat_water_gives_a_uniform_map_carrying_the_transmitted_flux() {
+    let depth = 0.5;
+    let (scene, surfels) = flat_scene(depth, 0.8, 128, 256);
+    let stage = Stage::new(&scene, &surfels).unwrap();
+    let c = caustics_cpu(&stage, &surfels).unwrap();
+    let t0 = normal_transmittance(1.33);
+    let expected_e = scene.light.colour * t0 * (-scene.water.extinction * depth).exp();
+    // away from the edges: texels whose centre lies 3 texels inside the sampled square
+    let side = sampled_side(0.8, 128);
+    let texel = 2.0 * c.map.half_extent().x / c.map.width as f32;
+    let mut worst = 0f32;
+    let mut inner = 0;
+    for (i, e) in c.irradiance.iter().enumerate() {
+        let g = c.geometry[i];
+        if g[3] > 0.0
+            && g[0].abs() < side / 2.0 - 3.0 * texel
+            && g[2].abs() < side / 2.0 - 3.0 * texel
+        {
+            inner += 1;
+            let rel = (Vec3::new(e[0], e[1], e[2]) / expected_e - 1.0)
+                .abs()
+                .max_element();
+            if rel > worst {
+                println!("texel {i} at {g:?}: {e:?}");
+            }
+            worst = worst.max(rel);
+        }
+    }
+    println!(
+        "flat water: {inner} inner texels, largest deviation from the analytic irradiance {:.4} %",
+        worst * 100.0
+    );
+    assert!(inner > 10_000, "{inner}");
+    assert!(worst < 0.005, "{worst}");
+    let incident = scene.light.colour * side * side;
+    let expected = incident * t0 * (-scene.water.extinction * depth).exp();
+    let total = c.total_flux();
+    let rel = (total / expected - 1.0).abs().max_element();
+    println!(
+        "flat water: total {total:?}, expected {expected:?}, relative {:.5} %",
+        rel * 100.0
+    );
+    assert!(rel < 0.02, "{rel}");
+    assert!((c.incident / incident - 1.0).abs().max_element() < 1e-3);
+    assert!(total.cmple(incident).all());
+}
+
+/// Peak irradiance of the map.
+fn peak(c: &Caustics) -> f32 {
+    c.irradiance.iter().map(|e| e[0]).fold(0.0, f32::max)
+}
+
+fn lens_scene(floor_depth: f32) -> (OpticsScene, Vec<Surfel>) {
+    // curvature radius 1, vertex at y = 0, floor `floor_depth` below it
+    let surfels = water_lens(1.0, 0.2, 0.0, 0.004);
+    let mut scene = OpticsScene::default();
+    scene.light.direction = Vec3::Y;
+    scene.water.extinction = Vec3::ZERO;
+    scene.receiver.kind = ReceiverKind::Plane;
+    scene.receiver.min = Vec3::new(-0.2, -floor_depth, -0.2);
+    scene.receiver.max = Vec3::new(0.2, 0.0, 0.2);
+    scene.optics.screen_bounds = Some([Vec3::new(-0.15, -1.0, -0.15), Vec3::new(0.15, 0.0, 0.15)]);
+    scene.optics.caustics_resolution = Some([128, 128]);
+    scene.optics.map_resolution = Some([512, 512]);
+    (scene, surfels)
+}
+
+#[test]
+fn a_lens_focuses_at_the_paraxial_focal_distance_and_conserves_flux() {
+    let ior = 1.33f32;
+    let focal = ior / (ior - 1.0);
+    let mut best = (0.0f32, 0.0f32);
+    let mut curve = Vec::new();
+    for k in -10..=10 {
+        let d = focal * (1.0 + 0.01 * k as f32);
+        let (scene, surfels) = lens_scene(d);
+        let stage = Stage::new(&scene, &surfels).unwrap();
+        let c = caustics_cpu(&stage, &surfels).unwrap();
+        let p = peak(&c);
+        curve.push((d, p));
+        if p > best.1 {
+            best = (d, p);
+        }
+        if k == 0 {
+            // flux: the sampled square's light times the Fresnel transmittance of the sphere's
+            // normal there, integrated numerically (no extinction)
+            let side = sampled_side(0.15, 128);
+            let n = 400;
+            let mut expected = 0.0f64;
+            for j in 0..n {
+                for i in 0..n {
+                    let x = -side / 2.0 + side * (i as f32 + 0.5) / n as f32;
+                    let z = -side / 2.0 + side * (j as f32 + 0.5) / n as f32;
+                    let cos_i = (1.0 - x * x - z * z).sqrt();
+                    expected += f64::from(1.0 - fresnel_reflectance(cos_i, 1.0, ior));
+                }
+            }
+            let expected = expected as f32 * side * side / (n * n) as f32;
+            let total = c.total_flux().x;
+            println!(
+                "lens at the paraxial focus: map total {total}, expected {expected}, peak {p}"
+            );
+            assert!(
+                (total / expected - 1.0).abs() < 0.02,
+                "{total} vs {expected}"
+            );
+            assert!(total <= c.incident.x);
+        }
+    }
+    println!("peak irradiance by floor depth: {curve:?}");
+    let err = (best.0 - focal).abs() / focal;
+    println!(
+        "brightest caustic at depth {:.4}, paraxial focus {focal:.4}: {:.2} % off",
+        best.0,
+        err * 100.0
+    );
+    assert!(err <= 0.02, "{err}");
+    // and it is a real focus: far brighter than the light itself
+    assert!(best.1 > 50.0, "{}", best.1);
+}
+
+#[test]
+fn the_map_never_holds_more_flux_than_fell_on_the_water() {
+    let wavy = height_field(1.0, 0.02, |x, z| {
+        0.5 + 0.04 * (7.0 * x).sin() * (5.0 * z + 1.0).cos()
+    });
+    for (name, surfels, ior) in [
+        ("wavy", wavy.clone(), 1.33f32),
+        ("lens", water_lens(1.0, 0.2, 0.0, 0.004), 1.33),
+        ("dense", wavy, 2.4),
+    ] {
+        let mut scene = OpticsScene::default();
+        scene.light.direction = Vec3::new(0.2, 1.0, 0.1);
+        scene.water.ior = ior;
+        scene.water.extinction = Vec3::ZERO;
+        scene.optics.caustics_resolution = Some([96, 96]);
+        scene.optics.map_resolution = Some([192, 192]);
+        let stage = Stage::new(&scene, &surfels).unwrap();
+        let c = caustics_cpu(&stage, &surfels).unwrap();
+        let total = c.total_flux();
+        // everything the screen can see: the light across its whole window
+        let half = c.screen.half_extent();
+        let window = scene.light.colour * 4.0 * half.x * half.y;
+        println!(
+            "{name}: map {total:?}, through the water {:?}, window {window:?}",
+            c.incident
+        );
+        assert!(total.x > 0.0);
+        assert!(total.cmple(c.incident * 1.000_01).all(), "{name}");
+        assert!(c.incident.cmple(window * 1.000_01).all(), "{name}");
+    }
+}
+
+#[test]
+fn refraction_and_fresnel_follow_snell_and_total_internal_reflection() {
+    let n = Vec3::Y;
+    let i = Vec3::new(0.6, -0.8, 0.0);
+    let t = refract(i, n, 1.0, 1.33).unwrap();
+    let sin_t = t.x;
+    assert!((sin_t * 1.33 - 0.6).abs() < 1e-5);
+    // from water into air beyond the critical angle (sin > 1 / 1.33): none, reflectance 1
+    let steep = Vec3::new(0.8, -0.6, 0.0);
+    assert!(refract(steep, n, 1.33, 1.0).is_none());
+    assert_eq!(fresnel_reflectance(0.6, 1.33, 1.0), 1.0);
+    // normal incidence: ((n - 1) / (n + 1))^2
+    assert!((fresnel_reflectance(1.0, 1.0, 1.33) - 0.02006).abs() < 1e-4);
+    // grazing: everything reflected
+    assert!(fresnel_reflectance(0.0, 1.0, 1.33) > 0.999);
+}
+
+fn assert_finite(name: &str, stage: &Stage, c: &Caustics, surfels: &[Surfel]) {
+    for e in &c.irradiance {
+        assert!(
+            e.iter().all(|v| v.is_finite() && *v >= 0.0),
+            "{name}: irradiance {e:?}"
+        );
+    }
+    let f = frame_cpu(stage, surfels, c, (48, 48)).unwrap();
+    for p in &f.linear {
+        assert!(p.iter().all(|v| v.is_finite()), "{name}: pixel {p:?}");
+    }
+}
+
+#[test]
+fn degenerate_scenes_give_finite_images() {
+    let flat = height_field(1.0, 0.05, |_, _| 0.5);
+    let mut cases: Vec<(&str, OpticsScene, Vec<Surfel>)> = Vec::new();
+    let mut base = OpticsScene::default();
+    base.optics.caustics_resolution = Some([32, 32]);
+    base.optics.map_resolution = Some([48, 48]);
+    cases.push(("empty", base.clone(), Vec::new()));
+    let mut tir = base.clone();
+    tir.water.ior = 0.7;
+    tir.light.direction = Vec3::new(1.0, 0.5, 0.0);
+    cases.push(("total internal reflection", tir, flat.clone()));
+    let mut parallel = base.clone();
+    parallel.light.direction = Vec3::X;
+    cases.push(("light parallel to the water", parallel, flat.clone()));
+    let mut miss = base.clone();
+    miss.receiver.kind = ReceiverKind::Plane;
+    miss.receiver.min = Vec3::new(5.0, 0.0, 5.0);
+    miss.receiver.max = Vec3::new(6.0, 1.0, 6.0);
+    cases.push(("rays that miss the receiver", miss, flat.clone()));
+    let mut point = base.clone();
+    point.light.kind = LightKind::Point;
+    point.light.position = Vec3::new(0.0, 0.6, 0.0);
+    cases.push(("point light just above the water", point, flat.clone()));
+    let mut nan = flat.clone();
+    nan[3].position[0] = f32::NAN;
+    nan[5].normal = [0.0; 3];
+    nan[7].radius = 0.0;
+    cases.push(("NaN and degenerate surfels", base.clone(), nan));
+    for (name, scene, surfels) in cases {
+        let stage = Stage::new(&scene, &surfels).unwrap_or_else(|e| panic!("{name}: {e}"));
+        let c = caustics_cpu(&stage, &surfels).unwrap();
+        assert_finite(name, &stage, &c, &surfels);
+        if name == "total internal reflection" || name == "light parallel to the water" {
+            println!("{name}: map total {:?}", c.total_flux());
+        }
+        if name == "rays that miss the receiver" {
+            assert_eq!(c.triangles, 0);
+            assert!(c.missed > 0);
+        }
+    }
+}
+
+#[test]
+fn bad_scenes_are_refused_with_typed_errors() {
+    let surfels = height_field(1.0, 0.1, |_, _| 0.5);
+    let mut bad = Vec::new();
+    let mut s = OpticsScene::default();
+    s.water.ior = f32::NAN;
+    bad.push(s);
+    let mut s = OpticsScene::default();
+    s.light.direction = Vec3::ZERO;
+    bad.push(s);
+    let mut s = OpticsScene::default();
+    s.optics.caustics_resolution = Some([1, 100_000]);
+    bad.push(s);
+    let mut s = OpticsScene::default();
+    s.receiver.kind = ReceiverKind::OpenBox;
+    s.receiver.max = Vec3::new(1.0, f32::INFINITY, 1.0);
+    bad.push(s);
+    let mut s = OpticsScene::default();
+    s.receiver.kind = ReceiverKind::Mesh;
+    s.receiver.path = Some("/nonexistent/pool.obj".into());
+    bad.push(s);
+    let mut s = OpticsScene::default();
+    s.water.extinction = Vec3::new(-1.0, 0.0, 0.0);
+    bad.push(s);
+    for s in bad {
+        let e = Stage::new(&s, &surfels).unwrap_err();
+        assert!(!e.to_string().is_empty());
+    }
+}
+
+#[test]
+fn obj_meshes_and_toml_scenes_load() {
+    let dir = tempfile::tempdir().unwrap();
+    let obj = dir.path().join("pool.obj");
+    std::fs::write(
+        &obj,
+        "# a floor\nv -1 0 -1\nv 1 0 -1\nv 1 0 1\nv -1 0 1\nf 1 2 3 4\n",
+    )
+    .unwrap();
+    let toml_path = dir.path().join("scene.toml");
+    std::fs::write(
+        &toml_path,
+        "[light]\nkind = \"directional\"\ndirection = [0.0, 1.0, 0.0]\n\n[receiver]\nkind = \"mesh\"\npath = \"pool.obj\"\nchecker = 0.25\n\n[water]\nior = 1.5\n\n[optics]\ncaustics_resolution = [64, 32]\n",
+    )
+    .unwrap();
+    let scene = OpticsScene::from_toml_file(&toml_path).unwrap();
+    assert_eq!(scene.water.ior, 1.5);
+    assert_eq!(scene.optics.caustics_resolution, Some([64, 32]));
+    let surfels = height_field(0.5, 0.05, |_, _| 0.3);
+    let stage = Stage::new(&scene, &surfels).unwrap();
+    assert_eq!(stage.receiver.triangles.len(), 2);
+    assert_eq!(
+        (stage.views.screen.width, stage.views.screen.height),
+        (64, 32)
+    );
+    // malformed files: typed errors naming the line
+    for (text, what) in [
+        ("v 0 0\nf 1 2 3\n", "line 1"),
+        ("v 0 0 0\nf 1 2 9\n", "line 2"),
+        ("v 0 0 0\n", "no faces"),
+    ] {
+        std::fs::write(&obj, text).unwrap();
+        let e = Stage::new(&scene, &surfels).unwrap_err().to_string();
+        assert!(e.contains(what), "{e}");
+    }
+    std::fs::write(&toml_path, "[water]\nior = \"wet\"\n").unwrap();
+    assert!(OpticsScene::from_toml_file(&toml_path).is_err());
+    std::fs::write(&toml_path, "[watre]\nior = 1.2\n").unwrap();
+    assert!(
+        OpticsScene::from_toml_file(&toml_path)
+            .unwrap_err()
+            .to_string()
+            .contains("watre")
+    );
+    let _ = Vec2::ZERO;
+}
