@@ -1,6 +1,9 @@
 //! The CPU reference of the optics stage: caustics (§5.1) and the final image (§5.2), with exact
 //! ray-triangle intersection in the receiver's BVH.
 
+// `!(x > 0.0)` on purpose throughout: NaN compares false and is rejected with the rest
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 use glam::{Vec2, Vec3, Vec4};
 use image::RgbaImage;
 use rayon::prelude::*;

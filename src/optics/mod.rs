@@ -45,6 +45,9 @@
 //! (a shadow-map test in the caustics map's geometry), plus the caustics map's irradiance: light
 //! through the water is redistributed, never added. Its radiance is eq. 3's `f_r E + L_a`.
 
+// `!(x > 0.0)` on purpose throughout: NaN compares false and is rejected with the rest
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 mod cpu;
 pub mod receiver;
 
@@ -392,8 +395,10 @@ impl OpticsScene {
 
     fn validate(&self) -> Result<(), OpticsError> {
         let l = &self.light;
-        if !(l.colour.is_finite() && l.colour.min_element() >= 0.0)
-            || !(l.ambient.is_finite() && l.ambient.min_element() >= 0.0)
+        if !(l.colour.is_finite()
+            && l.colour.min_element() >= 0.0
+            && l.ambient.is_finite()
+            && l.ambient.min_element() >= 0.0)
         {
             return Err(invalid(
                 "light",

@@ -1,5 +1,8 @@
 //! The receiver: the pool's floor and walls (any triangle mesh), with a BVH for the CPU reference.
 
+// `!(x > 0.0)` on purpose throughout: NaN compares false and is rejected with the rest
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
