@@ -341,3 +341,158 @@ fn obj_meshes_and_toml_scenes_load() {
     );
     let _ = Vec2::ZERO;
 }
+
+// ---- GPU path (lavapipe in CI) ----
+
+use fluid_surfels::gpu::context_or_skip;
+use fluid_surfels::gpu::optics::render_gpu;
+
+fn relative_l1(a: &[[f32; 4]], b: &[[f32; 4]]) -> f64 {
+    let mut num = 0.0f64;
+    let mut den = 0.0f64;
+    for (x, y) in a.iter().zip(b) {
+        for k in 0..3 {
+            num += f64::from((x[k] - y[k]).abs());
+            den += f64::from(x[k].abs());
+        }
+    }
+    num / den.max(1e-30)
+}
+
+fn wavy_scene() -> (OpticsScene, Vec<Surfel>) {
+    let surfels = height_field(1.0, 0.02, |x, z| 0.5 + 0.03 * (6.0 * x).sin() * (4.0 * z + 1.0).cos());
+    let mut scene = OpticsScene::default();
+    scene.light.direction = Vec3::new(0.25, 1.0, 0.15);
+    scene.water.extinction = Vec3::new(0.6, 0.2, 0.1);
+    scene.receiver.kind = ReceiverKind::OpenBox;
+    scene.receiver.min = Vec3::new(-1.1, 0.0, -1.1);
+    scene.receiver.max = Vec3::new(1.1, 0.8, 1.1);
+    scene.receiver.checker = 0.25;
+    scene.optics.caustics_resolution = Some([128, 128]);
+    scene.optics.map_resolution = Some([256, 256]);
+    (scene, surfels)
+}
+
+#[test]
+fn gpu_caustics_agree_with_the_cpu_reference() {
+    let Some(ctx) = context_or_skip("gpu_caustics_agree_with_the_cpu_reference").unwrap() else {
+        return;
+    };
+    let (flat, flat_surfels) = flat_scene(0.5, 0.8, 128, 256);
+    let (lens, lens_surfels) = lens_scene(1.33 / 0.33);
+    let (wavy, wavy_surfels) = wavy_scene();
+    for (name, scene, surfels) in [
+        ("flat", flat, flat_surfels),
+        ("lens", lens, lens_surfels),
+        ("wavy", wavy, wavy_surfels),
+    ] {
+        let stage = Stage::new(&scene, &surfels).unwrap();
+        let cpu = caustics_cpu(&stage, &surfels).unwrap();
+        let (gpu, times) = render_gpu(&ctx, &stage, &surfels, None).unwrap();
+        let l1 = relative_l1(&cpu.irradiance, &gpu.irradiance);
+        let flux_l1 = relative_l1(&cpu.flux, &gpu.flux);
+        let gpu_total: f32 = gpu.flux.iter().map(|f| f[0]).sum();
+        println!(
+            "{name}: relative L1 of the irradiance maps {:.4} %, of the flux maps {:.4} %; totals CPU {} GPU {gpu_total}; GPU {:.1} ms",
+            l1 * 100.0,
+            flux_l1 * 100.0,
+            cpu.total_flux().x,
+            times.caustics_ms
+        );
+        assert!(l1 < 0.03, "{name}: {l1}");
+        assert!(gpu_total <= cpu.incident.x * 1.0001, "{name}");
+        assert!(gpu.irradiance.iter().flatten().all(|v| v.is_finite()));
+    }
+}
+
+fn golden_scene() -> (OpticsScene, Vec<Surfel>) {
+    let (mut scene, surfels) = wavy_scene();
+    // steep enough that the front wall hides little of the floor under the water: the GPU path
+    // finds refracted hits in the camera's geometry map (§5.2), which holds only what the camera
+    // sees, where the CPU reference traces the BVH (see `search_receiver` in optics.wgsl)
+    scene.camera = Some(fluid_surfels::splat::Camera {
+        eye: Vec3::new(0.7, 3.2, 2.0),
+        target: Vec3::new(0.0, 0.2, 0.0),
+        fov_y_degrees: 40.0,
+        near: 0.5,
+        far: 8.0,
+        ..Default::default()
+    });
+    scene.water.extinction = Vec3::new(1.2, 0.35, 0.2);
+    (scene, surfels)
+}
+
+#[test]
+fn golden_frame_cpu_and_gpu_agree() {
+    let (scene, surfels) = golden_scene();
+    let stage = Stage::new(&scene, &surfels).unwrap();
+    let c = caustics_cpu(&stage, &surfels).unwrap();
+    let cpu = frame_cpu(&stage, &surfels, &c, (128, 128)).unwrap();
+    let golden_path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden/optics_frame.png");
+    if std::env::var("FLUID_SURFELS_BLESS").is_ok_and(|v| v == "1") {
+        std::fs::create_dir_all(golden_path.parent().unwrap()).unwrap();
+        cpu.image.save(&golden_path).unwrap();
+    }
+    let golden = image::open(&golden_path)
+        .unwrap_or_else(|e| panic!("{}: {e} (FLUID_SURFELS_BLESS=1 writes it)", golden_path.display()))
+        .to_rgba8();
+    let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("optics");
+    std::fs::create_dir_all(&out).unwrap();
+    let cpu_vs_golden = fluid_surfels::splat::psnr(&cpu.image, &golden);
+    println!("CPU reference vs golden: {cpu_vs_golden:.1} dB");
+    if cpu_vs_golden < 45.0 {
+        cpu.image.save(out.join("cpu.png")).unwrap();
+    }
+    assert!(cpu_vs_golden >= 45.0, "{cpu_vs_golden}");
+    let water = cpu.linear.iter().filter(|p| p[3] > 0.0).count();
+    assert!(water > 3000, "{water} water pixels");
+    let Some(ctx) = context_or_skip("golden_frame_cpu_and_gpu_agree").unwrap() else {
+        return;
+    };
+    let (gpu, times) = render_gpu(&ctx, &stage, &surfels, Some((128, 128))).unwrap();
+    let (image, linear) = gpu.frame.unwrap();
+    let db = fluid_surfels::splat::psnr(&image, &golden);
+    println!("GPU vs golden (CPU reference): {db:.1} dB; GPU caustics {:.1} ms, frame {:.1} ms", times.caustics_ms, times.frame_ms);
+    if db < 35.0 {
+        image.save(out.join("gpu.png")).unwrap();
+        golden.save(out.join("golden.png")).unwrap();
+        fluid_surfels::splat::difference_image(&image, &golden, 8).save(out.join("difference.png")).unwrap();
+    }
+    assert!(db >= 35.0, "{db} dB; images in {}", out.display());
+    assert!(linear.iter().flatten().all(|v| v.is_finite()));
+}
+
+#[test]
+fn degenerate_scenes_give_finite_gpu_images() {
+    let Some(ctx) = context_or_skip("degenerate_scenes_give_finite_gpu_images").unwrap() else {
+        return;
+    };
+    let flat = height_field(1.0, 0.05, |_, _| 0.5);
+    let mut base = OpticsScene::default();
+    base.optics.caustics_resolution = Some([32, 32]);
+    base.optics.map_resolution = Some([48, 48]);
+    let mut tir = base.clone();
+    tir.water.ior = 0.7;
+    tir.light.direction = Vec3::new(1.0, 0.5, 0.0);
+    let mut parallel = base.clone();
+    parallel.light.direction = Vec3::X;
+    let mut miss = base.clone();
+    miss.receiver.kind = ReceiverKind::Plane;
+    miss.receiver.min = Vec3::new(5.0, 0.0, 5.0);
+    miss.receiver.max = Vec3::new(6.0, 1.0, 6.0);
+    let mut point = base.clone();
+    point.light.kind = LightKind::Point;
+    point.light.position = Vec3::new(0.0, 0.6, 0.0);
+    for (name, scene, surfels) in [
+        ("empty", base.clone(), Vec::new()),
+        ("total internal reflection", tir, flat.clone()),
+        ("light parallel to the water", parallel, flat.clone()),
+        ("rays that miss the receiver", miss, flat.clone()),
+        ("point light", point, flat.clone()),
+    ] {
+        let stage = Stage::new(&scene, &surfels).unwrap();
+        let (gpu, _) = render_gpu(&ctx, &stage, &surfels, Some((32, 32))).unwrap();
+        assert!(gpu.irradiance.iter().flatten().all(|v| v.is_finite()), "{name}");
+        assert!(gpu.frame.unwrap().1.iter().flatten().all(|v| v.is_finite()), "{name}");
+    }
+}

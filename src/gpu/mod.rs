@@ -5,6 +5,7 @@
 //! with naga.
 
 pub mod density;
+pub mod optics;
 pub mod splat;
 
 use serde::Serialize;

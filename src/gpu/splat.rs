@@ -577,7 +577,7 @@ pub fn render_timed(
 }
 
 /// Copies a 2D texture back, rows unpadded.
-fn read_texture(
+pub(crate) fn read_texture(
     ctx: &GpuContext,
     texture: &wgpu::Texture,
     texel_bytes: u32,

@@ -370,10 +370,11 @@ impl Caustics {
         w > 0.0 && w < q.z
     }
 
-    /// Whether the receiver shadows `p` from the light (`shadowed` in the WGSL): the geometry map
-    /// sees the receiver nearer the light than `p` by more than two texels.
+    /// Whether the receiver shadows `p` (normal `n`) from the light (`shadowed` in the WGSL): the
+    /// geometry map sees the receiver nearer the light than `p` by more than a slope-scaled bias
+    /// (1.5 texels plus twice the surface's depth change across a texel, capped at 40 texels).
     #[must_use]
-    pub fn shadowed(&self, p: Vec3) -> bool {
+    pub fn shadowed(&self, p: Vec3, n: Vec3) -> bool {
         let q = self.map.project(p);
         if !(q.x >= 0.0 && q.y >= 0.0) {
             return false;
@@ -383,7 +384,10 @@ impl Caustics {
             return false;
         }
         let g = self.geometry[(y * self.map.width + x) as usize][3];
-        g > 0.0 && g < q.z - 2.0 * pixel_size(&self.map, q.z)
+        let (_, d) = self.map.world_ray(Vec2::new(q.x, q.y));
+        let c = (n.dot(d) / d.length().max(1e-20)).abs();
+        let slope = ((1.0 - c * c).max(0.0).sqrt() / c.max(0.05)).min(20.0);
+        g > 0.0 && g < q.z - (1.5 + 2.0 * slope) * pixel_size(&self.map, q.z)
     }
 
     /// A picture of the map: the irradiance arriving on the receiver as the light sees it
@@ -439,7 +443,7 @@ pub(crate) fn bilinear(map: &[[f32; 4]], v: &View, q: Vec2) -> Vec3 {
 pub fn receiver_irradiance(stage: &Stage, c: &Caustics, p: Vec3, n: Vec3) -> Vec3 {
     let (inc, e) = stage.incoming(p);
     let facing = n.dot(-inc);
-    let direct = if facing > 0.0 && !c.under_water(p) && !c.shadowed(p) {
+    let direct = if facing > 0.0 && !c.under_water(p) && !c.shadowed(p, n) {
         e * facing
     } else {
         Vec3::ZERO

@@ -285,7 +285,8 @@ pub struct OpticsParams {
     /// Iterations of the geometry-map search (§5.1.2, GPU path).
     pub max_iterations: u32,
     /// The search's threshold on the distance between the point on the ray and the receiver
-    /// point found for it, as a fraction of the scene's size (§5.1.2: "specified by the user").
+    /// point found for it, in pixels of the map searched at that depth (§5.1.2: "specified by
+    /// the user").
     pub tolerance: f32,
     /// Water triangles whose depths from the light differ by more than this many screen pixels
     /// (pixel size at their depth) join different surfaces (a drop over the pool) and carry no
@@ -305,7 +306,7 @@ impl Default for OpticsParams {
             map_resolution: None,
             image_size: [512, 512],
             max_iterations: 16,
-            tolerance: 1e-3,
+            tolerance: 0.02,
             discontinuity: 8.0,
             screen_bounds: None,
             splat: SplatParams::default(),
@@ -339,8 +340,8 @@ impl OpticsParams {
         if !(1..=256).contains(&self.max_iterations) {
             return Err(invalid("max_iterations", "must lie in 1..=256"));
         }
-        if !(self.tolerance > 0.0 && self.tolerance < 1.0) {
-            return Err(invalid("tolerance", "must lie in (0, 1)"));
+        if !(self.tolerance > 0.0 && self.tolerance <= 10.0) {
+            return Err(invalid("tolerance", "must lie in (0, 10] pixels"));
         }
         if !(self.discontinuity > 0.0) {
             return Err(invalid(

@@ -1,0 +1,749 @@
+//! The optics stage on the GPU (`shaders/optics.wgsl`, `shaders/optics_geometry.wgsl`): caustics
+//! through illumination volumes and the final image, tested against the CPU reference of
+//! [`crate::optics`].
+//!
+//! [`OpticsGpu::prepare`] creates every target and buffer for one stage (the light's splatting,
+//! the geometry maps, the caustics map, the camera's splatting and the image) on the given device;
+//! [`PreparedOptics::encode_caustics`] and [`PreparedOptics::encode_frame`] record the passes into
+//! the caller's encoder, and [`PreparedOptics::read`] copies the results back. [`render_gpu`] does
+//! all of it headless.
+
+use std::time::Instant;
+
+use glam::{Vec3, Vec4};
+use image::RgbaImage;
+use serde::Serialize;
+use wgpu::util::DeviceExt;
+
+use super::splat::{SplatRenderer, SurfelBuffer, read_texture};
+use super::{GpuContext, GpuError};
+use crate::optics::{EnvironmentKind, LightKind, OpticsError, Stage, encode};
+use crate::splat::{Light, Surfel, View};
+
+/// The WGSL of the caustics and final-image passes.
+pub const SHADER: &str = include_str!("../../shaders/optics.wgsl");
+/// The WGSL of the geometry-map pass.
+pub const GEOMETRY_SHADER: &str = include_str!("../../shaders/optics_geometry.wgsl");
+
+const FLOAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
+const DEPTH: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+
+/// A view as the shader reads it (`ViewU`, 224 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RawView {
+    pub view: [[f32; 4]; 4],
+    pub inv_view: [[f32; 4]; 4],
+    pub proj: [[f32; 4]; 4],
+    pub viewport: [f32; 2],
+    pub tan_half: [f32; 2],
+    pub flags: [f32; 4],
+}
+
+impl RawView {
+    fn of(v: &View) -> Self {
+        let (view, inv_view, proj) = v.matrices();
+        Self {
+            view: view.to_cols_array_2d(),
+            inv_view: inv_view.to_cols_array_2d(),
+            proj: proj.to_cols_array_2d(),
+            viewport: [v.width as f32, v.height as f32],
+            tan_half: v.half_extent().to_array(),
+            flags: [f32::from(u8::from(v.is_orthographic())), 0.0, 0.0, 0.0],
+        }
+    }
+}
+
+/// The optics uniforms (`Uniforms` in optics.wgsl, 864 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RawOptics {
+    pub screen: RawView,
+    pub map: RawView,
+    pub camera: RawView,
+    pub light_dir: [f32; 4],
+    pub light_pos: [f32; 4],
+    pub light_colour: [f32; 4],
+    pub ambient: [f32; 4],
+    pub water: [f32; 4],
+    pub extinction: [f32; 4],
+    pub albedo: [f32; 4],
+    pub env: [f32; 4],
+    pub env_colour: [f32; 4],
+    pub env_horizon: [f32; 4],
+    pub env_zenith: [f32; 4],
+    pub env_ground: [f32; 4],
+}
+
+/// The geometry pass's uniforms (`GeometryU`, 144 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RawGeometry {
+    pub view_proj: [[f32; 4]; 4],
+    pub view: [[f32; 4]; 4],
+    pub eye: [f32; 4],
+}
+
+impl RawGeometry {
+    fn of(v: &View) -> Self {
+        let (view, inv_view, proj) = v.matrices();
+        let eye = if v.is_orthographic() {
+            v.forward().extend(1.0)
+        } else {
+            (inv_view * Vec4::W).truncate().extend(0.0)
+        };
+        Self {
+            view_proj: (proj * view).to_cols_array_2d(),
+            view: view.to_cols_array_2d(),
+            eye: eye.to_array(),
+        }
+    }
+}
+
+fn raw_optics(stage: &Stage, camera: &View) -> RawOptics {
+    let s = &stage.scene;
+    let v4 = |v: Vec3, w: f32| v.extend(w).to_array();
+    let (light_dir, kind) = match s.light.kind {
+        LightKind::Directional => (-s.light.direction.normalize(), 0.0),
+        LightKind::Point => (Vec3::ZERO, 1.0),
+    };
+    let env = &s.environment;
+    let (env_kind, ew, eh) = match (env.kind, &env.pixels) {
+        (EnvironmentKind::Constant, _) | (EnvironmentKind::Image, None) => (0.0, 1.0, 1.0),
+        (EnvironmentKind::Gradient, _) => (1.0, 1.0, 1.0),
+        (EnvironmentKind::Image, Some((w, h, _))) => (2.0, *w as f32, *h as f32),
+    };
+    RawOptics {
+        screen: RawView::of(&stage.views.screen),
+        map: RawView::of(&stage.views.map),
+        camera: RawView::of(camera),
+        light_dir: v4(light_dir, kind),
+        light_pos: v4(s.light.position, 1.0),
+        light_colour: v4(s.light.colour, 0.0),
+        ambient: v4(s.light.ambient, 0.0),
+        water: [
+            s.water.ior,
+            s.optics.discontinuity,
+            s.optics.tolerance,
+            s.optics.max_iterations as f32,
+        ],
+        extinction: v4(s.water.extinction, stage.size),
+        albedo: v4(s.receiver.albedo, s.receiver.checker),
+        env: [env_kind, 1e-5 * stage.size, ew, eh],
+        env_colour: v4(env.colour, 0.0),
+        env_horizon: v4(env.horizon, 0.0),
+        env_zenith: v4(env.zenith, 0.0),
+        env_ground: v4(env.ground, 0.0),
+    }
+}
+
+/// The compiled pipelines of the optics stage.
+pub struct OpticsGpu {
+    layout: wgpu::BindGroupLayout,
+    vertices: wgpu::ComputePipeline,
+    triangles: wgpu::ComputePipeline,
+    irradiance: wgpu::ComputePipeline,
+    frame: wgpu::ComputePipeline,
+    geometry_layout: wgpu::BindGroupLayout,
+    geometry: wgpu::RenderPipeline,
+}
+
+fn storage(binding: u32) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only: false },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+fn texture(binding: u32) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Texture {
+            sample_type: wgpu::TextureSampleType::Float { filterable: false },
+            view_dimension: wgpu::TextureViewDimension::D2,
+            multisampled: false,
+        },
+        count: None,
+    }
+}
+
+fn uniform(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Uniform,
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+impl OpticsGpu {
+    /// Compiles the shaders and builds the pipelines on `device`.
+    pub fn new(device: &wgpu::Device) -> Result<Self, GpuError> {
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("optics"),
+            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+        });
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("optics"),
+            entries: &[
+                uniform(0, wgpu::ShaderStages::COMPUTE),
+                texture(1),
+                texture(2),
+                texture(3),
+                texture(4),
+                storage(5),
+                storage(6),
+                storage(7),
+                texture(8),
+                texture(9),
+                texture(10),
+                texture(11),
+                storage(12),
+                texture(13),
+            ],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("optics"),
+            bind_group_layouts: &[Some(&layout)],
+            ..Default::default()
+        });
+        let compute = |entry: &str| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: Some(&pipeline_layout),
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        let vertices = compute("cs_vertices");
+        let triangles = compute("cs_triangles");
+        let irradiance = compute("cs_irradiance");
+        let frame = compute("cs_frame");
+        let geometry_module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("optics geometry"),
+            source: wgpu::ShaderSource::Wgsl(GEOMETRY_SHADER.into()),
+        });
+        let geometry_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("optics geometry"),
+            entries: &[uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT)],
+        });
+        let geometry_pipeline_layout =
+            device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("optics geometry"),
+                bind_group_layouts: &[Some(&geometry_layout)],
+                ..Default::default()
+            });
+        let target = Some(wgpu::ColorTargetState {
+            format: FLOAT,
+            blend: None,
+            write_mask: wgpu::ColorWrites::ALL,
+        });
+        let geometry = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("optics geometry"),
+            layout: Some(&geometry_pipeline_layout),
+            vertex: wgpu::VertexState {
+                module: &geometry_module,
+                entry_point: Some("vs_geometry"),
+                compilation_options: Default::default(),
+                buffers: &[Some(wgpu::VertexBufferLayout {
+                    array_stride: 24,
+                    step_mode: wgpu::VertexStepMode::Vertex,
+                    attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3],
+                })],
+            },
+            primitive: wgpu::PrimitiveState::default(),
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: DEPTH,
+                depth_write_enabled: Some(true),
+                depth_compare: Some(wgpu::CompareFunction::Less),
+                stencil: Default::default(),
+                bias: Default::default(),
+            }),
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &geometry_module,
+                entry_point: Some("fs_geometry"),
+                compilation_options: Default::default(),
+                targets: &[target.clone(), target],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Validation(e.to_string()));
+        }
+        Ok(Self {
+            layout,
+            vertices,
+            triangles,
+            irradiance,
+            frame,
+            geometry_layout,
+            geometry,
+        })
+    }
+
+    /// Creates the targets and buffers of one stage: the caustics, and the final image of `size`
+    /// when given. `surfels` are uploaded once and reused by every pass.
+    pub fn prepare(
+        &self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        stage: &Stage,
+        surfels: &[Surfel],
+        size: Option<(u32, u32)>,
+    ) -> Result<PreparedOptics, OpticsError> {
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let limit = device.limits().max_texture_dimension_2d;
+        let screen = stage.views.screen;
+        let map = stage.views.map;
+        let (fw, fh) = size.unwrap_or((1, 1));
+        for (w, h) in [(screen.width, screen.height), (map.width, map.height), (fw, fh)] {
+            if w > limit || h > limit {
+                return Err(OpticsError::InvalidParameter {
+                    name: "resolution",
+                    reason: format!("{w}x{h} exceeds this device's limit of {limit}"),
+                });
+            }
+        }
+        let camera = View::new(
+            &stage.camera,
+            &Light::default(),
+            &stage.scene.optics.splat,
+            fw,
+            fh,
+        )?;
+        let surfels = SplatRenderer::upload(device, surfels);
+        let light_splat = SplatRenderer::new(
+            device,
+            wgpu::TextureFormat::Rgba8Unorm,
+            screen.width,
+            screen.height,
+        )?;
+        let camera_splat = SplatRenderer::new(device, wgpu::TextureFormat::Rgba8Unorm, fw, fh)?;
+        let texture = |label, w, h, format, usage| {
+            device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size: wgpu::Extent3d {
+                    width: w,
+                    height: h,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage,
+                view_formats: &[],
+            })
+        };
+        let attach = wgpu::TextureUsages::RENDER_ATTACHMENT;
+        let sampled = wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC;
+        let geometry_target = |label, w, h, v: &View| GeometryTarget {
+            position: texture(label, w, h, FLOAT, attach | sampled),
+            normal: texture(label, w, h, FLOAT, attach | sampled),
+            depth: texture(label, w, h, DEPTH, attach),
+            bind: device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(label),
+                layout: &self.geometry_layout,
+                entries: &[wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: device
+                        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                            label: Some(label),
+                            contents: bytemuck::bytes_of(&RawGeometry::of(v)),
+                            usage: wgpu::BufferUsages::UNIFORM,
+                        })
+                        .as_entire_binding(),
+                }],
+            }),
+        };
+        let map_geometry = geometry_target("light geometry map", map.width, map.height, &map);
+        let camera_geometry = geometry_target("camera geometry map", fw, fh, &camera);
+        let rgba8 = wgpu::TextureFormat::Rgba8Unorm;
+        let light_image = texture("light splat image", screen.width, screen.height, rgba8, attach);
+        let camera_image = texture("camera splat image", fw, fh, rgba8, attach);
+        // the environment image (or one texel)
+        let (ew, eh, env_pixels): (u32, u32, Vec<[f32; 4]>) =
+            match &stage.scene.environment.pixels {
+                Some((w, h, p)) if *w <= limit && *h <= limit => (*w, *h, p.clone()),
+                _ => (1, 1, vec![[0.0; 4]]),
+            };
+        let environment = device.create_texture_with_data(
+            queue,
+            &wgpu::TextureDescriptor {
+                label: Some("environment"),
+                size: wgpu::Extent3d {
+                    width: ew,
+                    height: eh,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: FLOAT,
+                usage: wgpu::TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            },
+            wgpu::util::TextureDataOrder::LayerMajor,
+            bytemuck::cast_slice(&env_pixels),
+        );
+        // the receiver, flat normals per vertex
+        let receiver: Vec<[f32; 6]> = stage
+            .receiver
+            .triangles
+            .iter()
+            .flat_map(|t| {
+                let n = (t[1] - t[0]).cross(t[2] - t[0]).normalize_or_zero();
+                t.map(|p| [p.x, p.y, p.z, n.x, n.y, n.z])
+            })
+            .collect();
+        let receiver_vertices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("receiver"),
+            contents: bytemuck::cast_slice(&receiver),
+            usage: wgpu::BufferUsages::VERTEX,
+        });
+        let buffer = |label, bytes: u64, extra| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: bytes.max(16),
+                usage: wgpu::BufferUsages::STORAGE | extra,
+                mapped_at_creation: false,
+            })
+        };
+        let texels = u64::from(map.width) * u64::from(map.height);
+        let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
+        let vertices = buffer(
+            "caustics vertices",
+            u64::from(screen.width) * u64::from(screen.height) * 48,
+            copy,
+        );
+        let flux = buffer("caustics flux", texels * 16, copy);
+        let irradiance = buffer("caustics irradiance", texels * 16, copy);
+        let image = buffer("frame", u64::from(fw) * u64::from(fh) * 16, copy);
+        let uniforms = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("optics uniforms"),
+            contents: bytemuck::bytes_of(&raw_optics(stage, &camera)),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        let (screen_colour, screen_normal) = light_splat.accumulation();
+        let (camera_colour, camera_normal) = camera_splat.accumulation();
+        let view = |t: &wgpu::Texture| t.create_view(&Default::default());
+        let views = [
+            view(&map_geometry.position),
+            view(&map_geometry.normal),
+            view(&camera_geometry.position),
+            view(&camera_geometry.normal),
+            view(&environment),
+        ];
+        fn tex(binding: u32, v: &wgpu::TextureView) -> wgpu::BindGroupEntry<'_> {
+            wgpu::BindGroupEntry {
+                binding,
+                resource: wgpu::BindingResource::TextureView(v),
+            }
+        }
+        fn buf(binding: u32, b: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+            wgpu::BindGroupEntry {
+                binding,
+                resource: b.as_entire_binding(),
+            }
+        }
+        let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("optics"),
+            layout: &self.layout,
+            entries: &[
+                buf(0, &uniforms),
+                tex(1, screen_colour),
+                tex(2, screen_normal),
+                tex(3, &views[0]),
+                tex(4, &views[1]),
+                buf(5, &vertices),
+                buf(6, &flux),
+                buf(7, &irradiance),
+                tex(8, camera_colour),
+                tex(9, camera_normal),
+                tex(10, &views[2]),
+                tex(11, &views[3]),
+                buf(12, &image),
+                tex(13, &views[4]),
+            ],
+        });
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Validation(e.to_string()).into());
+        }
+        Ok(PreparedOptics {
+            screen,
+            map,
+            camera,
+            frame_size: size,
+            surfels,
+            light_splat,
+            camera_splat,
+            light_image: view(&light_image),
+            camera_image: view(&camera_image),
+            map_geometry,
+            camera_geometry,
+            receiver_vertices,
+            receiver_count: receiver.len() as u32,
+            flux,
+            irradiance,
+            image,
+            bind,
+        })
+    }
+}
+
+struct GeometryTarget {
+    position: wgpu::Texture,
+    normal: wgpu::Texture,
+    depth: wgpu::Texture,
+    bind: wgpu::BindGroup,
+}
+
+/// The GPU resources of one stage, ready to record.
+pub struct PreparedOptics {
+    screen: View,
+    map: View,
+    camera: View,
+    frame_size: Option<(u32, u32)>,
+    surfels: SurfelBuffer,
+    light_splat: SplatRenderer,
+    camera_splat: SplatRenderer,
+    light_image: wgpu::TextureView,
+    camera_image: wgpu::TextureView,
+    map_geometry: GeometryTarget,
+    camera_geometry: GeometryTarget,
+    receiver_vertices: wgpu::Buffer,
+    receiver_count: u32,
+    flux: wgpu::Buffer,
+    irradiance: wgpu::Buffer,
+    image: wgpu::Buffer,
+    bind: wgpu::BindGroup,
+}
+
+/// What [`PreparedOptics::read`] copies back.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GpuOpticsResult {
+    /// Caustics map flux per texel (as [`crate::optics::Caustics::flux`]).
+    pub flux: Vec<[f32; 4]>,
+    /// Caustics map irradiance per texel (as [`crate::optics::Caustics::irradiance`]).
+    pub irradiance: Vec<[f32; 4]>,
+    /// The final image when one was prepared: display image and linear radiance.
+    pub frame: Option<(RgbaImage, Vec<[f32; 4]>)>,
+}
+
+/// Wall-clock milliseconds of the two halves (each submitted and waited for on its own).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct OpticsTimes {
+    pub caustics_ms: f64,
+    pub frame_ms: f64,
+}
+
+fn groups(n: u32) -> u32 {
+    n.div_ceil(8)
+}
+
+impl PreparedOptics {
+    fn draw_geometry(
+        &self,
+        optics: &OpticsGpu,
+        encoder: &mut wgpu::CommandEncoder,
+        target: &GeometryTarget,
+    ) {
+        let view = |t: &wgpu::Texture| t.create_view(&Default::default());
+        let (position, normal, depth) = (
+            view(&target.position),
+            view(&target.normal),
+            view(&target.depth),
+        );
+        let clear = |v| {
+            Some(wgpu::RenderPassColorAttachment {
+                view: v,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                    store: wgpu::StoreOp::Store,
+                },
+            })
+        };
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("optics geometry"),
+            color_attachments: &[clear(&position), clear(&normal)],
+            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                view: &depth,
+                depth_ops: Some(wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(1.0),
+                    store: wgpu::StoreOp::Store,
+                }),
+                stencil_ops: None,
+            }),
+            ..Default::default()
+        });
+        pass.set_pipeline(&optics.geometry);
+        pass.set_bind_group(0, &target.bind, &[]);
+        pass.set_vertex_buffer(0, self.receiver_vertices.slice(..));
+        pass.draw(0..self.receiver_count, 0..1);
+    }
+
+    fn dispatch(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        pipeline: &wgpu::ComputePipeline,
+        (w, h): (u32, u32),
+    ) {
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, &self.bind, &[]);
+        pass.dispatch_workgroups(groups(w), groups(h), 1);
+    }
+
+    /// Records the caustics (§5.1): the light's splatting of the water, the light's geometry map,
+    /// the caustics vertices, the caustics triangles into the (cleared) map, its irradiance.
+    pub fn encode_caustics(
+        &self,
+        device: &wgpu::Device,
+        optics: &OpticsGpu,
+        encoder: &mut wgpu::CommandEncoder,
+    ) -> Result<(), OpticsError> {
+        self.light_splat
+            .encode(device, encoder, &self.light_image, &self.surfels, &self.screen)?;
+        self.draw_geometry(optics, encoder, &self.map_geometry);
+        encoder.clear_buffer(&self.flux, 0, None);
+        let screen = (self.screen.width, self.screen.height);
+        let map = (self.map.width, self.map.height);
+        self.dispatch(encoder, &optics.vertices, screen);
+        self.dispatch(encoder, &optics.triangles, screen);
+        self.dispatch(encoder, &optics.irradiance, map);
+        Ok(())
+    }
+
+    /// Records the final image (§5.2), after [`Self::encode_caustics`]: the camera's splatting,
+    /// the camera's geometry map, the per-pixel optics. A no-op when no image was prepared.
+    pub fn encode_frame(
+        &self,
+        device: &wgpu::Device,
+        optics: &OpticsGpu,
+        encoder: &mut wgpu::CommandEncoder,
+    ) -> Result<(), OpticsError> {
+        let Some(size) = self.frame_size else {
+            return Ok(());
+        };
+        self.camera_splat
+            .encode(device, encoder, &self.camera_image, &self.surfels, &self.camera)?;
+        self.draw_geometry(optics, encoder, &self.camera_geometry);
+        self.dispatch(encoder, &optics.frame, size);
+        Ok(())
+    }
+
+    /// Copies the caustics map and the image back.
+    pub fn read(&self, ctx: &GpuContext) -> Result<GpuOpticsResult, OpticsError> {
+        let flux: Vec<[f32; 4]> = read_buffer(ctx, &self.flux)?;
+        let irradiance: Vec<[f32; 4]> = read_buffer(ctx, &self.irradiance)?;
+        let texels = (self.map.width * self.map.height) as usize;
+        let frame = match self.frame_size {
+            Some((w, h)) => {
+                let linear: Vec<[f32; 4]> = read_buffer(ctx, &self.image)?;
+                let linear = linear[..(w * h) as usize].to_vec();
+                let image = RgbaImage::from_fn(w, h, |x, y| {
+                    let [r, g, b] = encode(Vec4::from(linear[(y * w + x) as usize]).truncate());
+                    image::Rgba([r, g, b, 255])
+                });
+                Some((image, linear))
+            }
+            None => None,
+        };
+        Ok(GpuOpticsResult {
+            flux: flux[..texels].to_vec(),
+            irradiance: irradiance[..texels].to_vec(),
+            frame,
+        })
+    }
+
+    /// The light's geometry map read back (position and depth per texel), for tests.
+    pub fn read_map_geometry(&self, ctx: &GpuContext) -> Result<Vec<[f32; 4]>, OpticsError> {
+        let bytes = read_texture(ctx, &self.map_geometry.position, 16)?;
+        Ok(bytemuck::cast_slice(&bytes).to_vec())
+    }
+}
+
+fn read_buffer(ctx: &GpuContext, buffer: &wgpu::Buffer) -> Result<Vec<[f32; 4]>, GpuError> {
+    let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("optics readback"),
+        size: buffer.size(),
+        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+        mapped_at_creation: false,
+    });
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, buffer.size());
+    ctx.queue.submit([encoder.finish()]);
+    let slice = staging.slice(..);
+    super::map_read_and_wait(&ctx.device, &slice)?;
+    let data = slice
+        .get_mapped_range()
+        .map_err(|e| GpuError::Readback(format!("{e:?}")))?;
+    let out = bytemuck::cast_slice(&data).to_vec();
+    drop(data);
+    staging.unmap();
+    Ok(out)
+}
+
+/// Caustics and (when `size` is given) the final image, headless: prepared, recorded, submitted,
+/// read back; with the wall-clock time of each half.
+pub fn render_gpu(
+    ctx: &GpuContext,
+    stage: &Stage,
+    surfels: &[Surfel],
+    size: Option<(u32, u32)>,
+) -> Result<(GpuOpticsResult, OpticsTimes), OpticsError> {
+    let optics = OpticsGpu::new(&ctx.device)?;
+    let prepared = optics.prepare(&ctx.device, &ctx.queue, stage, surfels, size)?;
+    let times = run_timed(ctx, &optics, &prepared)?;
+    Ok((prepared.read(ctx)?, times))
+}
+
+/// Records, submits and waits for the caustics and then the frame, timing each.
+pub fn run_timed(
+    ctx: &GpuContext,
+    optics: &OpticsGpu,
+    prepared: &PreparedOptics,
+) -> Result<OpticsTimes, OpticsError> {
+    let device = &ctx.device;
+    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let run = |frame: bool| -> Result<f64, OpticsError> {
+        let mut encoder = device.create_command_encoder(&Default::default());
+        if frame {
+            prepared.encode_frame(device, optics, &mut encoder)?;
+        } else {
+            prepared.encode_caustics(device, optics, &mut encoder)?;
+        }
+        let start = Instant::now();
+        ctx.queue.submit([encoder.finish()]);
+        device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        Ok(start.elapsed().as_secs_f64() * 1e3)
+    };
+    let times = OpticsTimes {
+        caustics_ms: run(false)?,
+        frame_ms: run(true)?,
+    };
+    if let Some(e) = pollster::block_on(scope.pop()) {
+        return Err(GpuError::Validation(e.to_string()).into());
+    }
+    Ok(times)
+}
