@@ -296,9 +296,11 @@ fn search_receiver(v: ViewU, t_map: texture_2d<f32>, s: vec3<f32>, t: vec3<f32>)
             lo = mid;
         }
     }
-    let pr = project(v, s + t * hi);
+    let end = s + t * hi;
+    let pr = project(v, end);
     let g = geometry_at(t_map, pr.xy);
-    if (!(g.w > 0.0)) {
+    // a crossing onto the silhouette of a nearer surface (the ray went behind it) is no hit
+    if (!(g.w > 0.0) || distance(g.xyz, end) > 4.0 * pixel_size(v, pr.z)) {
         return vec4<f32>(0.0, 0.0, 0.0, -1.0);
     }
     return vec4<f32>(g.xyz, distance(g.xyz, s));
@@ -634,10 +636,19 @@ fn water_pixel(p: vec3<f32>, dn: vec3<f32>, n_in: vec3<f32>) -> vec3<f32> {
     var refracted = vec3<f32>(0.0);
     let t = refract_dir(dn, n, 1.0, ior);
     if (t.w > 0.0) {
-        let hit = search_receiver(u.camera, camera_position, p, t.xyz);
+        // the camera's geometry map first; where the receiver the ray meets is hidden from the
+        // camera (behind a wall), the light's
+        var hit = search_receiver(u.camera, camera_position, p, t.xyz);
+        var gn = vec3<f32>(0.0, 1.0, 0.0);
         if (hit.w >= 0.0) {
             let g = project(u.camera, hit.xyz);
-            let gn = texel(camera_geometry_normal, i32(floor(g.x)), i32(floor(g.y))).xyz;
+            gn = texel(camera_geometry_normal, i32(floor(g.x)), i32(floor(g.y))).xyz;
+        } else {
+            hit = search_receiver(u.map, map_position, p, t.xyz);
+            let g = project(u.map, hit.xyz);
+            gn = texel(map_normal, i32(floor(g.x)), i32(floor(g.y))).xyz;
+        }
+        if (hit.w >= 0.0) {
             refracted = receiver_radiance(hit.xyz, gn) * exp(-u.extinction.rgb * hit.w);
         } else {
             refracted = env_colour(t.xyz) * exp(-u.extinction.rgb * u.extinction.w);

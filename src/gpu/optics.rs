@@ -312,7 +312,11 @@ impl OpticsGpu {
         let screen = stage.views.screen;
         let map = stage.views.map;
         let (fw, fh) = size.unwrap_or((1, 1));
-        for (w, h) in [(screen.width, screen.height), (map.width, map.height), (fw, fh)] {
+        for (w, h) in [
+            (screen.width, screen.height),
+            (map.width, map.height),
+            (fw, fh),
+        ] {
             if w > limit || h > limit {
                 return Err(OpticsError::InvalidParameter {
                     name: "resolution",
@@ -375,14 +379,20 @@ impl OpticsGpu {
         let map_geometry = geometry_target("light geometry map", map.width, map.height, &map);
         let camera_geometry = geometry_target("camera geometry map", fw, fh, &camera);
         let rgba8 = wgpu::TextureFormat::Rgba8Unorm;
-        let light_image = texture("light splat image", screen.width, screen.height, rgba8, attach);
+        let light_image = texture(
+            "light splat image",
+            screen.width,
+            screen.height,
+            rgba8,
+            attach,
+        );
         let camera_image = texture("camera splat image", fw, fh, rgba8, attach);
         // the environment image (or one texel)
-        let (ew, eh, env_pixels): (u32, u32, Vec<[f32; 4]>) =
-            match &stage.scene.environment.pixels {
-                Some((w, h, p)) if *w <= limit && *h <= limit => (*w, *h, p.clone()),
-                _ => (1, 1, vec![[0.0; 4]]),
-            };
+        let (ew, eh, env_pixels): (u32, u32, Vec<[f32; 4]>) = match &stage.scene.environment.pixels
+        {
+            Some((w, h, p)) if *w <= limit && *h <= limit => (*w, *h, p.clone()),
+            _ => (1, 1, vec![[0.0; 4]]),
+        };
         let environment = device.create_texture_with_data(
             queue,
             &wgpu::TextureDescriptor {
@@ -620,8 +630,13 @@ impl PreparedOptics {
         optics: &OpticsGpu,
         encoder: &mut wgpu::CommandEncoder,
     ) -> Result<(), OpticsError> {
-        self.light_splat
-            .encode(device, encoder, &self.light_image, &self.surfels, &self.screen)?;
+        self.light_splat.encode(
+            device,
+            encoder,
+            &self.light_image,
+            &self.surfels,
+            &self.screen,
+        )?;
         self.draw_geometry(optics, encoder, &self.map_geometry);
         encoder.clear_buffer(&self.flux, 0, None);
         let screen = (self.screen.width, self.screen.height);
@@ -643,8 +658,13 @@ impl PreparedOptics {
         let Some(size) = self.frame_size else {
             return Ok(());
         };
-        self.camera_splat
-            .encode(device, encoder, &self.camera_image, &self.surfels, &self.camera)?;
+        self.camera_splat.encode(
+            device,
+            encoder,
+            &self.camera_image,
+            &self.surfels,
+            &self.camera,
+        )?;
         self.draw_geometry(optics, encoder, &self.camera_geometry);
         self.dispatch(encoder, &optics.frame, size);
         Ok(())
