@@ -8,6 +8,7 @@ use fluid_surfels::Error;
 use fluid_surfels::gpu::{self, GpuContext};
 use fluid_surfels::io::{self, Format};
 use fluid_surfels::scenes::SceneName;
+use fluid_surfels::sequence::{FramePattern, FrameRange};
 use fluid_surfels::splat::{self, Camera, Light, Render, SplatMode, SplatParams, Surfel};
 use fluid_surfels::surfels::SurfelParams;
 use glam::Vec3;
@@ -65,7 +66,23 @@ pub struct RenderArgs {
     /// Render with the CPU reference.
     #[arg(long)]
     pub cpu: bool,
-    /// The PNG to write.
+    /// Render the finished frame (refraction, reflection, caustics; Iwasaki et al. §5) instead
+    /// of the shaded splats. Implied by --config, --frames and --caustics-resolution.
+    #[arg(long)]
+    pub optics: bool,
+    /// Scene file (TOML: camera, light, receiver, water, environment, optics); see the README.
+    /// Default: a pool around the water, sunlight, clear water.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Frames to render as a sequence: A..B or A..=B with an optional :STEP; frames of the
+    /// `column` scene, or of an --input pattern holding `{}`. --out is then a folder that
+    /// receives frame_NNNN.png.
+    #[arg(long)]
+    pub frames: Option<FrameRange>,
+    /// Virtual screen of the caustics, WIDTHxHEIGHT (default: 256 on the water's longer side).
+    #[arg(long, value_parser = parse_size)]
+    pub caustics_resolution: Option<(u32, u32)>,
+    /// The PNG to write (a folder with --frames).
     #[arg(long, default_value = "render.png")]
     pub out: PathBuf,
     /// Replace an existing output file.
@@ -175,6 +192,13 @@ struct RenderReport {
 }
 
 pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
+    if args.optics
+        || args.config.is_some()
+        || args.frames.is_some()
+        || args.caustics_resolution.is_some()
+    {
+        return render_optics(args);
+    }
     let input = args.input.as_deref().or(args.surfels.as_deref());
     check_output(&args.out, input, args.force)?;
     let t = Instant::now();
@@ -268,6 +292,155 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
             report.covered_pixels
         );
         println!("  wrote {}", report.output);
+    }
+    Ok(())
+}
+
+/// Surfels of one frame: from a surfel file, or particles through the density stage.
+fn frame_surfels(
+    args: &RenderArgs,
+    input: Option<&std::path::Path>,
+    frame: Option<usize>,
+) -> Result<(String, Vec<Surfel>), Error> {
+    if let Some(path) = &args.surfels {
+        let set = io::read_particles(path, args.format)?;
+        return Ok((
+            path.display().to_string(),
+            splat::surfels_from_particles(&set)?,
+        ));
+    }
+    let (source, positions, radius) =
+        super::positions_of(input, args.scene, args.format, frame, args.radius)?;
+    let (s, ..) = super::surfels::surfels_of(
+        &positions,
+        radius,
+        args.resolution,
+        SurfelParams::default().iso_fraction,
+    )?;
+    Ok((
+        source,
+        splat::surfels_from(&s.positions, &s.normals, &s.radii, splat::WATER),
+    ))
+}
+
+#[derive(Serialize)]
+struct OpticsFrameReport {
+    source: String,
+    frame: Option<usize>,
+    output: String,
+    #[serde(flatten)]
+    stats: super::optics::FrameReport,
+}
+
+/// `render` with optics: one finished frame, or a numbered sequence of them.
+fn render_optics(args: &RenderArgs) -> Result<(), Error> {
+    let mut scene = match &args.config {
+        Some(path) => fluid_surfels::optics::OpticsScene::from_toml_file(path)?,
+        None if args.scene == Some(SceneName::Column) => {
+            super::optics::column_pool(fluid_surfels::scenes::ColumnParams::default().tank)
+        }
+        None => Default::default(),
+    };
+    if let Some((w, h)) = args.caustics_resolution {
+        scene.optics.caustics_resolution = Some([w, h]);
+    }
+    // --size keeps its default unless given; the scene file's image size wins over the default
+    if args.size != (800, 600) || args.config.is_none() {
+        scene.optics.image_size = [args.size.0, args.size.1];
+    }
+    if let Some(c) = args.camera {
+        scene.camera = Some(c);
+    }
+    let ctx = choose_gpu(args.cpu, args.gpu)?;
+    let Some(range) = args.frames else {
+        check_output(
+            &args.out,
+            args.input.as_deref().or(args.surfels.as_deref()),
+            args.force,
+        )?;
+        let (source, surfels) = frame_surfels(args, args.input.as_deref(), args.frame)?;
+        let f = super::optics::finish(ctx.as_ref(), &scene, &surfels)?;
+        super::optics::save(&f.image, &args.out)?;
+        return report_frame(args, source, None, &args.out, f.report);
+    };
+    if args.surfels.is_some() {
+        return Err(Error::InvalidArgument {
+            argument: "--frames",
+            reason: "needs --scene column or an --input pattern with {}".into(),
+        });
+    }
+    let pattern = match &args.input {
+        Some(p) => Some(
+            FramePattern::parse(&p.display().to_string())?.ok_or_else(|| {
+                Error::InvalidArgument {
+                    argument: "--input",
+                    reason:
+                        "with --frames the input must be a pattern holding {}, such as frame_{}.vtk"
+                            .into(),
+                }
+            })?,
+        ),
+        None => None,
+    };
+    if pattern.is_none() && args.scene != Some(SceneName::Column) {
+        return Err(Error::InvalidArgument {
+            argument: "--frames",
+            reason: "only the `column` scene has frames".into(),
+        });
+    }
+    std::fs::create_dir_all(&args.out).map_err(|e| Error::InvalidArgument {
+        argument: "--out",
+        reason: format!("{}: {e}", args.out.display()),
+    })?;
+    let frames: Vec<usize> = range.frames().collect();
+    let bar = super::progress(frames.len() as u64, "rendering");
+    for &frame in &frames {
+        let out = args.out.join(format!("frame_{frame:04}.png"));
+        check_output(&out, None, args.force)?;
+        let path = pattern.as_ref().map(|p| p.path(frame));
+        let (source, surfels) = frame_surfels(args, path.as_deref(), Some(frame))?;
+        let f = super::optics::finish(ctx.as_ref(), &scene, &surfels)?;
+        super::optics::save(&f.image, &out)?;
+        bar.suspend(|| report_frame(args, source, Some(frame), &out, f.report))?;
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    Ok(())
+}
+
+fn report_frame(
+    args: &RenderArgs,
+    source: String,
+    frame: Option<usize>,
+    out: &std::path::Path,
+    stats: super::optics::FrameReport,
+) -> Result<(), Error> {
+    let r = OpticsFrameReport {
+        source,
+        frame,
+        output: out.display().to_string(),
+        stats,
+    };
+    if args.json {
+        super::print_json(&r);
+    } else {
+        println!(
+            "{}{}: {} surfels; caustics {}x{} screen, {}x{} map, {} triangles, {:.1} ms; frame {}x{} on the {}, {:.1} ms; wrote {}",
+            r.source,
+            frame.map(|f| format!(" frame {f}")).unwrap_or_default(),
+            r.stats.surfels,
+            r.stats.screen[0],
+            r.stats.screen[1],
+            r.stats.map[0],
+            r.stats.map[1],
+            r.stats.caustics_triangles,
+            r.stats.caustics_ms,
+            r.stats.image[0],
+            r.stats.image[1],
+            r.stats.backend,
+            r.stats.frame_ms,
+            r.output
+        );
     }
     Ok(())
 }

@@ -248,6 +248,41 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
         "  wrote              {} (EWA splats: refined points | density surfels; point sprites: refined | density)",
         splats_png.display()
     );
+    // stage 5: the finished frame, refraction, reflection and caustics on the tank's floor
+    let pool = super::optics::column_pool(sim.params().tank);
+    let finished = super::optics::finish(ctx.as_ref(), &pool, &refined_surfels)?;
+    let frame_png = args.out_dir.join("frame.png");
+    super::optics::save(&finished.image, &frame_png)?;
+    let caustics_png = args.out_dir.join("caustics.png");
+    super::optics::save(&finished.caustics.image(&finished.stage), &caustics_png)?;
+    let stages_png = args.out_dir.join("stages.png");
+    preview::save_png(&super::optics::stages_panel(&finished, 512), &stages_png)?;
+    let r = &finished.report;
+    println!(
+        "  optics             caustics {}x{} screen -> {}x{} map, {} triangles, {:.0} ms (CPU reference); frame {}x{} in {:.0} ms on the {}",
+        r.screen[0],
+        r.screen[1],
+        r.map[0],
+        r.map[1],
+        r.caustics_triangles,
+        r.caustics_ms,
+        r.image[0],
+        r.image[1],
+        r.frame_ms,
+        r.backend
+    );
+    println!(
+        "  wrote              {} (refined water with refraction, reflection and caustics)",
+        frame_png.display()
+    );
+    println!(
+        "  wrote              {} (light arriving on the pool, seen from the light)",
+        caustics_png.display()
+    );
+    println!(
+        "  wrote              {} (light's view of the water | caustics map | frame)",
+        stages_png.display()
+    );
     println!("  total              {:.0} ms", ms(total));
     Ok(())
 }

@@ -1,0 +1,160 @@
+//! The finished frame (optics stage) for `render` and the main job.
+
+use std::path::Path;
+use std::time::Instant;
+
+use fluid_surfels::Error;
+use fluid_surfels::gpu::GpuContext;
+use fluid_surfels::optics::{self, Caustics, OpticsScene, ReceiverKind, Stage};
+use fluid_surfels::splat::Surfel;
+use glam::Vec3;
+use image::{RgbImage, RgbaImage};
+use serde::Serialize;
+
+use super::ms;
+
+/// One finished frame.
+pub struct Finished {
+    pub stage: Stage,
+    pub caustics: Caustics,
+    pub image: RgbaImage,
+    pub report: FrameReport,
+}
+
+/// Statistics of one finished frame.
+#[derive(Clone, Debug, Serialize)]
+pub struct FrameReport {
+    pub surfels: usize,
+    pub backend: String,
+    pub screen: [u32; 2],
+    pub map: [u32; 2],
+    pub image: [u32; 2],
+    pub caustics_triangles: usize,
+    pub incident_flux: [f32; 3],
+    pub map_flux: [f32; 3],
+    /// The CPU reference's caustics (always computed: they give the map picture and the flux).
+    pub caustics_ms: f64,
+    /// The final image (including the GPU's own caustics on the GPU path).
+    pub frame_ms: f64,
+}
+
+/// Caustics (CPU reference: they also give the map picture) and the final image (GPU when a
+/// context is given, else the CPU reference).
+pub fn finish(
+    ctx: Option<&GpuContext>,
+    scene: &OpticsScene,
+    surfels: &[Surfel],
+) -> Result<Finished, Error> {
+    let stage = Stage::new(scene, surfels)?;
+    let size = (scene.optics.image_size[0], scene.optics.image_size[1]);
+    let t = Instant::now();
+    let caustics = optics::caustics_cpu(&stage, surfels)?;
+    let caustics_ms = ms(t);
+    let t = Instant::now();
+    let (image, backend, frame_ms) = match ctx {
+        Some(ctx) => {
+            let (r, times) =
+                fluid_surfels::gpu::optics::render_gpu(ctx, &stage, surfels, Some(size))?;
+            let name = ctx
+                .adapter
+                .as_ref()
+                .map_or("given device".to_string(), |a| {
+                    format!("{} ({})", a.name, a.backend)
+                });
+            let (image, _) = r.frame.ok_or_else(|| Error::InvalidArgument {
+                argument: "image",
+                reason: "the GPU returned no frame".into(),
+            })?;
+            (
+                image,
+                format!("gpu: {name}"),
+                times.caustics_ms + times.frame_ms,
+            )
+        }
+        None => {
+            let f = optics::frame_cpu(&stage, surfels, &caustics, size)?;
+            (f.image, "cpu reference".to_string(), ms(t))
+        }
+    };
+    let report = FrameReport {
+        surfels: surfels.len(),
+        backend,
+        screen: [stage.views.screen.width, stage.views.screen.height],
+        map: [stage.views.map.width, stage.views.map.height],
+        image: [size.0, size.1],
+        caustics_triangles: caustics.triangles,
+        incident_flux: caustics.incident.to_array(),
+        map_flux: caustics.total_flux().to_array(),
+        caustics_ms,
+        frame_ms,
+    };
+    Ok(Finished {
+        stage,
+        caustics,
+        image,
+        report,
+    })
+}
+
+/// The pool scene of the `column` tank: an open box with a tiled floor, sunlight from above and
+/// the side, water whose extinction is strong enough to tint a 0.45 m tank.
+pub fn column_pool(tank: Vec3) -> OpticsScene {
+    let mut s = OpticsScene::default();
+    s.receiver.kind = ReceiverKind::OpenBox;
+    s.receiver.min = Vec3::new(-0.005, -0.005, -0.005);
+    s.receiver.max = Vec3::new(tank.x + 0.005, tank.y * 0.45, tank.z + 0.005);
+    s.receiver.checker = 0.05;
+    s.light.direction = Vec3::new(0.35, 1.0, 0.25);
+    s.water.extinction = Vec3::new(3.0, 0.9, 0.5);
+    s.camera = Some(fluid_surfels::splat::Camera {
+        eye: Vec3::new(tank.x * 1.9, tank.y * 1.25, tank.z * 2.3),
+        target: Vec3::new(tank.x * 0.45, tank.y * 0.12, tank.z * 0.45),
+        fov_y_degrees: 40.0,
+        near: 0.05,
+        far: 5.0,
+        ..Default::default()
+    });
+    s
+}
+
+/// The light's view of the water: depth from the light as grey levels (near bright), black where
+/// there is none.
+pub fn screen_picture(c: &Caustics) -> RgbImage {
+    let depths: Vec<f32> = c.vertices.iter().map(|v| v.surface.w).collect();
+    let (lo, hi) = depths
+        .iter()
+        .filter(|d| **d > 0.0)
+        .fold((f32::MAX, f32::MIN), |(a, b), d| (a.min(*d), b.max(*d)));
+    let span = (hi - lo).max(1e-6);
+    RgbImage::from_fn(c.screen.width, c.screen.height, |x, y| {
+        let d = depths[(y * c.screen.width + x) as usize];
+        if d > 0.0 {
+            let g = (255.0 * (1.0 - 0.8 * (d - lo) / span)) as u8;
+            image::Rgb([g / 3, g * 2 / 3, g])
+        } else {
+            image::Rgb([0, 0, 0])
+        }
+    })
+}
+
+/// Scales an image to `height` rows (nearest neighbour, aspect kept).
+pub fn to_height(img: &RgbImage, height: u32) -> RgbImage {
+    let w = (img.width() as f32 * height as f32 / img.height().max(1) as f32).round() as u32;
+    image::imageops::resize(img, w.max(1), height, image::imageops::FilterType::Nearest)
+}
+
+/// The panel of all stages: light's view of the water | caustics map | finished frame.
+pub fn stages_panel(f: &Finished, height: u32) -> RgbImage {
+    let rgb = |i: &RgbaImage| -> RgbImage { image::buffer::ConvertBuffer::convert(i) };
+    fluid_surfels::preview::side_by_side(&[
+        to_height(&screen_picture(&f.caustics), height),
+        to_height(&rgb(&f.caustics.image(&f.stage)), height),
+        to_height(&rgb(&f.image), height),
+    ])
+}
+
+/// Writes an RGBA image as an RGB PNG.
+pub fn save(img: &RgbaImage, path: &Path) -> Result<(), Error> {
+    fluid_surfels::preview::save_png(&image::buffer::ConvertBuffer::convert(img), path)?;
+    Ok(())
+}
