@@ -62,6 +62,9 @@ enum BenchCommand {
     /// EWA surfel splatting: splats per second and ms per pass, GPU (when an adapter exists) and
     /// the CPU reference in the same run.
     Splat(cli::bench::BenchSplatArgs),
+    /// Optics: caustics and the final image at the paper's sizes (512x512, 256x64 and 256x256
+    /// light screens, 55k-120k surfels), GPU (when an adapter exists) and the CPU reference.
+    Optics(cli::bench::BenchOpticsArgs),
 }
 
 /// Mesa's software Vulkan driver (lavapipe) prints "XDG_RUNTIME_DIR is invalid" on stderr when
@@ -100,6 +103,7 @@ fn main() -> ExitCode {
         Some(Command::Bench(BenchCommand::Io(args))) => cli::bench::bench_io(&args),
         Some(Command::Bench(BenchCommand::Refine(args))) => cli::bench::bench_refine(&args),
         Some(Command::Bench(BenchCommand::Density(args))) => cli::bench::bench_density(&args),
+        Some(Command::Bench(BenchCommand::Optics(args))) => cli::bench::bench_optics(&args),
         Some(Command::Bench(BenchCommand::Splat(args))) => cli::bench::bench_splat(&args),
     };
     match result {
