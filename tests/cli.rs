@@ -50,6 +50,9 @@ fn main_job_writes_surface_ply_and_picture() {
         "refine.png",
         "surfels.png",
         "splats.png",
+        "frame.png",
+        "caustics.png",
+        "stages.png",
     ] {
         assert!(dir.path().join(file).exists(), "{file}");
     }
@@ -707,4 +710,112 @@ fn bench_splat_reports_rates_and_agreement() {
             "a GPU is required here"
         ),
     }
+}
+
+#[test]
+fn render_optics_writes_frames_and_refuses_bad_scenes() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene.toml");
+    std::fs::write(
+        &scene,
+        "[light]\ndirection = [0.2, 1.0, 0.1]\n\n[water]\nextinction = [2.0, 0.6, 0.3]\n\n[receiver]\nchecker = 0.05\n",
+    )
+    .unwrap();
+    let out = dir.path().join("one.png");
+    let run = bin()
+        .args([
+            "render",
+            "--scene",
+            "column",
+            "--frame",
+            "3",
+            "--size",
+            "96x64",
+            "--caustics-resolution",
+            "64x64",
+            "--cpu",
+            "--json",
+            "--config",
+        ])
+        .arg(&scene)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    succeeded(&run);
+    let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    assert_eq!(report["screen"], serde_json::json!([64, 64]));
+    assert!(
+        report["caustics_triangles"].as_u64().unwrap() > 100,
+        "{report}"
+    );
+    let flux = report["map_flux"][0].as_f64().unwrap();
+    assert!(flux > 0.0 && flux <= report["incident_flux"][0].as_f64().unwrap());
+    assert_eq!(image::open(&out).unwrap().to_rgb8().dimensions(), (96, 64));
+    // a sequence into a folder, then refused without --force
+    let frames = dir.path().join("frames");
+    let seq = || {
+        bin()
+            .args([
+                "render",
+                "--scene",
+                "column",
+                "--frames",
+                "1..3",
+                "--size",
+                "48x48",
+                "--caustics-resolution",
+                "32x32",
+                "--cpu",
+                "--out",
+            ])
+            .arg(&frames)
+            .output()
+            .unwrap()
+    };
+    succeeded(&seq());
+    for f in [1, 2] {
+        assert!(frames.join(format!("frame_{f:04}.png")).exists());
+    }
+    assert!(!seq().status.success());
+    // bad scene files: typed errors, nothing written
+    std::fs::write(&scene, "[water]\nior = -3.0\n").unwrap();
+    let bad = dir.path().join("bad.png");
+    let run = bin()
+        .args(["render", "--scene", "column", "--cpu", "--config"])
+        .arg(&scene)
+        .arg("--out")
+        .arg(&bad)
+        .output()
+        .unwrap();
+    assert!(!run.status.success());
+    assert!(String::from_utf8_lossy(&run.stderr).contains("ior"));
+    assert!(!bad.exists());
+}
+
+#[test]
+fn bench_optics_reports_json() {
+    let run = bin()
+        .args([
+            "bench",
+            "optics",
+            "--surfels",
+            "2000",
+            "--size",
+            "64x64",
+            "--repeat",
+            "1",
+            "--json",
+        ])
+        .output()
+        .unwrap();
+    succeeded(&run);
+    let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    let cases = report["cases"].as_array().unwrap();
+    assert_eq!(cases.len(), 2);
+    assert!(
+        cases
+            .iter()
+            .all(|c| c["cpu_caustics_ms"].as_f64().unwrap() > 0.0)
+    );
 }

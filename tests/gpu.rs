@@ -28,6 +28,24 @@ fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
             "Uniforms",
             std::mem::size_of::<splat::RawUniforms>(),
         ),
+        (
+            "optics.wgsl",
+            gpu::optics::SHADER,
+            "Uniforms",
+            std::mem::size_of::<gpu::optics::RawOptics>(),
+        ),
+        (
+            "optics.wgsl",
+            gpu::optics::SHADER,
+            "ViewU",
+            std::mem::size_of::<gpu::optics::RawView>(),
+        ),
+        (
+            "optics_geometry.wgsl",
+            gpu::optics::GEOMETRY_SHADER,
+            "GeometryU",
+            std::mem::size_of::<gpu::optics::RawGeometry>(),
+        ),
     ];
     for (file, source, name, rust_size) in shaders {
         let module = naga::front::wgsl::parse_str(source)

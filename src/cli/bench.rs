@@ -838,7 +838,8 @@ pub fn bench_optics(args: &BenchOpticsArgs) -> Result<(), Error> {
             }
             let (mut gpu_c, mut gpu_f) = (None, None);
             if let (Some(ctx), Some(g)) = (&ctx, &gpu) {
-                let prepared = g.prepare(&ctx.device, &ctx.queue, &stage, &surfels, Some(args.size))?;
+                let prepared =
+                    g.prepare(&ctx.device, &ctx.queue, &stage, &surfels, Some(args.size))?;
                 run_timed(ctx, g, &prepared)?;
                 let mut cs = Vec::new();
                 let mut fs = Vec::new();
