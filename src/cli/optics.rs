@@ -130,7 +130,7 @@ pub fn screen_picture(c: &Caustics) -> RgbImage {
         let d = depths[(y * c.screen.width + x) as usize];
         if d > 0.0 {
             let g = (255.0 * (1.0 - 0.8 * (d - lo) / span)) as u8;
-            image::Rgb([g / 3, g * 2 / 3, g])
+            image::Rgb([g / 3, (u16::from(g) * 2 / 3) as u8, g])
         } else {
             image::Rgb([0, 0, 0])
         }
