@@ -668,8 +668,10 @@ fn cs_frame(@builtin(global_invocation_id) id: vec3<u32>) {
     let ray = world_ray(u.camera, vec2<f32>(id.xy) + 0.5);
     let dn = normalize(ray.dir);
     let nd = water_at(textureLoad(camera_colour, p, 0), textureLoad(camera_normal, p, 0));
+    let receiver = textureLoad(camera_position, p, 0);
     var c: vec4<f32>;
-    if (nd.w > 0.0) {
+    // the water where it lies in front of the receiver (an opaque wall may hide it)
+    if (nd.w > 0.0 && !(receiver.w > 0.0 && receiver.w < nd.w)) {
         let point = ray.origin + ray.dir * nd.w;
         c = vec4<f32>(water_pixel(point, dn, unit_or(nd.xyz, -dn)), 1.0);
     } else {

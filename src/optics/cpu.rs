@@ -490,12 +490,15 @@ pub fn frame_cpu(
             let (x, y) = (i as u32 % size.0, i as u32 / size.0);
             let (o, d) = view.world_ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
             let dn = d.normalize();
+            // the water where it lies in front of the receiver (an opaque wall may hide it)
+            let len = d.length();
+            let receiver = stage.receiver.intersect(o, dn, 0.0);
             match water_at(&water, i) {
-                Some((n_acc, depth)) => {
+                Some((n_acc, depth)) if receiver.is_none_or(|h| h.t / len >= depth) => {
                     let p = o + d * depth;
                     water_pixel(stage, caustics, p, dn, unit_or(n_acc, -dn)).extend(1.0)
                 }
-                None => dry_pixel(stage, caustics, o, dn).extend(0.0),
+                _ => dry_pixel(stage, caustics, receiver, dn).extend(0.0),
             }
             .to_array()
         })
@@ -511,8 +514,13 @@ pub fn frame_cpu(
     })
 }
 
-fn dry_pixel(stage: &Stage, caustics: &Caustics, o: Vec3, dn: Vec3) -> Vec3 {
-    match stage.receiver.intersect(o, dn, 0.0) {
+fn dry_pixel(
+    stage: &Stage,
+    caustics: &Caustics,
+    hit: Option<super::receiver::Hit>,
+    dn: Vec3,
+) -> Vec3 {
+    match hit {
         Some(h) => receiver_radiance(stage, caustics, h.position, h.normal),
         None => stage.scene.environment.colour(dn),
     }
