@@ -114,16 +114,10 @@ pub fn splat_slabs_gpu(
     });
     let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
         label: Some("density params"),
-        entries: &[wgpu::BindGroupLayoutEntry {
-            binding: 0,
-            visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
-            ty: wgpu::BindingType::Buffer {
-                ty: wgpu::BufferBindingType::Uniform,
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
-        }],
+        entries: &[super::entry::uniform(
+            0,
+            wgpu::ShaderStages::VERTEX_FRAGMENT,
+        )],
     });
     let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
         label: Some("density"),
@@ -167,20 +161,13 @@ pub fn splat_slabs_gpu(
         multiview_mask: None,
         cache: None,
     });
-    let target = device.create_texture(&wgpu::TextureDescriptor {
-        label: Some("density planes"),
-        size: wgpu::Extent3d {
-            width: nx,
-            height: ny,
-            depth_or_array_layers: 1,
-        },
-        mip_level_count: 1,
-        sample_count: 1,
-        dimension: wgpu::TextureDimension::D2,
-        format: wgpu::TextureFormat::Rgba32Float,
-        usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
-        view_formats: &[],
-    });
+    let target = super::texture_2d(
+        device,
+        "density planes",
+        (nx, ny),
+        wgpu::TextureFormat::Rgba32Float,
+        wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+    );
     let view = target.create_view(&wgpu::TextureViewDescriptor::default());
     let row_bytes = (nx as u64 * 16).div_ceil(256) * 256;
     let group_bytes = row_bytes * ny as u64;

@@ -101,6 +101,97 @@ impl GpuContext {
     }
 }
 
+/// The descriptor of a 2D texture of one mip level and one sample.
+pub(crate) fn texture_descriptor(
+    label: &str,
+    (width, height): (u32, u32),
+    format: wgpu::TextureFormat,
+    usage: wgpu::TextureUsages,
+) -> wgpu::TextureDescriptor<'_> {
+    wgpu::TextureDescriptor {
+        label: Some(label),
+        size: wgpu::Extent3d {
+            width,
+            height,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format,
+        usage,
+        view_formats: &[],
+    }
+}
+
+/// A 2D texture of one mip level and one sample.
+pub(crate) fn texture_2d(
+    device: &wgpu::Device,
+    label: &str,
+    size: (u32, u32),
+    format: wgpu::TextureFormat,
+    usage: wgpu::TextureUsages,
+) -> wgpu::Texture {
+    device.create_texture(&texture_descriptor(label, size, format, usage))
+}
+
+/// Bind group layout entries of the kinds the GPU stages use.
+pub(crate) mod entry {
+    /// A uniform buffer.
+    pub(crate) fn uniform(
+        binding: u32,
+        visibility: wgpu::ShaderStages,
+    ) -> wgpu::BindGroupLayoutEntry {
+        buffer(binding, visibility, wgpu::BufferBindingType::Uniform)
+    }
+
+    /// A read-write storage buffer.
+    pub(crate) fn storage(
+        binding: u32,
+        visibility: wgpu::ShaderStages,
+    ) -> wgpu::BindGroupLayoutEntry {
+        buffer(
+            binding,
+            visibility,
+            wgpu::BufferBindingType::Storage { read_only: false },
+        )
+    }
+
+    fn buffer(
+        binding: u32,
+        visibility: wgpu::ShaderStages,
+        ty: wgpu::BufferBindingType,
+    ) -> wgpu::BindGroupLayoutEntry {
+        wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility,
+            ty: wgpu::BindingType::Buffer {
+                ty,
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        }
+    }
+
+    /// A non-filterable float 2D texture (read with `textureLoad`).
+    pub(crate) fn texture(
+        binding: u32,
+        visibility: wgpu::ShaderStages,
+    ) -> wgpu::BindGroupLayoutEntry {
+        wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility,
+            ty: wgpu::BindingType::Texture {
+                sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                view_dimension: wgpu::TextureViewDimension::D2,
+                multisampled: false,
+            },
+            count: None,
+        }
+    }
+}
+
 /// Maps `slice` of a `MAP_READ` buffer for reading and waits until it is mapped (the work
 /// submitted before it included).
 pub(crate) fn map_read_and_wait(

@@ -15,8 +15,8 @@ use image::RgbaImage;
 use serde::Serialize;
 use wgpu::util::DeviceExt;
 
-use super::splat::{SplatRenderer, SurfelBuffer, read_texture};
-use super::{GpuContext, GpuError};
+use super::splat::{SplatRenderer, SurfelBuffer};
+use super::{GpuContext, GpuError, entry, texture_2d, texture_descriptor};
 use crate::optics::{EnvironmentKind, LightKind, OpticsError, Stage, encode};
 use crate::splat::{Light, Surfel, View};
 
@@ -148,45 +148,6 @@ pub struct OpticsGpu {
     geometry: wgpu::RenderPipeline,
 }
 
-fn storage(binding: u32) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only: false },
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
-    }
-}
-
-fn texture(binding: u32) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Texture {
-            sample_type: wgpu::TextureSampleType::Float { filterable: false },
-            view_dimension: wgpu::TextureViewDimension::D2,
-            multisampled: false,
-        },
-        count: None,
-    }
-}
-
-fn uniform(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility,
-        ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Uniform,
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
-    }
-}
-
 impl OpticsGpu {
     /// Compiles the shaders and builds the pipelines on `device`.
     pub fn new(device: &wgpu::Device) -> Result<Self, GpuError> {
@@ -197,22 +158,14 @@ impl OpticsGpu {
         });
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("optics"),
-            entries: &[
-                uniform(0, wgpu::ShaderStages::COMPUTE),
-                texture(1),
-                texture(2),
-                texture(3),
-                texture(4),
-                storage(5),
-                storage(6),
-                storage(7),
-                texture(8),
-                texture(9),
-                texture(10),
-                texture(11),
-                storage(12),
-                texture(13),
-            ],
+            // 0 uniforms; 5, 6, 7, 12 storage buffers; the rest textures (see optics.wgsl)
+            entries: &(0..14)
+                .map(|b| match b {
+                    0 => entry::uniform(b, wgpu::ShaderStages::COMPUTE),
+                    5 | 6 | 7 | 12 => entry::storage(b, wgpu::ShaderStages::COMPUTE),
+                    _ => entry::texture(b, wgpu::ShaderStages::COMPUTE),
+                })
+                .collect::<Vec<_>>(),
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("optics"),
@@ -239,7 +192,7 @@ impl OpticsGpu {
         });
         let geometry_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("optics geometry"),
-            entries: &[uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT)],
+            entries: &[entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT)],
         });
         let geometry_pipeline_layout =
             device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -339,22 +292,7 @@ impl OpticsGpu {
             screen.height,
         )?;
         let camera_splat = SplatRenderer::new(device, wgpu::TextureFormat::Rgba8Unorm, fw, fh)?;
-        let texture = |label, w, h, format, usage| {
-            device.create_texture(&wgpu::TextureDescriptor {
-                label: Some(label),
-                size: wgpu::Extent3d {
-                    width: w,
-                    height: h,
-                    depth_or_array_layers: 1,
-                },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format,
-                usage,
-                view_formats: &[],
-            })
-        };
+        let texture = |label, w, h, format, usage| texture_2d(device, label, (w, h), format, usage);
         let attach = wgpu::TextureUsages::RENDER_ATTACHMENT;
         let sampled = wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC;
         let geometry_target = |label, w, h, v: &View| GeometryTarget {
@@ -395,20 +333,12 @@ impl OpticsGpu {
         };
         let environment = device.create_texture_with_data(
             queue,
-            &wgpu::TextureDescriptor {
-                label: Some("environment"),
-                size: wgpu::Extent3d {
-                    width: ew,
-                    height: eh,
-                    depth_or_array_layers: 1,
-                },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format: FLOAT,
-                usage: wgpu::TextureUsages::TEXTURE_BINDING,
-                view_formats: &[],
-            },
+            &texture_descriptor(
+                "environment",
+                (ew, eh),
+                FLOAT,
+                wgpu::TextureUsages::TEXTURE_BINDING,
+            ),
             wgpu::util::TextureDataOrder::LayerMajor,
             bytemuck::cast_slice(&env_pixels),
         );
@@ -692,12 +622,6 @@ impl PreparedOptics {
             irradiance: irradiance[..texels].to_vec(),
             frame,
         })
-    }
-
-    /// The light's geometry map read back (position and depth per texel), for tests.
-    pub fn read_map_geometry(&self, ctx: &GpuContext) -> Result<Vec<[f32; 4]>, OpticsError> {
-        let bytes = read_texture(ctx, &self.map_geometry.position, 16)?;
-        Ok(bytemuck::cast_slice(&bytes).to_vec())
     }
 }
 

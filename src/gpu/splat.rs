@@ -14,7 +14,7 @@ use std::time::Instant;
 use serde::Serialize;
 use wgpu::util::DeviceExt;
 
-use super::{GpuContext, GpuError, REQUIRED_FEATURES};
+use super::{GpuContext, GpuError, REQUIRED_FEATURES, entry, texture_2d};
 use crate::splat::{Camera, Light, Render, SplatError, SplatParams, Surfel, View};
 
 /// The WGSL source of the three passes.
@@ -70,49 +70,8 @@ pub struct SplatRenderer {
     targets: Targets,
 }
 
-fn uniform_entry() -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding: 0,
-        visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
-        ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Uniform,
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
-    }
-}
-
-fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::FRAGMENT,
-        ty: wgpu::BindingType::Texture {
-            sample_type: wgpu::TextureSampleType::Float { filterable: false },
-            view_dimension: wgpu::TextureViewDimension::D2,
-            multisampled: false,
-        },
-        count: None,
-    }
-}
-
 fn create_targets(device: &wgpu::Device, width: u32, height: u32) -> Targets {
-    let texture = |label, format, usage| {
-        device.create_texture(&wgpu::TextureDescriptor {
-            label: Some(label),
-            size: wgpu::Extent3d {
-                width,
-                height,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format,
-            usage,
-            view_formats: &[],
-        })
-    };
+    let texture = |label, format, usage| texture_2d(device, label, (width, height), format, usage);
     let accumulation = wgpu::TextureUsages::RENDER_ATTACHMENT
         | wgpu::TextureUsages::TEXTURE_BINDING
         | wgpu::TextureUsages::COPY_SRC;
@@ -154,11 +113,15 @@ impl SplatRenderer {
         });
         let splat_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("splat uniforms"),
-            entries: &[uniform_entry()],
+            entries: &[entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT)],
         });
         let shade_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("splat shading"),
-            entries: &[uniform_entry(), texture_entry(1), texture_entry(2)],
+            entries: &[
+                entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT),
+                entry::texture(1, wgpu::ShaderStages::FRAGMENT),
+                entry::texture(2, wgpu::ShaderStages::FRAGMENT),
+            ],
         });
         let splat_pipeline_layout =
             device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -528,20 +491,13 @@ pub fn render_timed(
     let device = &ctx.device;
     let (width, height) = renderer.size();
     let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-    let output = device.create_texture(&wgpu::TextureDescriptor {
-        label: Some("splat image"),
-        size: wgpu::Extent3d {
-            width,
-            height,
-            depth_or_array_layers: 1,
-        },
-        mip_level_count: 1,
-        sample_count: 1,
-        dimension: wgpu::TextureDimension::D2,
-        format: renderer.format,
-        usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
-        view_formats: &[],
-    });
+    let output = texture_2d(
+        device,
+        "splat image",
+        (width, height),
+        renderer.format,
+        wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+    );
     let output_view = output.create_view(&Default::default());
     let (splat, shade) = renderer.bind_groups(device, view);
     let mut times = PassTimes::default();
@@ -577,7 +533,7 @@ pub fn render_timed(
 }
 
 /// Copies a 2D texture back, rows unpadded.
-pub(crate) fn read_texture(
+fn read_texture(
     ctx: &GpuContext,
     texture: &wgpu::Texture,
     texel_bytes: u32,
