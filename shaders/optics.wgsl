@@ -572,34 +572,33 @@ fn caustics_at(p: vec3<f32>) -> vec3<f32> {
     return mix(mix(a, b, tx), mix(c, d, tx), ty);
 }
 
+// Row-major index of the texel under pixel coordinates q of view v, -1 off the view (mirror:
+// texel_of).
+fn texel_of(v: ViewU, q: vec3<f32>) -> i32 {
+    if (!(q.x >= 0.0 && q.y >= 0.0 && q.x < v.viewport.x && q.y < v.viewport.y)) {
+        return -1;
+    }
+    return i32(q.y) * i32(v.viewport.x) + i32(q.x);
+}
+
 // Mirror: Caustics::under_water.
 fn under_water(p: vec3<f32>) -> bool {
     let q = project(u.screen, p);
-    if (!(q.x >= 0.0 && q.y >= 0.0)) {
+    let i = texel_of(u.screen, q);
+    if (i < 0) {
         return false;
     }
-    let x = u32(q.x);
-    let y = u32(q.y);
-    let w = u32(u.screen.viewport.x);
-    if (x >= w || y >= u32(u.screen.viewport.y)) {
-        return false;
-    }
-    let d = vertices[y * w + x].surface.w;
+    let d = vertices[i].surface.w;
     return d > 0.0 && d < q.z;
 }
 
 // Mirror: Caustics::shadowed (slope-scaled bias).
 fn shadowed(p: vec3<f32>, n: vec3<f32>) -> bool {
     let q = project(u.map, p);
-    if (!(q.x >= 0.0 && q.y >= 0.0)) {
+    if (texel_of(u.map, q) < 0) {
         return false;
     }
-    let x = u32(q.x);
-    let y = u32(q.y);
-    if (x >= u32(u.map.viewport.x) || y >= u32(u.map.viewport.y)) {
-        return false;
-    }
-    let g = textureLoad(map_position, vec2<i32>(i32(x), i32(y)), 0).w;
+    let g = textureLoad(map_position, vec2<i32>(q.xy), 0).w;
     let d = world_ray(u.map, q.xy).dir;
     let c = abs(dot(n, d) / max(length(d), 1e-20));
     let slope = min(sqrt(max(1.0 - c * c, 0.0)) / max(c, 0.05), 20.0);

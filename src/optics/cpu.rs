@@ -356,34 +356,21 @@ impl Caustics {
     /// pixel over `p` sees water nearer the light than `p`.
     #[must_use]
     pub fn under_water(&self, p: Vec3) -> bool {
-        let q = self.screen.project(p);
-        if !(q.x >= 0.0 && q.y >= 0.0) {
-            return false;
-        }
-        let (x, y) = (q.x as u32, q.y as u32);
-        if x >= self.screen.width || y >= self.screen.height {
-            return false;
-        }
-        let w = self.vertices[(y * self.screen.width + x) as usize]
-            .surface
-            .w;
-        w > 0.0 && w < q.z
+        texel_of(&self.screen, p).is_some_and(|(i, q)| {
+            let w = self.vertices[i].surface.w;
+            w > 0.0 && w < q.z
+        })
     }
 
     /// Whether the receiver shadows `p` (normal `n`) from the light (`shadowed` in the WGSL): the
     /// geometry map sees the receiver nearer the light than `p` by more than a slope-scaled bias
-    /// (1.5 texels plus twice the surface's depth change across a texel, capped at 40 texels).
+    /// (1.5 texels plus twice the surface's depth change across a texel, at most 41.5 texels).
     #[must_use]
     pub fn shadowed(&self, p: Vec3, n: Vec3) -> bool {
-        let q = self.map.project(p);
-        if !(q.x >= 0.0 && q.y >= 0.0) {
+        let Some((i, q)) = texel_of(&self.map, p) else {
             return false;
-        }
-        let (x, y) = (q.x as u32, q.y as u32);
-        if x >= self.map.width || y >= self.map.height {
-            return false;
-        }
-        let g = self.geometry[(y * self.map.width + x) as usize][3];
+        };
+        let g = self.geometry[i][3];
         let (_, d) = self.map.world_ray(Vec2::new(q.x, q.y));
         let c = (n.dot(d) / d.length().max(1e-20)).abs();
         let slope = ((1.0 - c * c).max(0.0).sqrt() / c.max(0.05)).min(20.0);
@@ -410,6 +397,17 @@ impl Caustics {
             image::Rgba([r, g, b, 255])
         })
     }
+}
+
+/// The texel of `v` under the world point `p` (row-major index) and `p`'s pixel coordinates and
+/// depth; `None` off the view. `texel_of` in the WGSL.
+fn texel_of(v: &View, p: Vec3) -> Option<(usize, Vec3)> {
+    let q = v.project(p);
+    // NaN-safe: NaN fails the comparisons
+    if !(q.x >= 0.0 && q.y >= 0.0 && q.x < v.width as f32 && q.y < v.height as f32) {
+        return None;
+    }
+    Some(((q.y as u32 * v.width + q.x as u32) as usize, q))
 }
 
 /// Bilinear sample of an RGB map at pixel coordinates (texel centres at `i + 0.5`), clamped to the
