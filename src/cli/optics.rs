@@ -5,6 +5,7 @@ use std::time::Instant;
 
 use fluid_surfels::Error;
 use fluid_surfels::gpu::GpuContext;
+use fluid_surfels::gpu::optics::{OpticsGpu, run_timed};
 use fluid_surfels::optics::{self, Caustics, OpticsScene, ReceiverKind, Stage};
 use fluid_surfels::splat::Surfel;
 use glam::Vec3;
@@ -16,7 +17,9 @@ use super::ms;
 /// One finished frame.
 pub struct Finished {
     pub stage: Stage,
-    pub caustics: Caustics,
+    /// The CPU reference's caustics, where they were made (always on the CPU path; on the GPU
+    /// path only when asked for, to picture the map).
+    pub caustics: Option<Caustics>,
     pub image: RgbaImage,
     pub report: FrameReport,
 }
@@ -29,71 +32,126 @@ pub struct FrameReport {
     pub screen: [u32; 2],
     pub map: [u32; 2],
     pub image: [u32; 2],
-    pub caustics_triangles: usize,
-    pub incident_flux: [f32; 3],
+    /// Caustics triangles and the flux through the water (from the CPU reference's caustics,
+    /// when they were made).
+    pub caustics_triangles: Option<usize>,
+    pub incident_flux: Option<[f32; 3]>,
+    /// Total flux in the caustics map the frame was shaded with.
     pub map_flux: [f32; 3],
-    /// The CPU reference's caustics (always computed: they give the map picture and the flux).
+    /// The caustics the frame was shaded with (the GPU's on the GPU path).
     pub caustics_ms: f64,
-    /// The final image (including the GPU's own caustics on the GPU path).
+    /// The final image after the caustics.
     pub frame_ms: f64,
+    /// The CPU reference's caustics made beside the GPU's for the map picture.
+    pub reference_caustics_ms: Option<f64>,
 }
 
-/// Caustics (CPU reference: they also give the map picture) and the final image (GPU when a
-/// context is given, else the CPU reference).
-pub fn finish(
-    ctx: Option<&GpuContext>,
-    scene: &OpticsScene,
-    surfels: &[Surfel],
-) -> Result<Finished, Error> {
-    let stage = Stage::new(scene, surfels)?;
-    let size = (scene.optics.image_size[0], scene.optics.image_size[1]);
-    let t = Instant::now();
-    let caustics = optics::caustics_cpu(&stage, surfels)?;
-    let caustics_ms = ms(t);
-    let t = Instant::now();
-    let (image, backend, frame_ms) = match ctx {
-        Some(ctx) => {
-            let (r, times) =
-                fluid_surfels::gpu::optics::render_gpu(ctx, &stage, surfels, Some(size))?;
-            let name = ctx
-                .adapter
-                .as_ref()
-                .map_or("given device".to_string(), |a| {
-                    format!("{} ({})", a.name, a.backend)
-                });
-            let (image, _) = r.frame.ok_or_else(|| Error::InvalidArgument {
-                argument: "image",
-                reason: "the GPU returned no frame".into(),
-            })?;
-            (
-                image,
-                format!("gpu: {name}"),
-                times.caustics_ms + times.frame_ms,
-            )
-        }
-        None => {
-            let f = optics::frame_cpu(&stage, surfels, &caustics, size)?;
-            (f.image, "cpu reference".to_string(), ms(t))
-        }
-    };
-    let report = FrameReport {
-        surfels: surfels.len(),
-        backend,
-        screen: [stage.views.screen.width, stage.views.screen.height],
-        map: [stage.views.map.width, stage.views.map.height],
-        image: [size.0, size.1],
-        caustics_triangles: caustics.triangles,
-        incident_flux: caustics.incident.to_array(),
-        map_flux: caustics.total_flux().to_array(),
-        caustics_ms,
-        frame_ms,
-    };
-    Ok(Finished {
-        stage,
-        caustics,
-        image,
-        report,
-    })
+/// Renders finished frames on the GPU (its pipelines compiled once) or with the CPU reference.
+pub struct FrameRenderer {
+    gpu: Option<(GpuContext, OpticsGpu)>,
+}
+
+impl FrameRenderer {
+    /// On the given context's device, or the CPU reference without one.
+    pub fn new(ctx: Option<GpuContext>) -> Result<Self, Error> {
+        let gpu = match ctx {
+            Some(ctx) => {
+                let optics = OpticsGpu::new(&ctx.device)?;
+                Some((ctx, optics))
+            }
+            None => None,
+        };
+        Ok(Self { gpu })
+    }
+
+    /// Caustics and the final image. `reference_caustics` asks for the CPU reference's caustics
+    /// on the GPU path too (the map picture needs them); the CPU path always makes them.
+    pub fn finish(
+        &self,
+        scene: &OpticsScene,
+        surfels: &[Surfel],
+        reference_caustics: bool,
+    ) -> Result<Finished, Error> {
+        let stage = Stage::new(scene, surfels)?;
+        let size = (scene.optics.image_size[0], scene.optics.image_size[1]);
+        let cpu_caustics = |stage: &Stage| -> Result<(Caustics, f64), Error> {
+            let t = Instant::now();
+            let c = optics::caustics_cpu(stage, surfels)?;
+            Ok((c, ms(t)))
+        };
+        let (image, caustics, backend, map_flux, caustics_ms, frame_ms, reference_ms) = match &self
+            .gpu
+        {
+            Some((ctx, gpu)) => {
+                let prepared = gpu.prepare(&ctx.device, &ctx.queue, &stage, surfels, Some(size))?;
+                let times = run_timed(ctx, gpu, &prepared)?;
+                let r = prepared.read(ctx)?;
+                let (image, _) = r.frame.ok_or_else(|| Error::InvalidArgument {
+                    argument: "image",
+                    reason: "the GPU returned no frame".into(),
+                })?;
+                let flux = r
+                    .flux
+                    .iter()
+                    .fold(Vec3::ZERO, |a, f| a + Vec3::new(f[0], f[1], f[2]));
+                let name = ctx
+                    .adapter
+                    .as_ref()
+                    .map_or("given device".to_string(), |a| {
+                        format!("{} ({})", a.name, a.backend)
+                    });
+                let (caustics, reference_ms) = if reference_caustics {
+                    let (c, t) = cpu_caustics(&stage)?;
+                    (Some(c), Some(t))
+                } else {
+                    (None, None)
+                };
+                (
+                    image,
+                    caustics,
+                    format!("gpu: {name}"),
+                    flux,
+                    times.caustics_ms,
+                    times.frame_ms,
+                    reference_ms,
+                )
+            }
+            None => {
+                let (c, caustics_ms) = cpu_caustics(&stage)?;
+                let t = Instant::now();
+                let f = optics::frame_cpu(&stage, surfels, &c, size)?;
+                let flux = c.total_flux();
+                (
+                    f.image,
+                    Some(c),
+                    "cpu reference".to_string(),
+                    flux,
+                    caustics_ms,
+                    ms(t),
+                    None,
+                )
+            }
+        };
+        let report = FrameReport {
+            surfels: surfels.len(),
+            backend,
+            screen: [stage.views.screen.width, stage.views.screen.height],
+            map: [stage.views.map.width, stage.views.map.height],
+            image: [size.0, size.1],
+            caustics_triangles: caustics.as_ref().map(|c| c.triangles),
+            incident_flux: caustics.as_ref().map(|c| c.incident.to_array()),
+            map_flux: map_flux.to_array(),
+            caustics_ms,
+            frame_ms,
+            reference_caustics_ms: reference_ms,
+        };
+        Ok(Finished {
+            stage,
+            caustics,
+            image,
+            report,
+        })
+    }
 }
 
 /// The pool scene of the `column` tank: an open box with a tiled floor, sunlight from above and
@@ -143,14 +201,17 @@ pub fn to_height(img: &RgbImage, height: u32) -> RgbImage {
     image::imageops::resize(img, w.max(1), height, image::imageops::FilterType::Nearest)
 }
 
-/// The panel of all stages: light's view of the water | caustics map | finished frame.
+/// The panel of all stages: light's view of the water | caustics map | finished frame (the
+/// frame alone without the reference caustics).
 pub fn stages_panel(f: &Finished, height: u32) -> RgbImage {
     let rgb = |i: &RgbaImage| -> RgbImage { image::buffer::ConvertBuffer::convert(i) };
-    fluid_surfels::preview::side_by_side(&[
-        to_height(&screen_picture(&f.caustics), height),
-        to_height(&rgb(&f.caustics.image(&f.stage)), height),
-        to_height(&rgb(&f.image), height),
-    ])
+    let mut panels = Vec::new();
+    if let Some(c) = &f.caustics {
+        panels.push(to_height(&screen_picture(c), height));
+        panels.push(to_height(&rgb(&c.image(&f.stage)), height));
+    }
+    panels.push(to_height(&rgb(&f.image), height));
+    fluid_surfels::preview::side_by_side(&panels)
 }
 
 /// Writes an RGBA image as an RGB PNG.

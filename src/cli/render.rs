@@ -351,7 +351,7 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
     if let Some(c) = args.camera {
         scene.camera = Some(c);
     }
-    let ctx = choose_gpu(args.cpu, args.gpu)?;
+    let renderer = super::optics::FrameRenderer::new(choose_gpu(args.cpu, args.gpu)?)?;
     let Some(range) = args.frames else {
         check_output(
             &args.out,
@@ -359,7 +359,7 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
             args.force,
         )?;
         let (source, surfels) = frame_surfels(args, args.input.as_deref(), args.frame)?;
-        let f = super::optics::finish(ctx.as_ref(), &scene, &surfels)?;
+        let f = renderer.finish(&scene, &surfels, false)?;
         super::optics::save(&f.image, &args.out)?;
         return report_frame(args, source, None, &args.out, f.report);
     };
@@ -399,7 +399,7 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
         check_output(&out, None, args.force)?;
         let path = pattern.as_ref().map(|p| p.path(frame));
         let (source, surfels) = frame_surfels(args, path.as_deref(), Some(frame))?;
-        let f = super::optics::finish(ctx.as_ref(), &scene, &surfels)?;
+        let f = renderer.finish(&scene, &surfels, false)?;
         super::optics::save(&f.image, &out)?;
         bar.suspend(|| report_frame(args, source, Some(frame), &out, f.report))?;
         bar.inc(1);
@@ -425,7 +425,7 @@ fn report_frame(
         super::print_json(&r);
     } else {
         println!(
-            "{}{}: {} surfels; caustics {}x{} screen, {}x{} map, {} triangles, {:.1} ms; frame {}x{} on the {}, {:.1} ms; wrote {}",
+            "{}{}: {} surfels; caustics {}x{} screen, {}x{} map{}, {:.1} ms; frame {}x{} on the {}, {:.1} ms; wrote {}",
             r.source,
             frame.map(|f| format!(" frame {f}")).unwrap_or_default(),
             r.stats.surfels,
@@ -433,7 +433,10 @@ fn report_frame(
             r.stats.screen[1],
             r.stats.map[0],
             r.stats.map[1],
-            r.stats.caustics_triangles,
+            r.stats
+                .caustics_triangles
+                .map(|t| format!(", {t} triangles"))
+                .unwrap_or_default(),
             r.stats.caustics_ms,
             r.stats.image[0],
             r.stats.image[1],

@@ -250,26 +250,31 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
     );
     // stage 5: the finished frame, refraction, reflection and caustics on the tank's floor
     let pool = super::optics::column_pool(sim.params().tank);
-    let finished = super::optics::finish(ctx.as_ref(), &pool, &refined_surfels)?;
+    let finished = super::optics::FrameRenderer::new(ctx)?.finish(&pool, &refined_surfels, true)?;
     let frame_png = args.out_dir.join("frame.png");
     super::optics::save(&finished.image, &frame_png)?;
     let caustics_png = args.out_dir.join("caustics.png");
-    super::optics::save(&finished.caustics.image(&finished.stage), &caustics_png)?;
+    if let Some(c) = &finished.caustics {
+        super::optics::save(&c.image(&finished.stage), &caustics_png)?;
+    }
     let stages_png = args.out_dir.join("stages.png");
     preview::save_png(&super::optics::stages_panel(&finished, 512), &stages_png)?;
     let r = &finished.report;
     println!(
-        "  optics             caustics {}x{} screen -> {}x{} map, {} triangles, {:.0} ms (CPU reference); frame {}x{} in {:.0} ms on the {}",
+        "  optics             caustics {}x{} screen -> {}x{} map, {} triangles; frame {}x{} on the {}: caustics {:.0} ms + image {:.0} ms{}",
         r.screen[0],
         r.screen[1],
         r.map[0],
         r.map[1],
-        r.caustics_triangles,
-        r.caustics_ms,
+        r.caustics_triangles.unwrap_or(0),
         r.image[0],
         r.image[1],
+        r.backend,
+        r.caustics_ms,
         r.frame_ms,
-        r.backend
+        r.reference_caustics_ms
+            .map(|t| format!(" (CPU reference caustics for the map picture: {t:.0} ms)"))
+            .unwrap_or_default()
     );
     println!(
         "  wrote              {} (refined water with refraction, reflection and caustics)",
