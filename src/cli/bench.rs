@@ -589,15 +589,9 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
     Ok(())
 }
 
-/// Arguments of `bench splat`.
+/// Options the GPU-against-CPU benchmarks (`splat`, `optics`) share.
 #[derive(clap::Args)]
-pub struct BenchSplatArgs {
-    /// Number of surfels (a sphere of surfels filling most of the image; half face the camera).
-    #[arg(long, default_value_t = 1_000_000)]
-    pub surfels: usize,
-    /// Image size, WIDTHxHEIGHT (default: 1920x1080, the goal's case).
-    #[arg(long, default_value = "1920x1080", value_parser = super::render::parse_size)]
-    pub size: (u32, u32),
+pub struct GpuBenchRun {
     /// Timed GPU frames (the median is reported), after one untimed frame.
     #[arg(long, default_value_t = 5)]
     pub repeat: usize,
@@ -607,6 +601,19 @@ pub struct BenchSplatArgs {
     /// Print one JSON object instead of text.
     #[arg(long)]
     pub json: bool,
+}
+
+/// Arguments of `bench splat`.
+#[derive(clap::Args)]
+pub struct BenchSplatArgs {
+    /// Number of surfels (a sphere of surfels filling most of the image; half face the camera).
+    #[arg(long, default_value_t = 1_000_000)]
+    pub surfels: usize,
+    /// Image size, WIDTHxHEIGHT (default: 1920x1080, the goal's case).
+    #[arg(long, default_value = "1920x1080", value_parser = super::render::parse_size)]
+    pub size: (u32, u32),
+    #[command(flatten)]
+    pub run: GpuBenchRun,
 }
 
 #[derive(Serialize)]
@@ -650,7 +657,7 @@ pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
         width,
         height,
     )?;
-    let cpu = if args.no_cpu {
+    let cpu = if args.run.no_cpu {
         None
     } else {
         let t = Instant::now();
@@ -665,7 +672,7 @@ pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
             // one untimed frame: shader compilation, first-use allocations
             let (first, _) = render_timed(&ctx, &renderer, &buffer, &view)?;
             let mut runs = Vec::new();
-            for _ in 0..args.repeat.max(1) {
+            for _ in 0..args.run.repeat.max(1) {
                 runs.push(render_timed(&ctx, &renderer, &buffer, &view)?.1);
             }
             runs.sort_by(|a, b| a.total_ms().total_cmp(&b.total_ms()));
@@ -693,7 +700,7 @@ pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
             })
         }
         Err(e) => {
-            if !args.json {
+            if !args.run.json {
                 println!("  (no GPU: {e})");
             }
             None
@@ -715,7 +722,7 @@ pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
         },
         gpu,
     };
-    if args.json {
+    if args.run.json {
         super::print_json(&report);
     } else {
         println!(
@@ -763,15 +770,8 @@ pub struct BenchOpticsArgs {
     /// Final image size (the paper's 512x512).
     #[arg(long, default_value = "512x512", value_parser = super::render::parse_size)]
     pub size: (u32, u32),
-    /// Timed GPU frames (the median is reported), after one untimed frame.
-    #[arg(long, default_value_t = 5)]
-    pub repeat: usize,
-    /// Skip the CPU reference.
-    #[arg(long)]
-    pub no_cpu: bool,
-    /// Print one JSON object instead of text.
-    #[arg(long)]
-    pub json: bool,
+    #[command(flatten)]
+    pub run: GpuBenchRun,
 }
 
 #[derive(Serialize)]
@@ -828,7 +828,7 @@ pub fn bench_optics(args: &BenchOpticsArgs) -> Result<(), Error> {
             });
             let stage = Stage::new(&scene, &surfels)?;
             let (mut cpu_c, mut cpu_f) = (None, None);
-            if !args.no_cpu {
+            if !args.run.no_cpu {
                 let t = Instant::now();
                 let c = optics::caustics_cpu(&stage, &surfels)?;
                 cpu_c = Some(ms(t));
@@ -843,7 +843,7 @@ pub fn bench_optics(args: &BenchOpticsArgs) -> Result<(), Error> {
                 run_timed(ctx, g, &prepared)?;
                 let mut cs = Vec::new();
                 let mut fs = Vec::new();
-                for _ in 0..args.repeat.max(1) {
+                for _ in 0..args.run.repeat.max(1) {
                     let t = run_timed(ctx, g, &prepared)?;
                     cs.push(t.caustics_ms);
                     fs.push(t.frame_ms);
@@ -864,7 +864,7 @@ pub fn bench_optics(args: &BenchOpticsArgs) -> Result<(), Error> {
                 gpu_fps: fps(gpu_c, gpu_f),
                 cpu_fps: fps(cpu_c, cpu_f),
             };
-            if !args.json {
+            if !args.run.json {
                 let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1}"));
                 println!(
                     "{} surfels, screen {}x{}, map {}x{}, image {}x{}: CPU caustics {} ms + frame {} ms ({} fps); GPU caustics {} ms + frame {} ms ({} fps)",
@@ -894,7 +894,7 @@ pub fn bench_optics(args: &BenchOpticsArgs) -> Result<(), Error> {
         threads: rayon::current_num_threads(),
         cases,
     };
-    if args.json {
+    if args.run.json {
         super::print_json(&report);
     } else {
         println!(
