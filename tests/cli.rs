@@ -742,8 +742,7 @@ fn render_optics_writes_frames_and_refuses_bad_scenes() {
         .arg(&out)
         .output()
         .unwrap();
-    succeeded(&run);
-    let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    let report = json_of(&run);
     assert_eq!(report["screen"], serde_json::json!([64, 64]));
     assert!(
         report["caustics_triangles"].as_u64().unwrap() > 100,
@@ -809,8 +808,7 @@ fn bench_optics_reports_json() {
         ])
         .output()
         .unwrap();
-    succeeded(&run);
-    let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    let report = json_of(&run);
     let cases = report["cases"].as_array().unwrap();
     assert_eq!(cases.len(), 2);
     assert!(
