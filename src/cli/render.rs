@@ -351,6 +351,8 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
     if let Some(c) = args.camera {
         scene.camera = Some(c);
     }
+    // an environment image is read once for the whole sequence, not by every frame's stage
+    scene.environment.load()?;
     let renderer = super::optics::FrameRenderer::new(choose_gpu(args.cpu, args.gpu)?)?;
     let Some(range) = args.frames else {
         check_output(
