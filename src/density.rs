@@ -14,9 +14,10 @@
 //! 1). Only the scale differs; iso-values given relative to one particle's peak density are the
 //! same either way. [`Kernel::CubicSpline`] is the usual SPH cubic spline with support `h`.
 //!
-//! The GPU path (point-sprite disks, four planes per RGBA pass) and surfel extraction come next;
-//! this module's CPU path and its naive reference are the specification they will be tested
-//! against.
+//! Points may carry a radius each ([`Points`]): the design chain's refined surface points beside
+//! the interior particles. The GPU twin is [`crate::gpu::density`] (point-sprite disks, four
+//! planes per RGBA pass); this module's CPU path and its naive reference are the specification
+//! it is tested against. Surfel extraction is [`crate::surfels`].
 
 use std::f32::consts::PI;
 
@@ -82,6 +83,27 @@ impl Kernel {
         }
     }
 
+    /// The contribution of a point of effective radius `hj` measured against the reference
+    /// radius `h`: `(hj / h)^3 F(r, hj)`, given `r^2` (see [`Points`] for why the volume weight).
+    /// Equals [`Kernel::value_r2`] bit for bit when `hj == h`. For Wyvill's kernel this is
+    /// `F(0, h) poly(r^2 / hj^2)`: the same peak for every point, whatever its radius.
+    #[must_use]
+    #[inline]
+    pub fn weighted_r2(self, r2: f32, hj: f32, h: f32) -> f32 {
+        match self {
+            Self::Wyvill => {
+                let a2 = r2 * (1.0 / (hj * hj));
+                let poly = ((-4.0 / 9.0 * a2 + 17.0 / 9.0) * a2 - 22.0 / 9.0) * a2 + 1.0;
+                let v = 2835.0 / (736.0 * PI * h * h * h) * poly;
+                if a2 < 1.0 { v } else { 0.0 }
+            }
+            Self::CubicSpline => {
+                let s = hj / h;
+                self.value(r2.sqrt(), hj) * (s * s * s)
+            }
+        }
+    }
+
     /// The peak density of one particle, `F(0, h)`.
     #[must_use]
     pub fn peak(self, h: f32) -> f32 {
@@ -116,6 +138,115 @@ pub enum DensityError {
         bytes: u128,
         limit: u64,
     },
+}
+
+/// The points a density grid is made of: positions, and each point's effective radius.
+///
+/// With one radius for all (`radii: None`) every point adds `F(r, h)`, as in the paper (eq. 1).
+/// With a radius per point (the refined surface points beside the interior particles, §3 of
+/// Solenthaler et al. feeding §4 of Iwasaki et al.) the paper is silent on how kernels of
+/// different radii combine. A point of radius `hj` adds `(hj / h)^3 F(r, hj)`: the SPH estimate
+/// `sum_j V_j W(x - x_j, h_j)` with each point's volume `V_j` proportional to its kernel's
+/// volume, `h_j^3`. Why: where points sample a region at spacing `s` with radius `hj = c s`, the
+/// sum is a Riemann sum, `sum_j (hj / h)^3 F(r, hj) ~ (hj / h)^3 / s^3 int F dV = c^3 / h^3`
+/// (`int F = 1`), the same whatever the spacing; so a fine sheet of refined points and coarse
+/// interior particles join without a step in density, and every point has the same peak
+/// `F(0, h)`, so an iso-value given as a fraction of that peak means the same for both (tested:
+/// a block sampled at two spacings with `hj = 2 s` gives the same interior density). With
+/// `hj == h` it is exactly the uniform case, bit for bit.
+#[derive(Clone, Copy, Debug)]
+pub struct Points<'a> {
+    /// Positions.
+    pub positions: &'a [Vec3],
+    /// Effective radius of each point; `None`: every point has `h`.
+    pub radii: Option<&'a [f32]>,
+    /// The reference radius: every point's without `radii`, and the radius whose peak `F(0, h)`
+    /// iso-values are measured against.
+    pub h: f32,
+}
+
+impl<'a> Points<'a> {
+    /// Points of one effective radius `h`.
+    #[must_use]
+    pub fn uniform(positions: &'a [Vec3], h: f32) -> Self {
+        Self {
+            positions,
+            radii: None,
+            h,
+        }
+    }
+
+    /// Points with a radius each, measured against the reference radius `h`.
+    #[must_use]
+    pub fn with_radii(positions: &'a [Vec3], radii: &'a [f32], h: f32) -> Self {
+        Self {
+            positions,
+            radii: Some(radii),
+            h,
+        }
+    }
+
+    /// Number of points.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    /// True when there is none.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    /// Effective radius of point `i`.
+    #[must_use]
+    #[inline]
+    pub fn radius(&self, i: usize) -> f32 {
+        match self.radii {
+            Some(r) => r[i],
+            None => self.h,
+        }
+    }
+
+    /// The largest effective radius (`h` when there are no per-point radii or no points).
+    #[must_use]
+    pub fn max_radius(&self) -> f32 {
+        match self.radii {
+            Some(r) if !r.is_empty() => r.iter().copied().fold(0.0, f32::max),
+            _ => self.h,
+        }
+    }
+
+    /// The smallest effective radius (`h` when there are no per-point radii or no points).
+    #[must_use]
+    pub fn min_radius(&self) -> f32 {
+        match self.radii {
+            Some(r) if !r.is_empty() => r.iter().copied().fold(f32::INFINITY, f32::min),
+            _ => self.h,
+        }
+    }
+
+    /// Checks the radii (finite, > 0, one per point) and the positions (finite).
+    pub fn check(&self) -> Result<(), DensityError> {
+        if !(self.h.is_finite() && self.h > 0.0) {
+            return Err(DensityError::InvalidRadius { h: self.h });
+        }
+        if let Some(r) = self.radii {
+            if r.len() != self.positions.len() {
+                return Err(DensityError::InvalidGrid {
+                    name: "radii",
+                    reason: format!("{} radii for {} points", r.len(), self.positions.len()),
+                });
+            }
+            if let Some(&h) = r.iter().find(|h| !(h.is_finite() && **h > 0.0)) {
+                return Err(DensityError::InvalidRadius { h });
+            }
+        }
+        if let Some(index) = self.positions.iter().position(|p| !p.is_finite()) {
+            return Err(DensityError::NonFinite { index });
+        }
+        Ok(())
+    }
 }
 
 /// How fine the grid is.
@@ -265,22 +396,11 @@ impl DensityGrid {
     }
 }
 
-fn check(positions: &[Vec3], h: f32) -> Result<(), DensityError> {
-    if !(h.is_finite() && h > 0.0) {
-        return Err(DensityError::InvalidRadius { h });
-    }
-    if let Some(index) = positions.iter().position(|p| !p.is_finite()) {
-        return Err(DensityError::NonFinite { index });
-    }
-    Ok(())
-}
-
-/// Adds every particle of `cluster` to the planes `k0..k0 + planes.len() / plane_len` of `slab`.
+/// Adds every point of `cluster` to the planes `k0..k0 + planes.len() / plane_len` of `slab`.
 fn splat_slab(
     spec: &GridSpec,
     kernel: Kernel,
-    h: f32,
-    positions: &[Vec3],
+    points: &Points<'_>,
     cluster: &[u32],
     k0: u32,
     slab: &mut [f32],
@@ -289,16 +409,18 @@ fn splat_slab(
     let plane = nx as usize * ny as usize;
     let planes = (slab.len() / plane) as u32;
     let inv = 1.0 / spec.spacing;
+    let h = points.h;
     for &p in cluster {
-        let x = positions[p as usize];
+        let x = points.positions[p as usize];
+        let hj = points.radius(p as usize);
         for dk in 0..planes {
             let z = spec.origin.z + (k0 + dk) as f32 * spec.spacing;
             let dz = x.z - z;
-            if dz.abs() >= h {
+            if dz.abs() >= hj {
                 continue;
             }
             // the disk where the particle's ball meets this plane (§4.1)
-            let disk = (h * h - dz * dz).sqrt();
+            let disk = (hj * hj - dz * dz).sqrt();
             let i0 = (((x.x - disk - spec.origin.x) * inv).ceil().max(0.0)) as u32;
             let i1 = (((x.x + disk - spec.origin.x) * inv)
                 .floor()
@@ -322,7 +444,7 @@ fn splat_slab(
                 let cells = &mut slab[row + a as usize..=row + b as usize];
                 for (t, v) in cells.iter_mut().enumerate() {
                     let dx = spec.origin.x + (a as usize + t) as f32 * spec.spacing - x.x;
-                    *v += kernel.value_r2(dx * dx + dyz2, h);
+                    *v += kernel.weighted_r2(dx * dx + dyz2, hj, h);
                 }
             }
         }
@@ -331,25 +453,45 @@ fn splat_slab(
 
 /// Fills the grid slab by slab (`slab_planes` z planes each) and hands each slab to `sink(k0,
 /// values)` in increasing z. Slabs are computed in parallel, a few at a time, so that only
-/// `2 x threads` slabs are held at once.
+/// `2 x threads` slabs are held at once. Every particle has the effective radius `h`.
 pub fn splat_slabs(
     positions: &[Vec3],
     spec: &GridSpec,
     kernel: Kernel,
     h: f32,
     slab_planes: u32,
+    sink: impl FnMut(u32, Vec<f32>),
+) -> Result<(), DensityError> {
+    splat_points_slabs(
+        Points::uniform(positions, h),
+        spec,
+        kernel,
+        slab_planes,
+        sink,
+    )
+}
+
+/// [`splat_slabs`] for points with a radius each.
+pub fn splat_points_slabs(
+    points: Points<'_>,
+    spec: &GridSpec,
+    kernel: Kernel,
+    slab_planes: u32,
     mut sink: impl FnMut(u32, Vec<f32>),
 ) -> Result<(), DensityError> {
-    check(positions, h)?;
+    points.check()?;
     if slab_planes == 0 {
         return Err(DensityError::InvalidGrid {
             name: "slab_planes",
             reason: "must be at least 1".into(),
         });
     }
+    let positions = points.positions;
+    let reach = points.max_radius();
     let [nx, ny, nz] = spec.dims;
     let plane = nx as usize * ny as usize;
-    // z-clustering (§4.2): particles sorted by z; a slab takes those within h of its planes
+    // z-clustering (§4.2): particles sorted by z; a slab takes those within the largest radius
+    // of its planes (each point still tests its own radius)
     let mut order: Vec<u32> = (0..positions.len() as u32).collect();
     order.par_sort_unstable_by(|&a, &b| {
         positions[a as usize]
@@ -365,15 +507,15 @@ pub fn splat_slabs(
             .par_iter()
             .map(|&k0| {
                 let planes = slab_planes.min(nz - k0);
-                let z_lo = spec.origin.z + k0 as f32 * spec.spacing - h;
-                let z_hi = spec.origin.z + (k0 + planes - 1) as f32 * spec.spacing + h;
+                let z_lo = spec.origin.z + k0 as f32 * spec.spacing - reach;
+                let z_hi = spec.origin.z + (k0 + planes - 1) as f32 * spec.spacing + reach;
                 let a = zs.partition_point(|&z| z <= z_lo);
                 let b = zs.partition_point(|&z| z < z_hi);
                 // the cluster in particle order, so that sums do not depend on the slab size
                 let mut cluster = order[a..b.max(a)].to_vec();
                 cluster.sort_unstable();
                 let mut slab = vec![0.0f32; plane * planes as usize];
-                splat_slab(spec, kernel, h, positions, &cluster, k0, &mut slab);
+                splat_slab(spec, kernel, &points, &cluster, k0, &mut slab);
                 (k0, slab)
             })
             .collect();
@@ -393,10 +535,20 @@ pub fn density_grid(
     h: f32,
     memory_limit: u64,
 ) -> Result<DensityGrid, DensityError> {
-    check(positions, h)?;
+    points_grid(Points::uniform(positions, h), spec, kernel, memory_limit)
+}
+
+/// [`density_grid`] for points with a radius each.
+pub fn points_grid(
+    points: Points<'_>,
+    spec: &GridSpec,
+    kernel: Kernel,
+    memory_limit: u64,
+) -> Result<DensityGrid, DensityError> {
+    points.check()?;
     spec.check_memory(memory_limit)?;
     let mut values = Vec::with_capacity(spec.cells() as usize);
-    splat_slabs(positions, spec, kernel, h, 4, |_, slab| {
+    splat_points_slabs(points, spec, kernel, 4, |_, slab| {
         values.extend_from_slice(&slab)
     })?;
     Ok(DensityGrid {
@@ -412,22 +564,32 @@ pub fn density_naive(
     kernel: Kernel,
     h: f32,
 ) -> Result<DensityGrid, DensityError> {
-    check(positions, h)?;
+    points_naive(Points::uniform(positions, h), spec, kernel)
+}
+
+/// [`density_naive`] for points with a radius each.
+pub fn points_naive(
+    points: Points<'_>,
+    spec: &GridSpec,
+    kernel: Kernel,
+) -> Result<DensityGrid, DensityError> {
+    points.check()?;
     spec.check_memory(crate::io::available_memory())?;
     let [nx, ny, nz] = spec.dims;
     let mut values = vec![0.0f32; spec.cells() as usize];
-    let lo_index = |v: f32, o: f32| ((v - h - o) / spec.spacing).ceil().max(0.0) as u32;
-    let hi_index = |v: f32, o: f32, n: u32| {
-        (((v + h - o) / spec.spacing).floor().max(-1.0) as i64).min(n as i64 - 1)
-    };
-    for &x in positions {
+    for (p, &x) in points.positions.iter().enumerate() {
+        let hj = points.radius(p);
+        let lo_index = |v: f32, o: f32| ((v - hj - o) / spec.spacing).ceil().max(0.0) as u32;
+        let hi_index = |v: f32, o: f32, n: u32| {
+            (((v + hj - o) / spec.spacing).floor().max(-1.0) as i64).min(n as i64 - 1)
+        };
         for k in lo_index(x.z, spec.origin.z) as i64..=hi_index(x.z, spec.origin.z, nz) {
             for j in lo_index(x.y, spec.origin.y) as i64..=hi_index(x.y, spec.origin.y, ny) {
                 for i in lo_index(x.x, spec.origin.x) as i64..=hi_index(x.x, spec.origin.x, nx) {
                     let d = spec.point(i as u32, j as u32, k as u32) - x;
                     // the same operations as the slab splatting: bit-identical sums
                     let dyz2 = d.y * d.y + d.z * d.z;
-                    let v = kernel.value_r2(d.x * d.x + dyz2, h);
+                    let v = kernel.weighted_r2(d.x * d.x + dyz2, hj, points.h);
                     values[i as usize + nx as usize * (j as usize + ny as usize * k as usize)] += v;
                 }
             }

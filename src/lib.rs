@@ -36,6 +36,7 @@ pub mod linalg;
 pub mod neighbours;
 pub mod optics;
 pub mod particles;
+pub mod pipeline;
 pub mod preview;
 pub mod refine;
 pub mod scenes;
@@ -95,4 +96,7 @@ pub enum Error {
     /// Frame patterns and ranges.
     #[error(transparent)]
     Sequence(#[from] sequence::SequenceError),
+    /// The pipeline's own settings.
+    #[error(transparent)]
+    Pipeline(#[from] pipeline::PipelineError),
 }

@@ -1,6 +1,8 @@
 //! Pictures of particle sets: a small CPU rasteriser drawing each particle as a shaded sphere
-//! impostor with a depth buffer. Used by the CLI for pictures where a person would rather look
-//! than read; not part of the rendering pipeline.
+//! impostor with a depth buffer, and the pictures of each stage built on it (classes, the
+//! refinement's steps, surfels by normal, the optics stage's panels). Used by the CLI and the
+//! examples for pictures where a person would rather look than read; not part of the rendering
+//! pipeline.
 
 use std::path::Path;
 
@@ -191,6 +193,155 @@ pub fn save_png(image: &RgbImage, path: &Path) -> Result<(), PreviewError> {
             source,
         }
     })
+}
+
+/// Bounds of points, or the unit box when there is no finite one.
+fn bounds_or_unit<'a>(points: impl IntoIterator<Item = &'a Vec3>) -> (Vec3, Vec3) {
+    let (lo, hi) = points
+        .into_iter()
+        .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &p| {
+            (lo.min(p), hi.max(p))
+        });
+    if lo.is_finite() && hi.is_finite() {
+        (lo, hi)
+    } else {
+        (Vec3::ZERO, Vec3::ONE)
+    }
+}
+
+/// Particles coloured by class: orange surface, blue interior, green isolated.
+#[must_use]
+pub fn class_colours(classes: &[crate::surface::ParticleClass]) -> Vec<[u8; 3]> {
+    use crate::surface::ParticleClass;
+    classes
+        .iter()
+        .map(|c| match c {
+            ParticleClass::Interior => palette::INTERIOR,
+            ParticleClass::Surface => palette::SURFACE,
+            ParticleClass::Isolated => palette::ISOLATED,
+        })
+        .collect()
+}
+
+/// The input points beside the refined points coloured by step (Solenthaler et al.'s Figure 2:
+/// black P0, blue P1, red P2, yellow P3).
+pub fn refinement_picture(
+    input: &[Vec3],
+    refined: &crate::refine::Refined,
+    size: u32,
+) -> Result<RgbImage, PreviewError> {
+    let (lo, hi) = bounds_or_unit(input.iter().chain(&refined.positions));
+    let camera = PreviewCamera::framing(lo, hi);
+    let splat = refined.final_radius * 0.5;
+    let input_colours = vec![palette::STEPS[0]; input.len()];
+    let r0 = refined.final_radius / crate::refine::RADIUS_FACTOR.powi(refined.stats.len() as i32);
+    let left = render_points_on(
+        input,
+        &input_colours,
+        0.2 * r0,
+        &camera,
+        size,
+        size,
+        palette::LIGHT_BACKGROUND,
+    )?;
+    let colours: Vec<[u8; 3]> = refined
+        .steps
+        .iter()
+        .map(|&s| palette::STEPS[(s as usize).min(4)])
+        .collect();
+    let right = render_points_on(
+        &refined.positions,
+        &colours,
+        splat,
+        &camera,
+        size,
+        size,
+        palette::LIGHT_BACKGROUND,
+    )?;
+    Ok(side_by_side(&[left, right]))
+}
+
+/// Surfels drawn as small shaded disks coloured by their normal; `camera` defaults to framing
+/// them.
+pub fn surfels_picture(
+    s: &crate::surfels::Surfels,
+    camera: Option<&PreviewCamera>,
+    size: u32,
+) -> Result<RgbImage, PreviewError> {
+    let colours: Vec<[u8; 3]> = s
+        .normals
+        .iter()
+        .map(|n| {
+            ((*n * 0.5 + 0.5) * 255.0)
+                .to_array()
+                .map(|c| c.clamp(0.0, 255.0) as u8)
+        })
+        .collect();
+    let radius = s.radii.first().copied().unwrap_or(0.01) * 0.6;
+    let framing = {
+        let (lo, hi) = bounds_or_unit(&s.positions);
+        PreviewCamera::framing(lo, hi)
+    };
+    render_points(
+        &s.positions,
+        &colours,
+        radius,
+        camera.unwrap_or(&framing),
+        size,
+        size,
+    )
+}
+
+/// The light's view of the water: depth from the light as grey levels (near bright), black where
+/// there is none.
+#[must_use]
+pub fn screen_picture(c: &crate::optics::Caustics) -> RgbImage {
+    let depths: Vec<f32> = c.vertices.iter().map(|v| v.surface.w).collect();
+    let (lo, hi) = depths
+        .iter()
+        .filter(|d| **d > 0.0)
+        .fold((f32::MAX, f32::MIN), |(a, b), d| (a.min(*d), b.max(*d)));
+    let span = (hi - lo).max(1e-6);
+    RgbImage::from_fn(c.screen.width, c.screen.height, |x, y| {
+        let d = depths[(y * c.screen.width + x) as usize];
+        if d > 0.0 {
+            let g = (255.0 * (1.0 - 0.8 * (d - lo) / span)) as u8;
+            Rgb([g / 3, (u16::from(g) * 2 / 3) as u8, g])
+        } else {
+            Rgb([0, 0, 0])
+        }
+    })
+}
+
+/// Scales an image to `height` rows (nearest neighbour, aspect kept).
+#[must_use]
+pub fn to_height(img: &RgbImage, height: u32) -> RgbImage {
+    let w = (img.width() as f32 * height as f32 / img.height().max(1) as f32).round() as u32;
+    image::imageops::resize(img, w.max(1), height, image::imageops::FilterType::Nearest)
+}
+
+/// The optics stage's panel: light's view of the water | caustics map (when the caustics are
+/// given) | finished frame, each scaled to `height` rows.
+#[must_use]
+pub fn stages_panel(
+    caustics: Option<(&crate::optics::Caustics, &crate::optics::Stage)>,
+    frame: &image::RgbaImage,
+    height: u32,
+) -> RgbImage {
+    let rgb = |i: &image::RgbaImage| -> RgbImage { image::buffer::ConvertBuffer::convert(i) };
+    let mut panels = Vec::new();
+    if let Some((c, stage)) = caustics {
+        panels.push(to_height(&screen_picture(c), height));
+        panels.push(to_height(&rgb(&c.image(stage)), height));
+    }
+    panels.push(to_height(&rgb(frame), height));
+    side_by_side(&panels)
+}
+
+/// Writes an RGBA image as an RGB PNG (through a temporary file and a rename, like
+/// [`save_png`]).
+pub fn save_rgba_png(img: &image::RgbaImage, path: &Path) -> Result<(), PreviewError> {
+    save_png(&image::buffer::ConvertBuffer::convert(img), path)
 }
 
 #[cfg(test)]

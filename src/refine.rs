@@ -74,6 +74,12 @@ pub struct RefineParams {
     pub original_weight: f32,
     /// Splat radius of refined points as a fraction of the final radius `r_n`.
     pub splat_factor: f32,
+    /// Density kernel radius of refined points as a multiple of the final radius `r_n`, for the
+    /// design chain's density grid (Iwasaki et al. §4 fed with the refined surface). The
+    /// refinement leaves neighbouring points at most about `r_n` apart, so 2 is the analogue of
+    /// an SPH support radius of two particle spacings. Points that had no neighbour keep the
+    /// initial radius `r0` (a lone drop stays the size of a particle).
+    pub kernel_factor: f32,
 }
 
 impl Default for RefineParams {
@@ -87,6 +93,7 @@ impl Default for RefineParams {
             collisions: true,
             original_weight: 1e6,
             splat_factor: 0.6,
+            kernel_factor: 2.0,
         }
     }
 }
@@ -158,6 +165,9 @@ pub struct Refined {
     pub weights: Vec<f32>,
     /// Splat radius of each point for rendering.
     pub radii: Vec<f32>,
+    /// Density kernel radius of each point (`kernel_factor r_n`; `r0` for points that had no
+    /// neighbour), for the design chain's density grid.
+    pub kernel_radii: Vec<f32>,
     /// Per step.
     pub stats: Vec<StepStats>,
     /// `r_n`, the radius after the last step.
@@ -177,7 +187,8 @@ impl Refined {
         self.positions.is_empty()
     }
 
-    /// As a particle set with normals and `step`, `weight` and `radius` attributes.
+    /// As a particle set with normals and `step`, `weight`, `radius` and `kernel_radius`
+    /// attributes.
     #[must_use]
     pub fn to_particle_set(&self) -> ParticleSet {
         let mut set = ParticleSet::from_positions(self.positions.clone());
@@ -196,6 +207,11 @@ impl Refined {
             "radius",
             ScalarKind::F32,
             self.radii.iter().map(|&r| r as f64).collect(),
+        ));
+        set.extra.push(Attribute::scalar(
+            "kernel_radius",
+            ScalarKind::F32,
+            self.kernel_radii.iter().map(|&r| r as f64).collect(),
         ));
         set
     }
@@ -315,6 +331,12 @@ fn validate(
         return bad(
             "splat_factor",
             format!("must be finite and > 0, got {}", params.splat_factor),
+        );
+    }
+    if !(params.kernel_factor.is_finite() && params.kernel_factor > 0.0) {
+        return bad(
+            "kernel_factor",
+            format!("must be finite and > 0, got {}", params.kernel_factor),
         );
     }
     if positions.len() != normals.len() {
@@ -642,18 +664,19 @@ fn append_and_update(
     moved
 }
 
-/// Splat radii: `splat_factor * r_n` for points that took part in the refinement; points that
-/// had no neighbour at the start (isolated drops) keep half the initial radius.
-fn radii(pts: &Points, isolated: &[bool], params: &RefineParams, r_n: f32) -> Vec<f32> {
+/// Splat and kernel radii: `splat_factor * r_n` and `kernel_factor * r_n` for points that took
+/// part in the refinement; points that had no neighbour at the start (isolated drops) keep half
+/// the initial radius as splat and the initial radius as kernel.
+fn radii(pts: &Points, isolated: &[bool], params: &RefineParams, r_n: f32) -> (Vec<f32>, Vec<f32>) {
     (0..pts.pos.len())
         .map(|i| {
             if i < isolated.len() && isolated[i] {
-                0.5 * params.initial_radius
+                (0.5 * params.initial_radius, params.initial_radius)
             } else {
-                params.splat_factor * r_n
+                (params.splat_factor * r_n, params.kernel_factor * r_n)
             }
         })
-        .collect()
+        .unzip()
 }
 
 fn finish(
@@ -663,13 +686,14 @@ fn finish(
     stats: Vec<StepStats>,
     r_n: f32,
 ) -> Refined {
-    let radii = radii(&pts, &isolated, params, r_n);
+    let (radii, kernel_radii) = radii(&pts, &isolated, params, r_n);
     Refined {
         positions: pts.pos,
         normals: pts.nrm,
         steps: pts.step,
         weights: pts.weight,
         radii,
+        kernel_radii,
         stats,
         final_radius: r_n,
     }

@@ -885,6 +885,46 @@ impl Render {
         self.colour.iter().filter(|c| c[3] > 0.0).count()
     }
 
+    /// Holes: uncovered pixels that cannot be reached from the image border through uncovered
+    /// pixels (4-connected), i.e. background showing through inside the silhouette.
+    #[must_use]
+    pub fn enclosed_holes(&self) -> usize {
+        let (w, h) = (self.width as usize, self.height as usize);
+        let open = |i: usize| self.colour[i][3] <= 0.0;
+        let mut outside = vec![false; w * h];
+        let mut stack: Vec<usize> = (0..w * h)
+            .filter(|&i| {
+                let (x, y) = (i % w, i / w);
+                (x == 0 || y == 0 || x + 1 == w || y + 1 == h) && open(i)
+            })
+            .collect();
+        for &i in &stack {
+            outside[i] = true;
+        }
+        while let Some(i) = stack.pop() {
+            let (x, y) = (i % w, i / w);
+            let mut visit = |j: usize| {
+                if !outside[j] && open(j) {
+                    outside[j] = true;
+                    stack.push(j);
+                }
+            };
+            if x > 0 {
+                visit(i - 1);
+            }
+            if x + 1 < w {
+                visit(i + 1);
+            }
+            if y > 0 {
+                visit(i - w);
+            }
+            if y + 1 < h {
+                visit(i + w);
+            }
+        }
+        (0..w * h).filter(|&i| open(i) && !outside[i]).count()
+    }
+
     /// Normalised world normal of pixel `i`, if covered.
     #[must_use]
     pub fn normal(&self, i: usize) -> Option<Vec3> {

@@ -18,7 +18,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::density::{DensityGrid, GridSpec, Kernel};
+use crate::density::{DensityError, DensityGrid, GridSpec, Kernel, Points};
 use crate::neighbours::CellGrid;
 
 /// Parameters of surfel extraction.
@@ -53,6 +53,9 @@ pub enum SurfelError {
     /// The neighbour grid of the particles could not be built.
     #[error(transparent)]
     Neighbours(#[from] crate::neighbours::NeighbourError),
+    /// The points' radii or positions are unusable.
+    #[error(transparent)]
+    Density(#[from] DensityError),
 }
 
 /// Surfels: oriented disks on the iso-surface.
@@ -96,29 +99,74 @@ impl Surfels {
 }
 
 /// The exact density of the particles and its gradient at a point.
+///
+/// Points are grouped by effective radius (each group in a cell grid of its own radius), so that
+/// a query near a fine sheet of refined points does not visit them through the coarse cells of
+/// the interior particles' radius. Radii that differ by less than a factor of 2^(1/4) share a
+/// group (its cells sized for the largest); the sum still uses each point's own radius.
 pub struct ExactDensity<'a> {
-    positions: &'a [Vec3],
-    grid: CellGrid,
+    points: Points<'a>,
+    groups: Vec<Group>,
     kernel: Kernel,
-    h: f32,
+    /// Central-difference step of the gradient.
+    step: f32,
+}
+
+/// Points of similar radius in a cell grid of the largest of them.
+struct Group {
+    reach: f32,
+    grid: CellGrid,
+    /// group slot -> point index
+    members: Vec<u32>,
 }
 
 impl<'a> ExactDensity<'a> {
     /// Indexes the particles for density queries with effective radius `h`.
     pub fn new(positions: &'a [Vec3], kernel: Kernel, h: f32) -> Result<Self, SurfelError> {
+        Self::of(Points::uniform(positions, h), kernel)
+    }
+
+    /// Indexes points with a radius each (see [`Points`] for how they combine).
+    pub fn of(points: Points<'a>, kernel: Kernel) -> Result<Self, SurfelError> {
+        points.check()?;
+        let mut groups = Vec::new();
+        match points.radii {
+            None => groups.push(Group {
+                reach: points.h,
+                grid: CellGrid::new(points.positions, points.h)?,
+                members: (0..points.len() as u32).collect(),
+            }),
+            Some(radii) => {
+                // quarter octaves of the radius, so a group's cells are at most 19 % too large
+                let key = |r: f32| (r.log2() * 4.0).floor() as i32;
+                let mut order: Vec<u32> = (0..points.len() as u32).collect();
+                order.sort_by_key(|&i| (key(radii[i as usize]), i));
+                for run in order.chunk_by(|&a, &b| key(radii[a as usize]) == key(radii[b as usize]))
+                {
+                    let reach = run.iter().map(|&i| radii[i as usize]).fold(0.0, f32::max);
+                    let pos: Vec<Vec3> =
+                        run.iter().map(|&i| points.positions[i as usize]).collect();
+                    groups.push(Group {
+                        reach,
+                        grid: CellGrid::new(&pos, reach)?,
+                        members: run.to_vec(),
+                    });
+                }
+            }
+        }
         Ok(Self {
-            positions,
-            grid: CellGrid::new(positions, h)?,
+            step: points.min_radius() * 1e-3,
+            points,
+            groups,
             kernel,
-            h,
         })
     }
 
     /// Density and gradient at `x` (gradient by central differences of the exact sum, step
-    /// `h / 1000`).
+    /// `h / 1000` of the smallest radius).
     #[must_use]
     pub fn value_and_gradient(&self, x: Vec3) -> (f32, Vec3) {
-        let e = self.h * 1e-3;
+        let e = self.step;
         let v = self.value(x);
         let g = Vec3::new(
             self.value(x + Vec3::X * e) - self.value(x - Vec3::X * e),
@@ -128,15 +176,19 @@ impl<'a> ExactDensity<'a> {
         (v, g)
     }
 
-    /// Density at `x`: the sum of the kernels of the particles within `h`.
+    /// Density at `x`: the sum of the kernels of the points whose radius reaches it.
     #[must_use]
     pub fn value(&self, x: Vec3) -> f32 {
         let mut sum = 0.0;
-        self.grid.for_each_within(x, self.h, |j| {
-            sum += self
-                .kernel
-                .value_r2(self.positions[j as usize].distance_squared(x), self.h);
-        });
+        let p = &self.points;
+        for g in &self.groups {
+            g.grid.for_each_within(x, g.reach, |slot| {
+                let j = g.members[slot as usize] as usize;
+                sum +=
+                    self.kernel
+                        .weighted_r2(p.positions[j].distance_squared(x), p.radius(j), p.h);
+            });
+        }
         sum
     }
 }
@@ -260,14 +312,25 @@ pub fn extract(
     h: f32,
     params: &SurfelParams,
 ) -> Result<Surfels, SurfelError> {
+    extract_points(grid, Points::uniform(particles, h), kernel, params)
+}
+
+/// [`extract`] for points with a radius each; the iso-value is `iso_fraction` of the peak
+/// `F(0, h)` of the reference radius, which every point shares (see [`Points`]).
+pub fn extract_points(
+    grid: &DensityGrid,
+    points: Points<'_>,
+    kernel: Kernel,
+    params: &SurfelParams,
+) -> Result<Surfels, SurfelError> {
     if !(params.iso_fraction.is_finite() && params.iso_fraction > 0.0) {
         return Err(SurfelError::InvalidParameter {
             name: "iso_fraction",
             reason: format!("must be finite and > 0, got {}", params.iso_fraction),
         });
     }
-    let iso = params.iso_fraction * kernel.peak(h);
-    let density = ExactDensity::new(particles, kernel, h)?;
+    let iso = params.iso_fraction * kernel.peak(points.h);
+    let density = ExactDensity::of(points, kernel)?;
     let mut extractor = SurfelExtractor::new(grid.spec, iso);
     let plane = grid.spec.dims[0] as usize * grid.spec.dims[1] as usize;
     for (k, values) in grid.values.chunks(plane).enumerate() {

@@ -325,8 +325,7 @@ pub fn bench_refine(args: &BenchRefineArgs) -> Result<(), Error> {
         )?;
         let surface = detector.detect(sim.particles(), &nb)?;
         if let Some((name, _)) = frames.iter().find(|x| x.1 == f) {
-            let (p, n) =
-                super::refine::surface_of(sim.particles(), &surface.classes, &surface.normals);
+            let (p, n) = super::refine::surface_of(sim.particles(), &surface);
             inputs.push((*name, f, p, n));
         }
     }

@@ -12,7 +12,7 @@ use fluid_surfels::surface::{self, NormalMethod, Surface, SurfaceDetector, Surfa
 use fluid_surfels::{Error, ParticleSet};
 use serde::Serialize;
 
-use super::{check_output, class_colours, ms, surface_particles};
+use super::{check_output, ms, surface_particles};
 
 /// Arguments of `detect`.
 #[derive(clap::Args)]
@@ -141,20 +141,30 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
         }
         (None, Some(SceneName::Column)) => {
             let frame = args.source.frame.unwrap_or(ColumnParams::SPLASH_FRAME);
-            let result = super::run::column_to_frame(frame, params, args.source.radius)?;
+            let pipeline = fluid_surfels::pipeline::PipelineParams {
+                surface: params,
+                support_radius: args.source.radius,
+                ..Default::default()
+            };
+            let result = super::run::column_to_frame(
+                frame,
+                pipeline,
+                fluid_surfels::pipeline::Through::Surface,
+            )?;
+            let f = result.frame;
             // "read" is the simulation of the frames up to this one
             timings.read = ms(t)
-                - result.neighbours_ms
-                - result.surface.timings.classify_ms
-                - result.surface.timings.normals_ms;
-            timings.neighbours = result.neighbours_ms;
+                - f.timings.neighbours_ms
+                - f.surface.timings.classify_ms
+                - f.surface.timings.normals_ms;
+            timings.neighbours = f.timings.neighbours_ms;
             let particles = result.sim.particles().clone();
             (
                 "scene column".to_owned(),
                 particles,
-                result.radius,
-                result.surface,
-                result.mean_neighbours,
+                f.radius,
+                f.surface,
+                f.mean_neighbours,
             )
         }
         (None, Some(name)) => {
@@ -252,7 +262,7 @@ pub fn write_outputs(
         let spacing = spacing.unwrap_or(radius * 0.5);
         let picture = preview::render_points(
             &particles.positions,
-            &class_colours(surface),
+            &fluid_surfels::preview::class_colours(&surface.classes),
             spacing * 0.5,
             &PreviewCamera::framing(lo, hi),
             800,

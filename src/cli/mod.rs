@@ -21,7 +21,6 @@ use fluid_surfels::sequence::{FramePattern, FrameRange};
 use rayon::prelude::*;
 
 use fluid_surfels::io;
-use fluid_surfels::preview::palette;
 use fluid_surfels::surface::{ParticleClass, Surface};
 use fluid_surfels::{Error, ParticleSet};
 
@@ -137,18 +136,6 @@ pub fn print_json(report: &impl serde::Serialize) {
 
 pub fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
-}
-
-pub fn class_colours(surface: &Surface) -> Vec<[u8; 3]> {
-    surface
-        .classes
-        .iter()
-        .map(|c| match c {
-            ParticleClass::Interior => palette::INTERIOR,
-            ParticleClass::Surface => palette::SURFACE,
-            ParticleClass::Isolated => palette::ISOLATED,
-        })
-        .collect()
 }
 
 /// The surface particles with their normals (and every attribute they had).

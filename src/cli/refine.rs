@@ -5,11 +5,12 @@ use std::time::Instant;
 
 use fluid_surfels::io;
 use fluid_surfels::neighbours::{self, Backend, Neighbourhoods};
-use fluid_surfels::preview::{self, PreviewCamera, palette};
+use fluid_surfels::pipeline;
+use fluid_surfels::preview;
 use fluid_surfels::refine::{self, HeightRule, RefineParams, Refined, StepStats};
 use fluid_surfels::scenes::{self, ColumnParams, SceneName};
 use fluid_surfels::sequence::FramePattern;
-use fluid_surfels::surface::{ParticleClass, SurfaceDetector, SurfaceParams};
+use fluid_surfels::surface::{Surface, SurfaceDetector, SurfaceParams};
 use fluid_surfels::{Error, ParticleSet};
 use glam::Vec3;
 use serde::Serialize;
@@ -79,68 +80,12 @@ pub fn surface_points(
     }
     let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
     let surface = SurfaceDetector::new(SurfaceParams::default())?.detect(particles, &nb)?;
-    Ok(surface_of(particles, &surface.classes, &surface.normals))
+    Ok(surface_of(particles, &surface))
 }
 
-/// The surface and isolated particles with their normals (isolated ones keep a zero normal and
-/// are kept as they are by the refinement).
-pub fn surface_of(
-    particles: &ParticleSet,
-    classes: &[ParticleClass],
-    normals: &[Vec3],
-) -> (Vec<Vec3>, Vec<Vec3>) {
-    let idx: Vec<usize> = (0..particles.len())
-        .filter(|&i| classes[i] != ParticleClass::Interior)
-        .collect();
-    (
-        idx.iter().map(|&i| particles.positions[i]).collect(),
-        idx.iter().map(|&i| normals[i]).collect(),
-    )
-}
-
-/// The input points beside the refined points coloured by step (the paper's Figure 2).
-pub fn refinement_picture(
-    input: &[Vec3],
-    refined: &Refined,
-    size: u32,
-) -> Result<image::RgbImage, Error> {
-    let all = input.iter().chain(&refined.positions);
-    let (lo, hi) = all.fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &p| {
-        (lo.min(p), hi.max(p))
-    });
-    let (lo, hi) = if lo.is_finite() {
-        (lo, hi)
-    } else {
-        (Vec3::ZERO, Vec3::ONE)
-    };
-    let camera = PreviewCamera::framing(lo, hi);
-    let splat = refined.final_radius * 0.5;
-    let input_colours = vec![palette::STEPS[0]; input.len()];
-    let r0 = refined.final_radius / refine::RADIUS_FACTOR.powi(refined.stats.len() as i32);
-    let left = preview::render_points_on(
-        input,
-        &input_colours,
-        0.2 * r0,
-        &camera,
-        size,
-        size,
-        palette::LIGHT_BACKGROUND,
-    )?;
-    let colours: Vec<[u8; 3]> = refined
-        .steps
-        .iter()
-        .map(|&s| palette::STEPS[(s as usize).min(4)])
-        .collect();
-    let right = preview::render_points_on(
-        &refined.positions,
-        &colours,
-        splat,
-        &camera,
-        size,
-        size,
-        palette::LIGHT_BACKGROUND,
-    )?;
-    Ok(preview::side_by_side(&[left, right]))
+/// The surface and isolated particles with their normals (the pipeline's refinement input).
+pub fn surface_of(particles: &ParticleSet, surface: &Surface) -> (Vec<Vec3>, Vec<Vec3>) {
+    pipeline::gather(particles, surface, &pipeline::refined_indices(surface))
 }
 
 fn params(args: &RefineArgs, radius: f32) -> RefineParams {
@@ -179,7 +124,7 @@ fn write(
         outputs.push(out.display().to_string());
     }
     if let Some(png) = png {
-        let picture = refinement_picture(input, refined, 700)?;
+        let picture = preview::refinement_picture(input, refined, 700)?;
         preview::save_png(&picture, png)?;
         outputs.push(png.display().to_string());
     }
@@ -217,14 +162,17 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
         }
         (None, Some(SceneName::Column)) => {
             let frame = args.source.frame.unwrap_or(ColumnParams::SPLASH_FRAME);
-            let result =
-                super::run::column_to_frame(frame, SurfaceParams::default(), args.source.radius)?;
-            let (p, n) = surface_of(
-                result.sim.particles(),
-                &result.surface.classes,
-                &result.surface.normals,
-            );
-            ("scene column".into(), result.radius, p, n)
+            let params = fluid_surfels::pipeline::PipelineParams {
+                support_radius: args.source.radius,
+                ..Default::default()
+            };
+            let result = super::run::column_to_frame(
+                frame,
+                params,
+                fluid_surfels::pipeline::Through::Surface,
+            )?;
+            let (p, n) = surface_of(result.sim.particles(), &result.frame.surface);
+            ("scene column".into(), result.frame.radius, p, n)
         }
         (None, Some(name)) => {
             let scene = scenes::build(name, args.source.frame)?;
@@ -317,7 +265,7 @@ fn refine_sequence(args: &RefineArgs, pattern: &FramePattern) -> Result<(), Erro
             } else {
                 let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
                 let surface = detector.detect(&particles, &nb)?;
-                surface_of(&particles, &surface.classes, &surface.normals)
+                surface_of(&particles, &surface)
             };
             let refined = run_refine(args, &p, &n, &params(args, radius))?;
             write(

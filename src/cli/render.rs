@@ -337,7 +337,7 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
     let mut scene = match &args.config {
         Some(path) => fluid_surfels::optics::OpticsScene::from_toml_file(path)?,
         None if args.scene == Some(SceneName::Column) => {
-            super::optics::column_pool(fluid_surfels::scenes::ColumnParams::default().tank)
+            fluid_surfels::scenes::column_pool(fluid_surfels::scenes::ColumnParams::default().tank)
         }
         None => Default::default(),
     };
@@ -361,7 +361,7 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
             args.force,
         )?;
         let (source, surfels) = frame_surfels(args, args.input.as_deref(), args.frame)?;
-        let f = renderer.finish(&scene, &surfels, false)?;
+        let f = renderer.finish(&scene, &surfels)?;
         super::optics::save(&f.image, &args.out)?;
         return report_frame(args, source, None, &args.out, f.report);
     };
@@ -401,7 +401,7 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
         check_output(&out, None, args.force)?;
         let path = pattern.as_ref().map(|p| p.path(frame));
         let (source, surfels) = frame_surfels(args, path.as_deref(), Some(frame))?;
-        let f = renderer.finish(&scene, &surfels, false)?;
+        let f = renderer.finish(&scene, &surfels)?;
         super::optics::save(&f.image, &out)?;
         bar.suspend(|| report_frame(args, source, Some(frame), &out, f.report))?;
         bar.inc(1);

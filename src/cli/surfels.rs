@@ -4,9 +4,10 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use fluid_surfels::Error;
-use fluid_surfels::density::{self, GridSpec, Kernel, Resolution};
+use fluid_surfels::density::{GridSpec, Kernel, Points, Resolution};
 use fluid_surfels::io;
-use fluid_surfels::preview::{self, PreviewCamera};
+use fluid_surfels::pipeline::{self, GridParams};
+use fluid_surfels::preview;
 use fluid_surfels::sequence::FramePattern;
 use fluid_surfels::surfels::{self, SurfelParams, Surfels};
 use glam::Vec3;
@@ -71,50 +72,30 @@ pub fn surfels_with(
     resolution: u32,
     iso_fraction: f32,
 ) -> Result<(Surfels, GridSpec, f64, f64), Error> {
-    let spec = GridSpec::around(positions, h, Resolution::LongestAxis(resolution))?;
-    let limit = io::available_memory() / 2;
-    let t = Instant::now();
-    let grid = match gpu {
-        Some(ctx) => {
-            spec.check_memory(limit)?;
-            fluid_surfels::gpu::density::density_grid_gpu(ctx, positions, &spec, Kernel::Wyvill, h)?
-        }
-        None => density::density_grid(positions, &spec, Kernel::Wyvill, h, limit)?,
+    let grid = GridParams {
+        resolution: Some(Resolution::LongestAxis(resolution)),
+        memory_budget: io::available_memory() / 2,
+        ..GridParams::default()
     };
-    let density_ms = ms(t);
-    let t = Instant::now();
     let params = SurfelParams {
         iso_fraction,
         ..SurfelParams::default()
     };
-    let s = surfels::extract(&grid, positions, Kernel::Wyvill, h, &params)?;
+    let points = Points::uniform(positions, h);
+    let Some(ctx) = gpu else {
+        let iso = pipeline::iso_surfels(points, &grid, &params)?
+            .ok_or(fluid_surfels::density::DensityError::Empty)?;
+        return Ok((iso.surfels, iso.grid.spec, iso.density_ms, iso.surfels_ms));
+    };
+    let spec = GridSpec::around(positions, h, Resolution::LongestAxis(resolution))?;
+    spec.check_memory(grid.memory_budget)?;
+    let t = Instant::now();
+    let values =
+        fluid_surfels::gpu::density::density_grid_gpu(ctx, positions, &spec, Kernel::Wyvill, h)?;
+    let density_ms = ms(t);
+    let t = Instant::now();
+    let s = surfels::extract(&values, positions, Kernel::Wyvill, h, &params)?;
     Ok((s, spec, density_ms, ms(t)))
-}
-
-/// Surfels drawn as small shaded disks coloured by their normal.
-pub fn surfels_picture(
-    s: &Surfels,
-    camera: &PreviewCamera,
-    size: u32,
-) -> Result<image::RgbImage, Error> {
-    let colours: Vec<[u8; 3]> = s
-        .normals
-        .iter()
-        .map(|n| {
-            ((*n * 0.5 + 0.5) * 255.0)
-                .to_array()
-                .map(|c| c.clamp(0.0, 255.0) as u8)
-        })
-        .collect();
-    let radius = s.radii.first().copied().unwrap_or(0.01) * 0.6;
-    Ok(preview::render_points(
-        &s.positions,
-        &colours,
-        radius,
-        camera,
-        size,
-        size,
-    )?)
 }
 
 fn write(s: &Surfels, out: Option<&Path>, png: Option<&Path>) -> Result<Vec<String>, Error> {
@@ -124,19 +105,7 @@ fn write(s: &Surfels, out: Option<&Path>, png: Option<&Path>) -> Result<Vec<Stri
         outputs.push(out.display().to_string());
     }
     if let Some(png) = png {
-        let (lo, hi) = s
-            .positions
-            .iter()
-            .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &p| {
-                (lo.min(p), hi.max(p))
-            });
-        let (lo, hi) = if lo.is_finite() {
-            (lo, hi)
-        } else {
-            (Vec3::ZERO, Vec3::ONE)
-        };
-        let picture = surfels_picture(s, &PreviewCamera::framing(lo, hi), 800)?;
-        preview::save_png(&picture, png)?;
+        preview::save_png(&preview::surfels_picture(s, None, 800)?, png)?;
         outputs.push(png.display().to_string());
     }
     Ok(outputs)

@@ -295,6 +295,11 @@ pub struct OpticsParams {
     /// Overrides the part of the light's view the virtual screen covers (a world box whose
     /// projection it spans); default: the water's bounds.
     pub screen_bounds: Option<[Vec3; 2]>,
+    /// Overrides the whole scene's box (water and receiver) that the caustics map and the
+    /// light's depth range cover; default: the bounds of this frame's water and receiver. A
+    /// sequence fixes it (with the camera and the pool) so that what does not move renders the
+    /// same in every frame ([`crate::pipeline::Pipeline`] does).
+    pub scene_bounds: Option<[Vec3; 2]>,
     /// Splatting of the water surface, from the light and from the camera.
     pub splat: SplatParams,
 }
@@ -309,6 +314,7 @@ impl Default for OpticsParams {
             tolerance: 0.02,
             discontinuity: 8.0,
             screen_bounds: None,
+            scene_bounds: None,
             splat: SplatParams::default(),
         }
     }
@@ -349,10 +355,15 @@ impl OpticsParams {
                 "must be > 0 (use a large value to keep all)",
             ));
         }
-        if let Some([a, b]) = self.screen_bounds
-            && !(a.is_finite() && b.is_finite() && b.cmpgt(a).all())
-        {
-            return Err(invalid("screen_bounds", "need finite min < max"));
+        for (name, bounds) in [
+            ("screen_bounds", self.screen_bounds),
+            ("scene_bounds", self.scene_bounds),
+        ] {
+            if let Some([a, b]) = bounds
+                && !(a.is_finite() && b.is_finite() && b.cmpgt(a).all())
+            {
+                return Err(invalid(name, "need finite min < max"));
+            }
         }
         Ok(())
     }
@@ -380,18 +391,21 @@ impl OpticsScene {
         };
         let text = std::fs::read_to_string(path).map_err(|e| file_error(e.to_string()))?;
         let mut scene: Self = toml::from_str(&text).map_err(|e| file_error(e.to_string()))?;
-        let base = path.parent().unwrap_or(std::path::Path::new("."));
-        if let Some(p) = scene.receiver.path.as_mut()
-            && p.is_relative()
-        {
-            *p = base.join(&*p);
-        }
-        if let Some(p) = scene.environment.image.as_mut()
-            && p.is_relative()
-        {
-            *p = base.join(&*p);
-        }
+        scene.resolve_paths(path.parent().unwrap_or(std::path::Path::new(".")));
         Ok(scene)
+    }
+
+    /// Makes the relative paths of the scene (receiver mesh, environment image) relative to
+    /// `base`, the folder of the file that named them.
+    pub fn resolve_paths(&mut self, base: &std::path::Path) {
+        for p in [self.receiver.path.as_mut(), self.environment.image.as_mut()]
+            .into_iter()
+            .flatten()
+        {
+            if p.is_relative() {
+                *p = base.join(&*p);
+            }
+        }
     }
 
     fn validate(&self) -> Result<(), OpticsError> {
@@ -504,9 +518,10 @@ impl Stage {
         let water = crate::splat::bounds(surfels);
         let receiver = scene.receiver.build(water)?;
         let (rmin, rmax) = receiver.bounds();
-        let (all_min, all_max) = match water {
-            Some((a, b)) => (rmin.min(a), rmax.max(b)),
-            None => (rmin, rmax),
+        let (all_min, all_max) = match (scene.optics.scene_bounds, water) {
+            (Some([a, b]), _) => (a, b),
+            (None, Some((a, b))) => (rmin.min(a), rmax.max(b)),
+            (None, None) => (rmin, rmax),
         };
         let size = (all_max - all_min).length().max(1e-6);
         let screen_box = match scene.optics.screen_bounds {

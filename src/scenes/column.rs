@@ -277,6 +277,30 @@ impl ColumnSim {
     }
 }
 
+/// The pool scene of the column's tank (the main job's): an open box with a tiled floor,
+/// sunlight from above and the side, water whose extinction is strong enough to tint a 0.45 m
+/// tank, and a fixed camera looking into the tank.
+#[must_use]
+pub fn column_pool(tank: Vec3) -> crate::optics::OpticsScene {
+    use crate::optics::{OpticsScene, ReceiverKind};
+    let mut s = OpticsScene::default();
+    s.receiver.kind = ReceiverKind::OpenBox;
+    s.receiver.min = Vec3::new(-0.005, -0.005, -0.005);
+    s.receiver.max = Vec3::new(tank.x + 0.005, tank.y * 0.45, tank.z + 0.005);
+    s.receiver.checker = 0.05;
+    s.light.direction = Vec3::new(0.35, 1.0, 0.25);
+    s.water.extinction = Vec3::new(3.0, 0.9, 0.5);
+    s.camera = Some(crate::splat::Camera {
+        eye: Vec3::new(tank.x * 1.9, tank.y * 1.25, tank.z * 2.3),
+        target: Vec3::new(tank.x * 0.45, tank.y * 0.12, tank.z * 0.45),
+        fov_y_degrees: 40.0,
+        near: 0.05,
+        far: 5.0,
+        ..Default::default()
+    });
+    s
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

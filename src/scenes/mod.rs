@@ -12,7 +12,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-pub use column::{ColumnParams, ColumnSim};
+pub use column::{ColumnParams, ColumnSim, column_pool};
 
 use crate::particles::ParticleSet;
 

@@ -1,0 +1,742 @@
+//! The spine of the crate: one chain from particles to pixels, on the CPU.
+//!
+//! ```text
+//! particles ─> surface detection ─> upsampling ─> density grid ─> surfels ─> EWA splats ─> optics
+//!              (hysteresis, §3.1)   (§3.2-3.4)    (refined surface  (iso-surface)            (caustics,
+//!                                                  + interior, each                          refraction,
+//!                                                  its own radius)                           reflection)
+//! ```
+//!
+//! [`Pipeline`] is built from one [`PipelineParams`] (every stage's parameters and the optics
+//! scene, loadable from one TOML file) and runs one frame at a time: [`Pipeline::frame`] returns
+//! a [`Frame`] holding every intermediate (classes and normals, refined points, density grid,
+//! surfels, shaded splats, caustics, finished image) and the time of each stage. What must live
+//! across the frames of a sequence lives in the pipeline: the hysteresis state of surface
+//! detection (keyed by particle id), the support radius (given, or estimated on the first
+//! frame), and the camera, pool and scene box, fitted on the first frame that is rendered and
+//! then kept, so that what does not move renders the same in every frame.
+//!
+//! Where the rendered surfels come from is [`SurfelSource`]: the design chain (default), the
+//! density grid of the raw particles, or the refined points themselves.
+//!
+//! ```
+//! use fluid_surfels::pipeline::{Pipeline, PipelineParams, Through};
+//! use fluid_surfels::scenes;
+//!
+//! let scene = scenes::block(&scenes::BlockParams { counts: [8, 8, 8], ..Default::default() })?;
+//! let params = PipelineParams { support_radius: Some(scene.support_radius), ..Default::default() };
+//! let mut pipeline = Pipeline::new(params)?;
+//! let frame = pipeline.frame_through(&scene.particles, Through::Surfels)?;
+//! assert!(frame.surfels.as_ref().is_some_and(|s| !s.is_empty()));
+//! # Ok::<(), fluid_surfels::Error>(())
+//! ```
+
+use std::path::Path;
+use std::time::Instant;
+
+use glam::Vec3;
+use image::RgbaImage;
+use serde::{Deserialize, Serialize};
+
+use crate::density::{self, DensityGrid, GridSpec, Kernel, Points, Resolution};
+use crate::neighbours::{self, Backend, Neighbourhoods};
+use crate::optics::{self, Caustics, OpticsScene, ReceiverKind, Stage};
+use crate::refine::{self, RefineParams, Refined};
+use crate::scenes::ColumnSim;
+use crate::splat::{self, Camera, Light, Render, SplatParams, Surfel};
+use crate::surface::{ParticleClass, Surface, SurfaceDetector, SurfaceParams};
+use crate::surfels::{self, SurfelParams, Surfels};
+use crate::{Error, ParticleSet};
+
+/// Where the surfels that are rendered come from.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SurfelSource {
+    /// The design chain: the density grid of the refined surface points (each with the kernel
+    /// radius its refinement gives it) plus the interior particles, surfels on its iso-surface.
+    #[default]
+    Chain,
+    /// The density grid of all particles with one radius (the support radius), surfels on its
+    /// iso-surface (Iwasaki et al. as published, without the upsampling).
+    Particles,
+    /// The refined points used directly as surfels, with their splat radius.
+    Refined,
+}
+
+impl SurfelSource {
+    /// Every source, in the order of the documentation.
+    pub const ALL: [Self; 3] = [Self::Chain, Self::Particles, Self::Refined];
+
+    /// The name used in files and on the command line.
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Chain => "chain",
+            Self::Particles => "particles",
+            Self::Refined => "refined",
+        }
+    }
+}
+
+/// How far [`Pipeline::frame_through`] runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Through {
+    /// Surface detection only.
+    Surface,
+    /// Detection and upsampling.
+    Refine,
+    /// Up to the surfels of the chosen source.
+    Surfels,
+    /// Up to the shaded EWA splats (Blinn-Phong, no optics).
+    Splats,
+    /// The finished frame: caustics, refraction and reflection.
+    Frame,
+}
+
+/// The density grid of the surfel sources.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GridParams {
+    /// The density function (eq. 1 by default).
+    pub kernel: Kernel,
+    /// Grid spacing as a fraction of the smallest effective radius in use: spacing =
+    /// `r_min / cells_per_radius`. Default 3: with fewer cells per radius the iso-surface keeps
+    /// the grid's bumps (`tests/surfels.rs` measures normals within 2.2 degrees at 3 cells, up
+    /// to 6.4 at 2).
+    pub cells_per_radius: f32,
+    /// A fixed resolution instead (overrides `cells_per_radius`).
+    pub resolution: Option<Resolution>,
+    /// Largest grid in bytes (4 per grid point). A finer grid is coarsened to fit, and the frame
+    /// says so in [`Frame::warnings`]. Default 1 GiB.
+    pub memory_budget: u64,
+}
+
+impl Default for GridParams {
+    fn default() -> Self {
+        Self {
+            kernel: Kernel::Wyvill,
+            cells_per_radius: 3.0,
+            resolution: None,
+            memory_budget: 1 << 30,
+        }
+    }
+}
+
+/// Every parameter of the chain, with the optics scene. `Default` holds the papers' values.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PipelineParams {
+    /// Support radius of the simulation (world units); `None`: twice the particle spacing
+    /// estimated from the first frame, then kept for the sequence.
+    pub support_radius: Option<f32>,
+    /// Stage 1.
+    pub surface: SurfaceParams,
+    /// Stage 2. `initial_radius` 0 (the default) follows the support radius.
+    pub refine: RefineParams,
+    /// Where the rendered surfels come from.
+    pub source: SurfelSource,
+    /// Stage 3: the density grid.
+    pub grid: GridParams,
+    /// Stage 3: surfels on the iso-surface.
+    pub surfels: SurfelParams,
+    /// Stage 4: EWA splatting of the shaded-splats image (the optics stage has its own, in
+    /// `scene.optics.splat`).
+    pub splat: SplatParams,
+    /// Stage 5 and the camera: light, receiver (pool), water, environment, image size.
+    pub scene: OpticsScene,
+    /// Fit the camera, the pool and the scene box on the first rendered frame and keep them
+    /// (default); off, every frame is fitted anew.
+    pub keep_views: bool,
+}
+
+impl Default for PipelineParams {
+    fn default() -> Self {
+        Self {
+            support_radius: None,
+            surface: SurfaceParams::default(),
+            refine: RefineParams::default(),
+            source: SurfelSource::default(),
+            grid: GridParams::default(),
+            surfels: SurfelParams::default(),
+            splat: SplatParams::default(),
+            scene: OpticsScene::default(),
+            keep_views: true,
+        }
+    }
+}
+
+/// The keys of a TOML file that belong to the pipeline; every other key is the optics scene's.
+const PIPELINE_KEYS: [&str; 8] = [
+    "support_radius",
+    "surface",
+    "refine",
+    "source",
+    "grid",
+    "surfels",
+    "splat",
+    "keep_views",
+];
+
+impl PipelineParams {
+    /// Reads a TOML file: the pipeline's tables (`support_radius`, `source`, `[surface]`,
+    /// `[refine]`, `[grid]`, `[surfels]`, `[splat]`, `keep_views`) beside the scene's
+    /// (`[camera]`, `[light]`, `[receiver]`, `[water]`, `[environment]`, `[optics]`), so a scene
+    /// file of `render --config` is a pipeline file too. Unknown keys are refused; relative paths
+    /// are relative to the file.
+    pub fn from_toml_file(path: &Path) -> Result<Self, PipelineError> {
+        let text = std::fs::read_to_string(path).map_err(|e| PipelineError::File {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+        Self::from_toml_str(&text, path.parent().unwrap_or(Path::new("."))).map_err(|reason| {
+            PipelineError::File {
+                path: path.to_path_buf(),
+                reason,
+            }
+        })
+    }
+
+    /// [`PipelineParams::from_toml_file`] from text, relative paths taken from `base`.
+    pub fn from_toml_str(text: &str, base: &Path) -> Result<Self, String> {
+        let table: toml::Table = toml::from_str(text).map_err(|e| e.to_string())?;
+        let (ours, theirs): (toml::Table, toml::Table) = table
+            .into_iter()
+            .partition(|(k, _)| PIPELINE_KEYS.contains(&k.as_str()));
+        let mut params: Self = ours
+            .try_into()
+            .map_err(|e: toml::de::Error| e.to_string())?;
+        params.scene = theirs
+            .try_into()
+            .map_err(|e: toml::de::Error| e.to_string())?;
+        params.scene.resolve_paths(base);
+        Ok(params)
+    }
+
+    /// Checks what can be checked before any particle is seen.
+    pub fn validate(&self) -> Result<(), PipelineError> {
+        let bad = |name: &'static str, reason: String| {
+            Err(PipelineError::InvalidParameter { name, reason })
+        };
+        if let Some(r) = self.support_radius
+            && !(r.is_finite() && r > 0.0)
+        {
+            return bad("support_radius", format!("must be finite and > 0, got {r}"));
+        }
+        let g = &self.grid;
+        if !(g.cells_per_radius.is_finite() && (0.5..=64.0).contains(&g.cells_per_radius)) {
+            return bad(
+                "grid.cells_per_radius",
+                format!("must lie in [0.5, 64], got {}", g.cells_per_radius),
+            );
+        }
+        if g.memory_budget < 1 << 16 {
+            return bad(
+                "grid.memory_budget",
+                format!("{} bytes is too small for any grid", g.memory_budget),
+            );
+        }
+        self.surface.validate()?;
+        Ok(())
+    }
+}
+
+/// Errors of the pipeline's own settings (each stage has its own error type besides).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PipelineError {
+    /// A parameter is out of range.
+    #[error("invalid pipeline parameter `{name}`: {reason}")]
+    InvalidParameter { name: &'static str, reason: String },
+    /// A pipeline file could not be read or parsed.
+    #[error("{}: {reason}", path.display())]
+    File {
+        path: std::path::PathBuf,
+        reason: String,
+    },
+    /// The surface parameters.
+    #[error(transparent)]
+    Surface(#[from] crate::surface::SurfaceError),
+}
+
+/// Milliseconds spent in each stage of one frame (0 for stages that did not run).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct FrameTimings {
+    pub neighbours_ms: f64,
+    pub detect_ms: f64,
+    pub refine_ms: f64,
+    pub density_ms: f64,
+    pub surfels_ms: f64,
+    pub splats_ms: f64,
+    pub caustics_ms: f64,
+    pub image_ms: f64,
+    pub total_ms: f64,
+}
+
+/// The finished frame of the optics stage.
+#[derive(Debug)]
+pub struct Finished {
+    /// The scene resolved for this frame (receiver, light views, camera).
+    pub stage: Stage,
+    /// The caustics map.
+    pub caustics: Caustics,
+    /// The finished image (gamma-encoded RGBA).
+    pub image: RgbaImage,
+    /// Linear radiance per pixel, row-major from the top; `w = 1` where water covers the pixel
+    /// (in front of the receiver), 0 elsewhere.
+    pub linear: Vec<[f32; 4]>,
+}
+
+/// One frame through the pipeline: every intermediate that was computed.
+#[derive(Debug)]
+pub struct Frame {
+    /// The support radius used.
+    pub radius: f32,
+    /// Mean neighbour count at the support radius.
+    pub mean_neighbours: f32,
+    /// Classes, offsets and normals of every particle; flips since the previous frame.
+    pub surface: Surface,
+    /// Indices of the particles that were refined (surface and isolated ones, in order).
+    pub surface_indices: Vec<u32>,
+    /// The refined surface (through [`Through::Refine`] and after).
+    pub refined: Option<Refined>,
+    /// The density grid (Chain and Particles sources).
+    pub grid: Option<DensityGrid>,
+    /// Surfels on the iso-surface (Chain and Particles sources).
+    pub surfels: Option<Surfels>,
+    /// The surfels that are rendered, whatever their source.
+    pub render_surfels: Vec<Surfel>,
+    /// The camera the frame is seen from.
+    pub camera: Option<Camera>,
+    /// The shaded EWA splats (through [`Through::Splats`]).
+    pub splats: Option<Render>,
+    /// The finished frame (through [`Through::Frame`]).
+    pub finished: Option<Finished>,
+    /// Milliseconds per stage.
+    pub timings: FrameTimings,
+    /// What a user should know: a grid coarsened to fit the memory budget, for instance.
+    pub warnings: Vec<String>,
+}
+
+/// What a sequence keeps from its first rendered frame.
+#[derive(Clone, Debug)]
+struct Views {
+    camera: Camera,
+    /// The receiver as fitted (an `Auto` pool resolved into its box), when the optics ran.
+    optics: Option<(optics::Receiver, [Vec3; 2])>,
+}
+
+/// The chain on the CPU. See the module documentation.
+pub struct Pipeline {
+    params: PipelineParams,
+    detector: SurfaceDetector,
+    radius: Option<f32>,
+    views: Option<Views>,
+}
+
+impl Pipeline {
+    /// A pipeline for a new sequence. Reads the environment image, if any, once.
+    pub fn new(mut params: PipelineParams) -> Result<Self, Error> {
+        params.validate()?;
+        params.scene.environment.load()?;
+        Ok(Self {
+            detector: SurfaceDetector::new(params.surface)?,
+            radius: params.support_radius,
+            views: None,
+            params,
+        })
+    }
+
+    /// The parameters.
+    #[must_use]
+    pub fn params(&self) -> &PipelineParams {
+        &self.params
+    }
+
+    /// The support radius in use (`None` before the first frame when it is estimated).
+    #[must_use]
+    pub fn support_radius(&self) -> Option<f32> {
+        self.radius
+    }
+
+    /// The camera kept for the sequence, once a frame has been rendered.
+    #[must_use]
+    pub fn camera(&self) -> Option<Camera> {
+        self.views.as_ref().map(|v| v.camera)
+    }
+
+    /// Forgets what the sequence kept (hysteresis, estimated radius, camera and pool): the next
+    /// frame starts a new sequence.
+    pub fn reset(&mut self) {
+        self.detector.reset();
+        self.radius = self.params.support_radius;
+        self.views = None;
+    }
+
+    /// The whole chain on one frame.
+    pub fn frame(&mut self, particles: &ParticleSet) -> Result<Frame, Error> {
+        self.frame_through(particles, Through::Frame)
+    }
+
+    /// The chain on one frame, up to `through`.
+    pub fn frame_through(
+        &mut self,
+        particles: &ParticleSet,
+        through: Through,
+    ) -> Result<Frame, Error> {
+        let total = Instant::now();
+        particles.validate()?;
+        let mut timings = FrameTimings::default();
+        let mut warnings = Vec::new();
+        let radius = match self.radius {
+            Some(r) => r,
+            None => {
+                let r = 2.0 * neighbours::estimate_spacing(&particles.positions)?;
+                self.radius = Some(r);
+                r
+            }
+        };
+        // stage 1: surface detection with hysteresis
+        let t = Instant::now();
+        let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
+        timings.neighbours_ms = ms(t);
+        let t = Instant::now();
+        let surface = self.detector.detect(particles, &nb)?;
+        timings.detect_ms = ms(t);
+        let surface_indices = refined_indices(&surface);
+        let mut frame = Frame {
+            radius,
+            mean_neighbours: nb.mean_count(),
+            surface,
+            surface_indices,
+            refined: None,
+            grid: None,
+            surfels: None,
+            render_surfels: Vec::new(),
+            camera: None,
+            splats: None,
+            finished: None,
+            timings,
+            warnings: Vec::new(),
+        };
+        drop(nb);
+        // stage 2: upsampling of the surface
+        let needs_refined = through >= Through::Refine
+            && (through == Through::Refine || self.params.source != SurfelSource::Particles);
+        if needs_refined {
+            let t = Instant::now();
+            let (p, n) = gather(particles, &frame.surface, &frame.surface_indices);
+            frame.refined = Some(refine::refine(&p, &n, &self.refine_params(radius))?);
+            frame.timings.refine_ms = ms(t);
+        }
+        if through < Through::Surfels {
+            frame.timings.total_ms = ms(total);
+            return Ok(frame);
+        }
+        // stage 3: density grid and iso-surface surfels
+        let colour = splat::WATER;
+        match self.params.source {
+            SurfelSource::Refined => {
+                let r = frame.refined.as_ref().expect("refined above");
+                frame.render_surfels =
+                    splat::surfels_from(&r.positions, &r.normals, &r.radii, colour);
+            }
+            source => {
+                let (positions, radii) = match source {
+                    SurfelSource::Chain => chain_points(
+                        particles,
+                        &frame.surface,
+                        frame.refined.as_ref().expect("refined above"),
+                        radius,
+                    ),
+                    _ => (particles.positions.clone(), Vec::new()),
+                };
+                let points = if radii.is_empty() {
+                    Points::uniform(&positions, radius)
+                } else {
+                    Points::with_radii(&positions, &radii, radius)
+                };
+                if let Some(iso) = iso_surfels(points, &self.params.grid, &self.params.surfels)? {
+                    frame.timings.density_ms = iso.density_ms;
+                    frame.timings.surfels_ms = iso.surfels_ms;
+                    warnings.extend(iso.warning);
+                    frame.render_surfels = splat::surfels_from(
+                        &iso.surfels.positions,
+                        &iso.surfels.normals,
+                        &iso.surfels.radii,
+                        colour,
+                    );
+                    frame.grid = Some(iso.grid);
+                    frame.surfels = Some(iso.surfels);
+                } else {
+                    frame.surfels = Some(Surfels::default());
+                }
+            }
+        }
+        if through >= Through::Splats {
+            self.render(&mut frame, through)?;
+        }
+        frame.warnings = warnings;
+        frame.timings.total_ms = ms(total);
+        Ok(frame)
+    }
+
+    fn refine_params(&self, radius: f32) -> RefineParams {
+        let mut p = self.params.refine;
+        if p.initial_radius == 0.0 {
+            p.initial_radius = radius;
+        }
+        p
+    }
+
+    /// Stages 4 and 5 on the frame's surfels, with the views kept for the sequence.
+    fn render(&mut self, frame: &mut Frame, through: Through) -> Result<(), Error> {
+        let surfels = &frame.render_surfels;
+        let [w, h] = self.params.scene.optics.image_size;
+        if through == Through::Frame {
+            let scene = self.fitted_scene(surfels)?;
+            let t = Instant::now();
+            let stage = Stage::new(&scene, surfels)?;
+            let caustics = optics::caustics_cpu(&stage, surfels)?;
+            frame.timings.caustics_ms = ms(t);
+            let t = Instant::now();
+            let f = optics::frame_cpu(&stage, surfels, &caustics, (w, h))?;
+            frame.timings.image_ms = ms(t);
+            frame.camera = Some(stage.camera);
+            frame.finished = Some(Finished {
+                stage,
+                caustics,
+                image: f.image,
+                linear: f.linear,
+            });
+        }
+        let camera = match (&self.views, frame.camera) {
+            (_, Some(c)) => c,
+            (Some(v), None) if self.params.keep_views => v.camera,
+            _ => self.params.scene.camera.unwrap_or_else(|| {
+                let (lo, hi) = splat::bounds(surfels).unwrap_or((Vec3::ZERO, Vec3::ONE));
+                Camera::framing(lo, hi)
+            }),
+        };
+        if self.views.is_none() && self.params.keep_views {
+            self.views = Some(Views {
+                camera,
+                optics: None,
+            });
+        }
+        frame.camera = Some(camera);
+        let t = Instant::now();
+        frame.splats = Some(splat::render_cpu(
+            surfels,
+            &camera,
+            &Light::default(),
+            &self.params.splat,
+            w,
+            h,
+        )?);
+        frame.timings.splats_ms = ms(t);
+        Ok(())
+    }
+
+    /// The optics scene of this frame: the first rendered frame fits the camera, the pool and
+    /// the scene box, later frames of the sequence keep them.
+    fn fitted_scene(&mut self, surfels: &[Surfel]) -> Result<OpticsScene, Error> {
+        let mut scene = self.params.scene.clone();
+        if !self.params.keep_views {
+            return Ok(scene);
+        }
+        let kept = match self
+            .views
+            .as_ref()
+            .and_then(|v| v.optics.clone().map(|o| (v.camera, o)))
+        {
+            Some(k) => k,
+            None => {
+                // a provisional stage fits the pool and the camera around this frame's water
+                let first = Stage::new(&scene, surfels)?;
+                let mut receiver = scene.receiver.clone();
+                let (rmin, rmax) = first.receiver.bounds();
+                if receiver.kind == ReceiverKind::Auto {
+                    receiver.kind = ReceiverKind::OpenBox;
+                    receiver.min = rmin;
+                    receiver.max = rmax;
+                }
+                let (lo, hi) = match splat::bounds(surfels) {
+                    Some((a, b)) => (rmin.min(a), rmax.max(b)),
+                    None => (rmin, rmax),
+                };
+                // room for the water to rise and spread in later frames
+                let pad = 0.1 * (hi - lo).max_element();
+                let bounds = [lo - Vec3::splat(pad), hi + Vec3::splat(pad)];
+                let camera = match &self.views {
+                    Some(v) => v.camera,
+                    None => first.camera,
+                };
+                self.views = Some(Views {
+                    camera,
+                    optics: Some((receiver.clone(), bounds)),
+                });
+                (camera, (receiver, bounds))
+            }
+        };
+        let (camera, (receiver, bounds)) = kept;
+        scene.camera = Some(camera);
+        scene.receiver = receiver;
+        scene.optics.scene_bounds = Some(scene.optics.scene_bounds.unwrap_or(bounds));
+        Ok(scene)
+    }
+}
+
+/// Steps the built-in `column` simulation to `frame`, running the pipeline through
+/// [`Through::Surface`] on every frame before it (so the hysteresis state is that of a real run)
+/// and through `through` on the last; `progress` is called once per simulated frame.
+pub fn column_frame(
+    pipeline: &mut Pipeline,
+    sim: &mut ColumnSim,
+    frame: usize,
+    through: Through,
+    mut progress: impl FnMut(usize),
+) -> Result<Frame, Error> {
+    loop {
+        let last = sim.frame() >= frame;
+        let f = pipeline.frame_through(
+            sim.particles(),
+            if last { through } else { Through::Surface },
+        )?;
+        progress(sim.frame());
+        if last {
+            return Ok(f);
+        }
+        sim.step_frame();
+    }
+}
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+/// Indices of the particles the upsampling refines: surface and isolated ones, in order.
+#[must_use]
+pub fn refined_indices(surface: &Surface) -> Vec<u32> {
+    (0..surface.classes.len() as u32)
+        .filter(|&i| surface.classes[i as usize] != ParticleClass::Interior)
+        .collect()
+}
+
+/// Positions and normals of the given particles (isolated ones keep a zero normal, and the
+/// refinement keeps them as they are).
+#[must_use]
+pub fn gather(
+    particles: &ParticleSet,
+    surface: &Surface,
+    indices: &[u32],
+) -> (Vec<Vec3>, Vec<Vec3>) {
+    (
+        indices
+            .iter()
+            .map(|&i| particles.positions[i as usize])
+            .collect(),
+        indices
+            .iter()
+            .map(|&i| surface.normals[i as usize])
+            .collect(),
+    )
+}
+
+/// The design chain's points and their kernel radii: the interior particles with the support
+/// radius `h`, then the refined surface points with the radii their refinement gives them
+/// ([`Refined::kernel_radii`]).
+#[must_use]
+pub fn chain_points(
+    particles: &ParticleSet,
+    surface: &Surface,
+    refined: &Refined,
+    h: f32,
+) -> (Vec<Vec3>, Vec<f32>) {
+    let interior = surface.indices_of(ParticleClass::Interior);
+    let mut positions = Vec::with_capacity(interior.len() + refined.len());
+    let mut radii = Vec::with_capacity(interior.len() + refined.len());
+    for &i in &interior {
+        positions.push(particles.positions[i]);
+        radii.push(h);
+    }
+    positions.extend_from_slice(&refined.positions);
+    radii.extend_from_slice(&refined.kernel_radii);
+    (positions, radii)
+}
+
+/// What [`iso_surfels`] returns.
+#[derive(Debug)]
+pub struct IsoSurfels {
+    pub grid: DensityGrid,
+    pub surfels: Surfels,
+    pub density_ms: f64,
+    pub surfels_ms: f64,
+    /// Set when the grid was coarsened to fit the memory budget.
+    pub warning: Option<String>,
+}
+
+/// The grid for a set of points: padded by their largest radius, spacing from their smallest
+/// (or the fixed resolution), coarsened to fit the memory budget (with a message saying so).
+pub fn grid_for(
+    points: &Points<'_>,
+    params: &GridParams,
+) -> Result<(GridSpec, Option<String>), Error> {
+    let resolution = params.resolution.unwrap_or(Resolution::CellSize(
+        points.min_radius() / params.cells_per_radius,
+    ));
+    let pad = points.max_radius();
+    let spec = GridSpec::around(points.positions, pad, resolution)?;
+    if spec.bytes() <= params.memory_budget as u128 {
+        return Ok((spec, None));
+    }
+    // coarsen in one step (the cell count goes with the spacing's cube), then make sure
+    let mut spacing =
+        spec.spacing * (spec.bytes() as f64 / params.memory_budget as f64).cbrt() as f32;
+    let mut coarse = GridSpec::around(points.positions, pad, Resolution::CellSize(spacing))?;
+    while coarse.bytes() > params.memory_budget as u128 {
+        spacing *= 1.05;
+        coarse = GridSpec::around(points.positions, pad, Resolution::CellSize(spacing))?;
+    }
+    let mib = |b: u128| b as f64 / (1u64 << 20) as f64;
+    let message = format!(
+        "the density grid at spacing {:.5} ({} x {} x {}, {:.0} MiB) exceeds the memory budget of {:.0} MiB; \
+         coarsened to spacing {:.5} ({} x {} x {}): the surface loses detail finer than that (raise grid.memory_budget, \
+         or lower grid.cells_per_radius)",
+        spec.spacing,
+        spec.dims[0],
+        spec.dims[1],
+        spec.dims[2],
+        mib(spec.bytes()),
+        mib(params.memory_budget as u128),
+        coarse.spacing,
+        coarse.dims[0],
+        coarse.dims[1],
+        coarse.dims[2],
+    );
+    Ok((coarse, Some(message)))
+}
+
+/// Stage 3 on the CPU: the density grid of the points and the surfels on its iso-surface;
+/// `None` when there is no point.
+pub fn iso_surfels(
+    points: Points<'_>,
+    grid: &GridParams,
+    params: &SurfelParams,
+) -> Result<Option<IsoSurfels>, Error> {
+    if points.is_empty() {
+        return Ok(None);
+    }
+    let (spec, warning) = grid_for(&points, grid)?;
+    let t = Instant::now();
+    let values = density::points_grid(points, &spec, grid.kernel, grid.memory_budget)?;
+    let density_ms = ms(t);
+    let t = Instant::now();
+    let surfels = surfels::extract_points(&values, points, grid.kernel, params)?;
+    Ok(Some(IsoSurfels {
+        grid: values,
+        surfels,
+        density_ms,
+        surfels_ms: ms(t),
+        warning,
+    }))
+}

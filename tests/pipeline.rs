@@ -1,0 +1,372 @@
+//! The pipeline against its stages called by hand, across frames, and the design chain against
+//! the raw-particle source on an analytic sphere.
+
+use fluid_surfels::density::{self, Kernel, Points, Resolution};
+use fluid_surfels::neighbours::{Backend, Neighbourhoods};
+use fluid_surfels::pipeline::{self, GridParams, Pipeline, PipelineParams, SurfelSource, Through};
+use fluid_surfels::refine::{self, RefineParams};
+use fluid_surfels::scenes::{self, ColumnParams, ColumnSim};
+use fluid_surfels::surface::{ParticleClass, SurfaceDetector, SurfaceParams};
+use fluid_surfels::surfels::{self, SurfelParams};
+use fluid_surfels::{ParticleSet, optics};
+use glam::Vec3;
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// The column scene, frames 0..=20: the pipeline's classes, refined points and chain surfels
+/// equal the stages called by hand with one detector across the frames (surfels on every fifth
+/// frame and the splash frame, to keep the test short).
+#[test]
+fn pipeline_equals_the_stages_called_by_hand_over_the_column_frames() {
+    let mut sim = ColumnSim::new(ColumnParams::default()).unwrap();
+    let h = sim.support_radius();
+    let mut pipeline = Pipeline::new(PipelineParams {
+        support_radius: Some(h),
+        ..Default::default()
+    })
+    .unwrap();
+    let mut detector = SurfaceDetector::new(SurfaceParams::default()).unwrap();
+    for f in 0..=20 {
+        sim.advance_to(f);
+        let particles = sim.particles();
+        let with_surfels = f % 5 == 0 || f == ColumnParams::SPLASH_FRAME;
+        let through = if with_surfels {
+            Through::Surfels
+        } else {
+            Through::Refine
+        };
+        let frame = pipeline.frame_through(particles, through).unwrap();
+        // by hand
+        let nb = Neighbourhoods::build(&particles.positions, h, Backend::CellGrid).unwrap();
+        let surface = detector.detect(particles, &nb).unwrap();
+        assert_eq!(frame.surface.classes, surface.classes, "frame {f}: classes");
+        assert_eq!(frame.surface.normals, surface.normals, "frame {f}: normals");
+        assert_eq!(frame.surface.flips, surface.flips, "frame {f}: flips");
+        let idx: Vec<usize> = (0..particles.len())
+            .filter(|&i| surface.classes[i] != ParticleClass::Interior)
+            .collect();
+        let p: Vec<Vec3> = idx.iter().map(|&i| particles.positions[i]).collect();
+        let n: Vec<Vec3> = idx.iter().map(|&i| surface.normals[i]).collect();
+        let refined = refine::refine(&p, &n, &RefineParams::with_radius(h)).unwrap();
+        let got = frame.refined.as_ref().unwrap();
+        assert_eq!(
+            got.positions, refined.positions,
+            "frame {f}: refined points"
+        );
+        assert_eq!(
+            got.kernel_radii, refined.kernel_radii,
+            "frame {f}: kernel radii"
+        );
+        if !with_surfels {
+            assert!(frame.surfels.is_none());
+            continue;
+        }
+        let mut positions: Vec<Vec3> = Vec::new();
+        let mut radii = Vec::new();
+        for i in 0..particles.len() {
+            if surface.classes[i] == ParticleClass::Interior {
+                positions.push(particles.positions[i]);
+                radii.push(h);
+            }
+        }
+        positions.extend_from_slice(&refined.positions);
+        radii.extend(refined.kernel_radii.iter());
+        let points = Points::with_radii(&positions, &radii, h);
+        let r_min = radii.iter().copied().fold(f32::INFINITY, f32::min);
+        let spec = density::GridSpec::around(
+            &positions,
+            h,
+            Resolution::CellSize(r_min / GridParams::default().cells_per_radius),
+        )
+        .unwrap();
+        let grid = density::points_grid(points, &spec, Kernel::Wyvill, 1 << 30).unwrap();
+        let s = surfels::extract_points(&grid, points, Kernel::Wyvill, &SurfelParams::default())
+            .unwrap();
+        let got = frame.surfels.as_ref().unwrap();
+        assert_eq!(frame.grid.as_ref().unwrap().spec, spec, "frame {f}: grid");
+        assert!(!s.is_empty(), "frame {f}: no surfels");
+        assert_eq!(got.positions, s.positions, "frame {f}: surfels");
+        assert_eq!(got.normals, s.normals, "frame {f}: surfel normals");
+    }
+}
+
+/// Reordering the particles between frames changes no class: the hysteresis follows ids.
+#[test]
+fn shuffling_the_particles_between_frames_changes_no_class() {
+    let mut sim = ColumnSim::new(ColumnParams::default()).unwrap();
+    let params = PipelineParams {
+        support_radius: Some(sim.support_radius()),
+        ..Default::default()
+    };
+    let mut straight = Pipeline::new(params.clone()).unwrap();
+    let mut shuffled = Pipeline::new(params).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let mut flips = 0;
+    for f in 0..=20 {
+        sim.advance_to(f);
+        let set = sim.particles();
+        let mut order: Vec<usize> = (0..set.len()).collect();
+        order.shuffle(&mut rng);
+        let a = straight.frame_through(set, Through::Surface).unwrap();
+        let b = shuffled
+            .frame_through(&set.select(&order), Through::Surface)
+            .unwrap();
+        for (k, &i) in order.iter().enumerate() {
+            assert_eq!(
+                a.surface.classes[i],
+                b.surface.classes[k],
+                "frame {f}: particle {i} (id {:?})",
+                set.ids.as_ref().map(|ids| ids[i])
+            );
+        }
+        assert_eq!(a.surface.flips, b.surface.flips, "frame {f}");
+        flips += a.surface.flips;
+    }
+    // the hysteresis had something to do
+    assert!(flips > 0);
+}
+
+/// Distance of surfels to the analytic sphere: rms and largest, in spacings.
+fn sphere_error(s: &surfels::Surfels, radius: f32, spacing: f32) -> (f32, f32) {
+    let d: Vec<f32> = s
+        .positions
+        .iter()
+        .map(|p| (p.length() - radius) / spacing)
+        .collect();
+    let rms = (d.iter().map(|x| x * x).sum::<f32>() / d.len().max(1) as f32).sqrt();
+    let max = d.iter().fold(0f32, |m, x| m.max(x.abs()));
+    (rms, max)
+}
+
+/// On a particle sphere the chain's surfels lie closer to the analytic sphere than those of the
+/// raw particles' density grid at the same grid resolution.
+#[test]
+fn chain_surfels_lie_closer_to_the_sphere_than_the_raw_particles() {
+    let scene = scenes::sphere(&scenes::SphereParams {
+        radius_in_spacings: 8.0,
+        ..Default::default()
+    })
+    .unwrap();
+    let Some(scenes::AnalyticShape::Sphere { radius, .. }) = scene.shape else {
+        panic!("the sphere scene has an analytic sphere");
+    };
+    let cell = scene.spacing / 4.0;
+    let mut errors = Vec::new();
+    for source in [SurfelSource::Chain, SurfelSource::Particles] {
+        let mut p = Pipeline::new(PipelineParams {
+            support_radius: Some(scene.support_radius),
+            source,
+            grid: GridParams {
+                resolution: Some(Resolution::CellSize(cell)),
+                ..Default::default()
+            },
+            ..Default::default()
+        })
+        .unwrap();
+        let frame = p.frame_through(&scene.particles, Through::Surfels).unwrap();
+        let s = frame.surfels.as_ref().unwrap();
+        assert_eq!(frame.grid.as_ref().unwrap().spec.spacing, cell);
+        let (rms, max) = sphere_error(s, radius, scene.spacing);
+        println!(
+            "{}: {} surfels, rms distance to the sphere {rms:.3} spacings, largest {max:.3}",
+            source.as_str(),
+            s.len()
+        );
+        errors.push(rms);
+    }
+    assert!(
+        errors[0] < errors[1],
+        "chain rms {} spacings is not below the raw particles' {}",
+        errors[0],
+        errors[1]
+    );
+}
+
+/// A block of water, and the same block with a drop above it (the water's bounds differ).
+fn block_and_drop() -> (ParticleSet, ParticleSet, f32) {
+    let scene = scenes::block(&scenes::BlockParams {
+        counts: [10, 5, 10],
+        ..Default::default()
+    })
+    .unwrap();
+    let mut b = scene.particles.clone();
+    let s = scene.spacing;
+    let top = b.positions.iter().fold(f32::MIN, |m, p| m.max(p.y));
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let n = b.len() as u32;
+    for k in 0..8u32 {
+        let q = Vec3::new(
+            0.22 + s * (k % 2) as f32,
+            top + 10.0 * s + s * (k / 4) as f32,
+            0.22 + s * ((k / 2) % 2) as f32,
+        ) + Vec3::splat(rng.random_range(-0.05..0.05) * s);
+        b.positions.push(q);
+        if let Some(ids) = b.ids.as_mut() {
+            ids.push(n + k);
+        }
+        if let Some(m) = b.masses.as_mut() {
+            m.push(m[0]);
+        }
+    }
+    (scene.particles, b, scene.support_radius)
+}
+
+/// Pixels of `a` and `b` that differ, among the receiver's (not black, the environment's colour)
+/// farther than `margin` pixels from any pixel covered by water in either frame.
+fn differing_far_from_water(
+    a: &pipeline::Frame,
+    b: &pipeline::Frame,
+    margin: i32,
+) -> (usize, usize) {
+    let (ia, ib) = (
+        &a.finished.as_ref().unwrap().image,
+        &b.finished.as_ref().unwrap().image,
+    );
+    let (w, h) = (ia.width() as i32, ia.height() as i32);
+    let (la, lb) = (
+        &a.finished.as_ref().unwrap().linear,
+        &b.finished.as_ref().unwrap().linear,
+    );
+    let covered = |x: i32, y: i32| {
+        let i = (y * w + x) as usize;
+        la[i][3] > 0.0 || lb[i][3] > 0.0
+    };
+    let (mut far, mut differing) = (0, 0);
+    for y in 0..h {
+        for x in 0..w {
+            let near = (-margin..=margin).any(|dy| {
+                (-margin..=margin).any(|dx| {
+                    let (u, v) = (x + dx, y + dy);
+                    u >= 0 && v >= 0 && u < w && v < h && covered(u, v)
+                })
+            });
+            let (pa, pb) = (
+                ia.get_pixel(x as u32, y as u32),
+                ib.get_pixel(x as u32, y as u32),
+            );
+            let black = image::Rgba([0, 0, 0, 255]);
+            if near || (*pa == black && *pb == black) {
+                continue;
+            }
+            far += 1;
+            if pa != pb {
+                differing += 1;
+            }
+        }
+    }
+    (far, differing)
+}
+
+/// In a sequence the camera and the pool stay as the first frame fitted them: two frames whose
+/// water differs give identical pixels away from the water. Fitting every frame anew (the
+/// control) moves them.
+#[test]
+fn camera_and_pool_stay_fixed_in_a_sequence() {
+    let (a, b, h) = block_and_drop();
+    let mut results = Vec::new();
+    for keep_views in [true, false] {
+        let mut scene = optics::OpticsScene::default();
+        scene.optics.image_size = [128, 128];
+        scene.receiver.checker = 0.05;
+        scene.environment.kind = optics::EnvironmentKind::Constant;
+        scene.environment.colour = Vec3::ZERO;
+        let mut p = Pipeline::new(PipelineParams {
+            support_radius: Some(h),
+            scene,
+            keep_views,
+            ..Default::default()
+        })
+        .unwrap();
+        let fa = p.frame(&a).unwrap();
+        let fb = p.frame(&b).unwrap();
+        assert_ne!(fa.render_surfels.len(), fb.render_surfels.len());
+        let (far, differing) = differing_far_from_water(&fa, &fb, 3);
+        println!("keep_views {keep_views}: {differing} of {far} pixels away from the water differ");
+        assert!(
+            far > 128 * 128 / 20,
+            "too few receiver pixels away from the water: {far}"
+        );
+        results.push((far, differing, fa.camera, fb.camera));
+    }
+    let (_, kept, ca, cb) = results[0];
+    assert_eq!(ca, cb, "the camera moved");
+    assert_eq!(kept, 0, "{kept} pixels away from the water changed");
+    let (far, refitted, ca, cb) = results[1];
+    assert_ne!(ca, cb, "the control's camera should follow the water");
+    assert!(
+        refitted > far / 10,
+        "the control changed only {refitted} of {far} pixels"
+    );
+}
+
+/// A pipeline file holds the stages' tables beside the scene's; unknown keys are refused.
+#[test]
+fn pipeline_params_load_from_one_toml_with_the_scene() {
+    let text = r#"
+        source = "particles"
+        support_radius = 0.1
+        [refine]
+        steps = 2
+        [grid]
+        cells_per_radius = 2.5
+        [light]
+        direction = [0.0, 1.0, 0.0]
+        [optics]
+        image_size = [64, 48]
+    "#;
+    let p = PipelineParams::from_toml_str(text, std::path::Path::new(".")).unwrap();
+    assert_eq!(p.source, SurfelSource::Particles);
+    assert_eq!(p.support_radius, Some(0.1));
+    assert_eq!(p.refine.steps, 2);
+    assert_eq!(p.grid.cells_per_radius, 2.5);
+    assert_eq!(p.scene.light.direction, Vec3::Y);
+    assert_eq!(p.scene.optics.image_size, [64, 48]);
+    // everything else keeps its default
+    assert_eq!(p.surface, SurfaceParams::default());
+    let e =
+        PipelineParams::from_toml_str("[grid]\ncells = 3", std::path::Path::new(".")).unwrap_err();
+    assert!(e.contains("cells"), "{e}");
+    let e = PipelineParams::from_toml_str("[lihgt]\nx = 1", std::path::Path::new(".")).unwrap_err();
+    assert!(e.contains("lihgt"), "{e}");
+    let bad = PipelineParams {
+        support_radius: Some(f32::NAN),
+        ..Default::default()
+    };
+    assert!(Pipeline::new(bad).is_err());
+}
+
+/// Bad frames give errors, an empty frame gives an empty result, and a grid over the memory
+/// budget is coarsened with a warning instead of failing or exhausting memory.
+#[test]
+fn degenerate_frames_and_the_memory_budget() {
+    let (a, _, h) = block_and_drop();
+    let mut p = Pipeline::new(PipelineParams {
+        support_radius: Some(h),
+        ..Default::default()
+    })
+    .unwrap();
+    let mut nan = a.clone();
+    nan.positions[3].x = f32::NAN;
+    assert!(p.frame_through(&nan, Through::Surfels).is_err());
+    let empty = ParticleSet::from_positions(Vec::new());
+    let f = p.frame_through(&empty, Through::Surfels).unwrap();
+    assert!(f.surfels.unwrap().is_empty());
+    // a tight budget: the grid is coarsened to fit and says so
+    let budget = 1 << 18;
+    let mut tight = Pipeline::new(PipelineParams {
+        support_radius: Some(h),
+        grid: GridParams {
+            memory_budget: budget,
+            ..Default::default()
+        },
+        ..Default::default()
+    })
+    .unwrap();
+    let f = tight.frame_through(&a, Through::Surfels).unwrap();
+    let grid = f.grid.as_ref().unwrap();
+    assert!(grid.spec.bytes() <= budget as u128);
+    assert_eq!(f.warnings.len(), 1, "{:?}", f.warnings);
+    assert!(f.warnings[0].contains("memory budget"), "{}", f.warnings[0]);
+    assert!(!f.surfels.unwrap().is_empty());
+}
