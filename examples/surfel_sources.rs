@@ -5,7 +5,10 @@
 //! (mean distance to the nearest particle centre, in spacings; for the sphere the rms distance
 //! to the analytic surface) and the CPU time of the chain up to the surfels.
 //!
-//! `cargo run --release --example surfel_sources [-- --size 256]`; prints a Markdown table.
+//! `cargo run --release --example surfel_sources [-- --size 256] [--png DIR] [--support R]
+//! [--kernel-factor K]`; prints a Markdown table, and with `--png` writes one picture per input:
+//! the three sources' splats side by side. `--support` gives the files a support radius instead
+//! of twice the estimated spacing, `--kernel-factor` the refined points' kernel radius in `r_n`.
 
 use std::path::{Path, PathBuf};
 
@@ -49,6 +52,19 @@ fn main() -> Result<(), fluid_surfels::Error> {
         .nth(1)
         .and_then(|s| s.parse().ok())
         .unwrap_or(256);
+    let png_dir: Option<PathBuf> = std::env::args()
+        .skip_while(|a| a != "--png")
+        .nth(1)
+        .map(PathBuf::from);
+    let flag = |name: &str| -> Option<f32> {
+        std::env::args()
+            .skip_while(|a| a != name)
+            .nth(1)
+            .and_then(|s| s.parse().ok())
+    };
+    // the files' own support radius (their README: 0.1) instead of the estimate
+    let file_radius = flag("--support");
+    let kernel_factor = flag("--kernel-factor");
     let mut inputs: Vec<(String, ParticleSet, Option<f32>)> = Vec::new();
     for name in [
         "dam_break_frame_23_24389_particles.bgeo",
@@ -56,7 +72,7 @@ fn main() -> Result<(), fluid_surfels::Error> {
         "free_particles_125_particles.vtk",
     ] {
         if let Some(path) = data(name) {
-            inputs.push((name.into(), io::read_particles(&path, None)?, None));
+            inputs.push((name.into(), io::read_particles(&path, None)?, file_radius));
         }
     }
     let mut sim = ColumnSim::new(ColumnParams::default())?;
@@ -90,12 +106,16 @@ fn main() -> Result<(), fluid_surfels::Error> {
             });
         let pad = Vec3::splat(2.0 * radius.unwrap_or(2.0 * spacing));
         let camera = Camera::framing(lo - pad, hi + pad);
+        let mut panels = Vec::new();
         for source in SurfelSource::ALL {
             let mut params = PipelineParams {
                 support_radius: *radius,
                 source,
                 ..Default::default()
             };
+            if let Some(k) = kernel_factor {
+                params.refine.kernel_factor = k;
+            }
             params.scene.camera = Some(camera);
             params.scene.optics.image_size = [size, size];
             let mut pipeline = Pipeline::new(params)?;
@@ -106,7 +126,11 @@ fn main() -> Result<(), fluid_surfels::Error> {
             let t = &frame.timings;
             let ms = t.neighbours_ms + t.detect_ms + t.refine_ms + t.density_ms + t.surfels_ms;
             let splats = frame.splats.as_ref().expect("through the splats");
-            let positions: Vec<Vec3> = frame.render_surfels.iter().map(|s| s.position).collect();
+            let positions: Vec<Vec3> = frame
+                .render_surfels
+                .iter()
+                .map(|s| Vec3::from(s.position))
+                .collect();
             let distance = if name.starts_with("sphere") {
                 let rms = (positions
                     .iter()
@@ -137,6 +161,21 @@ fn main() -> Result<(), fluid_surfels::Error> {
             for w in &frame.warnings {
                 eprintln!("{name} {}: {w}", source.as_str());
             }
+            panels.push(image::buffer::ConvertBuffer::convert(&splats.image));
+        }
+        if let Some(dir) = &png_dir {
+            std::fs::create_dir_all(dir).map_err(|e| io::IoError::Os {
+                path: dir.clone(),
+                source: e,
+            })?;
+            let file: String = name
+                .chars()
+                .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+                .collect();
+            fluid_surfels::preview::save_png(
+                &fluid_surfels::preview::side_by_side(&panels),
+                &dir.join(format!("{file}.png")),
+            )?;
         }
     }
     Ok(())
