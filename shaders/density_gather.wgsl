@@ -1,6 +1,7 @@
 // Density grid by gathering (the compute-shader variant of Iwasaki et al. §4.1): the particles are
-// binned on the CPU into cubic bins of side >= h / reach (sorted by bin, with the start of every
-// bin), and one invocation per grid point of a group of planes sums the kernel over the particles
+// binned on the CPU into cubic bins of side >= (largest radius) / reach (sorted by bin, with the
+// start of every bin), and one invocation per grid point of a group of planes sums the kernel of
+// each particle's own radius (measured against the reference radius h) over the particles
 // of the (2 reach + 1)^3 bins around it. Each row of bins is one contiguous range of the sorted
 // array, so a grid point reads (2 reach + 1)^2 ranges. The result is written, not blended: no float atomics, and the
 // sum's order is fixed (the particles' sorted order), so runs are reproducible.
@@ -18,17 +19,18 @@ struct GatherParams {
     // bins along x, y, z; planes in this dispatch
     bins: vec3<u32>,
     planes: u32,
+    // the reference radius
     h: f32,
-    // 2835 / (736 pi h^3) for Wyvill, 8 / (pi h^3) for the cubic spline
+    // 2835 / (736 pi h^3) for Wyvill, 8 / (pi h^3) for the cubic spline, of the reference h
     constant: f32,
     // 0: Wyvill, 1: cubic spline
     kernel: u32,
-    // bins searched on each side: bin_size * reach >= h
+    // bins searched on each side: bin_size * reach >= the largest radius
     reach: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: GatherParams;
-// particles sorted by bin (xyz, w unused)
+// particles sorted by bin (xyz, w = radius)
 @group(0) @binding(1) var<storage, read> particles: array<vec4<f32>>;
 // bin_start[b] .. bin_start[b + 1]: the particles of bin b (x fastest, then y, then z)
 @group(0) @binding(2) var<storage, read> bin_start: array<u32>;
@@ -56,7 +58,7 @@ fn gather(@builtin(global_invocation_id) id: vec3<u32>) {
             for (var i = first; i < end; i++) {
                 let d = x - particles[i].xyz;
                 let r2 = d.x * d.x + (d.y * d.y + d.z * d.z);
-                sum += density_kernel_r2(r2, params.h, params.constant, params.kernel);
+                sum += density_kernel_r2(r2, particles[i].w, params.constant, params.kernel);
             }
         }
     }

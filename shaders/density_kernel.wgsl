@@ -1,7 +1,8 @@
 // The density kernels shared by the density passes (prepended to density_splat.wgsl and
-// density_gather.wgsl). The arithmetic is the CPU path's (`Kernel::value_r2` in src/density.rs):
-// Wyvill's kernel as a polynomial in a^2 = r^2 / h^2, the cubic spline in q = 2 r / h.
-// kernel 0: Wyvill, 1: cubic spline; constant: 2835 / (736 pi h^3) or 8 / (pi h^3).
+// density_gather.wgsl). The arithmetic is the CPU path's (`Kernel::weighted_r2` in
+// src/density/mod.rs): Wyvill's kernel as a polynomial in a^2 = r^2 / h^2, the cubic spline in
+// q = 2 r / h, for the point's own radius h, times the reference radius's constant.
+// kernel 0: Wyvill, 1: cubic spline; constant: 2835 / (736 pi h_ref^3) or 8 / (pi h_ref^3).
 fn density_kernel_r2(r2: f32, h: f32, constant: f32, kernel: u32) -> f32 {
     if kernel == 0u {
         let a2 = r2 * (1.0 / (h * h));

@@ -1,9 +1,11 @@
 // Density splatting, four z planes per pass (Iwasaki et al., §4.1): every particle of the
 // pass's z-cluster is drawn as a screen-aligned square covering its influence disk on the grid
 // plane; each fragment (one grid point in x, y) adds the particle's kernel value for the four
-// planes to the R, G, B and A channels of a float target with additive blending.
+// planes to the R, G, B and A channels of a float target with additive blending. Each instance
+// is (x, y, z, radius): its square is its own radius wide, and its kernel is measured against the
+// reference radius h (`constant` is h's), as the CPU path's `Kernel::weighted_r2` does.
 //
-// The arithmetic is the CPU path's (src/density.rs): grid point x = origin.x + i * spacing,
+// The arithmetic is the CPU path's (src/density/cpu.rs): grid point x = origin.x + i * spacing,
 // r^2 = dx^2 + (dy^2 + dz^2); the kernels are in density_kernel.wgsl, prepended.
 
 struct Params {
@@ -11,8 +13,9 @@ struct Params {
     spacing: f32,
     // grid points along x and y
     dims: vec2<f32>,
+    // the reference radius
     h: f32,
-    // 2835 / (736 pi h^3) for Wyvill, 8 / (pi h^3) for the cubic spline
+    // 2835 / (736 pi h^3) for Wyvill, 8 / (pi h^3) for the cubic spline, of the reference h
     constant: f32,
     // z of the pass's four planes
     planes: vec4<f32>,
@@ -27,26 +30,26 @@ struct Params {
 
 struct VertexOut {
     @builtin(position) position: vec4<f32>,
-    @location(0) @interpolate(flat) centre: vec3<f32>,
+    @location(0) @interpolate(flat) centre: vec4<f32>,
 }
 
 @vertex
 fn vs_main(@builtin(vertex_index) vertex: u32, @location(0) particle: vec4<f32>) -> VertexOut {
-    // two triangles over the square [x - h, x + h] x [y - h, y + h], in framebuffer pixels where
-    // grid point i sits at the centre of pixel i
+    // two triangles over the square [x - r, x + r] x [y - r, y + r] of the instance's radius r,
+    // in framebuffer pixels where grid point i sits at the centre of pixel i
     let corners = array<vec2<f32>, 6>(vec2(-1.0, -1.0), vec2(1.0, -1.0), vec2(1.0, 1.0), vec2(-1.0, -1.0), vec2(1.0, 1.0), vec2(-1.0, 1.0));
     let c = corners[vertex];
-    let world = particle.xy + c * params.h;
+    let world = particle.xy + c * particle.w;
     let pixel = (world - params.origin.xy) / params.spacing + vec2<f32>(0.5, 0.5);
     let ndc = vec2<f32>(pixel.x / params.dims.x * 2.0 - 1.0, 1.0 - pixel.y / params.dims.y * 2.0);
     var out: VertexOut;
     out.position = vec4<f32>(ndc, 0.0, 1.0);
-    out.centre = particle.xyz;
+    out.centre = particle;
     return out;
 }
 
-fn kernel_r2(r2: f32) -> f32 {
-    return density_kernel_r2(r2, params.h, params.constant, params.kernel);
+fn kernel_r2(r2: f32, radius: f32) -> f32 {
+    return density_kernel_r2(r2, radius, params.constant, params.kernel);
 }
 
 @fragment
@@ -58,5 +61,6 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     let dz = params.planes - vec4<f32>(in.centre.z);
     let dyz2 = vec4<f32>(dy * dy) + dz * dz;
     let r2 = vec4<f32>(dx * dx) + dyz2;
-    return vec4<f32>(kernel_r2(r2.x), kernel_r2(r2.y), kernel_r2(r2.z), kernel_r2(r2.w));
+    let r = in.centre.w;
+    return vec4<f32>(kernel_r2(r2.x, r), kernel_r2(r2.y, r), kernel_r2(r2.z, r), kernel_r2(r2.w, r));
 }

@@ -307,7 +307,8 @@ pub struct Frame {
     pub render_surfels: Vec<Surfel>,
     /// The camera the frame is seen from.
     pub camera: Option<Camera>,
-    /// The shaded EWA splats (through [`Through::Splats`]).
+    /// The shaded EWA splats (only when run [`Through::Splats`]: the finished frame splats the
+    /// water itself).
     pub splats: Option<Render>,
     /// The finished frame (through [`Through::Frame`]).
     pub finished: Option<Finished>,
@@ -524,6 +525,9 @@ impl Pipeline {
             });
         }
         frame.camera = Some(camera);
+        if through != Through::Splats {
+            return Ok(());
+        }
         let t = Instant::now();
         frame.splats = Some(splat::render_cpu(
             surfels,

@@ -108,8 +108,6 @@ pub struct ExactDensity<'a> {
     points: Points<'a>,
     groups: Vec<Group>,
     kernel: Kernel,
-    /// Central-difference step of the gradient.
-    step: f32,
 }
 
 /// Points of similar radius in a cell grid of the largest of them.
@@ -155,25 +153,30 @@ impl<'a> ExactDensity<'a> {
             }
         }
         Ok(Self {
-            step: points.min_radius() * 1e-3,
             points,
             groups,
             kernel,
         })
     }
 
-    /// Density and gradient at `x` (gradient by central differences of the exact sum, step
-    /// `h / 1000` of the smallest radius).
+    /// Density and its gradient at `x`, both analytic ([`Kernel::weighted_and_gradient`]), in
+    /// one pass over the points.
     #[must_use]
     pub fn value_and_gradient(&self, x: Vec3) -> (f32, Vec3) {
-        let e = self.step;
-        let v = self.value(x);
-        let g = Vec3::new(
-            self.value(x + Vec3::X * e) - self.value(x - Vec3::X * e),
-            self.value(x + Vec3::Y * e) - self.value(x - Vec3::Y * e),
-            self.value(x + Vec3::Z * e) - self.value(x - Vec3::Z * e),
-        ) / (2.0 * e);
-        (v, g)
+        let mut sum = 0.0;
+        let mut grad = Vec3::ZERO;
+        let p = &self.points;
+        for g in &self.groups {
+            g.grid.for_each_within(x, g.reach, |slot| {
+                let j = g.members[slot as usize] as usize;
+                let (v, dv) =
+                    self.kernel
+                        .weighted_and_gradient(x - p.positions[j], p.radius(j), p.h);
+                sum += v;
+                grad += dv;
+            });
+        }
+        (sum, grad)
     }
 
     /// Density at `x`: the sum of the kernels of the points whose radius reaches it.

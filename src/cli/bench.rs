@@ -420,7 +420,7 @@ struct DensityBenchReport {
     cpu_extract_ms: Option<f64>,
     /// GPU time of the default method (`gpu_method`).
     gpu_density_ms: Option<f64>,
-    gpu_method: Option<fluid_surfels::gpu::density::GpuDensityMethod>,
+    gpu_method: Option<fluid_surfels::density::gpu::GpuDensityMethod>,
     /// The paper's slice splatting.
     gpu_splat_ms: Option<f64>,
     /// The compute-shader gather.
@@ -475,14 +475,27 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
     // compilation), then the timed one
     let gpu = match fluid_surfels::gpu::GpuContext::headless() {
         Ok(ctx) => {
-            use fluid_surfels::gpu::density::{GpuDensityMethod, density_grid_gpu_with};
+            use fluid_surfels::density::Points;
+            use fluid_surfels::density::gpu::{GpuDensityMethod, density_grid_gpu_with};
             let max = grid.max().max(f32::MIN_POSITIVE);
             let mut timed = Vec::new();
             for method in [GpuDensityMethod::Splat, GpuDensityMethod::Gather] {
                 let few = &positions[..positions.len().min(1000)];
-                let _ = density_grid_gpu_with(&ctx, few, &spec, Kernel::Wyvill, h, method)?;
+                let _ = density_grid_gpu_with(
+                    &ctx,
+                    Points::uniform(few, h),
+                    &spec,
+                    Kernel::Wyvill,
+                    method,
+                )?;
                 let t = Instant::now();
-                let g = density_grid_gpu_with(&ctx, &positions, &spec, Kernel::Wyvill, h, method)?;
+                let g = density_grid_gpu_with(
+                    &ctx,
+                    Points::uniform(&positions, h),
+                    &spec,
+                    Kernel::Wyvill,
+                    method,
+                )?;
                 let gpu_ms = ms(t);
                 let diff = g
                     .values
@@ -504,10 +517,10 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
     };
     let default_gpu = gpu.as_ref().and_then(|(t, _)| {
         t.iter()
-            .find(|x| x.0 == fluid_surfels::gpu::density::GpuDensityMethod::default())
+            .find(|x| x.0 == fluid_surfels::density::gpu::GpuDensityMethod::default())
             .copied()
     });
-    let gpu_ms_of = |m: fluid_surfels::gpu::density::GpuDensityMethod| {
+    let gpu_ms_of = |m: fluid_surfels::density::gpu::GpuDensityMethod| {
         gpu.as_ref()
             .and_then(|(t, _)| t.iter().find(|x| x.0 == m).map(|x| x.1))
     };
@@ -547,8 +560,8 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
         cpu_extract_ms: Some(extract_ms),
         gpu_density_ms: default_gpu.map(|g| g.1),
         gpu_method: default_gpu.map(|g| g.0),
-        gpu_splat_ms: gpu_ms_of(fluid_surfels::gpu::density::GpuDensityMethod::Splat),
-        gpu_gather_ms: gpu_ms_of(fluid_surfels::gpu::density::GpuDensityMethod::Gather),
+        gpu_splat_ms: gpu_ms_of(fluid_surfels::density::gpu::GpuDensityMethod::Splat),
+        gpu_gather_ms: gpu_ms_of(fluid_surfels::density::gpu::GpuDensityMethod::Gather),
         gpu_difference_from_cpu: gpu
             .as_ref()
             .map(|(t, _)| t.iter().map(|x| x.2).fold(0.0f32, f32::max)),

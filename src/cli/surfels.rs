@@ -90,8 +90,7 @@ pub fn surfels_with(
     let spec = GridSpec::around(positions, h, Resolution::LongestAxis(resolution))?;
     spec.check_memory(grid.memory_budget)?;
     let t = Instant::now();
-    let values =
-        fluid_surfels::gpu::density::density_grid_gpu(ctx, positions, &spec, Kernel::Wyvill, h)?;
+    let values = fluid_surfels::density::gpu::density_grid_gpu(ctx, points, &spec, Kernel::Wyvill)?;
     let density_ms = ms(t);
     let t = Instant::now();
     let s = surfels::extract(&values, positions, Kernel::Wyvill, h, &params)?;

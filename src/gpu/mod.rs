@@ -4,7 +4,6 @@
 //! Shaders live in `shaders/*.wgsl` and are compiled into the crate; a unit test validates them
 //! with naga.
 
-pub mod density;
 pub mod optics;
 pub mod splat;
 

@@ -1,19 +1,22 @@
-//! The density grid on the GPU, two ways ([`GpuDensityMethod`]):
+//! The density grid on the GPU, the twin of [`super::cpu`], two ways ([`GpuDensityMethod`]).
+//! Every point carries its effective radius in the `w` of its `vec4` (the design chain's
+//! per-point radii; one radius for all in the paper's case), combined as [`super::Points`] says:
 //!
 //! - splatting, the paper's method (Iwasaki et al., §4.1-4.2): for each group of four z planes,
 //!   the particles of the group's z-cluster are drawn as instanced squares; the fragment shader
 //!   adds each particle's kernel for the four planes into the R, G, B and A channels of an
-//!   `Rgba32Float` target with additive blending; the target is copied back. Only one group's
-//!   target (and a batch of read-back copies) lives on the GPU, not the grid;
-//! - gathering, a compute shader: particles binned on the CPU (bins of side >= h), one
-//!   invocation per grid point of a group of up to 32 planes sums the 3 x 3 x 3 bins around it;
-//!   the group is copied back. Again only a group of planes lives on the GPU.
+//!   `Rgba32Float` target with additive blending; each instance's square is its own radius wide
+//!   (a per-instance sprite size); the target is copied back. Only one group's target (and a
+//!   batch of read-back copies) lives on the GPU, not the grid;
+//! - gathering, a compute shader: particles binned on the CPU (bins of side >= the largest
+//!   radius / [`GATHER_REACH`]), one invocation per grid point of a group of up to 32 planes sums
+//!   the bins around it; the group is copied back. Again only a group of planes lives on the GPU.
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
-use super::{GpuContext, GpuError};
-use crate::density::{DensityGrid, GridSpec, Kernel};
+use super::{DensityGrid, GridSpec, Kernel, Points};
+use crate::gpu::{self, GpuContext, GpuError};
 
 /// The shader's `Params`, std140-compatible: 64 bytes (checked against the WGSL in a test).
 #[repr(C)]
@@ -48,14 +51,22 @@ const PLANES: u32 = 4;
 /// Groups read back per submission.
 const BATCH: u32 = 8;
 
-/// Both GPU methods refuse a non-positive or non-finite `h` and non-finite positions.
-fn check_inputs(positions: &[Vec3], h: f32) -> Result<(), GpuError> {
-    if !(h.is_finite() && h > 0.0) || positions.iter().any(|p| !p.is_finite()) {
-        return Err(GpuError::Validation(
-            "h must be finite and > 0 and positions finite".into(),
-        ));
-    }
-    Ok(())
+/// Both GPU methods refuse what the CPU path refuses (radii <= 0 or not finite, non-finite
+/// positions), as a validation error.
+fn check_inputs(points: &Points<'_>) -> Result<(), GpuError> {
+    points
+        .check()
+        .map_err(|e| GpuError::Validation(e.to_string()))
+}
+
+/// The points as the shaders read them: `(x, y, z, radius)`.
+fn instances(points: &Points<'_>) -> Vec<[f32; 4]> {
+    points
+        .positions
+        .iter()
+        .enumerate()
+        .map(|(i, p)| [p.x, p.y, p.z, points.radius(i)])
+        .collect()
 }
 
 /// The shaders' kernel selector.
@@ -75,16 +86,16 @@ fn kernel_constant(kernel: Kernel, h: f32) -> f32 {
 }
 
 /// Fills the density grid on the GPU and hands slabs of four planes to `sink(k0, values)` in
-/// increasing z, like [`crate::density::splat_slabs`].
+/// increasing z, like [`super::splat_points_slabs`].
 pub fn splat_slabs_gpu(
     ctx: &GpuContext,
-    positions: &[Vec3],
+    points: Points<'_>,
     spec: &GridSpec,
     kernel: Kernel,
-    h: f32,
     mut sink: impl FnMut(u32, Vec<f32>),
 ) -> Result<(), GpuError> {
-    check_inputs(positions, h)?;
+    check_inputs(&points)?;
+    let (h, reach) = (points.h, points.max_radius());
     let device = &ctx.device;
     let [nx, ny, nz] = spec.dims;
     let max_dim = device.limits().max_texture_dimension_2d;
@@ -95,7 +106,7 @@ pub fn splat_slabs_gpu(
     }
     let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
     // particles sorted by z: each group's cluster is a contiguous instance range (§4.2)
-    let mut sorted: Vec<[f32; 4]> = positions.iter().map(|p| [p.x, p.y, p.z, 0.0]).collect();
+    let mut sorted = instances(&points);
     sorted.sort_by(|a, b| a[2].total_cmp(&b[2]));
     let zs: Vec<f32> = sorted.iter().map(|p| p[2]).collect();
     use wgpu::util::DeviceExt;
@@ -114,10 +125,7 @@ pub fn splat_slabs_gpu(
     });
     let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
         label: Some("density params"),
-        entries: &[super::entry::uniform(
-            0,
-            wgpu::ShaderStages::VERTEX_FRAGMENT,
-        )],
+        entries: &[gpu::entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT)],
     });
     let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
         label: Some("density"),
@@ -161,7 +169,7 @@ pub fn splat_slabs_gpu(
         multiview_mask: None,
         cache: None,
     });
-    let target = super::texture_2d(
+    let target = gpu::texture_2d(
         device,
         "density planes",
         (nx, ny),
@@ -212,8 +220,8 @@ pub fn splat_slabs_gpu(
             });
             // z-cluster of the four planes (§4.2)
             let last = (k0 + PLANES - 1).min(nz - 1);
-            let z_lo = spec.origin.z + k0 as f32 * spec.spacing - h;
-            let z_hi = spec.origin.z + last as f32 * spec.spacing + h;
+            let z_lo = spec.origin.z + k0 as f32 * spec.spacing - reach;
+            let z_hi = spec.origin.z + last as f32 * spec.spacing + reach;
             let a = zs.partition_point(|&z| z <= z_lo) as u32;
             let b = zs.partition_point(|&z| z < z_hi) as u32;
             {
@@ -262,7 +270,7 @@ pub fn splat_slabs_gpu(
         }
         ctx.queue.submit([encoder.finish()]);
         let slice = readback.slice(..);
-        super::map_read_and_wait(device, &slice)?;
+        gpu::map_read_and_wait(device, &slice)?;
         {
             let data = slice
                 .get_mapped_range()
@@ -302,12 +310,11 @@ pub fn splat_slabs_gpu(
 /// The whole density grid on the GPU, by the default method ([`GpuDensityMethod::default`]).
 pub fn density_grid_gpu(
     ctx: &GpuContext,
-    positions: &[Vec3],
+    points: Points<'_>,
     spec: &GridSpec,
     kernel: Kernel,
-    h: f32,
 ) -> Result<DensityGrid, GpuError> {
-    density_grid_gpu_with(ctx, positions, spec, kernel, h, GpuDensityMethod::default())
+    density_grid_gpu_with(ctx, points, spec, kernel, GpuDensityMethod::default())
 }
 
 /// How the GPU fills the density grid.
@@ -357,11 +364,12 @@ const MAX_BINS: u64 = 1 << 24;
 /// Particles sorted into cubic bins of side >= `h / reach` over the grid's box: the sorted positions,
 /// the start of each bin (one more entry than bins), the bin counts and side.
 fn bin_particles(
-    positions: &[Vec3],
+    points: &Points<'_>,
     spec: &GridSpec,
     h: f32,
     reach: u32,
 ) -> (Vec<[f32; 4]>, Vec<u32>, [u32; 3], f32) {
+    let positions = points.positions;
     let extent = spec.spacing
         * Vec3::new(
             spec.dims[0].saturating_sub(1) as f32,
@@ -391,9 +399,9 @@ fn bin_particles(
     }
     let mut next = start.clone();
     let mut sorted = vec![[0.0f32; 4]; positions.len()];
-    for &p in positions {
+    for (i, &p) in positions.iter().enumerate() {
         let b = bin_of(p);
-        sorted[next[b] as usize] = [p.x, p.y, p.z, 0.0];
+        sorted[next[b] as usize] = [p.x, p.y, p.z, points.radius(i)];
         next[b] += 1;
     }
     (sorted, start, n.to_array(), size)
@@ -403,13 +411,13 @@ fn bin_particles(
 /// planes to `sink(k0, values)` in increasing z, like [`splat_slabs_gpu`].
 pub fn gather_slabs_gpu(
     ctx: &GpuContext,
-    positions: &[Vec3],
+    points: Points<'_>,
     spec: &GridSpec,
     kernel: Kernel,
-    h: f32,
     mut sink: impl FnMut(u32, Vec<f32>),
 ) -> Result<(), GpuError> {
-    check_inputs(positions, h)?;
+    check_inputs(&points)?;
+    let h = points.h;
     let device = &ctx.device;
     let limits = device.limits();
     let [nx, ny, nz] = spec.dims;
@@ -422,12 +430,14 @@ pub fn gather_slabs_gpu(
             "a {nx} x {ny} plane ({plane_bytes} bytes) exceeds the GPU's storage binding limit of {max_binding} bytes"
         )));
     }
-    let (sorted, start, bins, bin_size) = bin_particles(positions, spec, h, GATHER_REACH);
+    // bins sized for the largest radius; each point's kernel uses its own
+    let (sorted, start, bins, bin_size) =
+        bin_particles(&points, spec, points.max_radius(), GATHER_REACH);
     let particle_bytes = (sorted.len().max(1) * 16) as u64;
     if particle_bytes > max_binding || (start.len() * 4) as u64 > max_binding {
         return Err(GpuError::Validation(format!(
             "{} particles exceed the GPU's storage binding limit of {max_binding} bytes; use the splatting method or the CPU path",
-            positions.len()
+            points.len()
         )));
     }
     // planes per dispatch: up to 32 (8 MiB at 256^2), within the binding limit
@@ -532,7 +542,7 @@ pub fn gather_slabs_gpu(
         encoder.copy_buffer_to_buffer(&densities, 0, &readback, 0, bytes);
         ctx.queue.submit([encoder.finish()]);
         let slice = readback.slice(..bytes);
-        super::map_read_and_wait(device, &slice)?;
+        gpu::map_read_and_wait(device, &slice)?;
         let slab: Vec<f32> = {
             let data = slice
                 .get_mapped_range()
@@ -556,30 +566,28 @@ pub fn gather_slabs_gpu(
 /// Fills the density grid on the GPU by `method`, handing slabs to `sink` in increasing z.
 pub fn density_slabs_gpu(
     ctx: &GpuContext,
-    positions: &[Vec3],
+    points: Points<'_>,
     spec: &GridSpec,
     kernel: Kernel,
-    h: f32,
     method: GpuDensityMethod,
     sink: impl FnMut(u32, Vec<f32>),
 ) -> Result<(), GpuError> {
     match method {
-        GpuDensityMethod::Splat => splat_slabs_gpu(ctx, positions, spec, kernel, h, sink),
-        GpuDensityMethod::Gather => gather_slabs_gpu(ctx, positions, spec, kernel, h, sink),
+        GpuDensityMethod::Splat => splat_slabs_gpu(ctx, points, spec, kernel, sink),
+        GpuDensityMethod::Gather => gather_slabs_gpu(ctx, points, spec, kernel, sink),
     }
 }
 
 /// The whole density grid on the GPU by `method`.
 pub fn density_grid_gpu_with(
     ctx: &GpuContext,
-    positions: &[Vec3],
+    points: Points<'_>,
     spec: &GridSpec,
     kernel: Kernel,
-    h: f32,
     method: GpuDensityMethod,
 ) -> Result<DensityGrid, GpuError> {
     let mut values = Vec::with_capacity(spec.cells() as usize);
-    density_slabs_gpu(ctx, positions, spec, kernel, h, method, |_, slab| {
+    density_slabs_gpu(ctx, points, spec, kernel, method, |_, slab| {
         values.extend_from_slice(&slab)
     })?;
     Ok(DensityGrid {
