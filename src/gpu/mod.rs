@@ -1,5 +1,6 @@
 //! The wgpu context shared by the GPU stages: headless (own adapter) or on a device the caller
-//! already has (a game's), plus the GPU density splatting of Iwasaki et al., §4.1.
+//! already has (a game's), the read-back helpers, and the splatting and optics passes (the
+//! density grid's GPU twin is [`crate::density::gpu`], the chain's [`crate::pipeline::GpuPipeline`]).
 //!
 //! Shaders live in `shaders/*.wgsl` and are compiled into the crate; a unit test validates them
 //! with naga.
@@ -207,6 +208,60 @@ pub(crate) fn map_read_and_wait(
     rx.recv()
         .map_err(|e| GpuError::Readback(e.to_string()))?
         .map_err(|e| GpuError::Readback(e.to_string()))
+}
+
+/// Copies a 2D texture back, rows unpadded (`texel_bytes` per texel): the one read-back of
+/// textures that every GPU stage, the CLI and the tests use.
+pub fn read_texture(
+    ctx: &GpuContext,
+    texture: &wgpu::Texture,
+    texel_bytes: u32,
+) -> Result<Vec<u8>, GpuError> {
+    let (width, height) = (texture.width(), texture.height());
+    let row = width * texel_bytes;
+    let padded =
+        row.div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+    let buffer = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("texture readback"),
+        size: u64::from(padded) * u64::from(height),
+        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+        mapped_at_creation: false,
+    });
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    encoder.copy_texture_to_buffer(
+        texture.as_image_copy(),
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(padded),
+                rows_per_image: Some(height),
+            },
+        },
+        texture.size(),
+    );
+    ctx.queue.submit([encoder.finish()]);
+    let slice = buffer.slice(..);
+    map_read_and_wait(&ctx.device, &slice)?;
+    let data = slice
+        .get_mapped_range()
+        .map_err(|e| GpuError::Readback(format!("{e:?}")))?;
+    let mut out = Vec::with_capacity((row * height) as usize);
+    for y in 0..height as usize {
+        let start = y * padded as usize;
+        out.extend_from_slice(&data[start..start + row as usize]);
+    }
+    drop(data);
+    buffer.unmap();
+    Ok(out)
+}
+
+/// Reads an 8-bit RGBA texture (`Rgba8Unorm` or `Rgba8UnormSrgb`, the stored bytes) back as an
+/// image.
+pub fn read_rgba8(ctx: &GpuContext, texture: &wgpu::Texture) -> Result<image::RgbaImage, GpuError> {
+    let bytes = read_texture(ctx, texture, 4)?;
+    image::RgbaImage::from_raw(texture.width(), texture.height(), bytes)
+        .ok_or_else(|| GpuError::Readback("texture size does not match its bytes".into()))
 }
 
 /// For tests and benchmarks: a headless context, or `None` with a message on stderr when there

@@ -600,6 +600,13 @@ impl PreparedOptics {
         Ok(())
     }
 
+    /// The final image's storage buffer (linear RGBA `vec4<f32>` per pixel, row-major from the
+    /// top), for a pass that presents it; `None` when no image was prepared.
+    #[must_use]
+    pub fn image_buffer(&self) -> Option<(&wgpu::Buffer, (u32, u32))> {
+        self.frame_size.map(|size| (&self.image, size))
+    }
+
     /// Copies the caustics map and the image back.
     pub fn read(&self, ctx: &GpuContext) -> Result<GpuOpticsResult, OpticsError> {
         let flux: Vec<[f32; 4]> = read_buffer(ctx, &self.flux)?;

@@ -514,9 +514,9 @@ pub fn render_timed(
     times.visibility_ms = run(&|e| renderer.encode_visibility(e, surfels, &splat))?;
     times.attributes_ms = run(&|e| renderer.encode_attributes(e, surfels, &splat))?;
     times.shading_ms = run(&|e| renderer.encode_shading(e, &output_view, &shade))?;
-    let image = read_texture(ctx, &output, 4)?;
-    let colour = read_texture(ctx, &renderer.targets.colour, 16)?;
-    let normal = read_texture(ctx, &renderer.targets.normal, 16)?;
+    let image = super::read_texture(ctx, &output, 4)?;
+    let colour = super::read_texture(ctx, &renderer.targets.colour, 16)?;
+    let normal = super::read_texture(ctx, &renderer.targets.normal, 16)?;
     if let Some(e) = pollster::block_on(scope.pop()) {
         return Err(GpuError::Validation(e.to_string()).into());
     }
@@ -530,49 +530,4 @@ pub fn render_timed(
     };
     render.validate().map_err(GpuError::Readback)?;
     Ok((render, times))
-}
-
-/// Copies a 2D texture back, rows unpadded.
-fn read_texture(
-    ctx: &GpuContext,
-    texture: &wgpu::Texture,
-    texel_bytes: u32,
-) -> Result<Vec<u8>, GpuError> {
-    let (width, height) = (texture.width(), texture.height());
-    let row = width * texel_bytes;
-    let padded =
-        row.div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
-    let buffer = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("splat readback"),
-        size: u64::from(padded) * u64::from(height),
-        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
-        mapped_at_creation: false,
-    });
-    let mut encoder = ctx.device.create_command_encoder(&Default::default());
-    encoder.copy_texture_to_buffer(
-        texture.as_image_copy(),
-        wgpu::TexelCopyBufferInfo {
-            buffer: &buffer,
-            layout: wgpu::TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some(padded),
-                rows_per_image: Some(height),
-            },
-        },
-        texture.size(),
-    );
-    ctx.queue.submit([encoder.finish()]);
-    let slice = buffer.slice(..);
-    super::map_read_and_wait(&ctx.device, &slice)?;
-    let data = slice
-        .get_mapped_range()
-        .map_err(|e| GpuError::Readback(format!("{e:?}")))?;
-    let mut out = Vec::with_capacity((row * height) as usize);
-    for y in 0..height as usize {
-        let start = y * padded as usize;
-        out.extend_from_slice(&data[start..start + row as usize]);
-    }
-    drop(data);
-    buffer.unmap();
-    Ok(out)
 }

@@ -48,6 +48,10 @@ use crate::surface::{ParticleClass, Surface, SurfaceDetector, SurfaceParams};
 use crate::surfels::{self, SurfelParams, Surfels};
 use crate::{Error, ParticleSet};
 
+pub mod gpu;
+
+pub use gpu::GpuPipeline;
+
 /// Where the surfels that are rendered come from.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -543,7 +547,7 @@ impl Pipeline {
 
     /// The optics scene of this frame: the first rendered frame fits the camera, the pool and
     /// the scene box, later frames of the sequence keep them.
-    fn fitted_scene(&mut self, surfels: &[Surfel]) -> Result<OpticsScene, Error> {
+    pub(crate) fn fitted_scene(&mut self, surfels: &[Surfel]) -> Result<OpticsScene, Error> {
         let mut scene = self.params.scene.clone();
         if !self.params.keep_views {
             return Ok(scene);

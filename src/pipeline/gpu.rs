@@ -1,0 +1,296 @@
+//! [`GpuPipeline`]: the chain on the caller's wgpu device, drawing into the caller's render pass,
+//! in the shape of wgpu "middleware" (glyphon, egui-wgpu): `new` builds every pipeline once,
+//! `prepare` runs the frame's work and records its GPU passes into the caller's encoder, `render`
+//! draws the finished frame into the caller's render pass, `resize` follows the window.
+//!
+//! What runs where, today: surface detection, upsampling, the density grid and the surfels run on
+//! the CPU (the [`Pipeline`] inside; the GPU density grid needs a read-back for the CPU surfel
+//! extraction, which a frame path must not wait on, until extraction moves to the GPU); the
+//! optics stage (the light's splatting of the water, the caustics, the camera's splatting, the
+//! refraction, reflection and the final image) runs on the GPU, and the frame is presented by a
+//! full-screen pass. Nothing is read back and nothing waits on the GPU on the frame path; the
+//! optics stage still creates its per-frame resources in `prepare` (the next step: reuse them
+//! while the views are kept).
+
+use super::{Frame, Pipeline, PipelineParams, Through};
+use crate::gpu::optics::{OpticsGpu, PreparedOptics};
+use crate::gpu::{GpuContext, GpuError, entry};
+use crate::optics::Stage;
+use crate::{Error, ParticleSet};
+
+/// The WGSL of the presenting pass.
+pub const PRESENT_SHADER: &str = include_str!("../../shaders/present.wgsl");
+
+/// The presenting pass's `Present` uniform (16 bytes, checked against the WGSL in a test).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RawPresent {
+    pub width: u32,
+    pub height: u32,
+    pub srgb_target: u32,
+    pub _pad: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<RawPresent>() == 16);
+
+/// The chain on the caller's device. See the module documentation.
+pub struct GpuPipeline {
+    cpu: Pipeline,
+    optics: OpticsGpu,
+    format: wgpu::TextureFormat,
+    size: (u32, u32),
+    present: wgpu::RenderPipeline,
+    present_layout: wgpu::BindGroupLayout,
+    uniform: wgpu::Buffer,
+    prepared: Option<(PreparedOptics, wgpu::BindGroup)>,
+}
+
+impl GpuPipeline {
+    /// Compiles every shader and builds every pipeline once, for frames of `size` drawn into
+    /// targets of `format`. The device needs [`crate::gpu::REQUIRED_FEATURES`].
+    pub fn new(
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        format: wgpu::TextureFormat,
+        size: (u32, u32),
+        params: &PipelineParams,
+    ) -> Result<Self, Error> {
+        let _ = queue;
+        check_size(size)?;
+        let mut params = params.clone();
+        params.scene.optics.image_size = [size.0, size.1];
+        let cpu = Pipeline::new(params)?;
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let optics = OpticsGpu::new(device)?;
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("present"),
+            source: wgpu::ShaderSource::Wgsl(PRESENT_SHADER.into()),
+        });
+        let present_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("present"),
+            entries: &[
+                entry::uniform(0, wgpu::ShaderStages::FRAGMENT),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 1,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Storage { read_only: true },
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                    count: None,
+                },
+            ],
+        });
+        let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("present"),
+            bind_group_layouts: &[Some(&present_layout)],
+            ..Default::default()
+        });
+        let present = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("present"),
+            layout: Some(&layout),
+            vertex: wgpu::VertexState {
+                module: &module,
+                entry_point: Some("vs_main"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: wgpu::PrimitiveState::default(),
+            depth_stencil: None,
+            multisample: wgpu::MultisampleState::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &module,
+                entry_point: Some("fs_main"),
+                compilation_options: Default::default(),
+                targets: &[Some(wgpu::ColorTargetState {
+                    format,
+                    blend: None,
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        let uniform = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("present"),
+            size: std::mem::size_of::<RawPresent>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Validation(e.to_string()).into());
+        }
+        Ok(Self {
+            cpu,
+            optics,
+            format,
+            size,
+            present,
+            present_layout,
+            uniform,
+            prepared: None,
+        })
+    }
+
+    /// The frame size.
+    #[must_use]
+    pub fn size(&self) -> (u32, u32) {
+        self.size
+    }
+
+    /// The target format the pipeline draws into.
+    #[must_use]
+    pub fn format(&self) -> wgpu::TextureFormat {
+        self.format
+    }
+
+    /// The CPU half of the chain (hysteresis, kept views, support radius).
+    #[must_use]
+    pub fn cpu(&self) -> &Pipeline {
+        &self.cpu
+    }
+
+    /// Follows a new target size (from the next `prepare` on).
+    pub fn resize(&mut self, width: u32, height: u32) -> Result<(), Error> {
+        check_size((width, height))?;
+        self.size = (width, height);
+        self.cpu.params.scene.optics.image_size = [width, height];
+        Ok(())
+    }
+
+    /// Runs the frame's CPU stages on `particles` and records its GPU passes (caustics and the
+    /// finished frame) into `encoder`; returns the CPU stages' frame (classes, refined points,
+    /// surfels, timings). Submit the encoder, then [`GpuPipeline::render`] draws the frame.
+    pub fn prepare(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        particles: &ParticleSet,
+    ) -> Result<Frame, Error> {
+        let frame = self.cpu.frame_through(particles, Through::Surfels)?;
+        self.prepare_frame(device, queue, encoder, &frame)?;
+        Ok(frame)
+    }
+
+    /// [`GpuPipeline::prepare`] for surfels a CPU [`Pipeline`] already made: records the GPU
+    /// passes of `frame.render_surfels` into `encoder`.
+    pub fn prepare_frame(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        frame: &Frame,
+    ) -> Result<(), Error> {
+        let surfels = &frame.render_surfels;
+        let scene = self.cpu.fitted_scene(surfels)?;
+        let stage = Stage::new(&scene, surfels)?;
+        let prepared = self
+            .optics
+            .prepare(device, queue, &stage, surfels, Some(self.size))?;
+        prepared.encode_caustics(device, &self.optics, encoder)?;
+        prepared.encode_frame(device, &self.optics, encoder)?;
+        let (image, (w, h)) = prepared
+            .image_buffer()
+            .expect("prepared with an image size");
+        queue.write_buffer(
+            &self.uniform,
+            0,
+            bytemuck::bytes_of(&RawPresent {
+                width: w,
+                height: h,
+                srgb_target: u32::from(self.format.is_srgb()),
+                _pad: 0,
+            }),
+        );
+        let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("present"),
+            layout: &self.present_layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: self.uniform.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: image.as_entire_binding(),
+                },
+            ],
+        });
+        self.prepared = Some((prepared, bind));
+        Ok(())
+    }
+
+    /// Draws the prepared frame into the caller's render pass (a target of the pipeline's format
+    /// and size). Draws nothing before the first `prepare`.
+    pub fn render(&self, pass: &mut wgpu::RenderPass<'_>) {
+        if let Some((_, bind)) = &self.prepared {
+            pass.set_pipeline(&self.present);
+            pass.set_bind_group(0, bind, &[]);
+            pass.draw(0..3, 0..1);
+        }
+    }
+
+    /// Headless: prepares `frame`'s surfels, draws them into a texture of the pipeline's size and
+    /// reads the image back (for the CLI, tests and saved frames of a game loop). The pipeline's
+    /// format must be `Rgba8Unorm` or `Rgba8UnormSrgb`.
+    pub fn render_frame_image(
+        &mut self,
+        ctx: &GpuContext,
+        frame: &Frame,
+    ) -> Result<image::RgbaImage, Error> {
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        self.prepare_frame(&ctx.device, &ctx.queue, &mut encoder, frame)?;
+        let target = self.draw_to_texture(&ctx.device, &mut encoder);
+        ctx.queue.submit([encoder.finish()]);
+        Ok(crate::gpu::read_rgba8(ctx, &target)?)
+    }
+
+    /// Records a render pass that draws the prepared frame into a new texture (`COPY_SRC`), and
+    /// returns it.
+    pub fn draw_to_texture(
+        &self,
+        device: &wgpu::Device,
+        encoder: &mut wgpu::CommandEncoder,
+    ) -> wgpu::Texture {
+        let target = crate::gpu::texture_2d(
+            device,
+            "frame",
+            self.size,
+            self.format,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+        );
+        let view = target.create_view(&Default::default());
+        {
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("present"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: &view,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                ..Default::default()
+            });
+            self.render(&mut pass);
+        }
+        target
+    }
+}
+
+fn check_size((w, h): (u32, u32)) -> Result<(), Error> {
+    if !(1..=crate::splat::MAX_SIZE).contains(&w) || !(1..=crate::splat::MAX_SIZE).contains(&h) {
+        return Err(Error::InvalidArgument {
+            argument: "size",
+            reason: format!(
+                "{w}x{h}: each side must lie in 1..={}",
+                crate::splat::MAX_SIZE
+            ),
+        });
+    }
+    Ok(())
+}
