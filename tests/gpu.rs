@@ -8,53 +8,76 @@ use fluid_surfels::pipeline::{self, GpuPipeline, Pipeline, PipelineParams, Throu
 use fluid_surfels::scenes;
 use fluid_surfels::splat;
 
+/// `(field, offset)` of a `#[repr(C)]` struct, for comparing with its WGSL twin.
+macro_rules! fields {
+    ($t:ty; $($f:ident),* $(,)?) => {
+        vec![$((stringify!($f), std::mem::offset_of!($t, $f))),*]
+    };
+}
+
+/// Every uniform struct of every shader against its Rust twin, reflected with naga: the struct's
+/// size, and each field's offset by name (every WGSL field but padding must exist in Rust at the
+/// same offset). Moving a field in a Rust struct fails here (shown once by hand: swapping
+/// `spacing` and `h` in `RawParams` gave "density_splat.wgsl: Params.spacing at offset 12 in
+/// WGSL, 24 in Rust").
 #[test]
 fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
-    let shaders = [
+    use gpu::optics::{RawGeometry, RawOptics, RawView};
+    use gpu_density::{RawGatherParams, RawParams};
+    use pipeline::gpu::RawPresent;
+    use splat::RawUniforms;
+    let shaders: Vec<(&str, &str, &str, usize, Vec<(&str, usize)>)> = vec![
         (
             "density_splat.wgsl",
             gpu_density::SHADER,
             "Params",
-            std::mem::size_of::<gpu_density::RawParams>(),
+            std::mem::size_of::<RawParams>(),
+            fields!(RawParams; origin, spacing, dims, h, constant, planes, kernel),
         ),
         (
             "density_gather.wgsl",
             gpu_density::GATHER_SHADER,
             "GatherParams",
-            std::mem::size_of::<gpu_density::RawGatherParams>(),
+            std::mem::size_of::<RawGatherParams>(),
+            fields!(RawGatherParams; origin, spacing, dims, k0, bin_origin, bin_size, bins, planes, h, constant, kernel, reach),
         ),
         (
             "surfel_splat.wgsl",
             gpu_splat::SHADER,
             "Uniforms",
-            std::mem::size_of::<splat::RawUniforms>(),
+            std::mem::size_of::<RawUniforms>(),
+            fields!(RawUniforms; view, proj, inv_view, viewport, tan_half, light_dir, light_colour, background, material, depth_offset, low_pass, sharpness, mode),
         ),
         (
             "optics.wgsl",
             gpu::optics::SHADER,
             "Uniforms",
-            std::mem::size_of::<gpu::optics::RawOptics>(),
+            std::mem::size_of::<RawOptics>(),
+            fields!(RawOptics; screen, map, camera, light_dir, light_pos, light_colour, ambient, water, extinction, albedo, env, env_colour, env_horizon, env_zenith, env_ground),
         ),
         (
             "optics.wgsl",
             gpu::optics::SHADER,
             "ViewU",
-            std::mem::size_of::<gpu::optics::RawView>(),
+            std::mem::size_of::<RawView>(),
+            fields!(RawView; view, inv_view, proj, viewport, tan_half, flags),
         ),
         (
             "optics_geometry.wgsl",
             gpu::optics::GEOMETRY_SHADER,
             "GeometryU",
-            std::mem::size_of::<gpu::optics::RawGeometry>(),
+            std::mem::size_of::<RawGeometry>(),
+            fields!(RawGeometry; view_proj, view, eye),
         ),
         (
             "present.wgsl",
             pipeline::gpu::PRESENT_SHADER,
             "Present",
-            std::mem::size_of::<pipeline::gpu::RawPresent>(),
+            std::mem::size_of::<RawPresent>(),
+            fields!(RawPresent; width, height, srgb_target),
         ),
     ];
-    for (file, source, name, rust_size) in shaders {
+    for (file, source, name, rust_size, rust_fields) in shaders {
         let module = naga::front::wgsl::parse_str(source)
             .unwrap_or_else(|e| panic!("{file}: {}", e.emit_to_string(source)));
         naga::valid::Validator::new(
@@ -63,15 +86,44 @@ fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
         )
         .validate(&module)
         .unwrap_or_else(|e| panic!("{file} does not validate: {e:?}"));
-        let size = module
+        let ty = module
             .types
             .iter()
             .find(|(_, t)| t.name.as_deref() == Some(name))
-            .map(|(_, t)| t.inner.size(module.to_ctx()))
+            .map(|(_, t)| t)
             .unwrap_or_else(|| panic!("{file}: no struct {name}"));
+        let size = ty.inner.size(module.to_ctx());
         assert_eq!(
             size as usize, rust_size,
             "{file}: {name} and its Rust mirror differ in size"
+        );
+        let naga::TypeInner::Struct { members, .. } = &ty.inner else {
+            panic!("{file}: {name} is not a struct");
+        };
+        let mut checked = 0;
+        for m in members {
+            let Some(field) = m.name.as_deref() else {
+                continue;
+            };
+            if field.starts_with('_') {
+                continue;
+            }
+            let rust = rust_fields
+                .iter()
+                .find(|(f, _)| *f == field)
+                .unwrap_or_else(|| panic!("{file}: {name}.{field} has no Rust twin field"))
+                .1;
+            assert_eq!(
+                m.offset as usize, rust,
+                "{file}: {name}.{field} at offset {} in WGSL, {rust} in Rust",
+                m.offset
+            );
+            checked += 1;
+        }
+        assert_eq!(
+            checked,
+            rust_fields.len(),
+            "{file}: {name}: some Rust fields have no WGSL twin"
         );
     }
     // the surfel vertex layout: four vec4 attributes

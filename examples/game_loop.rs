@@ -1,0 +1,243 @@
+//! A game loop around `GpuPipeline`: the game creates its own device, builds the pipeline once,
+//! steps the built-in `column` simulation, and every frame records the pipeline's GPU passes into
+//! its own encoder and draws the finished water into its own texture (an sRGB target, as a
+//! swap-chain image would be). Only the frames it saves are copied back, and each saved frame is
+//! compared with the CPU `Pipeline`'s image of the same frame.
+//!
+//! Run: `cargo run --release --example game_loop -- [--frames 60] [--size 320x320]
+//! [--save 0,30,59] [--out DIR] [--json]`. Needs a GPU or Mesa's lavapipe (on lavapipe, a
+//! software rasteriser, it proves the loop works, not how fast a GPU runs it).
+//!
+//! `--json` prints one object: frames, the CPU milliseconds per frame (the CPU stages plus
+//! recording and submitting; mean and 95th percentile), the GPU milliseconds per frame from
+//! timestamp queries where the adapter has them (then each frame waits for its timestamps), and
+//! the PSNR of every saved frame against the CPU pipeline.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use fluid_surfels::gpu::{GpuContext, REQUIRED_FEATURES};
+use fluid_surfels::pipeline::{GpuPipeline, Pipeline, PipelineParams, Through};
+use fluid_surfels::scenes::{ColumnParams, ColumnSim, column_pool};
+use fluid_surfels::splat::psnr;
+
+struct Args {
+    frames: usize,
+    size: (u32, u32),
+    save: Vec<usize>,
+    out: PathBuf,
+    json: bool,
+}
+
+fn args() -> Result<Args, String> {
+    let mut a = Args {
+        frames: 60,
+        size: (320, 320),
+        save: Vec::new(),
+        out: PathBuf::from("out/game_loop"),
+        json: false,
+    };
+    let mut it = std::env::args().skip(1);
+    while let Some(flag) = it.next() {
+        let mut value = || it.next().ok_or(format!("{flag} needs a value"));
+        match flag.as_str() {
+            "--frames" => a.frames = value()?.parse().map_err(|e| format!("--frames: {e}"))?,
+            "--size" => {
+                let v = value()?;
+                let (w, h) = v
+                    .split_once('x')
+                    .ok_or(format!("--size {v}: expected WxH"))?;
+                a.size = (
+                    w.parse().map_err(|e| format!("--size: {e}"))?,
+                    h.parse().map_err(|e| format!("--size: {e}"))?,
+                );
+            }
+            "--save" => {
+                a.save = value()?
+                    .split(',')
+                    .map(|f| f.trim().parse().map_err(|e| format!("--save: {e}")))
+                    .collect::<Result<_, _>>()?
+            }
+            "--out" => a.out = PathBuf::from(value()?),
+            "--json" => a.json = true,
+            other => return Err(format!("unknown argument {other}")),
+        }
+    }
+    if a.frames == 0 {
+        return Err("--frames must be at least 1".into());
+    }
+    if a.save.is_empty() {
+        a.save = vec![0, a.frames / 2, a.frames - 1];
+    }
+    a.save.retain(|&f| f < a.frames);
+    a.save.dedup();
+    Ok(a)
+}
+
+fn percentile(v: &[f64], p: f64) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    s[((s.len() as f64 - 1.0) * p).round() as usize]
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args = args()?;
+    // --- the game's own device ---
+    let instance =
+        wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle().with_env());
+    let adapter = match pollster::block_on(instance.request_adapter(&Default::default())) {
+        Ok(a) => a,
+        Err(e) => {
+            eprintln!("no GPU adapter ({e}); install a Vulkan driver such as mesa-vulkan-drivers");
+            return Ok(());
+        }
+    };
+    let timestamps = adapter.features().contains(
+        wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS,
+    );
+    let mut features = REQUIRED_FEATURES;
+    if timestamps {
+        features |=
+            wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS;
+    }
+    let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+        label: Some("game"),
+        required_features: features,
+        ..Default::default()
+    }))?;
+    let info = adapter.get_info();
+    // the context the crate's read-back helper takes (the same device and queue)
+    let ctx = GpuContext::from_device(device.clone(), queue.clone());
+
+    // --- once: the pipeline for the game's target ---
+    let format = wgpu::TextureFormat::Rgba8UnormSrgb;
+    let mut sim = ColumnSim::new(ColumnParams::default())?;
+    let mut params = PipelineParams {
+        support_radius: Some(sim.support_radius()),
+        scene: column_pool(ColumnParams::default().tank),
+        ..Default::default()
+    };
+    params.scene.optics.image_size = [args.size.0, args.size.1];
+    let mut gpu = GpuPipeline::new(&device, &queue, format, args.size, &params)?;
+    // the CPU reference, stepped in lockstep (detection every frame for the same hysteresis)
+    let mut reference = Pipeline::new(params)?;
+    let query = timestamps.then(|| {
+        let set = device.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("frame"),
+            ty: wgpu::QueryType::Timestamp,
+            count: 2,
+        });
+        let resolve = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("timestamps"),
+            size: 16,
+            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let read = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("timestamps read"),
+            size: 16,
+            usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+            mapped_at_creation: false,
+        });
+        (set, resolve, read)
+    });
+    let period_ns = f64::from(queue.get_timestamp_period());
+    if !args.save.is_empty() {
+        std::fs::create_dir_all(&args.out)?;
+    }
+    let (mut cpu_ms, mut gpu_ms, mut saved) = (Vec::new(), Vec::new(), Vec::new());
+    for f in 0..args.frames {
+        let save = args.save.contains(&f);
+        let t = Instant::now();
+        let mut encoder = device.create_command_encoder(&Default::default());
+        if let Some((set, _, _)) = &query {
+            encoder.write_timestamp(set, 0);
+        }
+        let frame = gpu.prepare(&device, &queue, &mut encoder, sim.particles())?;
+        let target = gpu.draw_to_texture(&device, &mut encoder);
+        if let Some((set, resolve, read)) = &query {
+            encoder.write_timestamp(set, 1);
+            encoder.resolve_query_set(set, 0..2, resolve, 0);
+            encoder.copy_buffer_to_buffer(resolve, 0, read, 0, 16);
+        }
+        queue.submit([encoder.finish()]);
+        cpu_ms.push(t.elapsed().as_secs_f64() * 1e3);
+        if let Some((_, _, read)) = &query {
+            let slice = read.slice(..);
+            let (tx, rx) = std::sync::mpsc::channel();
+            slice.map_async(wgpu::MapMode::Read, move |r| {
+                let _ = tx.send(r);
+            });
+            device.poll(wgpu::PollType::wait_indefinitely())?;
+            rx.recv()??;
+            let ticks: Vec<u64> = bytemuck::cast_slice(&slice.get_mapped_range()?).to_vec();
+            read.unmap();
+            gpu_ms.push(ticks[1].saturating_sub(ticks[0]) as f64 * period_ns * 1e-6);
+        }
+        // the CPU reference: detection on every frame, the whole frame where one is saved
+        let through = if save {
+            Through::Frame
+        } else {
+            Through::Surface
+        };
+        let cpu_frame = reference.frame_through(sim.particles(), through)?;
+        if save {
+            let image = fluid_surfels::gpu::read_rgba8(&ctx, &target)?;
+            let cpu_image = &cpu_frame
+                .finished
+                .as_ref()
+                .expect("through the frame")
+                .image;
+            let path = args.out.join(format!("frame_{f:04}.png"));
+            image.save(&path)?;
+            saved.push(serde_json::json!({
+                "frame": f,
+                "path": path.display().to_string(),
+                "surfels": frame.render_surfels.len(),
+                "psnr_against_cpu_db": psnr(cpu_image, &image),
+            }));
+        }
+        sim.step_frame();
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let report = serde_json::json!({
+        "adapter": format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type),
+        "frames": args.frames,
+        "size": [args.size.0, args.size.1],
+        "cpu_ms_mean": mean(&cpu_ms),
+        "cpu_ms_p95": percentile(&cpu_ms, 0.95),
+        "gpu_ms_mean": (!gpu_ms.is_empty()).then(|| mean(&gpu_ms)),
+        "gpu_ms_p95": (!gpu_ms.is_empty()).then(|| percentile(&gpu_ms, 0.95)),
+        "saved": saved,
+    });
+    if args.json {
+        println!("{report}");
+    } else {
+        println!(
+            "game loop on {}: {} frames of {}x{}; CPU {:.1} ms a frame (p95 {:.1}){}",
+            report["adapter"].as_str().unwrap_or(""),
+            args.frames,
+            args.size.0,
+            args.size.1,
+            mean(&cpu_ms),
+            percentile(&cpu_ms, 0.95),
+            if gpu_ms.is_empty() {
+                String::from(", no GPU timestamps on this adapter")
+            } else {
+                format!(
+                    "; GPU {:.1} ms a frame (p95 {:.1})",
+                    mean(&gpu_ms),
+                    percentile(&gpu_ms, 0.95)
+                )
+            }
+        );
+        for s in &saved {
+            println!(
+                "  saved {} ({:.1} dB against the CPU pipeline)",
+                s["path"].as_str().unwrap_or(""),
+                s["psnr_against_cpu_db"].as_f64().unwrap_or(f64::NAN)
+            );
+        }
+    }
+    Ok(())
+}
