@@ -8,6 +8,15 @@ use fluid_surfels::pipeline::{self, GpuPipeline, Pipeline, PipelineParams, Throu
 use fluid_surfels::scenes;
 use fluid_surfels::splat;
 
+/// A shader struct and its Rust twin: file, WGSL source, struct name, Rust size, Rust fields.
+type Twin = (
+    &'static str,
+    &'static str,
+    &'static str,
+    usize,
+    Vec<(&'static str, usize)>,
+);
+
 /// `(field, offset)` of a `#[repr(C)]` struct, for comparing with its WGSL twin.
 macro_rules! fields {
     ($t:ty; $($f:ident),* $(,)?) => {
@@ -26,7 +35,7 @@ fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
     use gpu_density::{RawGatherParams, RawParams};
     use pipeline::gpu::RawPresent;
     use splat::RawUniforms;
-    let shaders: Vec<(&str, &str, &str, usize, Vec<(&str, usize)>)> = vec![
+    let shaders: Vec<Twin> = vec![
         (
             "density_splat.wgsl",
             gpu_density::SHADER,
