@@ -6,7 +6,7 @@
 //! default; needs a GPU or Mesa's lavapipe).
 
 use fluid_surfels::gpu::REQUIRED_FEATURES;
-use fluid_surfels::gpu::splat::SplatRenderer;
+use fluid_surfels::splat::gpu::SplatRenderer;
 use fluid_surfels::splat::{self, Camera, Light, SplatParams, View};
 use fluid_surfels::{density, scenes, surfels};
 use glam::Vec3;

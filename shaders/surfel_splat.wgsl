@@ -1,6 +1,6 @@
 // Surfel splatting in three passes (Botsch, Hornung, Zwicker, Kobbelt 2005, "High-quality surface
 // splatting on today's GPUs"; the EWA filter of Zwicker et al. 2001), as extended by Iwasaki et al.
-// §5.2. The CPU reference in src/splat.rs is the specification: every function here has a mirror
+// §5.2. The CPU reference in src/splat/mod.rs is the specification: every function here has a mirror
 // there with the same name and the same arithmetic, and tests compare the two images.
 //
 // 1. vs_splat + fs_visibility: each surfel becomes a screen-aligned quad bounding the projection of
@@ -49,7 +49,7 @@ struct Uniforms {
 
 @group(0) @binding(0) var<uniform> u: Uniforms;
 
-// A surfel as it is stored (64 bytes, `Surfel` in src/splat.rs).
+// A surfel as it is stored (64 bytes, `Surfel` in src/splat/mod.rs).
 struct SurfelIn {
     @location(0) position_radius: vec4<f32>,
     @location(1) normal_stretch: vec4<f32>,
@@ -121,7 +121,7 @@ struct Frame {
     screen: vec4<f32>,
 }
 
-// The per-surfel set-up of passes 1 and 2 (mirror: `frame` in src/splat.rs).
+// The per-surfel set-up of passes 1 and 2 (mirror: `frame` in src/splat/mod.rs).
 fn splat_frame(position: vec3<f32>, radius: f32, normal: vec3<f32>, stretch: f32, tangent_in: vec3<f32>) -> Frame {
     var f: Frame;
     f.keep = false;
@@ -228,7 +228,7 @@ fn ndc_depth(p: vec3<f32>) -> f32 {
     return clip.z / clip.w;
 }
 
-// Per-pixel evaluation of passes 1 and 2 at a pixel centre (mirror: `fragment` in src/splat.rs).
+// Per-pixel evaluation of passes 1 and 2 at a pixel centre (mirror: `fragment` in src/splat/mod.rs).
 fn splat_fragment(pixel: vec2<f32>, centre: vec3<f32>, axis_u: vec3<f32>, axis_v: vec3<f32>, nv: vec3<f32>, screen: vec4<f32>) -> Fragment {
     var f: Fragment;
     f.keep = false;
@@ -328,7 +328,7 @@ fn vs_fullscreen(@builtin(vertex_index) vertex: u32) -> @builtin(position) vec4<
     return vec4<f32>(xy * 2.0 - 1.0, 0.0, 1.0);
 }
 
-// Normalisation and Blinn-Phong shading of one pixel (mirror: `shade` in src/splat.rs).
+// Normalisation and Blinn-Phong shading of one pixel (mirror: `shade` in src/splat/mod.rs).
 fn shade(pixel: vec2<f32>, colour: vec4<f32>, normal_depth: vec4<f32>) -> vec4<f32> {
     let w = colour.a;
     if (!(w > 0.0)) {

@@ -44,6 +44,7 @@ pub mod sequence;
 pub mod splat;
 pub mod surface;
 pub mod surfels;
+pub mod view;
 
 pub use particles::{Attribute, ParticleSet, ScalarKind};
 

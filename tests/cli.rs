@@ -588,10 +588,30 @@ fn render_draws_particles_and_users_surfels_and_refuses_bad_input() {
             .unwrap(),
     );
     assert_eq!(v["backend"], "cpu reference");
+    assert_eq!(v["surfel_source"], "chain");
     assert_eq!(
         (v["width"].as_u64(), v["height"].as_u64()),
         (Some(96), Some(64))
     );
+    // every surfel source renders the sphere; the refined points are drawn as they are
+    let mut counts = Vec::new();
+    for source in ["particles", "refined"] {
+        let out = dir.path().join(format!("{source}.png"));
+        let v = json_of(
+            &bin()
+                .args([
+                    "render", "--scene", "sphere", "--size", "64x64", "--cpu", "--json",
+                ])
+                .args(["--source", source, "--out"])
+                .arg(&out)
+                .output()
+                .unwrap(),
+        );
+        assert_eq!(v["surfel_source"], source);
+        assert!(v["covered_pixels"].as_u64().unwrap() > 500, "{source}: {v}");
+        counts.push(v["surfels"].as_u64().unwrap());
+    }
+    assert_ne!(counts[0], counts[1]);
     let covered = v["covered_pixels"].as_u64().unwrap();
     assert!(covered > 800 && covered < 96 * 64, "{covered}");
     let picture = image::open(&png).unwrap().to_rgb8();

@@ -3,10 +3,11 @@
 
 use fluid_surfels::density::gpu::{self as gpu_density, GpuDensityMethod};
 use fluid_surfels::density::{self, GridSpec, Kernel, Points, Resolution};
-use fluid_surfels::gpu::{self, splat as gpu_splat};
+use fluid_surfels::gpu;
 use fluid_surfels::pipeline::{self, GpuPipeline, Pipeline, PipelineParams, Through};
 use fluid_surfels::scenes;
 use fluid_surfels::splat;
+use fluid_surfels::splat::gpu as gpu_splat;
 
 /// A shader struct and its Rust twin: file, WGSL source, struct name, Rust size, Rust fields.
 type Twin = (
@@ -31,10 +32,10 @@ macro_rules! fields {
 /// WGSL, 24 in Rust").
 #[test]
 fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
-    use gpu::optics::{RawGeometry, RawOptics, RawView};
+    use fluid_surfels::optics::gpu::{RawGeometry, RawOptics, RawView};
     use gpu_density::{RawGatherParams, RawParams};
+    use gpu_splat::RawUniforms;
     use pipeline::gpu::RawPresent;
-    use splat::RawUniforms;
     let shaders: Vec<Twin> = vec![
         (
             "density_splat.wgsl",
@@ -59,21 +60,21 @@ fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
         ),
         (
             "optics.wgsl",
-            gpu::optics::SHADER,
+            fluid_surfels::optics::gpu::SHADER,
             "Uniforms",
             std::mem::size_of::<RawOptics>(),
             fields!(RawOptics; screen, map, camera, light_dir, light_pos, light_colour, ambient, water, extinction, albedo, env, env_colour, env_horizon, env_zenith, env_ground),
         ),
         (
             "optics.wgsl",
-            gpu::optics::SHADER,
+            fluid_surfels::optics::gpu::SHADER,
             "ViewU",
             std::mem::size_of::<RawView>(),
             fields!(RawView; view, inv_view, proj, viewport, tan_half, flags),
         ),
         (
             "optics_geometry.wgsl",
-            gpu::optics::GEOMETRY_SHADER,
+            fluid_surfels::optics::gpu::GEOMETRY_SHADER,
             "GeometryU",
             std::mem::size_of::<RawGeometry>(),
             fields!(RawGeometry; view_proj, view, eye),
@@ -336,8 +337,13 @@ fn gpu_pipeline_equals_the_gpu_optics_and_approaches_the_cpu_pipeline() {
     .unwrap();
     let finished = frame.finished.as_ref().unwrap();
     let cpu_image = &finished.image;
-    let (optics, _) =
-        gpu::optics::render_gpu(&ctx, &finished.stage, &frame.render_surfels, Some(size)).unwrap();
+    let (optics, _) = fluid_surfels::optics::gpu::render_gpu(
+        &ctx,
+        &finished.stage,
+        &frame.render_surfels,
+        Some(size),
+    )
+    .unwrap();
     let (optics_image, _) = optics.frame.unwrap();
     // pixels whose 5x5 neighbourhood has no water in the CPU frame
     let (w, h) = (size.0 as i32, size.1 as i32);

@@ -349,7 +349,7 @@ fn obj_meshes_and_toml_scenes_load() {
 // ---- GPU path (lavapipe in CI) ----
 
 use fluid_surfels::gpu::context_or_skip;
-use fluid_surfels::gpu::optics::render_gpu;
+use fluid_surfels::optics::gpu::render_gpu;
 
 fn relative_l1(a: &[[f32; 4]], b: &[[f32; 4]]) -> f64 {
     let mut num = 0.0f64;

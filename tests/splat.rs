@@ -5,8 +5,9 @@
 use std::path::PathBuf;
 
 use fluid_surfels::density::{self, GridSpec, Kernel, Resolution};
-use fluid_surfels::gpu::{self, splat as gpu_splat};
+use fluid_surfels::gpu;
 use fluid_surfels::scenes;
+use fluid_surfels::splat::gpu as gpu_splat;
 use fluid_surfels::splat::{
     self, Camera, Light, Render, SplatError, SplatMode, SplatParams, Surfel,
 };

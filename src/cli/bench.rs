@@ -657,7 +657,7 @@ struct SplatBenchReport {
 }
 
 pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
-    use fluid_surfels::gpu::splat::{SplatRenderer, render_timed};
+    use fluid_surfels::splat::gpu::{SplatRenderer, render_timed};
     use fluid_surfels::splat::{self, Light, SplatParams, View};
     let (width, height) = args.size;
     let surfels = fluid_surfels::scenes::surfel_sphere(args.surfels);
@@ -809,7 +809,7 @@ struct OpticsBenchReport {
 
 /// `bench optics`: caustics and final image at the paper's sizes, GPU and CPU reference.
 pub fn bench_optics(args: &BenchOpticsArgs) -> Result<(), Error> {
-    use fluid_surfels::gpu::optics::{OpticsGpu, run_timed};
+    use fluid_surfels::optics::gpu::{OpticsGpu, run_timed};
     use fluid_surfels::optics::{self, OpticsScene, ReceiverKind, Stage};
     let ctx = fluid_surfels::gpu::GpuContext::headless().ok();
     let gpu = match &ctx {

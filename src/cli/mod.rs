@@ -3,7 +3,7 @@
 pub mod bench;
 pub mod detect;
 pub mod info;
-pub mod optics;
+
 pub mod refine;
 pub mod render;
 pub mod run;

@@ -1,16 +1,18 @@
 //! `fluid-surfels render`: particles through the pipeline to surfels, or a user's own surfels,
-//! rendered by EWA splatting (Botsch et al. 2005) to a PNG.
+//! rendered by EWA splatting (Botsch et al. 2005), or as the finished frame with optics, to a
+//! PNG; a sequence of frames through one pipeline (hysteresis, camera and pool kept).
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use fluid_surfels::Error;
-use fluid_surfels::gpu::{self, GpuContext};
+use fluid_surfels::density::Resolution;
+use fluid_surfels::gpu::GpuContext;
 use fluid_surfels::io::{self, Format};
-use fluid_surfels::scenes::SceneName;
+use fluid_surfels::pipeline::{self, GpuPipeline, Pipeline, PipelineParams, SurfelSource, Through};
+use fluid_surfels::scenes::{self, ColumnParams, ColumnSim, SceneName};
 use fluid_surfels::sequence::{FramePattern, FrameRange};
 use fluid_surfels::splat::{self, Camera, Light, Render, SplatMode, SplatParams, Surfel};
-use fluid_surfels::surfels::SurfelParams;
 use glam::Vec3;
 use serde::Serialize;
 
@@ -40,13 +42,19 @@ pub struct RenderArgs {
     /// the spacing estimated from the file).
     #[arg(long)]
     pub radius: Option<f32>,
-    /// Density grid points along the longest axis.
-    #[arg(long, default_value_t = 128)]
-    pub resolution: u32,
+    /// Where the rendered surfels come from: chain (the refined surface and the interior
+    /// particles in one density grid), particles (the density grid of the raw particles) or
+    /// refined (the refined points as surfels).
+    #[arg(long, value_enum, default_value = "chain")]
+    pub source: SourceChoice,
+    /// Density grid points along the longest axis (default: spacing a third of the smallest
+    /// kernel radius in use, within the grid's memory budget).
+    #[arg(long)]
+    pub resolution: Option<u32>,
     /// Image size, WIDTHxHEIGHT.
     #[arg(long, default_value = "800x600", value_parser = parse_size)]
     pub size: (u32, u32),
-    /// Camera: EYE_X,EYE_Y,EZE_Z,TARGET_X,TARGET_Y,TARGET_Z[,FOV_Y_DEGREES] (default: framing
+    /// Camera: EYE_X,EYE_Y,EYE_Z,TARGET_X,TARGET_Y,TARGET_Z[,FOV_Y_DEGREES] (default: framing
     /// the surfels from the front, right and above).
     #[arg(long, value_parser = parse_camera, allow_hyphen_values = true)]
     pub camera: Option<Camera>,
@@ -70,8 +78,9 @@ pub struct RenderArgs {
     /// of the shaded splats. Implied by --config, --frames and --caustics-resolution.
     #[arg(long)]
     pub optics: bool,
-    /// Scene file (TOML: camera, light, receiver, water, environment, optics); see the README.
-    /// Default: a pool around the water, sunlight, clear water.
+    /// Scene and pipeline file (TOML: camera, light, receiver, water, environment, optics, and
+    /// the stages' tables); see the README. Default: a pool around the water (the tank for the
+    /// column scene), sunlight, clear water.
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Frames to render as a sequence: A..B or A..=B with an optional :STEP; frames of the
@@ -140,6 +149,24 @@ fn parse_camera(s: &str) -> Result<Camera, String> {
     })
 }
 
+/// `--source` on the command line.
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum SourceChoice {
+    Chain,
+    Particles,
+    Refined,
+}
+
+impl From<SourceChoice> for SurfelSource {
+    fn from(c: SourceChoice) -> Self {
+        match c {
+            SourceChoice::Chain => Self::Chain,
+            SourceChoice::Particles => Self::Particles,
+            SourceChoice::Refined => Self::Refined,
+        }
+    }
+}
+
 /// The GPU context to render with: `--gpu` needs one, `--cpu` takes none, otherwise one when
 /// an adapter is found.
 pub fn choose_gpu(cpu: bool, gpu: bool) -> Result<Option<GpuContext>, Error> {
@@ -163,7 +190,7 @@ pub fn render_with(
 ) -> Result<Render, Error> {
     let light = Light::default();
     Ok(match ctx {
-        Some(ctx) => gpu::splat::render_gpu(ctx, surfels, camera, &light, params, width, height)?,
+        Some(ctx) => splat::gpu::render_gpu(ctx, surfels, camera, &light, params, width, height)?,
         None => splat::render_cpu(surfels, camera, &light, params, width, height)?,
     })
 }
@@ -174,10 +201,172 @@ pub fn framing(surfels: &[Surfel]) -> Camera {
     Camera::framing(lo, hi)
 }
 
+/// The pipeline's parameters from the command line: the scene file (or the defaults, the
+/// column's tank for the column scene), then the flags over it.
+fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
+    let mut p = match &args.config {
+        Some(path) => PipelineParams::from_toml_file(path)?,
+        None if args.scene == Some(SceneName::Column) => {
+            super::run::column_params(Default::default())
+        }
+        None => PipelineParams::default(),
+    };
+    if args.radius.is_some() {
+        p.support_radius = args.radius;
+    }
+    p.source = args.source.into();
+    if let Some(r) = args.resolution {
+        p.grid.resolution = Some(Resolution::LongestAxis(r));
+    }
+    if args.sprites {
+        p.splat.mode = SplatMode::Sprites;
+    }
+    if let Some(d) = args.depth_offset {
+        p.splat.depth_offset = d;
+    }
+    if let Some(l) = args.low_pass {
+        p.splat.low_pass_px = l;
+    }
+    if let Some((w, h)) = args.caustics_resolution {
+        p.scene.optics.caustics_resolution = Some([w, h]);
+    }
+    // --size keeps its default unless given; the scene file's image size wins over the default
+    if args.size != (800, 600) || args.config.is_none() {
+        p.scene.optics.image_size = [args.size.0, args.size.1];
+    }
+    if let Some(c) = args.camera {
+        p.scene.camera = Some(c);
+    }
+    Ok(p)
+}
+
+/// Where the frames come from.
+enum Frames {
+    /// A user's surfels, rendered as they are.
+    Surfels(PathBuf),
+    /// One particle file, or a pattern with the frame number.
+    File(PathBuf),
+    Pattern(FramePattern),
+    /// The column simulation, stepped frame by frame.
+    Column(Box<ColumnSim>),
+    /// Another built-in scene.
+    Scene(SceneName),
+}
+
+impl Frames {
+    /// The source of `args`, for `--frames` when `sequence`.
+    fn of(args: &RenderArgs, sequence: bool) -> Result<Self, Error> {
+        if let Some(p) = &args.surfels {
+            if sequence {
+                return Err(Error::InvalidArgument {
+                    argument: "--frames",
+                    reason: "needs --scene column or an --input pattern with {}".into(),
+                });
+            }
+            return Ok(Self::Surfels(p.clone()));
+        }
+        if let Some(p) = &args.input {
+            return match FramePattern::parse(&p.display().to_string())? {
+                Some(pattern) => {
+                    if !sequence {
+                        return Err(Error::InvalidArgument {
+                            argument: "--input",
+                            reason: "a pattern holding {} needs --frames A..B".into(),
+                        });
+                    }
+                    Ok(Self::Pattern(pattern))
+                }
+                None if sequence => Err(Error::InvalidArgument {
+                    argument: "--input",
+                    reason:
+                        "with --frames the input must be a pattern holding {}, such as frame_{}.vtk"
+                            .into(),
+                }),
+                None => Ok(Self::File(p.clone())),
+            };
+        }
+        match args.scene {
+            Some(SceneName::Column) => Ok(Self::Column(Box::new(ColumnSim::new(
+                ColumnParams::default(),
+            )?))),
+            Some(_) if sequence => Err(Error::InvalidArgument {
+                argument: "--frames",
+                reason: "only the `column` scene has frames".into(),
+            }),
+            Some(name) => Ok(Self::Scene(name)),
+            None => Err(Error::InvalidArgument {
+                argument: "--input/--scene/--surfels",
+                reason: "one of them is needed".into(),
+            }),
+        }
+    }
+
+    /// The support radius the source implies when none is given (a built-in scene's own).
+    fn support_radius(&self, frame: Option<usize>) -> Result<Option<f32>, Error> {
+        Ok(match self {
+            Self::Column(sim) => Some(sim.support_radius()),
+            Self::Scene(name) => Some(scenes::build(*name, frame)?.support_radius),
+            _ => None,
+        })
+    }
+
+    /// Frame `frame` through `pipeline` up to `through`, with a description of the source. The
+    /// column scene runs surface detection on the frames it steps over (hysteresis).
+    fn frame(
+        &mut self,
+        pipeline: &mut Pipeline,
+        args: &RenderArgs,
+        frame: Option<usize>,
+        through: Through,
+    ) -> Result<(String, Option<usize>, pipeline::Frame), Error> {
+        let read = |path: &std::path::Path| io::read_particles(path, args.format);
+        Ok(match self {
+            Self::Surfels(path) => {
+                let set = read(path)?;
+                let surfels = splat::surfels_from_particles(&set)?;
+                let f = pipeline.frame_of_surfels(surfels, through)?;
+                (path.display().to_string(), None, f)
+            }
+            Self::File(path) => {
+                let set = read(path)?;
+                let f = pipeline.frame_through(&set, through)?;
+                (path.display().to_string(), Some(set.len()), f)
+            }
+            Self::Pattern(pattern) => {
+                let path = pattern.path(frame.unwrap_or(0));
+                let set = read(&path)?;
+                let f = pipeline.frame_through(&set, through)?;
+                (path.display().to_string(), Some(set.len()), f)
+            }
+            Self::Column(sim) => {
+                let target = frame.unwrap_or(ColumnParams::SPLASH_FRAME);
+                if sim.frame() > target {
+                    return Err(Error::InvalidArgument {
+                        argument: "--frames",
+                        reason: "frames must increase".into(),
+                    });
+                }
+                let f = pipeline::column_frame(pipeline, sim, target, through, |_| {})?;
+                ("scene column".into(), Some(sim.particles().len()), f)
+            }
+            Self::Scene(name) => {
+                let scene = scenes::build(*name, frame)?;
+                let f = pipeline.frame_through(&scene.particles, through)?;
+                (
+                    format!("scene {}", name.as_str()),
+                    Some(scene.particles.len()),
+                    f,
+                )
+            }
+        })
+    }
+}
+
 #[derive(Serialize)]
 struct RenderReport {
     source: String,
     particles: Option<usize>,
+    surfel_source: Option<&'static str>,
     surfels: usize,
     skipped_surfels: usize,
     width: u32,
@@ -188,7 +377,18 @@ struct RenderReport {
     covered_pixels: usize,
     surfels_ms: f64,
     render_ms: f64,
+    warnings: Vec<String>,
     output: String,
+}
+
+fn backend_name(ctx: Option<&GpuContext>) -> String {
+    match ctx {
+        Some(c) => match &c.adapter {
+            Some(a) => format!("gpu: {} ({})", a.name, a.backend),
+            None => "gpu: given device".into(),
+        },
+        None => "cpu reference".into(),
+    }
 }
 
 pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
@@ -201,87 +401,63 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     }
     let input = args.input.as_deref().or(args.surfels.as_deref());
     check_output(&args.out, input, args.force)?;
+    let mut frames = Frames::of(args, false)?;
+    let mut params = pipeline_params(args)?;
+    if params.support_radius.is_none() {
+        params.support_radius = frames.support_radius(args.frame)?;
+    }
+    let splat_params = params.splat;
+    let mut pipeline = Pipeline::new(params)?;
     let t = Instant::now();
-    let (source, particles, surfels) = if let Some(path) = &args.surfels {
-        let set = io::read_particles(path, args.format)?;
-        (
-            path.display().to_string(),
-            None,
-            splat::surfels_from_particles(&set)?,
-        )
-    } else {
-        let (source, positions, radius) = super::positions_of(
-            args.input.as_deref(),
-            args.scene,
-            args.format,
-            args.frame,
-            args.radius,
-        )?;
-        let (s, ..) = super::surfels::surfels_of(
-            &positions,
-            radius,
-            args.resolution,
-            SurfelParams::default().iso_fraction,
-        )?;
-        (
-            source,
-            Some(positions.len()),
-            splat::surfels_from(&s.positions, &s.normals, &s.radii, splat::WATER),
-        )
-    };
+    let (source, particles, frame) =
+        frames.frame(&mut pipeline, args, args.frame, Through::Surfels)?;
     let surfels_ms = ms(t);
-    let defaults = SplatParams::default();
-    let params = SplatParams {
-        mode: if args.sprites {
-            SplatMode::Sprites
-        } else {
-            SplatMode::Ewa
-        },
-        depth_offset: args.depth_offset.unwrap_or(defaults.depth_offset),
-        low_pass_px: args.low_pass.unwrap_or(defaults.low_pass_px),
-        ..defaults
-    };
-    let camera = args.camera.unwrap_or_else(|| framing(&surfels));
+    let surfels = &frame.render_surfels;
+    let camera = args.camera.unwrap_or_else(|| framing(surfels));
     let ctx = choose_gpu(args.cpu, args.gpu)?;
     let t = Instant::now();
-    let render = render_with(ctx.as_ref(), &surfels, &camera, &params, args.size)?;
+    let render = render_with(ctx.as_ref(), surfels, &camera, &splat_params, args.size)?;
     let render_ms = ms(t);
-    fluid_surfels::preview::save_png(
-        &image::buffer::ConvertBuffer::convert(&render.image),
-        &args.out,
-    )?;
-    let skipped = surfels.iter().filter(|s| !s.is_drawable()).count();
+    fluid_surfels::preview::save_rgba_png(&render.image, &args.out)?;
     let report = RenderReport {
         source,
         particles,
+        surfel_source: particles
+            .map(|_| args.source.into())
+            .map(SurfelSource::as_str),
         surfels: surfels.len(),
-        skipped_surfels: skipped,
+        skipped_surfels: surfels.iter().filter(|s| !s.is_drawable()).count(),
         width: args.size.0,
         height: args.size.1,
-        mode: params.mode,
-        backend: match ctx.as_ref().and_then(|c| c.adapter.as_ref()) {
-            Some(a) => format!("gpu: {} ({})", a.name, a.backend),
-            None => "cpu reference".into(),
-        },
+        mode: splat_params.mode,
+        backend: backend_name(ctx.as_ref()),
         camera,
         covered_pixels: render.covered_pixels(),
         surfels_ms,
         render_ms,
+        warnings: frame.warnings,
         output: args.out.display().to_string(),
     };
     if args.json {
         super::print_json(&report);
     } else {
         println!(
-            "{}: {} surfels ({} skipped as undrawable){}",
+            "{}: {} surfels{} ({} skipped as undrawable){}",
             report.source,
             report.surfels,
+            report
+                .surfel_source
+                .map(|s| format!(" from the {s} source"))
+                .unwrap_or_default(),
             report.skipped_surfels,
             report
                 .particles
                 .map(|p| format!(" from {p} particles in {surfels_ms:.0} ms"))
                 .unwrap_or_default()
         );
+        for w in &report.warnings {
+            println!("  warning: {w}");
+        }
         println!(
             "  {}x{} {:?} on the {}: {:.1} ms, {} pixels covered",
             report.width,
@@ -296,31 +472,25 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     Ok(())
 }
 
-/// Surfels of one frame: from a surfel file, or particles through the density stage.
-fn frame_surfels(
-    args: &RenderArgs,
-    input: Option<&std::path::Path>,
-    frame: Option<usize>,
-) -> Result<(String, Vec<Surfel>), Error> {
-    if let Some(path) = &args.surfels {
-        let set = io::read_particles(path, args.format)?;
-        return Ok((
-            path.display().to_string(),
-            splat::surfels_from_particles(&set)?,
-        ));
-    }
-    let (source, positions, radius) =
-        super::positions_of(input, args.scene, args.format, frame, args.radius)?;
-    let (s, ..) = super::surfels::surfels_of(
-        &positions,
-        radius,
-        args.resolution,
-        SurfelParams::default().iso_fraction,
-    )?;
-    Ok((
-        source,
-        splat::surfels_from(&s.positions, &s.normals, &s.radii, splat::WATER),
-    ))
+/// Statistics of one finished frame.
+#[derive(Clone, Debug, Serialize)]
+struct FrameReport {
+    surfels: usize,
+    backend: String,
+    /// The virtual screen and the caustics map (from the CPU path's stage).
+    screen: Option<[u32; 2]>,
+    map: Option<[u32; 2]>,
+    image: [u32; 2],
+    /// Caustics triangles, the flux through the water and the map's total flux (CPU path).
+    caustics_triangles: Option<usize>,
+    incident_flux: Option<[f32; 3]>,
+    map_flux: Option<[f32; 3]>,
+    /// Milliseconds: the CPU stages up to the surfels, the caustics and the image (CPU path),
+    /// or the GPU's caustics and image together.
+    surfels_ms: f64,
+    caustics_ms: Option<f64>,
+    frame_ms: f64,
+    warnings: Vec<String>,
 }
 
 #[derive(Serialize)]
@@ -329,81 +499,117 @@ struct OpticsFrameReport {
     frame: Option<usize>,
     output: String,
     #[serde(flatten)]
-    stats: super::optics::FrameReport,
+    stats: FrameReport,
 }
 
-/// `render` with optics: one finished frame, or a numbered sequence of them.
-fn render_optics(args: &RenderArgs) -> Result<(), Error> {
-    let mut scene = match &args.config {
-        Some(path) => fluid_surfels::optics::OpticsScene::from_toml_file(path)?,
-        None if args.scene == Some(SceneName::Column) => {
-            fluid_surfels::scenes::column_pool(fluid_surfels::scenes::ColumnParams::default().tank)
+/// The finished frame on the CPU (the pipeline through the optics) or on the GPU (the
+/// pipeline's CPU stages, then `GpuPipeline`).
+fn finished_frame(
+    pipeline: &mut Pipeline,
+    gpu: Option<&mut (GpuContext, GpuPipeline)>,
+    frames: &mut Frames,
+    args: &RenderArgs,
+    frame: Option<usize>,
+) -> Result<(String, image::RgbaImage, FrameReport), Error> {
+    let image_size = pipeline.params().scene.optics.image_size;
+    match gpu {
+        None => {
+            let (source, _, f) = frames.frame(pipeline, args, frame, Through::Frame)?;
+            let fin = f.finished.as_ref().expect("through the frame");
+            let t = &f.timings;
+            let report = FrameReport {
+                surfels: f.render_surfels.len(),
+                backend: backend_name(None),
+                screen: Some([fin.stage.views.screen.width, fin.stage.views.screen.height]),
+                map: Some([fin.stage.views.map.width, fin.stage.views.map.height]),
+                image: image_size,
+                caustics_triangles: Some(fin.caustics.triangles),
+                incident_flux: Some(fin.caustics.incident.to_array()),
+                map_flux: Some(fin.caustics.total_flux().to_array()),
+                surfels_ms: t.total_ms - t.caustics_ms - t.image_ms,
+                caustics_ms: Some(t.caustics_ms),
+                frame_ms: t.image_ms,
+                warnings: f.warnings.clone(),
+            };
+            Ok((source, fin.image.clone(), report))
         }
-        None => Default::default(),
+        Some((ctx, gpu)) => {
+            let (source, _, f) = frames.frame(pipeline, args, frame, Through::Surfels)?;
+            let t = Instant::now();
+            let image = gpu.render_frame_image(ctx, &f)?;
+            let report = FrameReport {
+                surfels: f.render_surfels.len(),
+                backend: backend_name(Some(ctx)),
+                screen: None,
+                map: None,
+                image: image_size,
+                caustics_triangles: None,
+                incident_flux: None,
+                map_flux: None,
+                surfels_ms: f.timings.total_ms,
+                caustics_ms: None,
+                frame_ms: ms(t),
+                warnings: f.warnings.clone(),
+            };
+            Ok((source, image, report))
+        }
+    }
+}
+
+/// `render` with optics: one finished frame, or a numbered sequence of them through one
+/// pipeline (hysteresis, camera, pool and scene box kept across the frames).
+fn render_optics(args: &RenderArgs) -> Result<(), Error> {
+    let sequence = args.frames.is_some();
+    let mut frames = Frames::of(args, sequence)?;
+    let mut params = pipeline_params(args)?;
+    if params.support_radius.is_none() {
+        params.support_radius = frames.support_radius(args.frame)?;
+    }
+    let [w, h] = params.scene.optics.image_size;
+    let mut pipeline = Pipeline::new(params.clone())?;
+    let mut gpu = match choose_gpu(args.cpu, args.gpu)? {
+        Some(ctx) => {
+            let g = GpuPipeline::new(
+                &ctx.device,
+                &ctx.queue,
+                wgpu::TextureFormat::Rgba8Unorm,
+                (w, h),
+                &params,
+            )?;
+            Some((ctx, g))
+        }
+        None => None,
     };
-    if let Some((w, h)) = args.caustics_resolution {
-        scene.optics.caustics_resolution = Some([w, h]);
-    }
-    // --size keeps its default unless given; the scene file's image size wins over the default
-    if args.size != (800, 600) || args.config.is_none() {
-        scene.optics.image_size = [args.size.0, args.size.1];
-    }
-    if let Some(c) = args.camera {
-        scene.camera = Some(c);
-    }
-    // an environment image is read once for the whole sequence, not by every frame's stage
-    scene.environment.load()?;
-    let renderer = super::optics::FrameRenderer::new(choose_gpu(args.cpu, args.gpu)?)?;
     let Some(range) = args.frames else {
         check_output(
             &args.out,
             args.input.as_deref().or(args.surfels.as_deref()),
             args.force,
         )?;
-        let (source, surfels) = frame_surfels(args, args.input.as_deref(), args.frame)?;
-        let f = renderer.finish(&scene, &surfels)?;
-        super::optics::save(&f.image, &args.out)?;
-        return report_frame(args, source, None, &args.out, f.report);
+        let (source, image, report) =
+            finished_frame(&mut pipeline, gpu.as_mut(), &mut frames, args, args.frame)?;
+        fluid_surfels::preview::save_rgba_png(&image, &args.out)?;
+        return report_frame(args, source, args.frame, &args.out, report);
     };
-    if args.surfels.is_some() {
-        return Err(Error::InvalidArgument {
-            argument: "--frames",
-            reason: "needs --scene column or an --input pattern with {}".into(),
-        });
-    }
-    let pattern = match &args.input {
-        Some(p) => Some(
-            FramePattern::parse(&p.display().to_string())?.ok_or_else(|| {
-                Error::InvalidArgument {
-                    argument: "--input",
-                    reason:
-                        "with --frames the input must be a pattern holding {}, such as frame_{}.vtk"
-                            .into(),
-                }
-            })?,
-        ),
-        None => None,
-    };
-    if pattern.is_none() && args.scene != Some(SceneName::Column) {
-        return Err(Error::InvalidArgument {
-            argument: "--frames",
-            reason: "only the `column` scene has frames".into(),
-        });
+    let list: Vec<usize> = range.frames().collect();
+    // refuse before any work: every output that exists without --force
+    let outputs: Vec<PathBuf> = list
+        .iter()
+        .map(|f| args.out.join(format!("frame_{f:04}.png")))
+        .collect();
+    for out in &outputs {
+        check_output(out, None, args.force)?;
     }
     std::fs::create_dir_all(&args.out).map_err(|e| Error::InvalidArgument {
         argument: "--out",
         reason: format!("{}: {e}", args.out.display()),
     })?;
-    let frames: Vec<usize> = range.frames().collect();
-    let bar = super::progress(frames.len() as u64, "rendering");
-    for &frame in &frames {
-        let out = args.out.join(format!("frame_{frame:04}.png"));
-        check_output(&out, None, args.force)?;
-        let path = pattern.as_ref().map(|p| p.path(frame));
-        let (source, surfels) = frame_surfels(args, path.as_deref(), Some(frame))?;
-        let f = renderer.finish(&scene, &surfels)?;
-        super::optics::save(&f.image, &out)?;
-        bar.suspend(|| report_frame(args, source, Some(frame), &out, f.report))?;
+    let bar = super::progress(list.len() as u64, "rendering");
+    for (&frame, out) in list.iter().zip(&outputs) {
+        let (source, image, report) =
+            finished_frame(&mut pipeline, gpu.as_mut(), &mut frames, args, Some(frame))?;
+        fluid_surfels::preview::save_rgba_png(&image, out)?;
+        bar.suspend(|| report_frame(args, source, Some(frame), out, report))?;
         bar.inc(1);
     }
     bar.finish_and_clear();
@@ -415,7 +621,7 @@ fn report_frame(
     source: String,
     frame: Option<usize>,
     out: &std::path::Path,
-    stats: super::optics::FrameReport,
+    stats: FrameReport,
 ) -> Result<(), Error> {
     let r = OpticsFrameReport {
         source,
@@ -426,26 +632,31 @@ fn report_frame(
     if args.json {
         super::print_json(&r);
     } else {
+        let s = &r.stats;
         println!(
-            "{}{}: {} surfels; caustics {}x{} screen, {}x{} map{}, {:.1} ms; frame {}x{} on the {}, {:.1} ms; wrote {}",
+            "{}{}: {} surfels ({:.0} ms){}{}; frame {}x{} on the {}, {:.1} ms; wrote {}",
             r.source,
             frame.map(|f| format!(" frame {f}")).unwrap_or_default(),
-            r.stats.surfels,
-            r.stats.screen[0],
-            r.stats.screen[1],
-            r.stats.map[0],
-            r.stats.map[1],
-            r.stats
-                .caustics_triangles
-                .map(|t| format!(", {t} triangles"))
-                .unwrap_or_default(),
-            r.stats.caustics_ms,
-            r.stats.image[0],
-            r.stats.image[1],
-            r.stats.backend,
-            r.stats.frame_ms,
+            s.surfels,
+            s.surfels_ms,
+            match (s.screen, s.map) {
+                (Some(a), Some(b)) =>
+                    format!("; caustics {}x{} screen, {}x{} map", a[0], a[1], b[0], b[1]),
+                _ => String::new(),
+            },
+            match (s.caustics_triangles, s.caustics_ms) {
+                (Some(t), Some(c)) => format!(", {t} triangles, {c:.1} ms"),
+                _ => String::new(),
+            },
+            s.image[0],
+            s.image[1],
+            s.backend,
+            s.frame_ms,
             r.output
         );
+        for w in &s.warnings {
+            println!("  warning: {w}");
+        }
     }
     Ok(())
 }

@@ -1,12 +1,10 @@
 //! The wgpu context shared by the GPU stages: headless (own adapter) or on a device the caller
-//! already has (a game's), the read-back helpers, and the splatting and optics passes (the
-//! density grid's GPU twin is [`crate::density::gpu`], the chain's [`crate::pipeline::GpuPipeline`]).
+//! already has (a game's), and the helpers they share (textures, bind-group entries, read-back).
+//! Each stage's GPU twin lives beside its CPU path: [`crate::density::gpu`],
+//! [`crate::splat::gpu`], [`crate::optics::gpu`], and the chain's [`crate::pipeline::GpuPipeline`].
 //!
 //! Shaders live in `shaders/*.wgsl` and are compiled into the crate; a unit test validates them
 //! with naga.
-
-pub mod optics;
-pub mod splat;
 
 use serde::Serialize;
 

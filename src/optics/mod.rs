@@ -7,7 +7,7 @@
 //! * [`Stage`]: the scene resolved for one set of surfels: the receiver's triangles and BVH, the
 //!   environment, the light's virtual screen and caustics-map views.
 //! * [`caustics_cpu`] and [`frame_cpu`]: the CPU reference (exact ray-triangle intersection in an
-//!   obvhs BVH of the receiver), the specification the GPU path ([`crate::gpu::optics`]) is
+//!   obvhs BVH of the receiver), the specification the GPU path ([`crate::optics::gpu`]) is
 //!   tested against. Both share the functions of this module ([`refract`], [`fresnel_reflectance`],
 //!   [`Environment::colour`], [`Stage::albedo`]), mirrored name for name in `shaders/optics.wgsl`.
 //!
@@ -49,6 +49,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 mod cpu;
+pub mod gpu;
 pub mod receiver;
 
 use std::path::PathBuf;

@@ -13,9 +13,9 @@
 //! while the views are kept).
 
 use super::{Frame, Pipeline, PipelineParams, Through};
-use crate::gpu::optics::{OpticsGpu, PreparedOptics};
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::optics::Stage;
+use crate::optics::gpu::{OpticsGpu, PreparedOptics};
 use crate::{Error, ParticleSet};
 
 /// The WGSL of the presenting pass.

@@ -485,6 +485,38 @@ impl Pipeline {
         Ok(frame)
     }
 
+    /// Stages 4 and 5 on surfels made elsewhere (a file of surfels, another tool's): the shaded
+    /// splats ([`Through::Splats`]) or the finished frame ([`Through::Frame`]), with the views
+    /// kept for the sequence like [`Pipeline::frame`]'s. Earlier `through` values return the
+    /// surfels as they are.
+    pub fn frame_of_surfels(
+        &mut self,
+        surfels: Vec<Surfel>,
+        through: Through,
+    ) -> Result<Frame, Error> {
+        let total = Instant::now();
+        let mut frame = Frame {
+            radius: self.radius.unwrap_or(0.0),
+            mean_neighbours: 0.0,
+            surface: Surface::default(),
+            surface_indices: Vec::new(),
+            refined: None,
+            grid: None,
+            surfels: None,
+            render_surfels: surfels,
+            camera: None,
+            splats: None,
+            finished: None,
+            timings: FrameTimings::default(),
+            warnings: Vec::new(),
+        };
+        if through >= Through::Splats {
+            self.render(&mut frame, through)?;
+        }
+        frame.timings.total_ms = ms(total);
+        Ok(frame)
+    }
+
     fn refine_params(&self, radius: f32) -> RefineParams {
         let mut p = self.params.refine;
         if p.initial_radius == 0.0 {

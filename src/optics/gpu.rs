@@ -15,9 +15,9 @@ use image::RgbaImage;
 use serde::Serialize;
 use wgpu::util::DeviceExt;
 
-use super::splat::{SplatRenderer, SurfelBuffer};
-use super::{GpuContext, GpuError, entry, texture_2d, texture_descriptor};
+use crate::gpu::{self, GpuContext, GpuError, entry, texture_2d, texture_descriptor};
 use crate::optics::{EnvironmentKind, LightKind, OpticsError, Stage, encode};
+use crate::splat::gpu::{SplatRenderer, SurfelBuffer};
 use crate::splat::{Light, Surfel, View};
 
 /// The WGSL of the caustics and final-image passes.
@@ -643,7 +643,7 @@ fn read_buffer(ctx: &GpuContext, buffer: &wgpu::Buffer) -> Result<Vec<[f32; 4]>,
     encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, buffer.size());
     ctx.queue.submit([encoder.finish()]);
     let slice = staging.slice(..);
-    super::map_read_and_wait(&ctx.device, &slice)?;
+    gpu::map_read_and_wait(&ctx.device, &slice)?;
     let data = slice
         .get_mapped_range()
         .map_err(|e| GpuError::Readback(format!("{e:?}")))?;

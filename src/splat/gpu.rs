@@ -14,7 +14,7 @@ use std::time::Instant;
 use serde::Serialize;
 use wgpu::util::DeviceExt;
 
-use super::{GpuContext, GpuError, REQUIRED_FEATURES, entry, texture_2d};
+use crate::gpu::{self, GpuContext, GpuError, REQUIRED_FEATURES, entry, texture_2d};
 use crate::splat::{Camera, Light, Render, SplatError, SplatParams, Surfel, View};
 
 /// The WGSL source of the three passes.
@@ -514,9 +514,9 @@ pub fn render_timed(
     times.visibility_ms = run(&|e| renderer.encode_visibility(e, surfels, &splat))?;
     times.attributes_ms = run(&|e| renderer.encode_attributes(e, surfels, &splat))?;
     times.shading_ms = run(&|e| renderer.encode_shading(e, &output_view, &shade))?;
-    let image = super::read_texture(ctx, &output, 4)?;
-    let colour = super::read_texture(ctx, &renderer.targets.colour, 16)?;
-    let normal = super::read_texture(ctx, &renderer.targets.normal, 16)?;
+    let image = gpu::read_texture(ctx, &output, 4)?;
+    let colour = gpu::read_texture(ctx, &renderer.targets.colour, 16)?;
+    let normal = gpu::read_texture(ctx, &renderer.targets.normal, 16)?;
     if let Some(e) = pollster::block_on(scope.pop()) {
         return Err(GpuError::Validation(e.to_string()).into());
     }
@@ -530,4 +530,52 @@ pub fn render_timed(
     };
     render.validate().map_err(GpuError::Readback)?;
     Ok((render, times))
+}
+
+/// The uniforms of the three passes, as the shader reads them (`Uniforms` in the WGSL, 288 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RawUniforms {
+    pub view: [[f32; 4]; 4],
+    pub proj: [[f32; 4]; 4],
+    pub inv_view: [[f32; 4]; 4],
+    pub viewport: [f32; 2],
+    pub tan_half: [f32; 2],
+    pub light_dir: [f32; 4],
+    pub light_colour: [f32; 4],
+    pub background: [f32; 4],
+    pub material: [f32; 4],
+    pub depth_offset: f32,
+    pub low_pass: f32,
+    pub sharpness: f32,
+    pub mode: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<RawUniforms>() == 288);
+
+impl View {
+    /// The shader's uniforms.
+    #[must_use]
+    pub fn to_raw(&self) -> RawUniforms {
+        RawUniforms {
+            view: self.view.to_cols_array_2d(),
+            proj: self.proj.to_cols_array_2d(),
+            inv_view: self.inv_view.to_cols_array_2d(),
+            viewport: [self.width as f32, self.height as f32],
+            tan_half: self.tan_half.to_array(),
+            light_dir: self.light_dir.to_array(),
+            light_colour: self.light_colour.to_array(),
+            background: self.background.to_array(),
+            material: [
+                self.shininess,
+                if self.orthographic { 1.0 } else { 0.0 },
+                0.0,
+                0.0,
+            ],
+            depth_offset: self.depth_offset,
+            low_pass: self.low_pass,
+            sharpness: self.sharpness,
+            mode: u32::from(self.sprites),
+        }
+    }
 }

@@ -1,0 +1,163 @@
+//! The CPU reference of the three splatting passes: the specification the GPU twin
+//! ([`super::gpu`]) is tested against. Parallel over bands of rows; within a band, surfels blend
+//! in their order, so the image does not depend on the thread count.
+
+use glam::{Vec2, Vec3, Vec4};
+use image::RgbaImage;
+use rayon::prelude::*;
+
+use super::{
+    Camera, Frame, Light, Render, SplatError, SplatParams, Surfel, View, fragment, frame, shade,
+    weight,
+};
+
+/// Converts a shaded pixel to 8 bits as an `Rgba8Unorm` store does (round to nearest).
+fn to_unorm8(c: Vec4) -> [u8; 4] {
+    c.to_array()
+        .map(|x| (x.clamp(0.0, 1.0) * 255.0).round() as u8)
+}
+
+/// Rows per parallel band of the CPU renderer.
+const BAND: usize = 8;
+
+/// A surfel as the CPU renderer places it: its frame, colour, unit normal, and the pixel
+/// columns and rows (half-open) whose centres lie in its rectangle.
+struct Placed {
+    frame: Frame,
+    colour: [f32; 4],
+    normal: Vec3,
+    xs: (usize, usize),
+    ys: (usize, usize),
+}
+
+/// The CPU reference of the three passes (the specification of the GPU path). Undrawable
+/// surfels (see [`Surfel::is_drawable`]) are skipped.
+pub fn render_cpu(
+    surfels: &[Surfel],
+    camera: &Camera,
+    light: &Light,
+    params: &SplatParams,
+    width: u32,
+    height: u32,
+) -> Result<Render, SplatError> {
+    let v = View::new(camera, light, params, width, height)?;
+    Ok(render_view_cpu(surfels, &v))
+}
+
+/// [`render_cpu`] for a prepared view.
+#[must_use]
+pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Render {
+    let (w, h) = (v.width as usize, v.height as usize);
+    // the pixel columns and rows whose centres lie in a frame's rectangle
+    let span = |lo: f32, hi: f32, n: usize| -> (usize, usize) {
+        let a = (lo - 0.5).ceil().clamp(0.0, n as f32) as usize;
+        let b = (hi - 0.5).ceil().clamp(0.0, n as f32) as usize;
+        (a, b)
+    };
+    // frame, colour, unit normal and pixel spans of every surfel that is drawn, in input order
+    let placed: Vec<Placed> = surfels
+        .par_iter()
+        .filter(|s| s.is_drawable())
+        .filter_map(|s| {
+            let f = frame(s, v)?;
+            Some(Placed {
+                xs: span(f.rect.x, f.rect.z, w),
+                ys: span(f.rect.y, f.rect.w, h),
+                colour: s.colour,
+                normal: Vec3::from(s.normal).normalize(),
+                frame: f,
+            })
+        })
+        .collect();
+    // the surfels of each band of rows, in input order (so each band reads only its own)
+    let mut in_band: Vec<Vec<u32>> = vec![Vec::new(); h.div_ceil(BAND)];
+    for (k, p) in placed.iter().enumerate() {
+        if p.xs.0 < p.xs.1 && p.ys.0 < p.ys.1 {
+            for list in &mut in_band[p.ys.0 / BAND..=(p.ys.1 - 1) / BAND] {
+                list.push(k as u32);
+            }
+        }
+    }
+    // pass 1: visibility
+    let mut depth = vec![1.0f32; w * h];
+    depth
+        .par_chunks_mut(w * BAND)
+        .zip(&in_band)
+        .enumerate()
+        .for_each(|(band, (rows, members))| {
+            let y0 = band * BAND;
+            let y1 = y0 + rows.len() / w;
+            for &k in members {
+                let p = &placed[k as usize];
+                for y in p.ys.0.max(y0)..p.ys.1.min(y1) {
+                    for x in p.xs.0..p.xs.1 {
+                        let pixel = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+                        if let Some(frag) = fragment(pixel, &p.frame, v) {
+                            let d = &mut rows[(y - y0) * w + x];
+                            *d = d.min(frag.ndc_offset);
+                        }
+                    }
+                }
+            }
+        });
+    // pass 2: attributes, blended in surfel order like the GPU's ordered blending
+    let mut colour = vec![[0.0f32; 4]; w * h];
+    let mut normal_depth = vec![[0.0f32; 4]; w * h];
+    colour
+        .par_chunks_mut(w * BAND)
+        .zip(normal_depth.par_chunks_mut(w * BAND))
+        .zip(&in_band)
+        .enumerate()
+        .for_each(|(band, ((crow, nrow), members))| {
+            let y0 = band * BAND;
+            let y1 = y0 + crow.len() / w;
+            for &k in members {
+                let p = &placed[k as usize];
+                let (c, n) = (p.colour, p.normal);
+                for y in p.ys.0.max(y0)..p.ys.1.min(y1) {
+                    for x in p.xs.0..p.xs.1 {
+                        let pixel = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+                        let Some(frag) = fragment(pixel, &p.frame, v) else {
+                            continue;
+                        };
+                        if frag.ndc > depth[y * w + x] {
+                            continue;
+                        }
+                        let wt = weight(frag.r2, v);
+                        let i = (y - y0) * w + x;
+                        let acc = &mut crow[i];
+                        for ch in 0..3 {
+                            acc[ch] += c[ch] * wt;
+                        }
+                        acc[3] += wt;
+                        let acc = &mut nrow[i];
+                        for ch in 0..3 {
+                            acc[ch] += n[ch] * wt;
+                        }
+                        acc[3] += frag.depth * wt;
+                    }
+                }
+            }
+        });
+    // pass 3: normalisation and shading
+    let mut image = RgbaImage::new(v.width, v.height);
+    image
+        .as_mut()
+        .par_chunks_mut(4 * w)
+        .enumerate()
+        .for_each(|(y, row)| {
+            for x in 0..w {
+                let i = y * w + x;
+                let pixel = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+                let c = shade(pixel, Vec4::from(colour[i]), Vec4::from(normal_depth[i]), v);
+                row[4 * x..4 * x + 4].copy_from_slice(&to_unorm8(c));
+            }
+        });
+    Render {
+        width: v.width,
+        height: v.height,
+        image,
+        colour,
+        normal_depth,
+    }
+}

@@ -1,0 +1,347 @@
+//! Cameras, lights and views: what a renderer needs to know about where the picture is taken
+//! from. [`Camera`] (perspective look-at) and [`Light`] (directional, Blinn-Phong) are the
+//! serde types users write; [`View`] is a camera, a light and the splatting parameters checked
+//! and turned into the matrices, rays and projections that the CPU reference and the WGSL
+//! share (`view_ray`, `world_ray`, `project`), for perspective cameras and for the orthographic
+//! views of a directional light (the optics stage's virtual screen).
+
+use glam::{Mat4, Vec2, Vec3, Vec4, Vec4Swizzles};
+use serde::{Deserialize, Serialize};
+
+use crate::splat::{MAX_SIZE, SplatError, SplatMode, SplatParams};
+
+/// A perspective look-at camera (right-handed, y up by default).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct Camera {
+    /// Eye position (world units).
+    pub eye: Vec3,
+    /// The point looked at.
+    pub target: Vec3,
+    /// The up direction.
+    pub up: Vec3,
+    /// Vertical field of view in degrees, in (0, 180).
+    pub fov_y_degrees: f32,
+    /// Near clipping distance (world units, > 0).
+    pub near: f32,
+    /// Far clipping distance (world units, > near).
+    pub far: f32,
+}
+
+impl Default for Camera {
+    fn default() -> Self {
+        Self {
+            eye: Vec3::new(0.0, 0.0, 3.0),
+            target: Vec3::ZERO,
+            up: Vec3::Y,
+            fov_y_degrees: 40.0,
+            near: 0.01,
+            far: 100.0,
+        }
+    }
+}
+
+impl Camera {
+    /// A camera that frames the box `[min, max]` from the front, right and above, the same
+    /// direction as the particle previews; near and far planes bracket the box.
+    #[must_use]
+    pub fn framing(min: Vec3, max: Vec3) -> Self {
+        let centre = (min + max) * 0.5;
+        let radius = ((max - min).length() * 0.5).max(1e-6);
+        let fov_y_degrees: f32 = 40.0;
+        let distance = radius / (fov_y_degrees.to_radians() * 0.5).sin() * 1.05;
+        let direction = Vec3::new(0.55, 0.5, 1.0).normalize();
+        Self {
+            eye: centre + direction * distance,
+            target: centre,
+            up: Vec3::Y,
+            fov_y_degrees,
+            near: (distance - 2.0 * radius).max(distance * 1e-3),
+            far: distance + 2.0 * radius,
+        }
+    }
+
+    pub(crate) fn validate(&self) -> Result<(), SplatError> {
+        let bad = |name, reason: &str| {
+            Err(SplatError::InvalidParameter {
+                name,
+                reason: reason.to_string(),
+            })
+        };
+        if !(self.eye.is_finite() && self.target.is_finite() && self.up.is_finite()) {
+            return bad("camera", "eye, target and up must be finite");
+        }
+        let forward = self.target - self.eye;
+        if forward.length_squared() < 1e-20 || forward.cross(self.up).length_squared() < 1e-20 {
+            return bad(
+                "camera",
+                "eye and target must differ and up must not be parallel to the view direction",
+            );
+        }
+        if !(self.fov_y_degrees > 0.0 && self.fov_y_degrees < 180.0) {
+            return bad("fov_y_degrees", "must lie in (0, 180)");
+        }
+        if !(self.near > 0.0 && self.far > self.near && self.far.is_finite()) {
+            return bad("near/far", "need 0 < near < far < infinity");
+        }
+        Ok(())
+    }
+
+    /// World to view transform.
+    #[must_use]
+    pub fn view(&self) -> Mat4 {
+        glam::camera::rh::view::look_at_mat4(self.eye, self.target, self.up)
+    }
+
+    /// View to clip transform (WebGPU depth range 0..1).
+    #[must_use]
+    pub fn projection(&self, aspect: f32) -> Mat4 {
+        glam::camera::rh::proj::directx::perspective(
+            self.fov_y_degrees.to_radians(),
+            aspect,
+            self.near,
+            self.far,
+        )
+    }
+}
+
+/// A directional light with Blinn-Phong shading.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct Light {
+    /// Direction towards the light (need not be unit length).
+    pub direction: Vec3,
+    /// Light colour (linear RGB).
+    pub colour: Vec3,
+    /// Ambient fraction of the diffuse term, in [0, 1].
+    pub ambient: f32,
+    /// Specular strength.
+    pub specular: f32,
+    /// Blinn-Phong exponent.
+    pub shininess: f32,
+}
+
+impl Default for Light {
+    fn default() -> Self {
+        Self {
+            direction: Vec3::new(0.3, 1.0, 0.5),
+            colour: Vec3::ONE,
+            ambient: 0.25,
+            specular: 0.35,
+            shininess: 48.0,
+        }
+    }
+}
+
+/// Everything a render needs besides the surfels: camera, light, parameters and image size,
+/// checked, in the form both renderers read.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct View {
+    pub width: u32,
+    pub height: u32,
+    pub(crate) view: Mat4,
+    pub(crate) proj: Mat4,
+    pub(crate) inv_view: Mat4,
+    pub(crate) tan_half: Vec2,
+    pub(crate) light_dir: Vec4,
+    pub(crate) light_colour: Vec4,
+    pub(crate) background: Vec4,
+    pub(crate) shininess: f32,
+    pub(crate) orthographic: bool,
+    pub(crate) depth_offset: f32,
+    pub(crate) low_pass: f32,
+    pub(crate) sharpness: f32,
+    pub(crate) sprites: bool,
+}
+
+impl View {
+    /// Checks the inputs and prepares the uniforms.
+    pub fn new(
+        camera: &Camera,
+        light: &Light,
+        params: &SplatParams,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, SplatError> {
+        if width == 0 || height == 0 || width > MAX_SIZE || height > MAX_SIZE {
+            return Err(SplatError::InvalidSize {
+                width,
+                height,
+                max: MAX_SIZE,
+            });
+        }
+        camera.validate()?;
+        params.validate()?;
+        let direction =
+            light
+                .direction
+                .try_normalize()
+                .ok_or_else(|| SplatError::InvalidParameter {
+                    name: "light.direction",
+                    reason: "must be finite and non-zero".into(),
+                })?;
+        if !(light.colour.is_finite()
+            && light.ambient.is_finite()
+            && (0.0..=1.0).contains(&light.ambient)
+            && light.specular.is_finite()
+            && light.specular >= 0.0
+            && light.shininess.is_finite()
+            && light.shininess >= 0.0)
+        {
+            return Err(SplatError::InvalidParameter {
+                name: "light",
+                reason: "colour finite, ambient in [0, 1], specular and shininess finite and >= 0"
+                    .into(),
+            });
+        }
+        let aspect = width as f32 / height as f32;
+        let view = camera.view();
+        let tan = (camera.fov_y_degrees.to_radians() * 0.5).tan();
+        Ok(Self {
+            width,
+            height,
+            view,
+            proj: camera.projection(aspect),
+            inv_view: view.inverse(),
+            tan_half: Vec2::new(tan * aspect, tan),
+            light_dir: direction.extend(light.ambient),
+            light_colour: light.colour.extend(light.specular),
+            background: Vec4::from(params.background),
+            shininess: light.shininess,
+            orthographic: false,
+            depth_offset: params.depth_offset,
+            low_pass: params.low_pass_px,
+            sharpness: params.sharpness,
+            sprites: params.mode == SplatMode::Sprites,
+        })
+    }
+
+    pub(crate) fn viewport(&self) -> Vec2 {
+        Vec2::new(self.width as f32, self.height as f32)
+    }
+
+    /// Pixel coordinates (origin top left) of a view-space point, and its clip w.
+    pub(crate) fn pixels_of(&self, p: Vec3) -> Vec3 {
+        let clip = self.proj * p.extend(1.0);
+        let ndc = clip.xy() / clip.w;
+        let vp = self.viewport();
+        Vec3::new(
+            (ndc.x + 1.0) * 0.5 * vp.x,
+            (1.0 - ndc.y) * 0.5 * vp.y,
+            clip.w,
+        )
+    }
+
+    pub(crate) fn ndc_depth(&self, p: Vec3) -> f32 {
+        let clip = self.proj * p.extend(1.0);
+        clip.z / clip.w
+    }
+
+    /// The view ray through a pixel position, in view space (`view_ray` in the WGSL): origin and
+    /// direction. Perspective rays start at the eye with z = -1, so that `origin + t dir` has view
+    /// depth `t`; orthographic rays start on the plane z = 0 and run along -z.
+    #[must_use]
+    pub fn ray(&self, pixel: Vec2) -> (Vec3, Vec3) {
+        let vp = self.viewport();
+        let ndc = Vec2::new(pixel.x / vp.x * 2.0 - 1.0, 1.0 - pixel.y / vp.y * 2.0);
+        if self.orthographic {
+            ((ndc * self.tan_half).extend(0.0), Vec3::NEG_Z)
+        } else {
+            (Vec3::ZERO, (ndc * self.tan_half).extend(-1.0))
+        }
+    }
+
+    /// The world-space ray through a pixel position: origin and direction (not normalised;
+    /// `origin + t dir` lies at view depth `t`).
+    #[must_use]
+    pub fn world_ray(&self, pixel: Vec2) -> (Vec3, Vec3) {
+        let (o, d) = self.ray(pixel);
+        (
+            (self.inv_view * o.extend(1.0)).xyz(),
+            (self.inv_view * d.extend(0.0)).xyz(),
+        )
+    }
+
+    /// Pixel coordinates (origin top left) and view depth of a world point (depth <= 0: behind).
+    #[must_use]
+    pub fn project(&self, world: Vec3) -> Vec3 {
+        let p = (self.view * world.extend(1.0)).xyz();
+        let q = self.pixels_of(p);
+        Vec3::new(q.x, q.y, -p.z)
+    }
+
+    /// Whether the view is orthographic.
+    #[must_use]
+    pub fn is_orthographic(&self) -> bool {
+        self.orthographic
+    }
+
+    /// A view looking from `eye` along `forward`, `up` roughly up, whose window spans
+    /// `half_extent` either side of the axis: world units for an orthographic view (a directional
+    /// light's virtual screen, Iwasaki et al. §5.1, Fig. 3), tangents of the half angles for a
+    /// perspective one (a point light's). Depths `near..far` from the eye('s plane).
+    #[allow(clippy::too_many_arguments)]
+    pub fn window(
+        eye: Vec3,
+        forward: Vec3,
+        up: Vec3,
+        half_extent: Vec2,
+        orthographic: bool,
+        near: f32,
+        far: f32,
+        params: &SplatParams,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, SplatError> {
+        let camera = Camera {
+            eye,
+            target: eye + forward,
+            up,
+            fov_y_degrees: 60.0,
+            near,
+            far,
+        };
+        let mut v = Self::new(&camera, &Light::default(), params, width, height)?;
+        if !(half_extent.x > 0.0 && half_extent.y > 0.0 && half_extent.is_finite()) {
+            return Err(SplatError::InvalidParameter {
+                name: "half_extent",
+                reason: "must be finite and > 0".into(),
+            });
+        }
+        v.orthographic = orthographic;
+        v.tan_half = half_extent;
+        let (x, y) = (half_extent.x, half_extent.y);
+        v.proj = if orthographic {
+            glam::camera::rh::proj::directx::orthographic(-x, x, -y, y, near, far)
+        } else {
+            // glam's right-handed 0..1 perspective with separate horizontal and vertical scales
+            let r = far / (near - far);
+            Mat4::from_cols(
+                Vec4::new(1.0 / x, 0.0, 0.0, 0.0),
+                Vec4::new(0.0, 1.0 / y, 0.0, 0.0),
+                Vec4::new(0.0, 0.0, r, -1.0),
+                Vec4::new(0.0, 0.0, r * near, 0.0),
+            )
+        };
+        Ok(v)
+    }
+
+    /// Half extents of the window: tangents of the half angles (perspective) or world units
+    /// (orthographic).
+    #[must_use]
+    pub fn half_extent(&self) -> Vec2 {
+        self.tan_half
+    }
+
+    /// World-space direction of the view axis (unit).
+    #[must_use]
+    pub fn forward(&self) -> Vec3 {
+        (self.inv_view * Vec4::new(0.0, 0.0, -1.0, 0.0)).xyz()
+    }
+
+    /// The view's matrices: world to view, view to world, view to clip.
+    #[must_use]
+    pub fn matrices(&self) -> (Mat4, Mat4, Mat4) {
+        (self.view, self.inv_view, self.proj)
+    }
+}
