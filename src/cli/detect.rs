@@ -4,11 +4,11 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use fluid_surfels::io;
-use fluid_surfels::neighbours::{self, Backend, Neighbourhoods};
+use fluid_surfels::pipeline::{self, Pipeline, PipelineParams, Through};
 use fluid_surfels::preview::{self, PreviewCamera};
 use fluid_surfels::scenes::{self, ColumnParams, SceneName};
 use fluid_surfels::sequence::FramePattern;
-use fluid_surfels::surface::{self, NormalMethod, Surface, SurfaceDetector, SurfaceParams};
+use fluid_surfels::surface::{self, NormalMethod, Surface, SurfaceParams};
 use fluid_surfels::{Error, ParticleSet};
 use serde::Serialize;
 
@@ -82,6 +82,24 @@ fn params(args: &DetectArgs) -> Result<SurfaceParams, Error> {
     Ok(params)
 }
 
+/// The pipeline's settings for detection only.
+fn surface_params(surface: SurfaceParams, radius: Option<f32>) -> PipelineParams {
+    PipelineParams {
+        surface,
+        support_radius: radius,
+        ..PipelineParams::default()
+    }
+}
+
+/// One frame through the pipeline's detection (the support radius given, or estimated).
+fn surface_frame(
+    particles: &ParticleSet,
+    params: SurfaceParams,
+    radius: Option<f32>,
+) -> Result<pipeline::Frame, Error> {
+    Pipeline::new(surface_params(params, radius))?.frame_through(particles, Through::Surface)
+}
+
 fn invalid(argument: &'static str, reason: impl Into<String>) -> Error {
     Error::InvalidArgument {
         argument,
@@ -119,24 +137,17 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
             }
             let particles = io::read_particles(path, args.source.format)?;
             timings.read = ms(t);
-            let radius = match args.source.radius {
-                Some(r) => r,
-                None => {
-                    let s = neighbours::estimate_spacing(&particles.positions)?;
-                    spacing_estimate = Some(s);
-                    2.0 * s
-                }
-            };
-            let t = Instant::now();
-            let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
-            timings.neighbours = ms(t);
-            let surface = SurfaceDetector::new(params)?.detect(&particles, &nb)?;
+            let f = surface_frame(&particles, params, args.source.radius)?;
+            if args.source.radius.is_none() {
+                spacing_estimate = Some(0.5 * f.radius);
+            }
+            timings.neighbours = f.timings.neighbours_ms;
             (
                 path.display().to_string(),
                 particles,
-                radius,
-                surface,
-                nb.mean_count(),
+                f.radius,
+                f.surface,
+                f.mean_neighbours,
             )
         }
         (None, Some(SceneName::Column)) => {
@@ -171,16 +182,15 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
             let scene = scenes::build(name, args.source.frame)?;
             timings.read = ms(t);
             let radius = args.source.radius.unwrap_or(scene.support_radius);
-            let t = Instant::now();
-            let nb = Neighbourhoods::build(&scene.particles.positions, radius, Backend::CellGrid)?;
-            timings.neighbours = ms(t);
-            let surface = SurfaceDetector::new(params)?.detect(&scene.particles, &nb)?;
+            let f = surface_frame(&scene.particles, params, Some(radius))?;
+            timings.neighbours = f.timings.neighbours_ms;
+            let (surface, mean) = (f.surface, f.mean_neighbours);
             (
                 format!("scene {}", name.as_str()),
                 scene.particles,
                 radius,
                 surface,
-                nb.mean_count(),
+                mean,
             )
         }
         (None, None) => unreachable!("clap requires --input or --scene"),
@@ -307,12 +317,13 @@ fn detect_sequence(
         radius,
     } = super::prepare_sequence(&args.source, &args.outputs, pattern, "detect")?;
     let run = sequence.run(
-        || Ok(SurfaceDetector::new(params)?),
-        |detector, f| {
+        || Pipeline::new(surface_params(params, Some(radius))),
+        |pipeline, f| {
             let t = Instant::now();
             let particles = io::read_particles(&pattern.path(f), args.source.format)?;
-            let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
-            let surface = detector.detect(&particles, &nb)?;
+            let surface = pipeline
+                .frame_through(&particles, Through::Surface)?
+                .surface;
             write_outputs(
                 &particles,
                 &surface,

@@ -4,13 +4,13 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use fluid_surfels::io;
-use fluid_surfels::neighbours::{self, Backend, Neighbourhoods};
-use fluid_surfels::pipeline;
+use fluid_surfels::neighbours;
+use fluid_surfels::pipeline::{self, Pipeline, PipelineParams, Through};
 use fluid_surfels::preview;
 use fluid_surfels::refine::{self, HeightRule, RefineParams, Refined, StepStats};
 use fluid_surfels::scenes::{self, ColumnParams, SceneName};
 use fluid_surfels::sequence::FramePattern;
-use fluid_surfels::surface::{Surface, SurfaceDetector, SurfaceParams};
+use fluid_surfels::surface::Surface;
 use fluid_surfels::{Error, ParticleSet};
 use glam::Vec3;
 use serde::Serialize;
@@ -78,9 +78,19 @@ pub fn surface_points(
             })?;
         return Ok((particles.positions.clone(), normals));
     }
-    let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
-    let surface = SurfaceDetector::new(SurfaceParams::default())?.detect(particles, &nb)?;
+    let surface = detection_pipeline(radius)?
+        .frame_through(particles, Through::Surface)?
+        .surface;
     Ok(surface_of(particles, &surface))
+}
+
+/// A pipeline that detects the surface at the given support radius (the refinement runs as the
+/// command line asks: steps, height rule, reference or parallel).
+fn detection_pipeline(radius: f32) -> Result<Pipeline, Error> {
+    Pipeline::new(PipelineParams {
+        support_radius: Some(radius),
+        ..PipelineParams::default()
+    })
 }
 
 /// The surface and isolated particles with their normals (the pipeline's refinement input).
@@ -256,15 +266,16 @@ fn refine_sequence(args: &RefineArgs, pattern: &FramePattern) -> Result<(), Erro
         radius,
     } = super::prepare_sequence(&args.source, &args.outputs, pattern, "refine")?;
     let run = sequence.run(
-        || Ok(SurfaceDetector::new(SurfaceParams::default())?),
-        |detector, f| {
+        || detection_pipeline(radius),
+        |pipeline, f| {
             let t = Instant::now();
             let particles = io::read_particles(&pattern.path(f), args.source.format)?;
             let (p, n) = if args.surface_input {
                 surface_points(&particles, radius, true)?
             } else {
-                let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
-                let surface = detector.detect(&particles, &nb)?;
+                let surface = pipeline
+                    .frame_through(&particles, Through::Surface)?
+                    .surface;
                 surface_of(&particles, &surface)
             };
             let refined = run_refine(args, &p, &n, &params(args, radius))?;
