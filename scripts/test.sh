@@ -41,4 +41,7 @@ cargo run --locked --quiet --example game_loop -- --frames 3 --size 96x96 --save
   --out "$example_out/game_loop" --json | tee "$example_out/game_loop.json"
 grep -q '"psnr_against_cpu_db"' "$example_out/game_loop.json"
 test -s "$example_out/game_loop/frame_0002.png"
+echo "== example: the viewer without a window (headless), 2 frames"
+cargo run --locked --quiet --example viewer -- --headless --frames 2 --size 96x72 --out "$example_out/viewer"
+test -s "$example_out/viewer/frame_0001.png"
 rm -rf "$example_out"

@@ -123,7 +123,7 @@ pub(crate) fn texture_descriptor(
 }
 
 /// A 2D texture of one mip level and one sample.
-pub(crate) fn texture_2d(
+pub fn texture_2d(
     device: &wgpu::Device,
     label: &str,
     size: (u32, u32),

@@ -151,6 +151,12 @@ impl GpuPipeline {
         &self.cpu
     }
 
+    /// The CPU half, to run it on frames the GPU does not draw (detection on skipped frames
+    /// keeps the hysteresis), to change its camera or its surfel source.
+    pub fn cpu_mut(&mut self) -> &mut Pipeline {
+        &mut self.cpu
+    }
+
     /// Follows a new target size (from the next `prepare` on).
     pub fn resize(&mut self, width: u32, height: u32) -> Result<(), Error> {
         check_size((width, height))?;

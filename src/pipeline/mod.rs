@@ -369,6 +369,20 @@ impl Pipeline {
         self.views.as_ref().map(|v| v.camera)
     }
 
+    /// Looks from `camera` from the next frame on (an orbiting viewer's camera), keeping the
+    /// pool and the scene box the sequence fitted.
+    pub fn set_camera(&mut self, camera: Camera) {
+        self.params.scene.camera = Some(camera);
+        if let Some(v) = self.views.as_mut() {
+            v.camera = camera;
+        }
+    }
+
+    /// Takes the rendered surfels from `source` from the next frame on.
+    pub fn set_source(&mut self, source: SurfelSource) {
+        self.params.source = source;
+    }
+
     /// Forgets what the sequence kept (hysteresis, estimated radius, camera and pool): the next
     /// frame starts a new sequence.
     pub fn reset(&mut self) {
