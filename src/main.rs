@@ -65,6 +65,9 @@ enum BenchCommand {
     /// Optics: caustics and the final image at the paper's sizes (512x512, 256x64 and 256x256
     /// light screens, 55k-120k surfels), GPU (when an adapter exists) and the CPU reference.
     Optics(cli::bench::BenchOpticsArgs),
+    /// The whole chain on the CPU (`Pipeline`: detection to the finished frame with optics) on a
+    /// frame of the column scene, per stage.
+    Pipeline(cli::bench::BenchPipelineArgs),
 }
 
 /// Mesa's software Vulkan driver (lavapipe) prints "XDG_RUNTIME_DIR is invalid" on stderr when
@@ -105,6 +108,7 @@ fn main() -> ExitCode {
         Some(Command::Bench(BenchCommand::Density(args))) => cli::bench::bench_density(&args),
         Some(Command::Bench(BenchCommand::Optics(args))) => cli::bench::bench_optics(&args),
         Some(Command::Bench(BenchCommand::Splat(args))) => cli::bench::bench_splat(&args),
+        Some(Command::Bench(BenchCommand::Pipeline(args))) => cli::bench::bench_pipeline(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

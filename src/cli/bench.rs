@@ -917,3 +917,101 @@ pub fn bench_optics(args: &BenchOpticsArgs) -> Result<(), Error> {
     }
     Ok(())
 }
+
+/// Arguments of `bench pipeline`.
+#[derive(clap::Args)]
+pub struct BenchPipelineArgs {
+    /// Frame of the column scene (default: the splash).
+    #[arg(long, default_value_t = fluid_surfels::scenes::ColumnParams::SPLASH_FRAME)]
+    pub frame: usize,
+    /// Image size of the finished frame.
+    #[arg(long, default_value = "512x512", value_parser = super::render::parse_size)]
+    pub size: (u32, u32),
+    /// Timed frames (the median is reported), after the frames of the simulation up to it.
+    #[arg(long, default_value_t = 5)]
+    pub repeat: usize,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct PipelineBenchReport {
+    frame: usize,
+    particles: usize,
+    surfels: usize,
+    size: [u32; 2],
+    threads: usize,
+    repeat: usize,
+    /// Median and fastest of the whole chain (detection to the finished frame), ms.
+    median_ms: f64,
+    fastest_ms: f64,
+    /// The stages of the median frame.
+    stages_ms: fluid_surfels::pipeline::FrameTimings,
+    goal_ms: f64,
+}
+
+/// The CPU `Pipeline` on one frame of the column scene: the whole chain with optics, repeated on
+/// the same particles (the hysteresis is that of a sequence that stays on the frame).
+pub fn bench_pipeline(args: &BenchPipelineArgs) -> Result<(), Error> {
+    use fluid_surfels::pipeline::Through;
+    let mut params = super::run::column_params(SurfaceParams::default());
+    params.scene.optics.image_size = [args.size.0, args.size.1];
+    let column = super::run::column_to_frame(args.frame, params.clone(), Through::Surface)?;
+    let mut pipeline =
+        fluid_surfels::pipeline::Pipeline::new(fluid_surfels::pipeline::PipelineParams {
+            support_radius: Some(column.sim.support_radius()),
+            ..params
+        })?;
+    let particles = column.sim.particles().clone();
+    // one untimed frame: the views are fitted, the thread pool is warm
+    let _ = pipeline.frame(&particles)?;
+    let mut runs = Vec::new();
+    for _ in 0..args.repeat.max(1) {
+        let f = pipeline.frame(&particles)?;
+        runs.push((f.timings.total_ms, f.timings, f.render_surfels.len()));
+    }
+    runs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (median_ms, stages_ms, surfels) = runs[runs.len() / 2];
+    let report = PipelineBenchReport {
+        frame: args.frame,
+        particles: particles.len(),
+        surfels,
+        size: [args.size.0, args.size.1],
+        threads: rayon::current_num_threads(),
+        repeat: runs.len(),
+        median_ms,
+        fastest_ms: runs[0].0,
+        stages_ms,
+        goal_ms: 100.0,
+    };
+    if args.json {
+        super::print_json(&report);
+    } else {
+        let t = &report.stages_ms;
+        println!(
+            "pipeline (CPU), column frame {}: {} particles -> {} surfels -> {}x{} frame, {} threads",
+            report.frame,
+            report.particles,
+            report.surfels,
+            args.size.0,
+            args.size.1,
+            report.threads
+        );
+        println!(
+            "  median {:.1} ms (fastest {:.1} of {}; goal {:.0} ms)",
+            report.median_ms, report.fastest_ms, report.repeat, report.goal_ms
+        );
+        println!(
+            "  neighbours {:.1}, detection {:.1}, refinement {:.1}, density {:.1}, surfels {:.1}, caustics {:.1}, image {:.1}",
+            t.neighbours_ms,
+            t.detect_ms,
+            t.refine_ms,
+            t.density_ms,
+            t.surfels_ms,
+            t.caustics_ms,
+            t.image_ms
+        );
+    }
+    Ok(())
+}
