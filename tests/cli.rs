@@ -837,3 +837,28 @@ fn bench_optics_reports_json() {
             .all(|c| c["cpu_caustics_ms"].as_f64().unwrap() > 0.0)
     );
 }
+
+#[test]
+fn bench_pipeline_reports_every_stage() {
+    let v = json_of(
+        &bin()
+            .args([
+                "bench", "pipeline", "--frame", "4", "--size", "48x48", "--repeat", "1", "--json",
+            ])
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(v["frame"], 4);
+    assert!(v["surfels"].as_u64().unwrap() > 1000, "{v}");
+    let stages = &v["stages_ms"];
+    for stage in [
+        "refine_ms",
+        "density_ms",
+        "surfels_ms",
+        "caustics_ms",
+        "image_ms",
+    ] {
+        assert!(stages[stage].as_f64().unwrap() > 0.0, "{stage}: {v}");
+    }
+    assert!(v["median_ms"].as_f64().unwrap() >= stages["refine_ms"].as_f64().unwrap());
+}
