@@ -11,7 +11,8 @@
 //! `--json` prints one object: frames, the CPU milliseconds per frame (the CPU stages plus
 //! recording and submitting; mean and 95th percentile), the GPU milliseconds per frame from
 //! timestamp queries where the adapter has them (then each frame waits for its timestamps), and
-//! the PSNR of every saved frame against the CPU pipeline.
+//! the PSNR of every saved frame against the CPU pipeline, and how many frames reused the
+//! pipeline's GPU resources (all but the first, in the steady state).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -146,6 +147,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         std::fs::create_dir_all(&args.out)?;
     }
     let (mut cpu_ms, mut gpu_ms, mut saved) = (Vec::new(), Vec::new(), Vec::new());
+    let mut reused = 0;
     for f in 0..args.frames {
         let save = args.save.contains(&f);
         let t = Instant::now();
@@ -154,6 +156,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             encoder.write_timestamp(set, 0);
         }
         let frame = gpu.prepare(&device, &queue, &mut encoder, sim.particles())?;
+        reused += usize::from(gpu.reused_resources());
         let target = gpu.draw_to_texture(&device, &mut encoder);
         if let Some((set, resolve, read)) = &query {
             encoder.write_timestamp(set, 1);
@@ -203,6 +206,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let report = serde_json::json!({
         "adapter": format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type),
         "frames": args.frames,
+        "frames_reusing_gpu_resources": reused,
         "size": [args.size.0, args.size.1],
         "cpu_ms_mean": mean(&cpu_ms),
         "cpu_ms_p95": percentile(&cpu_ms, 0.95),

@@ -409,3 +409,52 @@ fn gpu_pipeline_equals_the_gpu_optics_and_approaches_the_cpu_pipeline() {
         assert!(db >= 25.0, "{format:?}: {db:.1} dB against the CPU");
     }
 }
+
+/// In a sequence `GpuPipeline` reuses its GPU resources (nothing created after the first frame:
+/// uniforms, receiver and surfels are written through the queue) and the reused resources give
+/// the image a fresh preparation of the same stage gives.
+#[test]
+fn gpu_pipeline_reuses_its_resources_across_a_sequence() {
+    let Some(ctx) = gpu::context_or_skip("gpu_pipeline_reuses_its_resources").unwrap() else {
+        return;
+    };
+    let size = (96, 96);
+    let mut sim = scenes::ColumnSim::new(scenes::ColumnParams::default()).unwrap();
+    let mut params = PipelineParams {
+        support_radius: Some(sim.support_radius()),
+        scene: scenes::column_pool(scenes::ColumnParams::default().tank),
+        ..Default::default()
+    };
+    params.scene.optics.image_size = [size.0, size.1];
+    let mut cpu = Pipeline::new(params.clone()).unwrap();
+    let mut gpu = GpuPipeline::new(
+        &ctx.device,
+        &ctx.queue,
+        wgpu::TextureFormat::Rgba8Unorm,
+        size,
+        &params,
+    )
+    .unwrap();
+    let mut reused = Vec::new();
+    let mut last = None;
+    for f in 10..=13 {
+        let frame = pipeline::column_frame(&mut cpu, &mut sim, f, Through::Frame, |_| {}).unwrap();
+        let image = gpu.render_frame_image(&ctx, &frame).unwrap();
+        reused.push(gpu.reused_resources());
+        last = Some((frame, image));
+    }
+    println!("resources reused per frame: {reused:?}");
+    assert_eq!(reused, [false, true, true, true]);
+    let (frame, image) = last.unwrap();
+    let finished = frame.finished.as_ref().unwrap();
+    let (fresh, _) = fluid_surfels::optics::gpu::render_gpu(
+        &ctx,
+        &finished.stage,
+        &frame.render_surfels,
+        Some(size),
+    )
+    .unwrap();
+    let db = splat::psnr(&fresh.frame.unwrap().0, &image);
+    println!("frame 13, reused resources against a fresh preparation: {db:.1} dB");
+    assert!(db.is_infinite(), "{db:.1} dB");
+}

@@ -284,7 +284,9 @@ impl OpticsGpu {
             fw,
             fh,
         )?;
-        let surfels = SplatRenderer::upload(device, surfels);
+        let mut surfel_buffer = SplatRenderer::upload(device, &[]);
+        surfel_buffer.write(device, queue, surfels);
+        let surfels = surfel_buffer;
         let light_splat = SplatRenderer::new(
             device,
             wgpu::TextureFormat::Rgba8Unorm,
@@ -295,24 +297,29 @@ impl OpticsGpu {
         let texture = |label, w, h, format, usage| texture_2d(device, label, (w, h), format, usage);
         let attach = wgpu::TextureUsages::RENDER_ATTACHMENT;
         let sampled = wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC;
-        let geometry_target = |label, w, h, v: &View| GeometryTarget {
-            position: texture(label, w, h, FLOAT, attach | sampled),
-            normal: texture(label, w, h, FLOAT, attach | sampled),
-            depth: texture(label, w, h, DEPTH, attach),
-            bind: device.create_bind_group(&wgpu::BindGroupDescriptor {
+        let geometry_target = |label, w, h, v: &View| {
+            let uniforms = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
-                layout: &self.geometry_layout,
-                entries: &[wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: device
-                        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                            label: Some(label),
-                            contents: bytemuck::bytes_of(&RawGeometry::of(v)),
-                            usage: wgpu::BufferUsages::UNIFORM,
-                        })
-                        .as_entire_binding(),
-                }],
-            }),
+                contents: bytemuck::bytes_of(&RawGeometry::of(v)),
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            });
+            let position = texture(label, w, h, FLOAT, attach | sampled);
+            let normal = texture(label, w, h, FLOAT, attach | sampled);
+            let depth = texture(label, w, h, DEPTH, attach);
+            GeometryTarget {
+                views: [&position, &normal, &depth].map(|t| t.create_view(&Default::default())),
+                position,
+                normal,
+                bind: device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some(label),
+                    layout: &self.geometry_layout,
+                    entries: &[wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: uniforms.as_entire_binding(),
+                    }],
+                }),
+                uniforms,
+            }
         };
         let map_geometry = geometry_target("light geometry map", map.width, map.height, &map);
         let camera_geometry = geometry_target("camera geometry map", fw, fh, &camera);
@@ -343,19 +350,11 @@ impl OpticsGpu {
             bytemuck::cast_slice(&env_pixels),
         );
         // the receiver, flat normals per vertex
-        let receiver: Vec<[f32; 6]> = stage
-            .receiver
-            .triangles
-            .iter()
-            .flat_map(|t| {
-                let n = (t[1] - t[0]).cross(t[2] - t[0]).normalize_or_zero();
-                t.map(|p| [p.x, p.y, p.z, n.x, n.y, n.z])
-            })
-            .collect();
+        let receiver = receiver_vertices(stage);
         let receiver_vertices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("receiver"),
             contents: bytemuck::cast_slice(&receiver),
-            usage: wgpu::BufferUsages::VERTEX,
+            usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
         });
         let buffer = |label, bytes: u64, extra| {
             device.create_buffer(&wgpu::BufferDescriptor {
@@ -378,7 +377,7 @@ impl OpticsGpu {
         let uniforms = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("optics uniforms"),
             contents: bytemuck::bytes_of(&raw_optics(stage, &camera)),
-            usage: wgpu::BufferUsages::UNIFORM,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
         });
         let (screen_colour, screen_normal) = light_splat.accumulation();
         let (camera_colour, camera_normal) = camera_splat.accumulation();
@@ -439,6 +438,8 @@ impl OpticsGpu {
             camera_geometry,
             receiver_vertices,
             receiver_count: receiver.len() as u32,
+            environment_key: environment_key(stage),
+            uniforms,
             flux,
             irradiance,
             image,
@@ -450,7 +451,9 @@ impl OpticsGpu {
 struct GeometryTarget {
     position: wgpu::Texture,
     normal: wgpu::Texture,
-    depth: wgpu::Texture,
+    /// Position, normal and depth views, as the geometry pass attaches them.
+    views: [wgpu::TextureView; 3],
+    uniforms: wgpu::Buffer,
     bind: wgpu::BindGroup,
 }
 
@@ -469,6 +472,9 @@ pub struct PreparedOptics {
     camera_geometry: GeometryTarget,
     receiver_vertices: wgpu::Buffer,
     receiver_count: u32,
+    /// What the environment texture was made from.
+    environment_key: (u32, u32, Option<std::path::PathBuf>),
+    uniforms: wgpu::Buffer,
     flux: wgpu::Buffer,
     irradiance: wgpu::Buffer,
     image: wgpu::Buffer,
@@ -497,19 +503,89 @@ fn groups(n: u32) -> u32 {
     n.div_ceil(8)
 }
 
+/// The environment image's size and path (`(1, 1, None)` without one).
+fn environment_key(stage: &Stage) -> (u32, u32, Option<std::path::PathBuf>) {
+    match &stage.scene.environment.pixels {
+        Some((w, h, _)) => (*w, *h, stage.scene.environment.image.clone()),
+        None => (1, 1, None),
+    }
+}
+
+/// The receiver's vertices with flat normals, as the geometry pass reads them.
+fn receiver_vertices(stage: &Stage) -> Vec<[f32; 6]> {
+    stage
+        .receiver
+        .triangles
+        .iter()
+        .flat_map(|t| {
+            let n = (t[1] - t[0]).cross(t[2] - t[0]).normalize_or_zero();
+            t.map(|p| [p.x, p.y, p.z, n.x, n.y, n.z])
+        })
+        .collect()
+}
+
 impl PreparedOptics {
+    /// Makes this frame's stage and surfels current without creating anything, when its
+    /// targets fit: the same screen, map and image sizes, receiver triangle count and
+    /// environment image. Uniforms, receiver vertices and surfels are written through the queue
+    /// (the surfel buffer grows geometrically when a frame has more). Returns `false`, changing
+    /// nothing, when the stage needs new targets ([`OpticsGpu::prepare`] then).
+    pub fn update(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        stage: &Stage,
+        surfels: &[Surfel],
+    ) -> Result<bool, OpticsError> {
+        let (screen, map) = (stage.views.screen, stage.views.map);
+        let Some((fw, fh)) = self.frame_size else {
+            return Ok(false);
+        };
+        let receiver = receiver_vertices(stage);
+        if (screen.width, screen.height) != (self.screen.width, self.screen.height)
+            || (map.width, map.height) != (self.map.width, self.map.height)
+            || receiver.len() as u32 != self.receiver_count
+            || environment_key(stage) != self.environment_key
+        {
+            return Ok(false);
+        }
+        let camera = View::new(
+            &stage.camera,
+            &Light::default(),
+            &stage.scene.optics.splat,
+            fw,
+            fh,
+        )?;
+        queue.write_buffer(
+            &self.uniforms,
+            0,
+            bytemuck::bytes_of(&raw_optics(stage, &camera)),
+        );
+        queue.write_buffer(
+            &self.map_geometry.uniforms,
+            0,
+            bytemuck::bytes_of(&RawGeometry::of(&map)),
+        );
+        queue.write_buffer(
+            &self.camera_geometry.uniforms,
+            0,
+            bytemuck::bytes_of(&RawGeometry::of(&camera)),
+        );
+        queue.write_buffer(&self.receiver_vertices, 0, bytemuck::cast_slice(&receiver));
+        self.surfels.write(device, queue, surfels);
+        self.screen = screen;
+        self.map = map;
+        self.camera = camera;
+        Ok(true)
+    }
+
     fn draw_geometry(
         &self,
         optics: &OpticsGpu,
         encoder: &mut wgpu::CommandEncoder,
         target: &GeometryTarget,
     ) {
-        let view = |t: &wgpu::Texture| t.create_view(&Default::default());
-        let (position, normal, depth) = (
-            view(&target.position),
-            view(&target.normal),
-            view(&target.depth),
-        );
+        let [position, normal, depth] = &target.views;
         let clear = |v| {
             Some(wgpu::RenderPassColorAttachment {
                 view: v,
@@ -523,9 +599,9 @@ impl PreparedOptics {
         };
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("optics geometry"),
-            color_attachments: &[clear(&position), clear(&normal)],
+            color_attachments: &[clear(position), clear(normal)],
             depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                view: &depth,
+                view: depth,
                 depth_ops: Some(wgpu::Operations {
                     load: wgpu::LoadOp::Clear(1.0),
                     store: wgpu::StoreOp::Store,
@@ -556,12 +632,12 @@ impl PreparedOptics {
     /// the caustics vertices, the caustics triangles into the (cleared) map, its irradiance.
     pub fn encode_caustics(
         &self,
-        device: &wgpu::Device,
+        queue: &wgpu::Queue,
         optics: &OpticsGpu,
         encoder: &mut wgpu::CommandEncoder,
     ) -> Result<(), OpticsError> {
-        self.light_splat.encode(
-            device,
+        self.light_splat.encode_queued(
+            queue,
             encoder,
             &self.light_image,
             &self.surfels,
@@ -581,15 +657,15 @@ impl PreparedOptics {
     /// the camera's geometry map, the per-pixel optics. A no-op when no image was prepared.
     pub fn encode_frame(
         &self,
-        device: &wgpu::Device,
+        queue: &wgpu::Queue,
         optics: &OpticsGpu,
         encoder: &mut wgpu::CommandEncoder,
     ) -> Result<(), OpticsError> {
         let Some(size) = self.frame_size else {
             return Ok(());
         };
-        self.camera_splat.encode(
-            device,
+        self.camera_splat.encode_queued(
+            queue,
             encoder,
             &self.camera_image,
             &self.surfels,
@@ -678,9 +754,9 @@ pub fn run_timed(
     let run = |frame: bool| -> Result<f64, OpticsError> {
         let mut encoder = device.create_command_encoder(&Default::default());
         if frame {
-            prepared.encode_frame(device, optics, &mut encoder)?;
+            prepared.encode_frame(&ctx.queue, optics, &mut encoder)?;
         } else {
-            prepared.encode_caustics(device, optics, &mut encoder)?;
+            prepared.encode_caustics(&ctx.queue, optics, &mut encoder)?;
         }
         let start = Instant::now();
         ctx.queue.submit([encoder.finish()]);

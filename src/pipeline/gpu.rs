@@ -43,6 +43,8 @@ pub struct GpuPipeline {
     present_layout: wgpu::BindGroupLayout,
     uniform: wgpu::Buffer,
     prepared: Option<(PreparedOptics, wgpu::BindGroup)>,
+    /// Whether the last `prepare` reused the previous frame's GPU resources.
+    reused: bool,
 }
 
 impl GpuPipeline {
@@ -130,7 +132,16 @@ impl GpuPipeline {
             present_layout,
             uniform,
             prepared: None,
+            reused: false,
         })
+    }
+
+    /// Whether the last `prepare` reused the previous frame's GPU resources (the steady state:
+    /// nothing created, uniforms and surfels written through the queue); `false` on the first
+    /// frame, after a resize, and when the light's screen changed size.
+    #[must_use]
+    pub fn reused_resources(&self) -> bool {
+        self.reused
     }
 
     /// The frame size.
@@ -192,14 +203,42 @@ impl GpuPipeline {
         let surfels = &frame.render_surfels;
         let scene = self.cpu.fitted_scene(surfels)?;
         let stage = Stage::new(&scene, surfels)?;
-        let prepared = self
-            .optics
-            .prepare(device, queue, &stage, surfels, Some(self.size))?;
-        prepared.encode_caustics(device, &self.optics, encoder)?;
-        prepared.encode_frame(device, &self.optics, encoder)?;
-        let (image, (w, h)) = prepared
-            .image_buffer()
-            .expect("prepared with an image size");
+        // the steady state: last frame's targets fit (the views are kept), only uniforms,
+        // receiver and surfels are written
+        let reused = match &mut self.prepared {
+            Some((prepared, _)) if prepared.image_buffer().map(|(_, s)| s) == Some(self.size) => {
+                prepared.update(device, queue, &stage, surfels)?
+            }
+            _ => false,
+        };
+        self.reused = reused;
+        if !reused {
+            let prepared = self
+                .optics
+                .prepare(device, queue, &stage, surfels, Some(self.size))?;
+            let (image, _) = prepared
+                .image_buffer()
+                .expect("prepared with an image size");
+            let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("present"),
+                layout: &self.present_layout,
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: self.uniform.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: image.as_entire_binding(),
+                    },
+                ],
+            });
+            self.prepared = Some((prepared, bind));
+        }
+        let (prepared, _) = self.prepared.as_ref().expect("prepared above");
+        prepared.encode_caustics(queue, &self.optics, encoder)?;
+        prepared.encode_frame(queue, &self.optics, encoder)?;
+        let (w, h) = self.size;
         queue.write_buffer(
             &self.uniform,
             0,
@@ -210,21 +249,6 @@ impl GpuPipeline {
                 _pad: 0,
             }),
         );
-        let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("present"),
-            layout: &self.present_layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: self.uniform.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: image.as_entire_binding(),
-                },
-            ],
-        });
-        self.prepared = Some((prepared, bind));
         Ok(())
     }
 

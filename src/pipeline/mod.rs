@@ -326,8 +326,18 @@ pub struct Frame {
 #[derive(Clone, Debug)]
 struct Views {
     camera: Camera,
-    /// The receiver as fitted (an `Auto` pool resolved into its box), when the optics ran.
-    optics: Option<(optics::Receiver, [Vec3; 2])>,
+    /// The receiver as fitted (an `Auto` pool resolved into its box), the scene box, and the
+    /// light's screen and map resolutions, when the optics ran.
+    optics: Option<KeptOptics>,
+}
+
+/// What the optics stage keeps of the first rendered frame.
+#[derive(Clone, Debug)]
+struct KeptOptics {
+    receiver: optics::Receiver,
+    bounds: [Vec3; 2],
+    screen: [u32; 2],
+    map: [u32; 2],
 }
 
 /// The chain on the CPU. See the module documentation.
@@ -625,17 +635,29 @@ impl Pipeline {
                     Some(v) => v.camera,
                     None => first.camera,
                 };
+                // the resolutions of this first frame's screen and map are kept too, so that
+                // later frames' targets have the same sizes (the GPU reuses them); the screen's
+                // window still follows the water
+                let kept = KeptOptics {
+                    receiver,
+                    bounds,
+                    screen: [first.views.screen.width, first.views.screen.height],
+                    map: [first.views.map.width, first.views.map.height],
+                };
                 self.views = Some(Views {
                     camera,
-                    optics: Some((receiver.clone(), bounds)),
+                    optics: Some(kept.clone()),
                 });
-                (camera, (receiver, bounds))
+                (camera, kept)
             }
         };
-        let (camera, (receiver, bounds)) = kept;
+        let (camera, kept) = kept;
         scene.camera = Some(camera);
-        scene.receiver = receiver;
-        scene.optics.scene_bounds = Some(scene.optics.scene_bounds.unwrap_or(bounds));
+        scene.receiver = kept.receiver;
+        let o = &mut scene.optics;
+        o.scene_bounds = Some(o.scene_bounds.unwrap_or(kept.bounds));
+        o.caustics_resolution = Some(o.caustics_resolution.unwrap_or(kept.screen));
+        o.map_resolution = Some(o.map_resolution.unwrap_or(kept.map));
         Ok(scene)
     }
 }

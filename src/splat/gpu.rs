@@ -31,6 +31,42 @@ pub struct SurfelBuffer {
     pub len: usize,
     /// Surfels skipped as undrawable.
     pub skipped: usize,
+    /// Surfels the single buffer holds (0 when chunked or empty); see [`SurfelBuffer::write`].
+    capacity: usize,
+}
+
+impl SurfelBuffer {
+    /// Replaces the surfels for the next submission, reusing the buffer while they fit and
+    /// growing it geometrically (to the next power of two) when they do not, so that a sequence
+    /// allocates only while its largest frame so far grows. Writes go through
+    /// `queue.write_buffer`, so they take effect at the next submit.
+    pub fn write(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, surfels: &[Surfel]) {
+        let (kept, skipped) = crate::splat::drawable(surfels);
+        let size = std::mem::size_of::<Surfel>() as u64;
+        let max = device.limits().max_buffer_size / size;
+        if kept.len() as u64 > max {
+            // more than one buffer can hold: chunked, as `upload` makes them
+            *self = SplatRenderer::upload(device, surfels);
+            return;
+        }
+        if kept.len() > self.capacity || self.chunks.len() != 1 {
+            let capacity = (kept.len().max(1).next_power_of_two() as u64).min(max) as usize;
+            let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("surfels"),
+                size: capacity as u64 * size,
+                usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            self.chunks = vec![(buffer, 0)];
+            self.capacity = capacity;
+        }
+        if !kept.is_empty() {
+            queue.write_buffer(&self.chunks[0].0, 0, bytemuck::cast_slice(&kept));
+        }
+        self.chunks[0].1 = kept.len() as u32;
+        self.len = kept.len();
+        self.skipped = skipped;
+    }
 }
 
 /// Wall-clock milliseconds of each pass (each submitted and waited for on its own).
@@ -68,6 +104,10 @@ pub struct SplatRenderer {
     attributes: wgpu::RenderPipeline,
     shading: wgpu::RenderPipeline,
     targets: Targets,
+    /// The uniforms and bind groups of [`SplatRenderer::encode_queued`] (one view per
+    /// submission), made with the targets.
+    uniforms: wgpu::Buffer,
+    bound: (wgpu::BindGroup, wgpu::BindGroup),
 }
 
 fn create_targets(device: &wgpu::Device, width: u32, height: u32) -> Targets {
@@ -216,6 +256,13 @@ impl SplatRenderer {
             cache: None,
         });
         let targets = create_targets(device, width, height);
+        let uniforms = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("splat uniforms (queued)"),
+            size: std::mem::size_of::<RawUniforms>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let bound = bind_groups(device, &splat_layout, &shade_layout, &targets, &uniforms);
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Validation(e.to_string()).into());
         }
@@ -227,6 +274,8 @@ impl SplatRenderer {
             attributes,
             shading,
             targets,
+            uniforms,
+            bound,
         })
     }
 
@@ -252,6 +301,13 @@ impl SplatRenderer {
         check_size(device, width, height)?;
         if (width, height) != self.size() {
             self.targets = create_targets(device, width, height);
+            self.bound = bind_groups(
+                device,
+                &self.splat_layout,
+                &self.shade_layout,
+                &self.targets,
+                &self.uniforms,
+            );
         }
         Ok(())
     }
@@ -284,6 +340,7 @@ impl SplatRenderer {
             chunks,
             len: kept.len(),
             skipped,
+            capacity: 0,
         }
     }
 
@@ -297,33 +354,13 @@ impl SplatRenderer {
             contents: bytemuck::bytes_of(&view.to_raw()),
             usage: wgpu::BufferUsages::UNIFORM,
         });
-        let splat = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("splat uniforms"),
-            layout: &self.splat_layout,
-            entries: &[wgpu::BindGroupEntry {
-                binding: 0,
-                resource: uniforms.as_entire_binding(),
-            }],
-        });
-        let shade = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("splat shading"),
-            layout: &self.shade_layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: uniforms.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: wgpu::BindingResource::TextureView(&self.targets.colour_view),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: wgpu::BindingResource::TextureView(&self.targets.normal_view),
-                },
-            ],
-        });
-        (splat, shade)
+        bind_groups(
+            device,
+            &self.splat_layout,
+            &self.shade_layout,
+            &self.targets,
+            &uniforms,
+        )
     }
 
     fn check_view(&self, view: &View) -> Result<(), SplatError> {
@@ -354,6 +391,26 @@ impl SplatRenderer {
         self.encode_visibility(encoder, surfels, &splat);
         self.encode_attributes(encoder, surfels, &splat);
         self.encode_shading(encoder, target, &shade);
+        Ok(())
+    }
+
+    /// [`Self::encode`] with the renderer's own uniform buffer, written through the queue: no
+    /// buffer or bind group is created. The write takes effect at the next submit, so a renderer
+    /// records one view per submission this way (use [`Self::encode`] for several).
+    pub fn encode_queued(
+        &self,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        target: &wgpu::TextureView,
+        surfels: &SurfelBuffer,
+        view: &View,
+    ) -> Result<(), SplatError> {
+        self.check_view(view)?;
+        queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&view.to_raw()));
+        let (splat, shade) = &self.bound;
+        self.encode_visibility(encoder, surfels, splat);
+        self.encode_attributes(encoder, surfels, splat);
+        self.encode_shading(encoder, target, shade);
         Ok(())
     }
 
@@ -450,6 +507,43 @@ impl SplatRenderer {
         pass.set_bind_group(0, bind, &[]);
         pass.draw(0..3, 0..1);
     }
+}
+
+/// The passes' bind groups over `uniforms` and the targets' accumulation views.
+fn bind_groups(
+    device: &wgpu::Device,
+    splat_layout: &wgpu::BindGroupLayout,
+    shade_layout: &wgpu::BindGroupLayout,
+    targets: &Targets,
+    uniforms: &wgpu::Buffer,
+) -> (wgpu::BindGroup, wgpu::BindGroup) {
+    let splat = device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("splat uniforms"),
+        layout: splat_layout,
+        entries: &[wgpu::BindGroupEntry {
+            binding: 0,
+            resource: uniforms.as_entire_binding(),
+        }],
+    });
+    let shade = device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("splat shading"),
+        layout: shade_layout,
+        entries: &[
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: uniforms.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 1,
+                resource: wgpu::BindingResource::TextureView(&targets.colour_view),
+            },
+            wgpu::BindGroupEntry {
+                binding: 2,
+                resource: wgpu::BindingResource::TextureView(&targets.normal_view),
+            },
+        ],
+    });
+    (splat, shade)
 }
 
 fn check_size(device: &wgpu::Device, width: u32, height: u32) -> Result<(), SplatError> {
