@@ -6,7 +6,7 @@
 // reference radius h (`constant` is h's), as the CPU path's `Kernel::weighted_r2` does.
 //
 // The arithmetic is the CPU path's (src/density/cpu.rs): grid point x = origin.x + i * spacing,
-// r^2 = dx^2 + (dy^2 + dz^2); the kernels are in density_kernel.wgsl, prepended.
+// r^2 = dx^2 + (dy^2 + dz^2); the kernels are in common.wgsl, prepended.
 
 struct Params {
     origin: vec3<f32>,

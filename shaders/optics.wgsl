@@ -46,6 +46,8 @@ struct Uniforms {
     env_horizon: vec4<f32>,
     env_zenith: vec4<f32>,
     env_ground: vec4<f32>,
+    // x: receiver triangles met by exact rays (0: the geometry-map search instead)
+    exact: vec4<f32>,
 }
 
 struct Vertex {
@@ -71,15 +73,12 @@ struct Vertex {
 @group(0) @binding(11) var camera_geometry_normal: texture_2d<f32>;
 @group(0) @binding(12) var<storage, read_write> image: array<vec4<f32>>;
 @group(0) @binding(13) var environment: texture_2d<f32>;
+// the receiver's triangles, 3 vertices of (position, normal) each, for exact rays
+@group(0) @binding(14) var<storage, read_write> receiver_tris: array<f32>;
 
 const PI: f32 = 3.14159265358979;
 
-struct Ray {
-    origin: vec3<f32>,
-    dir: vec3<f32>,
-}
-
-// World ray through a pixel position (mirror: View::world_ray).
+// World ray through a pixel position (`Ray` is in common.wgsl) (mirror: View::world_ray).
 fn world_ray(v: ViewU, pixel: vec2<f32>) -> Ray {
     let ndc = vec2<f32>(pixel.x / v.viewport.x * 2.0 - 1.0, 1.0 - pixel.y / v.viewport.y * 2.0);
     var o = vec3<f32>(0.0);
@@ -234,6 +233,60 @@ fn geometry_at(t: texture_2d<f32>, q: vec2<f32>) -> vec4<f32> {
     return texel(t, i32(floor(q.x)), i32(floor(q.y)));
 }
 
+fn receiver_vertex(i: u32) -> vec3<f32> {
+    return vec3<f32>(receiver_tris[6u * i], receiver_tris[6u * i + 1u], receiver_tris[6u * i + 2u]);
+}
+
+// The closest receiver hit of the ray o + t d with t > t_min, against every triangle (mirror:
+// ReceiverGeometry::intersect and intersect_triangle: Möller-Trumbore with a barycentric slack
+// of 1e-6). xyz: the point, w: t (w < 0: none); the normal faces against the ray, in `n_out`.
+struct ExactHit {
+    hit: vec4<f32>,
+    normal: vec3<f32>,
+}
+
+fn intersect_receiver(o: vec3<f32>, d: vec3<f32>, t_min: f32) -> ExactHit {
+    let slack = 1e-6;
+    var best = 3.4e38;
+    var normal = vec3<f32>(0.0);
+    let count = u32(u.exact.x);
+    for (var k = 0u; k < count; k++) {
+        let v0 = receiver_vertex(3u * k);
+        let e1 = receiver_vertex(3u * k + 1u) - v0;
+        let e2 = receiver_vertex(3u * k + 2u) - v0;
+        let p = cross(d, e2);
+        let det = dot(e1, p);
+        if (abs(det) < 1e-20) {
+            continue;
+        }
+        let inv = 1.0 / det;
+        let s = o - v0;
+        let a = dot(s, p) * inv;
+        if (a < -slack || a > 1.0 + slack) {
+            continue;
+        }
+        let q = cross(s, e1);
+        let b = dot(d, q) * inv;
+        if (b < -slack || a + b > 1.0 + slack) {
+            continue;
+        }
+        let t = dot(e2, q) * inv;
+        if (t > t_min && t < best) {
+            best = t;
+            normal = normalize(cross(e1, e2));
+        }
+    }
+    var r: ExactHit;
+    if (best < 3.4e38) {
+        r.hit = vec4<f32>(o + d * best, best);
+        r.normal = select(normal, -normal, dot(normal, d) > 0.0);
+    } else {
+        r.hit = vec4<f32>(0.0, 0.0, 0.0, -1.0);
+        r.normal = vec3<f32>(0.0, 1.0, 0.0);
+    }
+    return r;
+}
+
 // §5.1.2: the refracted ray from s along t meets the receiver: P1 is the receiver point the map
 // shows at s; P1 is projected onto the ray (P2); the receiver point the map shows at P2 is P3;
 // repeated until the point on the ray and the point found are closer than the tolerance
@@ -355,8 +408,21 @@ fn cs_vertices(@builtin(global_invocation_id) id: vec3<u32>) {
             dir = t.xyz;
             transmittance = 1.0 - fresnel_reflectance(cos_i, 1.0, ior);
         }
+        // water the receiver shades from the light (a pool wall between them) receives no light
+        // (mirror: `Stage::light_blocked`, there by an exact ray; here the light's geometry map,
+        // with a bias of two texels)
+        let pm = project(u.map, s);
+        let shade = texel(map_position, i32(floor(pm.x)), i32(floor(pm.y)));
+        if (shade.w > 0.0 && shade.w < pm.z - 2.0 * pixel_size(u.map, pm.z)) {
+            transmittance = 0.0;
+        }
         v.surface = vec4<f32>(s, nd.w);
-        let hit = search_receiver(u.map, map_position, s, dir);
+        var hit: vec4<f32>;
+        if (u.exact.x > 0.0) {
+            hit = intersect_receiver(s, dir, u.env.y).hit;
+        } else {
+            hit = search_receiver(u.map, map_position, s, dir);
+        }
         if (hit.w >= 0.0) {
             v.hit = vec4<f32>(hit.xyz, 1.0);
             v.transmit = vec4<f32>(transmittance * exp(-u.extinction.rgb * hit.w), 0.0);
@@ -499,6 +565,11 @@ fn draw_triangle(a: Vertex, b: Vertex, c: Vertex) {
     if (!(a.hit.w > 0.0 && b.hit.w > 0.0 && c.hit.w > 0.0)) {
         return;
     }
+    // light brought to a receiver point hidden from the light is not kept (mirror: the CPU's
+    // hidden_in_map)
+    if (hidden_in_map(a.hit.xyz) || hidden_in_map(b.hit.xyz) || hidden_in_map(c.hit.xyz)) {
+        return;
+    }
     let transmit = (a.transmit.rgb + b.transmit.rgb + c.transmit.rgb) / 3.0;
     let p0 = project(u.map, a.hit.xyz).xy;
     let p1 = project(u.map, b.hit.xyz).xy;
@@ -546,9 +617,10 @@ fn cs_irradiance(@builtin(global_invocation_id) id: vec3<u32>) {
     irradiance[i] = vec4<f32>(f / area, 1.0);
 }
 
-// Mirror: bilinear (on the irradiance map).
-fn caustics_at(p: vec3<f32>) -> vec3<f32> {
-    let q = project(u.map, p).xy;
+// Mirror: Caustics::irradiance_at (bilinear over the texels that show the same surface).
+fn caustics_at(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    let q3 = project(u.map, p);
+    let q = q3.xy;
     if (!finite2(q)) {
         return vec3<f32>(0.0);
     }
@@ -559,17 +631,33 @@ fn caustics_at(p: vec3<f32>) -> vec3<f32> {
     if (x < -1.0 || y < -1.0 || x > f32(w) || y > f32(h)) {
         return vec3<f32>(0.0);
     }
+    let d = world_ray(u.map, q).dir;
+    let c = abs(dot(n, d) / max(length(d), 1e-20));
+    let slope = min(sqrt(max(1.0 - c * c, 0.0)) / max(c, 0.05), 20.0);
+    let bias = (1.5 + 2.0 * slope) * pixel_size(u.map, q3.z);
     let fx = floor(x);
     let fy = floor(y);
     let tx = x - fx;
     let ty = y - fy;
-    let i = i32(fx);
-    let j = i32(fy);
-    let a = irradiance[clamp(j, 0, h - 1) * w + clamp(i, 0, w - 1)].rgb;
-    let b = irradiance[clamp(j, 0, h - 1) * w + clamp(i + 1, 0, w - 1)].rgb;
-    let c = irradiance[clamp(j + 1, 0, h - 1) * w + clamp(i, 0, w - 1)].rgb;
-    let d = irradiance[clamp(j + 1, 0, h - 1) * w + clamp(i + 1, 0, w - 1)].rgb;
-    return mix(mix(a, b, tx), mix(c, d, tx), ty);
+    var sum = vec3<f32>(0.0);
+    var weight = 0.0;
+    for (var k = 0; k < 4; k++) {
+        let di = k % 2;
+        let dj = k / 2;
+        let wt = select(1.0 - tx, tx, di == 1) * select(1.0 - ty, ty, dj == 1);
+        let ix = clamp(i32(fx) + di, 0, w - 1);
+        let jy = clamp(i32(fy) + dj, 0, h - 1);
+        let g = textureLoad(map_position, vec2<i32>(ix, jy), 0);
+        let gn = textureLoad(map_normal, vec2<i32>(ix, jy), 0).xyz;
+        if (g.w > 0.0 && dot(gn, n) > 0.5 && abs(g.w - q3.z) <= bias) {
+            sum += irradiance[jy * w + ix].rgb * wt;
+            weight += wt;
+        }
+    }
+    if (weight > 0.0) {
+        return sum / weight;
+    }
+    return vec3<f32>(0.0);
 }
 
 // Row-major index of the texel under pixel coordinates q of view v, -1 off the view (mirror:
@@ -579,6 +667,16 @@ fn texel_of(v: ViewU, q: vec3<f32>) -> i32 {
         return -1;
     }
     return i32(q.y) * i32(v.viewport.x) + i32(q.x);
+}
+
+// Mirror: hidden_in_map (a receiver point behind the map's surface by more than three texels).
+fn hidden_in_map(p: vec3<f32>) -> bool {
+    let q = project(u.map, p);
+    if (texel_of(u.map, q) < 0) {
+        return false;
+    }
+    let g = textureLoad(map_position, vec2<i32>(q.xy), 0).w;
+    return g > 0.0 && g < q.z - 3.0 * pixel_size(u.map, q.z);
 }
 
 // Mirror: Caustics::under_water.
@@ -609,11 +707,16 @@ fn shadowed(p: vec3<f32>, n: vec3<f32>) -> bool {
 fn receiver_irradiance(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
     let inc = incoming(p);
     let facing = dot(n, -inc.dir);
+    // the caustics map's texels belong to the surfaces the light sees: none for a point turned
+    // away from the light or shadowed by the receiver
+    if (!(facing > 0.0) || shadowed(p, n)) {
+        return vec3<f32>(0.0);
+    }
     var direct = vec3<f32>(0.0);
-    if (facing > 0.0 && !under_water(p) && !shadowed(p, n)) {
+    if (!under_water(p)) {
         direct = inc.e * facing;
     }
-    return direct + caustics_at(p);
+    return direct + caustics_at(p, n);
 }
 
 fn receiver_radiance(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
@@ -635,17 +738,24 @@ fn water_pixel(p: vec3<f32>, dn: vec3<f32>, n_in: vec3<f32>) -> vec3<f32> {
     var refracted = vec3<f32>(0.0);
     let t = refract_dir(dn, n, 1.0, ior);
     if (t.w > 0.0) {
-        // the camera's geometry map first; where the receiver the ray meets is hidden from the
-        // camera (behind a wall), the light's
-        var hit = search_receiver(u.camera, camera_position, p, t.xyz);
+        // exact rays for a small receiver; otherwise the camera's geometry map first and, where
+        // the receiver the ray meets is hidden from the camera (behind a wall), the light's
+        var hit = vec4<f32>(0.0, 0.0, 0.0, -1.0);
         var gn = vec3<f32>(0.0, 1.0, 0.0);
-        if (hit.w >= 0.0) {
-            let g = project(u.camera, hit.xyz);
-            gn = texel(camera_geometry_normal, i32(floor(g.x)), i32(floor(g.y))).xyz;
+        if (u.exact.x > 0.0) {
+            let e = intersect_receiver(p, t.xyz, u.env.y);
+            hit = e.hit;
+            gn = e.normal;
         } else {
-            hit = search_receiver(u.map, map_position, p, t.xyz);
-            let g = project(u.map, hit.xyz);
-            gn = texel(map_normal, i32(floor(g.x)), i32(floor(g.y))).xyz;
+            hit = search_receiver(u.camera, camera_position, p, t.xyz);
+            if (hit.w >= 0.0) {
+                let g = project(u.camera, hit.xyz);
+                gn = texel(camera_geometry_normal, i32(floor(g.x)), i32(floor(g.y))).xyz;
+            } else {
+                hit = search_receiver(u.map, map_position, p, t.xyz);
+                let g = project(u.map, hit.xyz);
+                gn = texel(map_normal, i32(floor(g.x)), i32(floor(g.y))).xyz;
+            }
         }
         if (hit.w >= 0.0) {
             refracted = receiver_radiance(hit.xyz, gn) * exp(-u.extinction.rgb * hit.w);

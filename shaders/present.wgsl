@@ -17,8 +17,7 @@ struct Present {
 
 @vertex
 fn vs_main(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {
-    let p = vec2<f32>(f32((i << 1u) & 2u), f32(i & 2u));
-    return vec4<f32>(p * 2.0 - 1.0, 0.0, 1.0);
+    return fullscreen_vertex(i);
 }
 
 fn srgb_to_linear(c: vec3<f32>) -> vec3<f32> {

@@ -91,10 +91,7 @@ fn pixels_of(p: vec3<f32>) -> vec3<f32> {
 
 // The view ray through a pixel position, in view space: perspective rays start at the eye and
 // have z = -1; orthographic rays start on the plane z = 0 and run along -z (mirror: `View::ray`).
-struct Ray {
-    origin: vec3<f32>,
-    dir: vec3<f32>,
-}
+// (`Ray` is in common.wgsl.)
 
 fn view_ray(pixel: vec2<f32>) -> Ray {
     let ndc = vec2<f32>(pixel.x / u.viewport.x * 2.0 - 1.0, 1.0 - pixel.y / u.viewport.y * 2.0);
@@ -324,8 +321,7 @@ fn fs_attributes(s: SplatOut) -> Accumulated {
 
 @vertex
 fn vs_fullscreen(@builtin(vertex_index) vertex: u32) -> @builtin(position) vec4<f32> {
-    let xy = vec2<f32>(f32((vertex << 1u) & 2u), f32(vertex & 2u));
-    return vec4<f32>(xy * 2.0 - 1.0, 0.0, 1.0);
+    return fullscreen_vertex(vertex);
 }
 
 // Normalisation and Blinn-Phong shading of one pixel (mirror: `shade` in src/splat/mod.rs).

@@ -63,7 +63,7 @@ fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
             fluid_surfels::optics::gpu::SHADER,
             "Uniforms",
             std::mem::size_of::<RawOptics>(),
-            fields!(RawOptics; screen, map, camera, light_dir, light_pos, light_colour, ambient, water, extinction, albedo, env, env_colour, env_horizon, env_zenith, env_ground),
+            fields!(RawOptics; screen, map, camera, light_dir, light_pos, light_colour, ambient, water, extinction, albedo, env, env_colour, env_horizon, env_zenith, env_ground, exact),
         ),
         (
             "optics.wgsl",
@@ -303,18 +303,14 @@ fn gpu_density_matches_the_cpu_path() {
 
 /// The chain on the GPU (`GpuPipeline`, drawing into a texture as a game would) against the
 /// optics stage's own GPU read-back (the same computation: must agree to the 8-bit rounding) and
-/// against the CPU `Pipeline` (the finished frame of the column's splash frame).
-///
-/// Against the CPU the frame measures 27.0 dB on lavapipe, under the 35 dB the pipeline issue
-/// asks: the difference lies in the water, where the GPU follows the paper's geometry-map search
-/// (§5.1.2) and the CPU traces exact rays. Measured on this frame: the GPU's caustics map holds
-/// 27-30 % less flux than the CPU's (relative L1 0.41); the CPU frame shaded with the GPU's
-/// caustics is 28.9 dB from the CPU's own, and 30.8 dB from the GPU's (the refraction lookups).
-/// Pixels away from the water in the camera's view (32.5 dB) still differ where caustics light
-/// the tank's inside; the outer walls and the background are identical. Both figures are held at
-/// their present level, so that neither can get worse unnoticed.
+/// against the CPU `Pipeline` (the finished frame of the column's splash frame): at least 35 dB,
+/// as the pipeline issue asks. Measured on lavapipe: 63.6 dB (Unorm target; 54.2 dB on an sRGB
+/// target), 69.0 dB on the pixels away from the water. Before the GPU met small receivers with
+/// exact rays it measured 27.0 dB: the paper's geometry-map search (§5.1.2) missed a third of the
+/// refracted rays of this frame (those of the water the walls shade, which the CPU then wrongly
+/// lit) and put 15 % of the hits it found more than 1 cm off.
 #[test]
-fn gpu_pipeline_equals_the_gpu_optics_and_approaches_the_cpu_pipeline() {
+fn gpu_pipeline_equals_the_gpu_optics_and_the_cpu_pipeline() {
     let Some(ctx) = gpu::context_or_skip("gpu_pipeline").unwrap() else {
         return;
     };
@@ -391,7 +387,7 @@ fn gpu_pipeline_equals_the_gpu_optics_and_approaches_the_cpu_pipeline() {
             size.1,
             dry.iter().filter(|d| **d).count()
         );
-        if same < 50.0 || db < 25.0 || dry_db < 30.0 {
+        if same < 50.0 || db < 35.0 || dry_db < 45.0 {
             let dir = std::env::temp_dir();
             cpu_image
                 .save(dir.join("gpu_pipeline-expected.png"))
@@ -405,8 +401,8 @@ fn gpu_pipeline_equals_the_gpu_optics_and_approaches_the_cpu_pipeline() {
             same >= 50.0,
             "{format:?}: {same:.1} dB against the optics read-back"
         );
-        assert!(dry_db >= 30.0, "{format:?}: dry pixels {dry_db:.1} dB");
-        assert!(db >= 25.0, "{format:?}: {db:.1} dB against the CPU");
+        assert!(dry_db >= 45.0, "{format:?}: dry pixels {dry_db:.1} dB");
+        assert!(db >= 35.0, "{format:?}: {db:.1} dB against the CPU");
     }
 }
 

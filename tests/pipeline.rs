@@ -310,6 +310,7 @@ fn pipeline_params_load_from_one_toml_with_the_scene() {
         steps = 2
         [grid]
         cells_per_radius = 2.5
+        resolution = { longest-axis = 64 }
         [light]
         direction = [0.0, 1.0, 0.0]
         [optics]
@@ -320,6 +321,7 @@ fn pipeline_params_load_from_one_toml_with_the_scene() {
     assert_eq!(p.support_radius, Some(0.1));
     assert_eq!(p.refine.steps, 2);
     assert_eq!(p.grid.cells_per_radius, 2.5);
+    assert_eq!(p.grid.resolution, Some(Resolution::LongestAxis(64)));
     assert_eq!(p.scene.light.direction, Vec3::Y);
     assert_eq!(p.scene.optics.image_size, [64, 48]);
     // everything else keeps its default

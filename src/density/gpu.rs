@@ -34,15 +34,15 @@ pub struct RawParams {
 
 const _: () = assert!(std::mem::size_of::<RawParams>() == 64);
 
-/// The WGSL source of the splatting pass (the shared kernels prepended).
+/// The WGSL source of the splatting pass (`common.wgsl` prepended).
 pub const SHADER: &str = concat!(
-    include_str!("../../shaders/density_kernel.wgsl"),
+    include_str!("../../shaders/common.wgsl"),
     include_str!("../../shaders/density_splat.wgsl")
 );
 
-/// The WGSL source of the compute (gather) pass (the shared kernels prepended).
+/// The WGSL source of the compute (gather) pass (`common.wgsl` prepended).
 pub const GATHER_SHADER: &str = concat!(
-    include_str!("../../shaders/density_kernel.wgsl"),
+    include_str!("../../shaders/common.wgsl"),
     include_str!("../../shaders/density_gather.wgsl")
 );
 

@@ -17,7 +17,8 @@ use crate::splat::{Light, Render, Surfel, View, render_view_cpu};
 pub struct CausticVertex {
     /// Water point `s` and its view depth from the light (`w <= 0`: no water at this pixel).
     pub surface: Vec4,
-    /// Receiver point `c` (`w = 1`: the refracted ray met the receiver, `0`: it missed).
+    /// Receiver point `c` (`w = 1`: the refracted ray met the receiver on a side the light sees,
+    /// `2`: on the side facing away from it, `0`: it missed).
     pub hit: Vec4,
     /// `T(theta_i, theta_t) exp(-sigma_t l_c)` per colour channel.
     pub transmit: Vec3,
@@ -50,6 +51,9 @@ pub struct Caustics {
     pub discontinuous: usize,
     /// Water triangles whose refracted rays missed the receiver.
     pub missed: usize,
+    /// Water triangles whose refracted rays reached receiver points hidden from the light (their
+    /// flux is not kept: see `caustics_cpu`).
+    pub hidden: usize,
 }
 
 /// World point and view depth of a screen pixel seen with `depth`.
@@ -191,16 +195,26 @@ pub fn caustics_cpu(stage: &Stage, surfels: &[Surfel]) -> Result<Caustics, Optic
             let (inc, _) = stage.incoming(s);
             let n = unit_or(n_acc, -inc);
             let cos_i = -n.dot(inc);
-            let (dir, transmittance) = match refract(inc, n, 1.0, ior) {
+            let (dir, mut transmittance) = match refract(inc, n, 1.0, ior) {
                 Some(t) if cos_i > 0.0 => (t, 1.0 - fresnel_reflectance(cos_i, 1.0, ior)),
                 _ => (inc, 0.0),
             };
+            // water the receiver shades from the light (behind a pool wall, seen from the
+            // light) receives no light, so it sends none into the water. Found on the column's
+            // splash frame: a third of the water pixels of the light's screen lie in the walls'
+            // shadow, and without this test they lit the floor and the walls' far sides.
+            if stage.light_blocked(s, eps) {
+                transmittance = 0.0;
+            }
             let mut v = CausticVertex {
                 surface: s.extend(depth),
                 ..Default::default()
             };
             if let Some(h) = stage.receiver.intersect(s, dir, eps) {
-                v.hit = h.position.extend(1.0);
+                // w = 2: the ray met the side of a surface that faces away from the light (the
+                // inside of a thin wall); the light's map holds only the side it sees
+                let side = if h.normal.dot(-inc) > 0.0 { 1.0 } else { 2.0 };
+                v.hit = h.position.extend(side);
                 v.transmit = transmittance * (-sigma * h.t).exp();
             }
             v
@@ -237,6 +251,7 @@ pub fn caustics_cpu(stage: &Stage, surfels: &[Surfel]) -> Result<Caustics, Optic
         triangles: 0,
         discontinuous: 0,
         missed: 0,
+        hidden: 0,
     };
     let limit = stage.scene.optics.discontinuity;
     for y in 0..sh.saturating_sub(1) {
@@ -256,6 +271,17 @@ pub fn caustics_cpu(stage: &Stage, surfels: &[Surfel]) -> Result<Caustics, Optic
                     }
                     TriangleFlux::Lit { incident, flux: f } => {
                         out.incident += incident;
+                        // the map's texels belong to the surfaces the light sees: light that a
+                        // refracted ray brings to a receiver point hidden from the light, or to
+                        // the side of a surface facing away from it (the inside of a thin wall),
+                        // cannot be kept in the map without lighting the surface the light sees
+                        // there (the wall's outer face), so it is dropped (GPU: the same)
+                        if v.iter().any(|c| {
+                            c.hit.w > 1.5 || hidden_in_map(&map, &out.geometry, c.hit.truncate())
+                        }) {
+                            out.hidden += 1;
+                            continue;
+                        }
                         out.transmitted += f;
                         out.triangles += 1;
                         let p = v.map(|c| map.project(c.hit.truncate()).truncate());
@@ -346,10 +372,51 @@ impl Caustics {
             .fold(Vec3::ZERO, |a, f| a + Vec3::new(f[0], f[1], f[2]))
     }
 
-    /// Caustics irradiance at a world point, bilinear in the map (`caustics_at` in the WGSL).
+    /// Caustics irradiance at a receiver point `p` of normal `n` (`caustics_at` in the WGSL):
+    /// bilinear over the four map texels around it, each counted only where it shows the same
+    /// surface (a normal within 60 degrees of `n`, a depth within the slope-scaled bias of
+    /// [`Caustics::shadowed`]), the weights renormalised. A plain bilinear sample mixed the
+    /// floor's caustics into the narrow strip of texels of a wall's outer face next to it.
     #[must_use]
-    pub fn irradiance_at(&self, p: Vec3) -> Vec3 {
-        bilinear(&self.irradiance, &self.map, self.map.project(p).truncate())
+    pub fn irradiance_at(&self, p: Vec3, n: Vec3) -> Vec3 {
+        let v = &self.map;
+        let q = v.project(p);
+        if !q.is_finite() {
+            return Vec3::ZERO;
+        }
+        let (w, h) = (v.width as i64, v.height as i64);
+        let (x, y) = (q.x - 0.5, q.y - 0.5);
+        if x < -1.0 || y < -1.0 || x > w as f32 || y > h as f32 {
+            return Vec3::ZERO;
+        }
+        let (_, d) = v.world_ray(Vec2::new(q.x, q.y));
+        let c = (n.dot(d) / d.length().max(1e-20)).abs();
+        let slope = ((1.0 - c * c).max(0.0).sqrt() / c.max(0.05)).min(20.0);
+        let bias = (1.5 + 2.0 * slope) * pixel_size(v, q.z);
+        let (fx, fy) = (x.floor(), y.floor());
+        let (tx, ty) = (x - fx, y - fy);
+        let (mut sum, mut weight) = (Vec3::ZERO, 0.0);
+        for (di, dj, wt) in [
+            (0, 0, (1.0 - tx) * (1.0 - ty)),
+            (1, 0, tx * (1.0 - ty)),
+            (0, 1, (1.0 - tx) * ty),
+            (1, 1, tx * ty),
+        ] {
+            let k =
+                ((fy as i64 + dj).clamp(0, h - 1) * w + (fx as i64 + di).clamp(0, w - 1)) as usize;
+            let g = self.geometry[k];
+            let gn = Vec3::new(self.normals[k][0], self.normals[k][1], self.normals[k][2]);
+            if g[3] > 0.0 && gn.dot(n) > 0.5 && (g[3] - q.z).abs() <= bias {
+                let e = self.irradiance[k];
+                sum += Vec3::new(e[0], e[1], e[2]) * wt;
+                weight += wt;
+            }
+        }
+        if weight > 0.0 {
+            sum / weight
+        } else {
+            Vec3::ZERO
+        }
     }
 
     /// Whether the light reaches `p` through the water (`under_water` in the WGSL): the screen
@@ -410,28 +477,13 @@ fn texel_of(v: &View, p: Vec3) -> Option<(usize, Vec3)> {
     Some(((q.y as u32 * v.width + q.x as u32) as usize, q))
 }
 
-/// Bilinear sample of an RGB map at pixel coordinates (texel centres at `i + 0.5`), clamped to the
-/// edge. `bilinear` in the WGSL.
-pub(crate) fn bilinear(map: &[[f32; 4]], v: &View, q: Vec2) -> Vec3 {
-    if !q.is_finite() {
-        return Vec3::ZERO;
-    }
-    let (w, h) = (v.width as i64, v.height as i64);
-    let x = q.x - 0.5;
-    let y = q.y - 0.5;
-    if x < -1.0 || y < -1.0 || x > w as f32 || y > h as f32 {
-        return Vec3::ZERO;
-    }
-    let (fx, fy) = (x.floor(), y.floor());
-    let (tx, ty) = (x - fx, y - fy);
-    let at = |i: i64, j: i64| {
-        let t = map[(j.clamp(0, h - 1) * w + i.clamp(0, w - 1)) as usize];
-        Vec3::new(t[0], t[1], t[2])
-    };
-    let (i, j) = (fx as i64, fy as i64);
-    let top = at(i, j).lerp(at(i + 1, j), tx);
-    let bottom = at(i, j + 1).lerp(at(i + 1, j + 1), tx);
-    top.lerp(bottom, ty)
+/// Whether a receiver point lies behind the surface the light's geometry map sees at its texel
+/// (by more than three texels), i.e. is hidden from the light.
+fn hidden_in_map(map: &View, geometry: &[[f32; 4]], p: Vec3) -> bool {
+    texel_of(map, p).is_some_and(|(i, q)| {
+        let g = geometry[i][3];
+        g > 0.0 && g < q.z - 3.0 * pixel_size(map, q.z)
+    })
 }
 
 /// Irradiance arriving at the receiver point `p` (normal `n`, either side): direct light where
@@ -441,12 +493,18 @@ pub(crate) fn bilinear(map: &[[f32; 4]], v: &View, q: Vec2) -> Vec3 {
 pub fn receiver_irradiance(stage: &Stage, c: &Caustics, p: Vec3, n: Vec3) -> Vec3 {
     let (inc, e) = stage.incoming(p);
     let facing = n.dot(-inc);
-    let direct = if facing > 0.0 && !c.under_water(p) && !c.shadowed(p, n) {
-        e * facing
-    } else {
+    // the caustics map is the light's view: its texels belong to the surfaces the light sees,
+    // so a point turned away from the light or shadowed by the receiver reads none of it (it
+    // lit the outer faces of the pool's walls with the caustics of the floor behind them)
+    if !(facing > 0.0) || c.shadowed(p, n) {
+        return Vec3::ZERO;
+    }
+    let direct = if c.under_water(p) {
         Vec3::ZERO
+    } else {
+        e * facing
     };
-    direct + c.irradiance_at(p)
+    direct + c.irradiance_at(p, n)
 }
 
 /// Radiance of the receiver at `p` seen along `view_dir` (eq. 3's `f_r E + L_a`).

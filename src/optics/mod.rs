@@ -60,7 +60,7 @@ use serde::{Deserialize, Serialize};
 use crate::gpu::GpuError;
 use crate::splat::{Camera, SplatError, SplatParams, Surfel, View};
 
-pub use cpu::{Caustics, FrameImage, caustics_cpu, frame_cpu};
+pub use cpu::{Caustics, FrameImage, caustics_cpu, frame_cpu, receiver_irradiance};
 pub use receiver::{Receiver, ReceiverGeometry, ReceiverKind};
 
 /// Errors of the optics stage.
@@ -554,6 +554,20 @@ impl Stage {
                 let r2 = d.length_squared().max(1e-12);
                 (d / r2.sqrt(), l.colour / r2)
             }
+        }
+    }
+
+    /// Whether the receiver lies between `p` and the light: an opaque wall shading a water point,
+    /// which then receives no light to refract (exact, by a ray towards the light).
+    #[must_use]
+    pub fn light_blocked(&self, p: Vec3, eps: f32) -> bool {
+        let (dir, _) = self.incoming(p);
+        match self.receiver.intersect(p, -dir, eps) {
+            None => false,
+            Some(h) => match self.scene.light.kind {
+                LightKind::Directional => true,
+                LightKind::Point => h.t < (self.scene.light.position - p).length(),
+            },
         }
     }
 

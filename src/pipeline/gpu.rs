@@ -19,7 +19,10 @@ use crate::optics::gpu::{OpticsGpu, PreparedOptics};
 use crate::{Error, ParticleSet};
 
 /// The WGSL of the presenting pass.
-pub const PRESENT_SHADER: &str = include_str!("../../shaders/present.wgsl");
+pub const PRESENT_SHADER: &str = concat!(
+    include_str!("../../shaders/common.wgsl"),
+    include_str!("../../shaders/present.wgsl")
+);
 
 /// The presenting pass's `Present` uniform (16 bytes, checked against the WGSL in a test).
 #[repr(C)]

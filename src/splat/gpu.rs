@@ -18,7 +18,10 @@ use crate::gpu::{self, GpuContext, GpuError, REQUIRED_FEATURES, entry, texture_2
 use crate::splat::{Camera, Light, Render, SplatError, SplatParams, Surfel, View};
 
 /// The WGSL source of the three passes.
-pub const SHADER: &str = include_str!("../../shaders/surfel_splat.wgsl");
+pub const SHADER: &str = concat!(
+    include_str!("../../shaders/common.wgsl"),
+    include_str!("../../shaders/surfel_splat.wgsl")
+);
 
 const ACCUMULATION: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
 const DEPTH: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;

@@ -1,5 +1,7 @@
-// The density kernels shared by the density passes (prepended to density_splat.wgsl and
-// density_gather.wgsl). The arithmetic is the CPU path's (`Kernel::weighted_r2` in
+// WGSL the passes share, prepended at load to every pass's file (the `concat!` beside each
+// pass's Rust twin): the density kernels, the ray type, the full-screen triangle.
+
+// The density kernels of the density passes (density_splat.wgsl, density_gather.wgsl). The arithmetic is the CPU path's (`Kernel::weighted_r2` in
 // src/density/mod.rs): Wyvill's kernel as a polynomial in a^2 = r^2 / h^2, the cubic spline in
 // q = 2 r / h, for the point's own radius h, times the reference radius's constant.
 // kernel 0: Wyvill, 1: cubic spline; constant: 2835 / (736 pi h_ref^3) or 8 / (pi h_ref^3).
@@ -18,4 +20,16 @@ fn density_kernel_r2(r2: f32, h: f32, constant: f32, kernel: u32) -> f32 {
     }
     let t = 2.0 - q;
     return constant * 0.25 * t * t * t;
+}
+
+// A ray: origin and direction (view space in the splat passes, world space in the optics).
+struct Ray {
+    origin: vec3<f32>,
+    dir: vec3<f32>,
+}
+
+// The clip-space position of vertex 0, 1 or 2 of a triangle that covers the whole screen.
+fn fullscreen_vertex(vertex: u32) -> vec4<f32> {
+    let xy = vec2<f32>(f32((vertex << 1u) & 2u), f32(vertex & 2u));
+    return vec4<f32>(xy * 2.0 - 1.0, 0.0, 1.0);
 }
