@@ -148,7 +148,7 @@ pub struct BenchIoArgs {
     #[arg(long, default_value_t = 3)]
     pub repeat: usize,
     /// Formats to measure (default: all).
-    #[arg(long, value_enum, value_delimiter = ',')]
+    #[arg(long, value_parser = super::format_parser(), value_delimiter = ',')]
     pub formats: Vec<Format>,
     /// Print one JSON object instead of text.
     #[arg(long)]

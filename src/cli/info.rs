@@ -21,7 +21,7 @@ pub struct InfoArgs {
     #[arg(long, default_value_t = 1)]
     pub jobs: usize,
     /// Its format (default: from the extension).
-    #[arg(long, value_enum)]
+    #[arg(long, value_parser = super::format_parser())]
     pub format: Option<Format>,
     /// Print one JSON object instead of text.
     #[arg(long)]

@@ -24,6 +24,28 @@ use fluid_surfels::io;
 use fluid_surfels::surface::{ParticleClass, Surface};
 use fluid_surfels::{Error, ParticleSet};
 
+/// `--scene NAME`: the library's scene names, parsed here (the library knows no clap).
+pub fn scene_parser() -> impl clap::builder::TypedValueParser<Value = SceneName> {
+    use clap::builder::TypedValueParser;
+    clap::builder::PossibleValuesParser::new(SceneName::ALL.map(SceneName::as_str)).map(|s| {
+        *SceneName::ALL
+            .iter()
+            .find(|n| n.as_str() == s)
+            .expect("one of the possible values")
+    })
+}
+
+/// `--format NAME`: the library's format names, parsed here.
+pub fn format_parser() -> impl clap::builder::TypedValueParser<Value = Format> {
+    use clap::builder::TypedValueParser;
+    clap::builder::PossibleValuesParser::new(Format::ALL.map(Format::name)).map(|s| {
+        *Format::ALL
+            .iter()
+            .find(|f| f.name() == s)
+            .expect("one of the possible values")
+    })
+}
+
 /// Where a stage's particles come from (shared by `detect` and `refine`).
 #[derive(clap::Args)]
 #[command(group = clap::ArgGroup::new("source").required(true).args(["input", "scene"]))]
@@ -33,10 +55,10 @@ pub struct SourceArgs {
     #[arg(long)]
     pub input: Option<String>,
     /// Built-in scene.
-    #[arg(long, value_enum)]
+    #[arg(long, value_parser = scene_parser())]
     pub scene: Option<SceneName>,
     /// Format of --input (default: from its extension).
-    #[arg(long, value_enum)]
+    #[arg(long, value_parser = format_parser())]
     pub format: Option<Format>,
     /// Support radius (default: the scene's, or twice the particle spacing estimated from the
     /// file, or from the first frame of a sequence).

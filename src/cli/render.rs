@@ -26,14 +26,14 @@ pub struct RenderArgs {
     #[arg(long)]
     pub input: Option<PathBuf>,
     /// Built-in scene (particles).
-    #[arg(long, value_enum)]
+    #[arg(long, value_parser = super::scene_parser())]
     pub scene: Option<SceneName>,
     /// A file of surfels to render as they are: positions, normals (nx ny nz), a `radius`
     /// attribute, optional colours (red green blue).
     #[arg(long)]
     pub surfels: Option<PathBuf>,
     /// Format of --input or --surfels (default: from the extension).
-    #[arg(long, value_enum)]
+    #[arg(long, value_parser = super::format_parser())]
     pub format: Option<Format>,
     /// Frame of the `column` scene (default: the splash).
     #[arg(long)]

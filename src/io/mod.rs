@@ -150,7 +150,7 @@ impl IoError {
 }
 
 /// Particle file formats.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Format {
     /// PLY, ASCII or binary (the header says which).

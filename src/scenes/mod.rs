@@ -326,7 +326,7 @@ pub fn lattice_sphere(params: &SphereParams) -> Result<Scene, SceneError> {
 }
 
 /// Names of the built-in scenes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum SceneName {
     /// Jittered block of 21,952 particles.
@@ -338,6 +338,9 @@ pub enum SceneName {
 }
 
 impl SceneName {
+    /// Every built-in scene.
+    pub const ALL: [SceneName; 3] = [Self::Block, Self::Sphere, Self::Column];
+
     /// The scene's name as the CLI spells it.
     #[must_use]
     pub fn as_str(self) -> &'static str {
