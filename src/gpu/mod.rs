@@ -31,6 +31,12 @@ pub enum GpuError {
     /// Reading results back failed.
     #[error("GPU readback failed: {0}")]
     Readback(String),
+    /// The splatting's inputs (the GPU twin checks them as the CPU path does).
+    #[error(transparent)]
+    Splat(#[from] crate::splat::SplatError),
+    /// The optics stage's inputs.
+    #[error(transparent)]
+    Optics(#[from] crate::optics::OpticsError),
 }
 
 /// What adapter runs the GPU stages.

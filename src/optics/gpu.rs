@@ -285,7 +285,7 @@ impl OpticsGpu {
         stage: &Stage,
         surfels: &[Surfel],
         size: Option<(u32, u32)>,
-    ) -> Result<PreparedOptics, OpticsError> {
+    ) -> Result<PreparedOptics, GpuError> {
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let limit = device.limits().max_texture_dimension_2d;
         let screen = stage.views.screen;
@@ -300,7 +300,8 @@ impl OpticsGpu {
                 return Err(OpticsError::InvalidParameter {
                     name: "resolution",
                     reason: format!("{w}x{h} exceeds this device's limit of {limit}"),
-                });
+                }
+                .into());
             }
         }
         let camera = View::new(
@@ -451,7 +452,7 @@ impl OpticsGpu {
             ],
         });
         if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Validation(e.to_string()).into());
+            return Err(GpuError::Validation(e.to_string()));
         }
         Ok(PreparedOptics {
             screen,
@@ -565,7 +566,7 @@ impl PreparedOptics {
         queue: &wgpu::Queue,
         stage: &Stage,
         surfels: &[Surfel],
-    ) -> Result<bool, OpticsError> {
+    ) -> Result<bool, GpuError> {
         let (screen, map) = (stage.views.screen, stage.views.map);
         let Some((fw, fh)) = self.frame_size else {
             return Ok(false);
@@ -664,7 +665,7 @@ impl PreparedOptics {
         queue: &wgpu::Queue,
         optics: &OpticsGpu,
         encoder: &mut wgpu::CommandEncoder,
-    ) -> Result<(), OpticsError> {
+    ) -> Result<(), GpuError> {
         self.light_splat.encode_queued(
             queue,
             encoder,
@@ -689,7 +690,7 @@ impl PreparedOptics {
         queue: &wgpu::Queue,
         optics: &OpticsGpu,
         encoder: &mut wgpu::CommandEncoder,
-    ) -> Result<(), OpticsError> {
+    ) -> Result<(), GpuError> {
         let Some(size) = self.frame_size else {
             return Ok(());
         };
@@ -713,7 +714,7 @@ impl PreparedOptics {
     }
 
     /// Copies the caustics map and the image back.
-    pub fn read(&self, ctx: &GpuContext) -> Result<GpuOpticsResult, OpticsError> {
+    pub fn read(&self, ctx: &GpuContext) -> Result<GpuOpticsResult, GpuError> {
         let flux: Vec<[f32; 4]> = read_buffer(ctx, &self.flux)?;
         let irradiance: Vec<[f32; 4]> = read_buffer(ctx, &self.irradiance)?;
         let texels = (self.map.width * self.map.height) as usize;
@@ -765,7 +766,7 @@ pub fn render_gpu(
     stage: &Stage,
     surfels: &[Surfel],
     size: Option<(u32, u32)>,
-) -> Result<(GpuOpticsResult, OpticsTimes), OpticsError> {
+) -> Result<(GpuOpticsResult, OpticsTimes), GpuError> {
     let optics = OpticsGpu::new(&ctx.device)?;
     let prepared = optics.prepare(&ctx.device, &ctx.queue, stage, surfels, size)?;
     let times = run_timed(ctx, &optics, &prepared)?;
@@ -777,10 +778,10 @@ pub fn run_timed(
     ctx: &GpuContext,
     optics: &OpticsGpu,
     prepared: &PreparedOptics,
-) -> Result<OpticsTimes, OpticsError> {
+) -> Result<OpticsTimes, GpuError> {
     let device = &ctx.device;
     let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-    let run = |frame: bool| -> Result<f64, OpticsError> {
+    let run = |frame: bool| -> Result<f64, GpuError> {
         let mut encoder = device.create_command_encoder(&Default::default());
         if frame {
             prepared.encode_frame(&ctx.queue, optics, &mut encoder)?;
@@ -799,7 +800,7 @@ pub fn run_timed(
         frame_ms: run(true)?,
     };
     if let Some(e) = pollster::block_on(scope.pop()) {
-        return Err(GpuError::Validation(e.to_string()).into());
+        return Err(GpuError::Validation(e.to_string()));
     }
     Ok(times)
 }

@@ -57,14 +57,13 @@ use std::path::PathBuf;
 use glam::{Vec2, Vec3};
 use serde::{Deserialize, Serialize};
 
-use crate::gpu::GpuError;
 use crate::splat::{Camera, SplatError, SplatParams, Surfel, View};
 
 pub use cpu::{Caustics, FrameImage, caustics_cpu, frame_cpu, receiver_irradiance};
 pub use receiver::{Receiver, ReceiverGeometry, ReceiverKind};
 
 /// Errors of the optics stage.
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[non_exhaustive]
 pub enum OpticsError {
     /// A parameter outside its range.
@@ -76,9 +75,6 @@ pub enum OpticsError {
     /// The splatting of the water surface.
     #[error(transparent)]
     Splat(#[from] SplatError),
-    /// The GPU path.
-    #[error(transparent)]
-    Gpu(#[from] GpuError),
 }
 
 fn invalid(name: &'static str, reason: impl Into<String>) -> OpticsError {

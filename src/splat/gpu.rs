@@ -140,14 +140,13 @@ impl SplatRenderer {
         format: wgpu::TextureFormat,
         width: u32,
         height: u32,
-    ) -> Result<Self, SplatError> {
+    ) -> Result<Self, GpuError> {
         check_size(device, width, height)?;
         if !device.features().contains(REQUIRED_FEATURES) {
             return Err(GpuError::MissingFeature {
                 adapter: "the given device".into(),
                 feature: "FLOAT32_BLENDABLE (additive blending into 32-bit float targets)",
-            }
-            .into());
+            });
         }
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -267,7 +266,7 @@ impl SplatRenderer {
         });
         let bound = bind_groups(device, &splat_layout, &shade_layout, &targets, &uniforms);
         if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Validation(e.to_string()).into());
+            return Err(GpuError::Validation(e.to_string()));
         }
         Ok(Self {
             format,
@@ -300,7 +299,7 @@ impl SplatRenderer {
         device: &wgpu::Device,
         width: u32,
         height: u32,
-    ) -> Result<(), SplatError> {
+    ) -> Result<(), GpuError> {
         check_size(device, width, height)?;
         if (width, height) != self.size() {
             self.targets = create_targets(device, width, height);
@@ -366,7 +365,7 @@ impl SplatRenderer {
         )
     }
 
-    fn check_view(&self, view: &View) -> Result<(), SplatError> {
+    fn check_view(&self, view: &View) -> Result<(), GpuError> {
         if (view.width, view.height) != self.size() {
             return Err(SplatError::InvalidParameter {
                 name: "view",
@@ -374,7 +373,8 @@ impl SplatRenderer {
                     "a {}x{} view for a renderer of {}x{}; call resize first",
                     view.width, view.height, self.targets.width, self.targets.height
                 ),
-            });
+            }
+            .into());
         }
         Ok(())
     }
@@ -388,7 +388,7 @@ impl SplatRenderer {
         target: &wgpu::TextureView,
         surfels: &SurfelBuffer,
         view: &View,
-    ) -> Result<(), SplatError> {
+    ) -> Result<(), GpuError> {
         self.check_view(view)?;
         let (splat, shade) = self.bind_groups(device, view);
         self.encode_visibility(encoder, surfels, &splat);
@@ -407,7 +407,7 @@ impl SplatRenderer {
         target: &wgpu::TextureView,
         surfels: &SurfelBuffer,
         view: &View,
-    ) -> Result<(), SplatError> {
+    ) -> Result<(), GpuError> {
         self.check_view(view)?;
         queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&view.to_raw()));
         let (splat, shade) = &self.bound;
@@ -549,13 +549,13 @@ fn bind_groups(
     (splat, shade)
 }
 
-fn check_size(device: &wgpu::Device, width: u32, height: u32) -> Result<(), SplatError> {
+fn check_size(device: &wgpu::Device, width: u32, height: u32) -> Result<(), GpuError> {
     let max = device
         .limits()
         .max_texture_dimension_2d
         .min(crate::splat::MAX_SIZE);
     if width == 0 || height == 0 || width > max || height > max {
-        return Err(SplatError::InvalidSize { width, height, max });
+        return Err(SplatError::InvalidSize { width, height, max }.into());
     }
     Ok(())
 }
@@ -569,7 +569,7 @@ pub fn render_gpu(
     params: &SplatParams,
     width: u32,
     height: u32,
-) -> Result<Render, SplatError> {
+) -> Result<Render, GpuError> {
     let view = View::new(camera, light, params, width, height)?;
     let renderer = SplatRenderer::new(&ctx.device, wgpu::TextureFormat::Rgba8Unorm, width, height)?;
     let buffer = SplatRenderer::upload(&ctx.device, surfels);
@@ -583,7 +583,7 @@ pub fn render_timed(
     renderer: &SplatRenderer,
     surfels: &SurfelBuffer,
     view: &View,
-) -> Result<(Render, PassTimes), SplatError> {
+) -> Result<(Render, PassTimes), GpuError> {
     renderer.check_view(view)?;
     let device = &ctx.device;
     let (width, height) = renderer.size();
@@ -615,7 +615,7 @@ pub fn render_timed(
     let colour = gpu::read_texture(ctx, &renderer.targets.colour, 16)?;
     let normal = gpu::read_texture(ctx, &renderer.targets.normal, 16)?;
     if let Some(e) = pollster::block_on(scope.pop()) {
-        return Err(GpuError::Validation(e.to_string()).into());
+        return Err(GpuError::Validation(e.to_string()));
     }
     let render = Render {
         width,

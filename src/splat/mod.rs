@@ -28,8 +28,6 @@ use image::RgbaImage;
 
 use serde::{Deserialize, Serialize};
 
-use crate::gpu::GpuError;
-
 pub mod cpu;
 pub mod gpu;
 
@@ -45,9 +43,6 @@ pub enum SplatError {
     /// The image size is zero or too large.
     #[error("image size {width}x{height} must be between 1 and {max} on each side")]
     InvalidSize { width: u32, height: u32, max: u32 },
-    /// The GPU path failed.
-    #[error(transparent)]
-    Gpu(#[from] GpuError),
 }
 
 /// What the splats are drawn as.
