@@ -20,8 +20,7 @@ use fluid_surfels::gpu::{GpuContext, REQUIRED_FEATURES};
 use fluid_surfels::pipeline::{Frame, GpuPipeline, PipelineParams, SurfelSource, Through};
 use fluid_surfels::scenes::{ColumnParams, ColumnSim, column_pool};
 use fluid_surfels::sequence::FramePattern;
-use fluid_surfels::splat::gpu::SplatRenderer;
-use fluid_surfels::splat::{Camera, Light, SplatParams, View};
+use fluid_surfels::splat::Camera;
 use fluid_surfels::{ParticleSet, io};
 use glam::Vec3;
 use winit::application::ApplicationHandler;
@@ -186,7 +185,6 @@ struct Viewer {
     device: wgpu::Device,
     queue: wgpu::Queue,
     gpu: GpuPipeline,
-    splats: SplatRenderer,
     source: Source,
     frame: Option<Frame>,
     orbit: Option<Orbit>,
@@ -204,12 +202,10 @@ impl Viewer {
         show_splats: bool,
     ) -> Result<Self> {
         let gpu = GpuPipeline::new(&device, &queue, format, size, &source.params())?;
-        let splats = SplatRenderer::new(&device, format, size.0, size.1)?;
         Ok(Self {
             device,
             queue,
             gpu,
-            splats,
             source,
             frame: None,
             orbit: None,
@@ -267,11 +263,8 @@ impl Viewer {
             return Ok(());
         };
         if self.show_splats {
-            let (w, h) = self.gpu.size();
-            let view = View::new(&camera, &Light::default(), &SplatParams::default(), w, h)?;
-            let surfels = SplatRenderer::upload(&self.device, &frame.render_surfels);
-            self.splats
-                .encode(&self.device, encoder, target, &surfels, &view)?;
+            self.gpu
+                .encode_splats(&self.device, &self.queue, encoder, frame, target)?;
             return Ok(());
         }
         self.gpu
@@ -294,8 +287,7 @@ impl Viewer {
     }
 
     fn resize(&mut self, w: u32, h: u32) -> Result<()> {
-        self.gpu.resize(w, h)?;
-        self.splats.resize(&self.device, w, h)?;
+        self.gpu.resize(&self.device, w, h)?;
         Ok(())
     }
 

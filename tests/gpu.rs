@@ -404,6 +404,30 @@ fn gpu_pipeline_equals_the_gpu_optics_and_the_cpu_pipeline() {
         assert!(dry_db >= 45.0, "{format:?}: dry pixels {dry_db:.1} dB");
         assert!(db >= 35.0, "{format:?}: {db:.1} dB against the CPU");
     }
+    // the other picture: the shaded splats, from the same kept camera
+    let cpu_splats = cpu
+        .frame_of_surfels(frame.render_surfels.clone(), Through::Splats)
+        .unwrap();
+    let cpu_splats = &cpu_splats.splats.as_ref().unwrap().image;
+    let format = wgpu::TextureFormat::Rgba8Unorm;
+    let mut gpu = GpuPipeline::new(&ctx.device, &ctx.queue, format, size, &params).unwrap();
+    let _ = gpu.render_frame_image(&ctx, &frame).unwrap();
+    let target = gpu::texture_2d(
+        &ctx.device,
+        "splats",
+        size,
+        format,
+        wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+    );
+    let view = target.create_view(&Default::default());
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    gpu.encode_splats(&ctx.device, &ctx.queue, &mut encoder, &frame, &view)
+        .unwrap();
+    ctx.queue.submit([encoder.finish()]);
+    let splats = gpu::read_rgba8(&ctx, &target).unwrap();
+    let db = splat::psnr(cpu_splats, &splats);
+    println!("GpuPipeline shaded splats against the CPU Pipeline's: {db:.1} dB");
+    assert!(db >= 35.0, "shaded splats: {db:.1} dB");
 }
 
 /// In a sequence `GpuPipeline` reuses its GPU resources (nothing created after the first frame:

@@ -16,6 +16,8 @@ use super::{Frame, Pipeline, PipelineParams, Through};
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::optics::Stage;
 use crate::optics::gpu::{OpticsGpu, PreparedOptics};
+use crate::splat::gpu::{SplatRenderer, SurfelBuffer};
+use crate::view::{Light, View};
 use crate::{Error, ParticleSet};
 
 /// The WGSL of the presenting pass.
@@ -48,6 +50,9 @@ pub struct GpuPipeline {
     prepared: Option<(PreparedOptics, wgpu::BindGroup)>,
     /// Whether the last `prepare` reused the previous frame's GPU resources.
     reused: bool,
+    /// The shaded splats' renderer (for the caller's format and size) and surfel buffer.
+    splats: SplatRenderer,
+    splat_surfels: SurfelBuffer,
 }
 
 impl GpuPipeline {
@@ -123,10 +128,14 @@ impl GpuPipeline {
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
+        let splats = SplatRenderer::new(device, format, size.0, size.1)?;
+        let splat_surfels = SplatRenderer::upload(device, &[]);
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Validation(e.to_string()).into());
         }
         Ok(Self {
+            splats,
+            splat_surfels,
             cpu,
             optics,
             format,
@@ -172,8 +181,11 @@ impl GpuPipeline {
     }
 
     /// Follows a new target size (from the next `prepare` on).
-    pub fn resize(&mut self, width: u32, height: u32) -> Result<(), Error> {
+    pub fn resize(&mut self, device: &wgpu::Device, width: u32, height: u32) -> Result<(), Error> {
         check_size((width, height))?;
+        self.splats
+            .resize(device, width, height)
+            .map_err(GpuError::from)?;
         self.size = (width, height);
         self.cpu.params.scene.optics.image_size = [width, height];
         Ok(())
@@ -252,6 +264,29 @@ impl GpuPipeline {
                 _pad: 0,
             }),
         );
+        Ok(())
+    }
+
+    /// Records the shaded EWA splats of `frame`'s surfels (Blinn-Phong, no optics) into `target`,
+    /// a view of a texture of the pipeline's format and size: the other picture `GpuPipeline`
+    /// draws, the GPU twin of [`super::Through::Splats`]. Seen from the sequence's kept camera
+    /// (or the scene's, or one framing the surfels, as the CPU pipeline does). Creates nothing in
+    /// the steady state: the surfels go into a growing buffer through the queue.
+    pub fn encode_splats(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        frame: &Frame,
+        target: &wgpu::TextureView,
+    ) -> Result<(), Error> {
+        let camera = self.cpu.splat_camera(&frame.render_surfels);
+        let (w, h) = self.size;
+        let view = View::new(&camera, &Light::default(), &self.cpu.params.splat, w, h)?;
+        self.splat_surfels
+            .write(device, queue, &frame.render_surfels);
+        self.splats
+            .encode_queued(queue, encoder, target, &self.splat_surfels, &view)?;
         Ok(())
     }
 

@@ -570,20 +570,10 @@ impl Pipeline {
                 linear: f.linear,
             });
         }
-        let camera = match (&self.views, frame.camera) {
-            (_, Some(c)) => c,
-            (Some(v), None) if self.params.keep_views => v.camera,
-            _ => self.params.scene.camera.unwrap_or_else(|| {
-                let (lo, hi) = splat::bounds(surfels).unwrap_or((Vec3::ZERO, Vec3::ONE));
-                Camera::framing(lo, hi)
-            }),
+        let camera = match frame.camera {
+            Some(c) => c,
+            None => self.splat_camera(surfels),
         };
-        if self.views.is_none() && self.params.keep_views {
-            self.views = Some(Views {
-                camera,
-                optics: None,
-            });
-        }
         frame.camera = Some(camera);
         if through != Through::Splats {
             return Ok(());
@@ -599,6 +589,25 @@ impl Pipeline {
         )?);
         frame.timings.splats_ms = ms(t);
         Ok(())
+    }
+
+    /// The camera of the shaded splats: the sequence's kept camera, else the scene's, else one
+    /// framing the surfels (then kept, with `keep_views`).
+    pub(crate) fn splat_camera(&mut self, surfels: &[Surfel]) -> Camera {
+        let camera = match &self.views {
+            Some(v) if self.params.keep_views => v.camera,
+            _ => self.params.scene.camera.unwrap_or_else(|| {
+                let (lo, hi) = splat::bounds(surfels).unwrap_or((Vec3::ZERO, Vec3::ONE));
+                Camera::framing(lo, hi)
+            }),
+        };
+        if self.views.is_none() && self.params.keep_views {
+            self.views = Some(Views {
+                camera,
+                optics: None,
+            });
+        }
+        camera
     }
 
     /// The optics scene of this frame: the first rendered frame fits the camera, the pool and
