@@ -183,9 +183,7 @@ impl GpuPipeline {
     /// Follows a new target size (from the next `prepare` on).
     pub fn resize(&mut self, device: &wgpu::Device, width: u32, height: u32) -> Result<(), Error> {
         check_size((width, height))?;
-        self.splats
-            .resize(device, width, height)
-            .map_err(GpuError::from)?;
+        self.splats.resize(device, width, height)?;
         self.size = (width, height);
         self.cpu.params.scene.optics.image_size = [width, height];
         Ok(())
