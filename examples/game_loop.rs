@@ -200,6 +200,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 "psnr_against_cpu_db": psnr(cpu_image, &image),
             }));
         }
+        gpu.cpu_mut().recycle(frame);
         sim.step_frame();
     }
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;

@@ -372,3 +372,22 @@ fn degenerate_frames_and_the_memory_budget() {
     assert!(f.warnings[0].contains("memory budget"), "{}", f.warnings[0]);
     assert!(!f.surfels.unwrap().is_empty());
 }
+
+/// A sequence that recycles its frames fills the same density grid buffer every frame.
+#[test]
+fn recycled_frames_reuse_the_grid_buffer() {
+    let (a, _, h) = block_and_drop();
+    let mut p = Pipeline::new(PipelineParams {
+        support_radius: Some(h),
+        ..Default::default()
+    })
+    .unwrap();
+    let first = p.frame_through(&a, Through::Surfels).unwrap();
+    let grid = first.grid.as_ref().unwrap();
+    let (pointer, values) = (grid.values.as_ptr(), grid.values.clone());
+    p.recycle(first);
+    let second = p.frame_through(&a, Through::Surfels).unwrap();
+    let grid = second.grid.as_ref().unwrap();
+    assert_eq!(grid.values.as_ptr(), pointer, "a new buffer was allocated");
+    assert_eq!(grid.values, values, "the recycled buffer changed the grid");
+}

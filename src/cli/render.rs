@@ -531,7 +531,9 @@ fn finished_frame(
                 frame_ms: t.image_ms,
                 warnings: f.warnings.clone(),
             };
-            Ok((source, fin.image.clone(), report))
+            let image = fin.image.clone();
+            pipeline.recycle(f);
+            Ok((source, image, report))
         }
         Some((ctx, gpu)) => {
             let (source, _, f) = frames.frame(pipeline, args, frame, Through::Surfels)?;

@@ -155,9 +155,22 @@ pub fn points_grid(
     kernel: Kernel,
     memory_limit: u64,
 ) -> Result<DensityGrid, DensityError> {
+    points_grid_in(points, spec, kernel, memory_limit, Vec::new())
+}
+
+/// [`points_grid`] into a buffer that earlier frames allocated (a sequence's workspace): its
+/// capacity is reused, its contents replaced.
+pub fn points_grid_in(
+    points: Points<'_>,
+    spec: &GridSpec,
+    kernel: Kernel,
+    memory_limit: u64,
+    mut values: Vec<f32>,
+) -> Result<DensityGrid, DensityError> {
     points.check()?;
     spec.check_memory(memory_limit)?;
-    let mut values = Vec::with_capacity(spec.cells() as usize);
+    values.clear();
+    values.reserve(spec.cells() as usize);
     splat_points_slabs(points, spec, kernel, 4, |_, slab| {
         values.extend_from_slice(&slab)
     })?;

@@ -346,6 +346,8 @@ pub struct Pipeline {
     detector: SurfaceDetector,
     radius: Option<f32>,
     views: Option<Views>,
+    /// The density grid's buffer, handed back by [`Pipeline::recycle`] for the next frame.
+    grid_buffer: Vec<f32>,
 }
 
 impl Pipeline {
@@ -357,6 +359,7 @@ impl Pipeline {
             detector: SurfaceDetector::new(params.surface)?,
             radius: params.support_radius,
             views: None,
+            grid_buffer: Vec::new(),
             params,
         })
     }
@@ -399,6 +402,17 @@ impl Pipeline {
         self.detector.reset();
         self.radius = self.params.support_radius;
         self.views = None;
+    }
+
+    /// Hands a frame's largest buffer (the density grid's values) back, so that the next frame
+    /// fills it instead of allocating: a sequence that recycles each frame after use allocates
+    /// the grid only while it grows.
+    pub fn recycle(&mut self, frame: Frame) {
+        if let Some(grid) = frame.grid
+            && grid.values.capacity() > self.grid_buffer.capacity()
+        {
+            self.grid_buffer = grid.values;
+        }
     }
 
     /// The whole chain on one frame.
@@ -484,7 +498,10 @@ impl Pipeline {
                 } else {
                     Points::with_radii(&positions, &radii, radius)
                 };
-                if let Some(iso) = iso_surfels(points, &self.params.grid, &self.params.surfels)? {
+                let buffer = std::mem::take(&mut self.grid_buffer);
+                if let Some(iso) =
+                    iso_surfels_in(points, &self.params.grid, &self.params.surfels, buffer)?
+                {
                     frame.timings.density_ms = iso.density_ms;
                     frame.timings.surfels_ms = iso.surfels_ms;
                     warnings.extend(iso.warning);
@@ -808,12 +825,22 @@ pub fn iso_surfels(
     grid: &GridParams,
     params: &SurfelParams,
 ) -> Result<Option<IsoSurfels>, Error> {
+    iso_surfels_in(points, grid, params, Vec::new())
+}
+
+/// [`iso_surfels`] with the grid's values in a buffer earlier frames allocated.
+pub fn iso_surfels_in(
+    points: Points<'_>,
+    grid: &GridParams,
+    params: &SurfelParams,
+    buffer: Vec<f32>,
+) -> Result<Option<IsoSurfels>, Error> {
     if points.is_empty() {
         return Ok(None);
     }
     let (spec, warning) = grid_for(&points, grid)?;
     let t = Instant::now();
-    let values = density::points_grid(points, &spec, grid.kernel, grid.memory_budget)?;
+    let values = density::points_grid_in(points, &spec, grid.kernel, grid.memory_budget, buffer)?;
     let density_ms = ms(t);
     let t = Instant::now();
     let surfels = surfels::extract_points(&values, points, grid.kernel, params)?;
