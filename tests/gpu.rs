@@ -140,6 +140,31 @@ fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
     assert_eq!(std::mem::size_of::<splat::Surfel>(), 64);
 }
 
+/// Checks a GPU density grid against the CPU's: the largest difference within 1e-4 of the
+/// CPU's peak, the first failing grid point named. Prints the figure under `label`.
+fn assert_grids_agree(label: &str, cpu: &density::DensityGrid, gpu: &density::DensityGrid) {
+    assert_eq!(gpu.values.len(), cpu.values.len(), "{label}: grid sizes");
+    let max = cpu.max();
+    let (worst, at) = cpu
+        .values
+        .iter()
+        .zip(&gpu.values)
+        .enumerate()
+        .map(|(i, (a, b))| ((a - b).abs(), i))
+        .fold((0.0f32, 0), |m, x| if x.0 > m.0 { x } else { m });
+    println!(
+        "{label}: grid {:?}, max density {max}, largest GPU-CPU difference {worst:e} ({:e} of the max) at {at}",
+        cpu.spec.dims,
+        worst / max
+    );
+    assert!(
+        worst <= 1e-4 * max,
+        "{label}: {worst} at {at} (cpu {}, gpu {})",
+        cpu.values[at],
+        gpu.values[at]
+    );
+}
+
 /// The design chain's points (interior particles with the support radius, a fine sheet of
 /// refined points with a quarter of it): both GPU methods equal the CPU path, per-point radii
 /// and all.
@@ -163,24 +188,10 @@ fn gpu_density_with_a_radius_per_point_matches_the_cpu_path() {
         );
         for method in [GpuDensityMethod::Splat, GpuDensityMethod::Gather] {
             let gpu = gpu_density::density_grid_gpu_with(&ctx, pts, &spec, kernel, method).unwrap();
-            let max = cpu.max();
-            let (worst, at) = cpu
-                .values
-                .iter()
-                .zip(&gpu.values)
-                .enumerate()
-                .map(|(i, (a, b))| ((a - b).abs(), i))
-                .fold((0.0f32, 0), |m, x| if x.0 > m.0 { x } else { m });
-            println!(
-                "per-point radii, {kernel:?}, {method:?}: grid {:?}, largest GPU-CPU difference {:e} of the max at {at}",
-                spec.dims,
-                worst / max
-            );
-            assert!(
-                worst <= 1e-4 * max,
-                "{kernel:?}, {method:?}: {worst} at {at} (cpu {}, gpu {})",
-                cpu.values[at],
-                gpu.values[at]
+            assert_grids_agree(
+                &format!("per-point radii, {kernel:?}, {method:?}"),
+                &cpu,
+                &gpu,
             );
         }
     }
@@ -235,26 +246,7 @@ fn gpu_density_matches_the_cpu_path() {
         let gpu =
             gpu_density::density_grid_gpu_with(&ctx, Points::uniform(p, h), &spec, kernel, method)
                 .unwrap();
-        assert_eq!(gpu.values.len(), cpu.values.len());
-        let max = cpu.max();
-        let (worst, at) = cpu
-            .values
-            .iter()
-            .zip(&gpu.values)
-            .enumerate()
-            .map(|(i, (a, b))| ((a - b).abs(), i))
-            .fold((0.0f32, 0), |m, x| if x.0 > m.0 { x } else { m });
-        println!(
-            "{kernel:?}, {method:?}: grid {:?}, max density {max}, largest GPU-CPU difference {worst:e} ({:e} of the max) at {at}",
-            spec.dims,
-            worst / max
-        );
-        assert!(
-            worst <= 1e-4 * max,
-            "{kernel:?}, {method:?}: {worst} at {at} (cpu {}, gpu {})",
-            cpu.values[at],
-            gpu.values[at]
-        );
+        assert_grids_agree(&format!("{kernel:?}, {method:?}"), &cpu, &gpu);
     }
     // an empty set gives an empty grid, no error
     let spec = GridSpec::around(p, h, Resolution::LongestAxis(8)).unwrap();
