@@ -260,6 +260,32 @@ pub fn read_texture(
     Ok(out)
 }
 
+/// Copies a whole buffer (`COPY_SRC`) back as values of `T`: the buffers' read-back, beside
+/// [`read_texture`] for textures.
+pub fn read_buffer<T: bytemuck::Pod>(
+    ctx: &GpuContext,
+    buffer: &wgpu::Buffer,
+) -> Result<Vec<T>, GpuError> {
+    let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("buffer readback"),
+        size: buffer.size(),
+        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+        mapped_at_creation: false,
+    });
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, buffer.size());
+    ctx.queue.submit([encoder.finish()]);
+    let slice = staging.slice(..);
+    map_read_and_wait(&ctx.device, &slice)?;
+    let data = slice
+        .get_mapped_range()
+        .map_err(|e| GpuError::Readback(format!("{e:?}")))?;
+    let out = bytemuck::cast_slice(&data).to_vec();
+    drop(data);
+    staging.unmap();
+    Ok(out)
+}
+
 /// Reads an 8-bit RGBA texture (`Rgba8Unorm` or `Rgba8UnormSrgb`, the stored bytes) back as an
 /// image.
 pub fn read_rgba8(ctx: &GpuContext, texture: &wgpu::Texture) -> Result<image::RgbaImage, GpuError> {

@@ -715,12 +715,12 @@ impl PreparedOptics {
 
     /// Copies the caustics map and the image back.
     pub fn read(&self, ctx: &GpuContext) -> Result<GpuOpticsResult, GpuError> {
-        let flux: Vec<[f32; 4]> = read_buffer(ctx, &self.flux)?;
-        let irradiance: Vec<[f32; 4]> = read_buffer(ctx, &self.irradiance)?;
+        let flux: Vec<[f32; 4]> = gpu::read_buffer(ctx, &self.flux)?;
+        let irradiance: Vec<[f32; 4]> = gpu::read_buffer(ctx, &self.irradiance)?;
         let texels = (self.map.width * self.map.height) as usize;
         let frame = match self.frame_size {
             Some((w, h)) => {
-                let linear: Vec<[f32; 4]> = read_buffer(ctx, &self.image)?;
+                let linear: Vec<[f32; 4]> = gpu::read_buffer(ctx, &self.image)?;
                 let linear = linear[..(w * h) as usize].to_vec();
                 let image = RgbaImage::from_fn(w, h, |x, y| {
                     let [r, g, b] = encode(Vec4::from(linear[(y * w + x) as usize]).truncate());
@@ -736,27 +736,6 @@ impl PreparedOptics {
             frame,
         })
     }
-}
-
-fn read_buffer(ctx: &GpuContext, buffer: &wgpu::Buffer) -> Result<Vec<[f32; 4]>, GpuError> {
-    let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("optics readback"),
-        size: buffer.size(),
-        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
-        mapped_at_creation: false,
-    });
-    let mut encoder = ctx.device.create_command_encoder(&Default::default());
-    encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, buffer.size());
-    ctx.queue.submit([encoder.finish()]);
-    let slice = staging.slice(..);
-    gpu::map_read_and_wait(&ctx.device, &slice)?;
-    let data = slice
-        .get_mapped_range()
-        .map_err(|e| GpuError::Readback(format!("{e:?}")))?;
-    let out = bytemuck::cast_slice(&data).to_vec();
-    drop(data);
-    staging.unmap();
-    Ok(out)
 }
 
 /// Caustics and (when `size` is given) the final image, headless: prepared, recorded, submitted,
