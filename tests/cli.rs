@@ -862,3 +862,35 @@ fn bench_pipeline_reports_every_stage() {
     }
     assert!(v["median_ms"].as_f64().unwrap() >= stages["refine_ms"].as_f64().unwrap());
 }
+
+/// A software rasteriser (lavapipe) is no default: `render` takes the CPU reference unless
+/// `--gpu` asks for the GPU path; a hardware adapter is the default.
+#[test]
+fn render_takes_a_software_adapter_only_when_asked() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |extra: &[&str], name: &str| {
+        json_of(
+            &bin()
+                .args(["render", "--scene", "sphere", "--size", "48x48", "--json"])
+                .args(extra)
+                .arg("--out")
+                .arg(dir.path().join(name))
+                .output()
+                .unwrap(),
+        )
+    };
+    let default = run(&[], "default.png");
+    match fluid_surfels::gpu::GpuContext::headless() {
+        Ok(ctx) => {
+            let software = ctx.adapter.as_ref().is_some_and(|a| a.is_software());
+            let backend = default["backend"].as_str().unwrap().to_owned();
+            assert_eq!(backend == "cpu reference", software, "{backend}");
+            let asked = run(&["--gpu"], "gpu.png");
+            assert!(
+                asked["backend"].as_str().unwrap().starts_with("gpu"),
+                "{asked}"
+            );
+        }
+        Err(_) => assert_eq!(default["backend"], "cpu reference"),
+    }
+}

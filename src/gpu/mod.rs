@@ -47,6 +47,16 @@ pub struct AdapterSummary {
     pub device_type: String,
 }
 
+impl AdapterSummary {
+    /// Whether the adapter is a software rasteriser (Mesa's lavapipe/llvmpipe, wgpu's
+    /// `DeviceType::Cpu`): it proves the GPU path correct but runs it 5-10x slower than the CPU
+    /// path (PLATFORM.md), so it is no default.
+    #[must_use]
+    pub fn is_software(&self) -> bool {
+        self.device_type == format!("{:?}", wgpu::DeviceType::Cpu)
+    }
+}
+
 /// A device and queue for the GPU stages.
 #[derive(Clone, Debug)]
 pub struct GpuContext {
