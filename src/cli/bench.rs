@@ -957,19 +957,28 @@ pub fn bench_pipeline(args: &BenchPipelineArgs) -> Result<(), Error> {
     use fluid_surfels::pipeline::Through;
     let mut params = super::run::column_params(SurfaceParams::default());
     params.scene.optics.image_size = [args.size.0, args.size.1];
-    let column = super::run::column_to_frame(args.frame, params.clone(), Through::Surface)?;
+    let mut sim = fluid_surfels::scenes::ColumnSim::new(Default::default())?;
     let mut pipeline =
         fluid_surfels::pipeline::Pipeline::new(fluid_surfels::pipeline::PipelineParams {
-            support_radius: Some(column.sim.support_radius()),
+            support_radius: Some(sim.support_radius()),
             ..params
         })?;
-    let particles = column.sim.particles().clone();
-    // one untimed frame: the views are fitted, the thread pool is warm
-    let _ = pipeline.frame(&particles)?;
+    // detection on every frame up to this one (the hysteresis of a real run), then one untimed
+    // whole frame: the views are fitted, the thread pool is warm
+    let first = fluid_surfels::pipeline::column_frame(
+        &mut pipeline,
+        &mut sim,
+        args.frame,
+        Through::Frame,
+        |_| {},
+    )?;
+    pipeline.recycle(first);
+    let particles = sim.particles().clone();
     let mut runs = Vec::new();
     for _ in 0..args.repeat.max(1) {
         let f = pipeline.frame(&particles)?;
         runs.push((f.timings.total_ms, f.timings, f.render_surfels.len()));
+        pipeline.recycle(f);
     }
     runs.sort_by(|a, b| a.0.total_cmp(&b.0));
     let (median_ms, stages_ms, surfels) = runs[runs.len() / 2];

@@ -252,8 +252,8 @@ enum Frames {
     Pattern(FramePattern),
     /// The column simulation, stepped frame by frame.
     Column(Box<ColumnSim>),
-    /// Another built-in scene.
-    Scene(SceneName),
+    /// Another built-in scene (static: built once, at `--frame`).
+    Scene(SceneName, Box<scenes::Scene>),
 }
 
 impl Frames {
@@ -296,7 +296,10 @@ impl Frames {
                 argument: "--frames",
                 reason: "only the `column` scene has frames".into(),
             }),
-            Some(name) => Ok(Self::Scene(name)),
+            Some(name) => Ok(Self::Scene(
+                name,
+                Box::new(scenes::build(name, args.frame)?),
+            )),
             None => Err(Error::InvalidArgument {
                 argument: "--input/--scene/--surfels",
                 reason: "one of them is needed".into(),
@@ -305,12 +308,12 @@ impl Frames {
     }
 
     /// The support radius the source implies when none is given (a built-in scene's own).
-    fn support_radius(&self, frame: Option<usize>) -> Result<Option<f32>, Error> {
-        Ok(match self {
+    fn support_radius(&self) -> Option<f32> {
+        match self {
             Self::Column(sim) => Some(sim.support_radius()),
-            Self::Scene(name) => Some(scenes::build(*name, frame)?.support_radius),
+            Self::Scene(_, scene) => Some(scene.support_radius),
             _ => None,
-        })
+        }
     }
 
     /// Frame `frame` through `pipeline` up to `through`, with a description of the source. The
@@ -352,8 +355,7 @@ impl Frames {
                 let f = pipeline::column_frame(pipeline, sim, target, through, |_| {})?;
                 ("scene column".into(), Some(sim.particles().len()), f)
             }
-            Self::Scene(name) => {
-                let scene = scenes::build(*name, frame)?;
+            Self::Scene(name, scene) => {
                 let f = pipeline.frame_through(&scene.particles, through)?;
                 (
                     format!("scene {}", name.as_str()),
@@ -407,7 +409,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     let mut frames = Frames::of(args, false)?;
     let mut params = pipeline_params(args)?;
     if params.support_radius.is_none() {
-        params.support_radius = frames.support_radius(args.frame)?;
+        params.support_radius = frames.support_radius();
     }
     let splat_params = params.splat;
     let mut pipeline = Pipeline::new(params)?;
@@ -568,7 +570,7 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
     let mut frames = Frames::of(args, sequence)?;
     let mut params = pipeline_params(args)?;
     if params.support_radius.is_none() {
-        params.support_radius = frames.support_radius(args.frame)?;
+        params.support_radius = frames.support_radius();
     }
     let [w, h] = params.scene.optics.image_size;
     let mut pipeline = Pipeline::new(params.clone())?;

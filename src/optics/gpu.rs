@@ -360,10 +360,10 @@ impl OpticsGpu {
         );
         let camera_image = texture("camera splat image", fw, fh, rgba8, attach);
         // the environment image (or one texel)
-        let (ew, eh, env_pixels): (u32, u32, Vec<[f32; 4]>) = match &stage.scene.environment.pixels
-        {
-            Some((w, h, p)) if *w <= limit && *h <= limit => (*w, *h, p.clone()),
-            _ => (1, 1, vec![[0.0; 4]]),
+        let none = [[0.0f32; 4]];
+        let (ew, eh, env_pixels): (u32, u32, &[[f32; 4]]) = match &stage.scene.environment.pixels {
+            Some((w, h, p)) if *w <= limit && *h <= limit => (*w, *h, p.as_slice()),
+            _ => (1, 1, &none),
         };
         let environment = device.create_texture_with_data(
             queue,
@@ -374,7 +374,7 @@ impl OpticsGpu {
                 wgpu::TextureUsages::TEXTURE_BINDING,
             ),
             wgpu::util::TextureDataOrder::LayerMajor,
-            bytemuck::cast_slice(&env_pixels),
+            bytemuck::cast_slice(env_pixels),
         );
         // the receiver, flat normals per vertex
         let receiver = receiver_vertices(stage);

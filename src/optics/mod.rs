@@ -158,6 +158,9 @@ pub enum EnvironmentKind {
     Image,
 }
 
+/// A loaded environment image: width, height, linear RGBA rows from the top, shared.
+pub type EnvironmentPixels = (u32, u32, std::sync::Arc<Vec<[f32; 4]>>);
+
 /// The environment seen in reflections.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -172,7 +175,8 @@ pub struct Environment {
     pub image: Option<PathBuf>,
     /// The loaded image: width, height, linear RGB rows from the top (not serialised).
     #[serde(skip)]
-    pub pixels: Option<(u32, u32, Vec<[f32; 4]>)>,
+    /// Shared, so that the scene clones a sequence makes per frame do not copy the image.
+    pub pixels: Option<EnvironmentPixels>,
 }
 
 impl Default for Environment {
@@ -217,7 +221,7 @@ impl Environment {
             .pixels()
             .map(|p| [to_linear(p[0]), to_linear(p[1]), to_linear(p[2]), 1.0])
             .collect();
-        self.pixels = Some((w, h, pixels));
+        self.pixels = Some((w, h, std::sync::Arc::new(pixels)));
         Ok(())
     }
 

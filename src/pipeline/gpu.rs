@@ -185,7 +185,7 @@ impl GpuPipeline {
         check_size((width, height))?;
         self.splats.resize(device, width, height)?;
         self.size = (width, height);
-        self.cpu.params.scene.optics.image_size = [width, height];
+        self.cpu.set_image_size(width, height);
         Ok(())
     }
 
@@ -280,7 +280,7 @@ impl GpuPipeline {
     ) -> Result<(), Error> {
         let camera = self.cpu.splat_camera(&frame.render_surfels);
         let (w, h) = self.size;
-        let view = View::new(&camera, &Light::default(), &self.cpu.params.splat, w, h)?;
+        let view = View::new(&camera, &Light::default(), &self.cpu.params().splat, w, h)?;
         self.splat_surfels
             .write(device, queue, &frame.render_surfels);
         self.splats

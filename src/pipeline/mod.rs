@@ -391,6 +391,11 @@ impl Pipeline {
         }
     }
 
+    /// Renders images of `width` x `height` from the next frame on (a resized window).
+    pub fn set_image_size(&mut self, width: u32, height: u32) {
+        self.params.scene.optics.image_size = [width, height];
+    }
+
     /// Takes the rendered surfels from `source` from the next frame on.
     pub fn set_source(&mut self, source: SurfelSource) {
         self.params.source = source;

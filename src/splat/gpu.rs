@@ -390,11 +390,22 @@ impl SplatRenderer {
         view: &View,
     ) -> Result<(), GpuError> {
         self.check_view(view)?;
-        let (splat, shade) = self.bind_groups(device, view);
-        self.encode_visibility(encoder, surfels, &splat);
-        self.encode_attributes(encoder, surfels, &splat);
-        self.encode_shading(encoder, target, &shade);
+        let bound = self.bind_groups(device, view);
+        self.encode_passes(encoder, target, surfels, &bound);
         Ok(())
+    }
+
+    /// The three passes with the given bind groups (over the uniforms of the view).
+    fn encode_passes(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        target: &wgpu::TextureView,
+        surfels: &SurfelBuffer,
+        (splat, shade): &(wgpu::BindGroup, wgpu::BindGroup),
+    ) {
+        self.encode_visibility(encoder, surfels, splat);
+        self.encode_attributes(encoder, surfels, splat);
+        self.encode_shading(encoder, target, shade);
     }
 
     /// [`Self::encode`] with the renderer's own uniform buffer, written through the queue: no
@@ -410,10 +421,7 @@ impl SplatRenderer {
     ) -> Result<(), GpuError> {
         self.check_view(view)?;
         queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&view.to_raw()));
-        let (splat, shade) = &self.bound;
-        self.encode_visibility(encoder, surfels, splat);
-        self.encode_attributes(encoder, surfels, splat);
-        self.encode_shading(encoder, target, shade);
+        self.encode_passes(encoder, target, surfels, &self.bound);
         Ok(())
     }
 
