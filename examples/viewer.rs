@@ -269,20 +269,7 @@ impl Viewer {
         }
         self.gpu
             .prepare_frame(&self.device, &self.queue, encoder, frame)?;
-        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-            label: Some("viewer"),
-            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                view: target,
-                depth_slice: None,
-                resolve_target: None,
-                ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
-                    store: wgpu::StoreOp::Store,
-                },
-            })],
-            ..Default::default()
-        });
-        self.gpu.render(&mut pass);
+        self.gpu.draw_into(encoder, target);
         Ok(())
     }
 

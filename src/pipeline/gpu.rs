@@ -313,6 +313,26 @@ impl GpuPipeline {
         Ok(crate::gpu::read_rgba8(ctx, &target)?)
     }
 
+    /// Records a render pass of its own that clears `target` (a view of the pipeline's format and
+    /// size) and draws the prepared frame into it; [`GpuPipeline::render`] draws into a pass the
+    /// caller already has.
+    pub fn draw_into(&self, encoder: &mut wgpu::CommandEncoder, target: &wgpu::TextureView) {
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("present"),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: target,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+                    store: wgpu::StoreOp::Store,
+                },
+            })],
+            ..Default::default()
+        });
+        self.render(&mut pass);
+    }
+
     /// Records a render pass that draws the prepared frame into a new texture (`COPY_SRC`), and
     /// returns it.
     pub fn draw_to_texture(
@@ -327,23 +347,7 @@ impl GpuPipeline {
             self.format,
             wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
         );
-        let view = target.create_view(&Default::default());
-        {
-            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("present"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &view,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
-                        store: wgpu::StoreOp::Store,
-                    },
-                })],
-                ..Default::default()
-            });
-            self.render(&mut pass);
-        }
+        self.draw_into(encoder, &target.create_view(&Default::default()));
         target
     }
 }
