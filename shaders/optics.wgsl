@@ -690,8 +690,19 @@ fn under_water(p: vec3<f32>) -> bool {
     return d > 0.0 && d < q.z;
 }
 
-// Mirror: Caustics::shadowed (slope-scaled bias).
+// Whether the receiver shadows p (normal n) from the light. Mirror: `Stage::light_blocked` (an
+// exact ray) where the receiver is small enough for exact rays; otherwise Caustics::shadowed
+// (the light's geometry map, slope-scaled bias).
 fn shadowed(p: vec3<f32>, n: vec3<f32>) -> bool {
+    if (u.exact.x > 0.0) {
+        let eps = u.env.y;
+        let o = p + n * eps;
+        let h = intersect_receiver(o, -incoming(o).dir, eps).hit;
+        if (h.w < 0.0) {
+            return false;
+        }
+        return u.light_dir.w == 0.0 || h.w < length(u.light_pos.xyz - o);
+    }
     let q = project(u.map, p);
     if (texel_of(u.map, q) < 0) {
         return false;

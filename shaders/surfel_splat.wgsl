@@ -225,6 +225,9 @@ fn ndc_depth(p: vec3<f32>) -> f32 {
     return clip.z / clip.w;
 }
 
+// Mirror: splat::DEPTH_REACH_RADII.
+const DEPTH_REACH: f32 = 8.0;
+
 // Per-pixel evaluation of passes 1 and 2 at a pixel centre (mirror: `fragment` in src/splat/mod.rs).
 fn splat_fragment(pixel: vec2<f32>, centre: vec3<f32>, axis_u: vec3<f32>, axis_v: vec3<f32>, nv: vec3<f32>, screen: vec4<f32>) -> Fragment {
     var f: Fragment;
@@ -259,9 +262,18 @@ fn splat_fragment(pixel: vec2<f32>, centre: vec3<f32>, axis_u: vec3<f32>, axis_v
         // the depth is the ray's hit on the disk's plane even where the low-pass filter decides
         // the weight: the centre's depth would make coplanar splats seen at a grazing angle
         // (many rows of them within one pixel) hide each other, and the filter would then
-        // average fewer of them, not more
+        // average fewer of them, not more. It stays within DEPTH_REACH radii of the depths the
+        // disk itself spans (its centre's, plus or minus the view-z extent of its two axes):
+        // outside the disk the plane of a disk seen edge-on runs off far in depth, and the
+        // light's view of a drop then put water units in front of the pool walls, whose direct
+        // light it took away (the dark dashes on the walls, issue 14). Mirror of
+        // splat::DEPTH_REACH_RADII, with the measurements.
         if (t > 0.0) {
-            depth = t;
+            let uz = axis_u.z / dot(axis_u, axis_u);
+            let vz = axis_v.z / dot(axis_v, axis_v);
+            let radius = 1.0 / min(length(axis_u), length(axis_v));
+            let extent = sqrt(uz * uz + vz * vz) + DEPTH_REACH * radius;
+            depth = clamp(t, -centre.z - extent, -centre.z + extent);
         }
     }
     if (!(r2 <= 1.0) || !(depth > 0.0)) {

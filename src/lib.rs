@@ -13,8 +13,8 @@
 //!
 //! Supporting modules: [`particles`] (the [`ParticleSet`] every stage reads), [`io`] (readers and
 //! writers for PLY, legacy VTK, VTU, BGEO, XYZ, CSV and JSON), [`sequence`] (numbered frame
-//! sequences), [`scenes`] (deterministic test scenes and a small simulator) and [`preview`] (PNG
-//! pictures of particle sets).
+//! sequences), [`scenes`] (deterministic test scenes and a small simulator) [`preview`] (PNG
+//! pictures of particle sets) and [`quality`] (holes, specks and differences of rendered frames).
 //!
 //! ```
 //! use fluid_surfels::{scenes, neighbours::{Backend, Neighbourhoods}, surface::{SurfaceDetector, SurfaceParams}};
@@ -38,6 +38,7 @@ pub mod optics;
 pub mod particles;
 pub mod pipeline;
 pub mod preview;
+pub mod quality;
 pub mod refine;
 pub mod scenes;
 pub mod sequence;

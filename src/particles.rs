@@ -130,6 +130,20 @@ pub enum ParticleSetError {
 }
 
 impl ParticleSet {
+    /// Turns the set by `rotation` about the origin: positions, velocities and normals (the
+    /// other attributes are left as they are). With [`crate::view::UpAxis::to_y_up`], data of a
+    /// z-up tool becomes the y-up data the pipeline's pools, light and sky assume.
+    pub fn rotate(&mut self, rotation: glam::Quat) {
+        for p in &mut self.positions {
+            *p = rotation * *p;
+        }
+        for v in self.velocities.iter_mut().chain(self.normals.iter_mut()) {
+            for x in v.iter_mut() {
+                *x = rotation * *x;
+            }
+        }
+    }
+
     /// A set holding only positions.
     #[must_use]
     pub fn from_positions(positions: Vec<Vec3>) -> Self {

@@ -10,6 +10,69 @@ use serde::{Deserialize, Serialize};
 
 use crate::splat::{MAX_SIZE, SplatError, SplatMode, SplatParams};
 
+/// Which axis of a particle file points up. The pipeline is y-up (a pool's floor lies at its
+/// lowest y, the sky and the default sunlight come from +y); Houdini and Blender write z-up.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum UpAxis {
+    X,
+    #[default]
+    Y,
+    Z,
+    NegX,
+    NegY,
+    NegZ,
+}
+
+impl UpAxis {
+    /// Every axis, in the order of [`UpAxis::name`]'s names.
+    pub const ALL: [Self; 6] = [
+        Self::X,
+        Self::Y,
+        Self::Z,
+        Self::NegX,
+        Self::NegY,
+        Self::NegZ,
+    ];
+
+    /// `x`, `y`, `z`, `-x`, `-y`, `-z`.
+    #[must_use]
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::X => "x",
+            Self::Y => "y",
+            Self::Z => "z",
+            Self::NegX => "-x",
+            Self::NegY => "-y",
+            Self::NegZ => "-z",
+        }
+    }
+
+    /// The axis as a unit vector.
+    #[must_use]
+    pub const fn vector(self) -> Vec3 {
+        match self {
+            Self::X => Vec3::X,
+            Self::Y => Vec3::Y,
+            Self::Z => Vec3::Z,
+            Self::NegX => Vec3::NEG_X,
+            Self::NegY => Vec3::NEG_Y,
+            Self::NegZ => Vec3::NEG_Z,
+        }
+    }
+
+    /// The proper rotation (no mirror, so handedness is kept) that turns this axis into +y: a
+    /// quarter turn about the axis perpendicular to both, or a half turn about x for `-y`.
+    #[must_use]
+    pub fn to_y_up(self) -> glam::Quat {
+        match self {
+            Self::Y => glam::Quat::IDENTITY,
+            Self::NegY => glam::Quat::from_rotation_x(std::f32::consts::PI),
+            a => glam::Quat::from_rotation_arc(a.vector(), Vec3::Y),
+        }
+    }
+}
+
 /// A perspective look-at camera (right-handed, y up by default).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -46,11 +109,18 @@ impl Camera {
     /// direction as the particle previews; near and far planes bracket the box.
     #[must_use]
     pub fn framing(min: Vec3, max: Vec3) -> Self {
+        Self::framing_from(min, max, Vec3::new(0.55, 0.5, 1.0))
+    }
+
+    /// A camera that frames the box `[min, max]` looking from `direction` (towards the eye; y
+    /// up), its bounding sphere filling the view; near and far planes bracket the box.
+    #[must_use]
+    pub fn framing_from(min: Vec3, max: Vec3, direction: Vec3) -> Self {
         let centre = (min + max) * 0.5;
         let radius = ((max - min).length() * 0.5).max(1e-6);
         let fov_y_degrees: f32 = 40.0;
         let distance = radius / (fov_y_degrees.to_radians() * 0.5).sin() * 1.05;
-        let direction = Vec3::new(0.55, 0.5, 1.0).normalize();
+        let direction = direction.try_normalize().unwrap_or(Vec3::Z);
         Self {
             eye: centre + direction * distance,
             target: centre,
@@ -58,6 +128,55 @@ impl Camera {
             fov_y_degrees,
             near: (distance - 2.0 * radius).max(distance * 1e-3),
             far: distance + 2.0 * radius,
+        }
+    }
+
+    /// A camera looking from `direction` (towards the eye; y up) as close as it can be with
+    /// every corner of the box `[min, max]` inside the view of a picture of `aspect` (width /
+    /// height), with 5 % to spare: the box fills the picture instead of its bounding sphere.
+    #[must_use]
+    pub fn fitting(min: Vec3, max: Vec3, direction: Vec3, aspect: f32) -> Self {
+        let centre = (min + max) * 0.5;
+        let back = direction.try_normalize().unwrap_or(Vec3::Z);
+        let up_hint = if back.y.abs() > 0.99 {
+            Vec3::Z
+        } else {
+            Vec3::Y
+        };
+        let right = up_hint.cross(back).normalize();
+        let up = back.cross(right);
+        let fov_y_degrees: f32 = 40.0;
+        let tan_y = (fov_y_degrees.to_radians() * 0.5).tan();
+        let tan_x = tan_y
+            * if aspect.is_finite() && aspect > 0.0 {
+                aspect
+            } else {
+                1.0
+            };
+        let half = (max - min) * 0.5;
+        let mut distance = 1e-6f32;
+        let mut reach = 1e-6f32;
+        for k in 0..8 {
+            let o = Vec3::new(
+                if k & 1 == 0 { -half.x } else { half.x },
+                if k & 2 == 0 { -half.y } else { half.y },
+                if k & 4 == 0 { -half.z } else { half.z },
+            );
+            // the corner's depth in front of the eye is distance - o.back
+            let along = o.dot(back);
+            distance = distance
+                .max(along + o.dot(right).abs() / tan_x)
+                .max(along + o.dot(up).abs() / tan_y);
+            reach = reach.max(o.length());
+        }
+        let distance = distance * 1.05;
+        Self {
+            eye: centre + back * distance,
+            target: centre,
+            up: Vec3::Y,
+            fov_y_degrees,
+            near: (distance - 2.0 * reach).max(distance * 1e-3),
+            far: distance + 2.0 * reach,
         }
     }
 
@@ -343,5 +462,24 @@ impl View {
     #[must_use]
     pub fn matrices(&self) -> (Mat4, Mat4, Mat4) {
         (self.view, self.inv_view, self.proj)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn up_axes_turn_onto_y_without_mirroring() {
+        for a in UpAxis::ALL {
+            let q = a.to_y_up();
+            assert!((q * a.vector() - Vec3::Y).length() < 1e-6, "{a:?}");
+            // a rotation keeps handedness: x cross y = z after the turn too
+            let (x, y, z) = (q * Vec3::X, q * Vec3::Y, q * Vec3::Z);
+            assert!((x.cross(y) - z).length() < 1e-6, "{a:?}");
+        }
+        // z-up (Houdini, Blender): (x, y, z) becomes (x, z, -y)
+        let p = UpAxis::Z.to_y_up() * Vec3::new(1.0, 2.0, 3.0);
+        assert!((p - Vec3::new(1.0, 3.0, -2.0)).length() < 1e-5, "{p}");
     }
 }

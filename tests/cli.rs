@@ -894,3 +894,270 @@ fn render_takes_a_software_adapter_only_when_asked() {
         Err(_) => assert_eq!(default["backend"], "cpu reference"),
     }
 }
+
+/// `render` on a copy of the double dam break in `dir`, with `extra` arguments.
+fn render_ddb(dir: &Path, extra: &[&str]) -> std::process::Output {
+    bin()
+        .args([
+            "render",
+            "--cpu",
+            "--size",
+            "64x48",
+            "--source",
+            "particles",
+        ])
+        .arg("--input")
+        .arg(dir.join("ddb.vtk"))
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
+fn stderr_of(out: &std::process::Output) -> String {
+    assert!(!out.status.success(), "expected a failure");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+#[test]
+fn render_papercuts_fail_early_with_what_to_do() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::copy(
+        data("double_dam_break_frame_26_4732_particles.vtk"),
+        d.join("ddb.vtk"),
+    )
+    .unwrap();
+    // a missing output folder is refused before any work
+    let missing = d.join("no/such/folder/out.png");
+    let e = stderr_of(&render_ddb(d, &["--out", missing.to_str().unwrap()]));
+    assert!(
+        e.contains("does not exist") && e.contains("nothing was done"),
+        "{e}"
+    );
+    let e = stderr_of(&render_ddb(
+        d,
+        &["--optics", "--out", missing.to_str().unwrap()],
+    ));
+    assert!(e.contains("does not exist"), "{e}");
+    // an existing file: --force is the way out, --skip-existing is for sequences
+    let out = d.join("one.png");
+    std::fs::write(&out, b"mine").unwrap();
+    let e = stderr_of(&render_ddb(d, &["--out", out.to_str().unwrap()]));
+    assert!(
+        e.contains("--force") && !e.contains("--skip-existing"),
+        "{e}"
+    );
+    assert_eq!(std::fs::read(&out).unwrap(), b"mine");
+    let e = stderr_of(&render_ddb(
+        d,
+        &["--skip-existing", "--out", out.to_str().unwrap()],
+    ));
+    assert!(e.contains("sequences"), "{e}");
+    let e = stderr_of(&render_ddb(
+        d,
+        &["--skip-existing", "--force", "--out", "x.png"],
+    ));
+    assert!(e.contains("cannot be used with"), "{e}");
+    // a pattern without --frames says what to add
+    let e = stderr_of(
+        &bin()
+            .args(["render", "--cpu", "--input"])
+            .arg(d.join("frame_{}.vtk"))
+            .output()
+            .unwrap(),
+    );
+    assert!(e.contains("--frames"), "{e}");
+    // bad colours and axes are refused by the parser
+    let e = stderr_of(&render_ddb(d, &["--background", "1,2", "--out", "x.png"]));
+    assert!(e.contains("R,G,B"), "{e}");
+    let e = stderr_of(&render_ddb(d, &["--up", "w", "--out", "x.png"]));
+    assert!(e.contains("-z"), "{e}");
+}
+
+#[test]
+fn render_background_is_flat_and_holes_are_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::copy(
+        data("double_dam_break_frame_26_4732_particles.vtk"),
+        d.join("ddb.vtk"),
+    )
+    .unwrap();
+    let out = d.join("white.png");
+    let report = json_of(&render_ddb(
+        d,
+        &[
+            "--background",
+            "255,255,255",
+            "--json",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+    ));
+    let img = image::open(&out).unwrap().to_rgba8();
+    let white = fluid_surfels::quality::coverage_on(&img, [255, 255, 255]);
+    let drawn = white.iter().filter(|&&c| c).count();
+    // every pixel not drawn is exactly the background, and the report counts what is drawn
+    assert_eq!(drawn as u64, report["covered_pixels"].as_u64().unwrap());
+    assert!(img.get_pixel(0, 0).0 == [255, 255, 255, 255]);
+    let h = fluid_surfels::quality::holes(&white, 64, 48, 3);
+    assert_eq!(h.holes as u64, report["holes"]["holes"].as_u64().unwrap());
+    assert!(
+        report["holes_fraction"].as_f64().unwrap() < 0.05,
+        "{report}"
+    );
+}
+
+#[test]
+fn render_up_z_turns_a_z_up_file_into_the_same_picture() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let set = fluid_surfels::io::read_particles(
+        Path::new(&data("double_dam_break_frame_26_4732_particles.vtk")),
+        None,
+    )
+    .unwrap();
+    fluid_surfels::io::write_particles(&d.join("ddb.vtk"), &set, None).unwrap();
+    // the same water written by a z-up tool: y-up turned back by the inverse of --up z's turn
+    let mut z_up = set.clone();
+    z_up.rotate(fluid_surfels::view::UpAxis::Z.to_y_up().inverse());
+    fluid_surfels::io::write_particles(&d.join("ddb_z.vtk"), &z_up, None).unwrap();
+    let (a, b) = (d.join("y.png"), d.join("z.png"));
+    succeeded(&render_ddb(d, &["--out", a.to_str().unwrap()]));
+    let z = bin()
+        .args([
+            "render",
+            "--cpu",
+            "--size",
+            "64x48",
+            "--source",
+            "particles",
+            "--up",
+            "z",
+        ])
+        .arg("--input")
+        .arg(d.join("ddb_z.vtk"))
+        .arg("--out")
+        .arg(&b)
+        .output()
+        .unwrap();
+    succeeded(&z);
+    let (a, b) = (
+        image::open(&a).unwrap().to_rgba8(),
+        image::open(&b).unwrap().to_rgba8(),
+    );
+    // the turn there and back costs float rounding only
+    let diff = fluid_surfels::quality::mean_abs_diff(&a, &b);
+    assert!(diff < 0.002, "mean abs diff {diff}");
+    // without --up z the z-up file is seen lying on its side: a different picture
+    let side = d.join("side.png");
+    let s = bin()
+        .args([
+            "render",
+            "--cpu",
+            "--size",
+            "64x48",
+            "--source",
+            "particles",
+            "--input",
+        ])
+        .arg(d.join("ddb_z.vtk"))
+        .arg("--out")
+        .arg(&side)
+        .output()
+        .unwrap();
+    succeeded(&s);
+    let side = image::open(&side).unwrap().to_rgba8();
+    assert!(fluid_surfels::quality::mean_abs_diff(&a, &side) > 0.01);
+}
+
+#[test]
+fn render_sequence_resumes_with_skip_existing_and_the_first_frames_camera() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let set = fluid_surfels::io::read_particles(
+        Path::new(&data("double_dam_break_frame_26_4732_particles.vtk")),
+        None,
+    )
+    .unwrap();
+    // three frames: the water moves along x, so a camera fitted on another frame differs
+    for f in 1..=3 {
+        let mut s = set.clone();
+        for p in &mut s.positions {
+            p.x += 0.4 * (f - 1) as f32;
+        }
+        fluid_surfels::io::write_particles(&d.join(format!("f_{f}.vtk")), &s, None).unwrap();
+    }
+    let frames = d.join("frames");
+    let seq = |extra: &[&str]| {
+        bin()
+            .args([
+                "render",
+                "--cpu",
+                "--size",
+                "48x40",
+                "--source",
+                "particles",
+                "--frames",
+                "1..=3",
+                "--caustics-resolution",
+                "32x32",
+                "--input",
+            ])
+            .arg(d.join("f_{}.vtk"))
+            .arg("--out")
+            .arg(&frames)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    succeeded(&seq(&[]));
+    let frame = |f: usize| frames.join(format!("frame_{f:04}.png"));
+    let first: Vec<Vec<u8>> = (1..=3).map(|f| std::fs::read(frame(f)).unwrap()).collect();
+    // refused without a flag: the message names both ways out
+    let e = stderr_of(&seq(&[]));
+    assert!(
+        e.contains("--force") && e.contains("--skip-existing"),
+        "{e}"
+    );
+    // interrupted after frame 1: frames 2 and 3 are rendered again, as the whole run drew them
+    std::fs::remove_file(frame(2)).unwrap();
+    std::fs::remove_file(frame(3)).unwrap();
+    std::fs::write(frame(1), b"kept").unwrap();
+    let resumed = seq(&["--skip-existing"]);
+    succeeded(&resumed);
+    assert!(String::from_utf8_lossy(&resumed.stdout).contains("skipping 1 of 3"));
+    assert_eq!(std::fs::read(frame(1)).unwrap(), b"kept");
+    for f in [2, 3] {
+        assert_eq!(std::fs::read(frame(f)).unwrap(), first[f - 1], "frame {f}");
+    }
+    let none = seq(&["--skip-existing"]);
+    succeeded(&none);
+    assert!(String::from_utf8_lossy(&none.stdout).contains("nothing to do"));
+}
+
+#[test]
+fn detect_writes_xyz_raw_with_out_format() {
+    let dir = tempfile::tempdir().unwrap();
+    let raw = dir.path().join("surface.bin");
+    let report = json_of(
+        &bin()
+            .args(["detect", "--json", "--out-format", "xyz-raw", "--input"])
+            .arg(data("double_dam_break_frame_26_4732_particles.vtk"))
+            .arg("--out")
+            .arg(&raw)
+            .output()
+            .unwrap(),
+    );
+    let back =
+        fluid_surfels::io::read_particles(&raw, Some(fluid_surfels::io::Format::XyzRaw)).unwrap();
+    assert_eq!(
+        back.len() as u64,
+        report["counts"]["surface"].as_u64().unwrap(),
+        "{report}"
+    );
+    assert_eq!(
+        std::fs::metadata(&raw).unwrap().len(),
+        12 * back.len() as u64
+    );
+}

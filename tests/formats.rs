@@ -35,10 +35,13 @@ fn shipped_sph_files_read_with_counts_and_attributes() {
         lo.cmpgt(Vec3::new(-1.6, -0.1, -1.6)).all() && hi.cmplt(Vec3::new(1.6, 1.1, 1.6)).all(),
         "{lo} {hi}"
     );
-    // particles of radius 0.025: nearest neighbours a little closer than 2r in the flowing frame
-    let spacing = fluid_surfels::neighbours::estimate_spacing(&dam.positions).unwrap();
-    println!("double dam break: estimated spacing {spacing}");
-    assert!((0.03..0.06).contains(&spacing), "{spacing}");
+    // particles of radius 0.025: nearest neighbours a little closer than 2r in the flowing
+    // frame; the density-based spacing is larger than 2r in this thin sheet (see
+    // `neighbours::spacing_estimate`)
+    let e = fluid_surfels::neighbours::spacing_estimate(&dam.positions).unwrap();
+    println!("double dam break: {e:?}");
+    assert!((0.03..0.05).contains(&e.nearest), "{e:?}");
+    assert!((0.05..0.08).contains(&e.spacing), "{e:?}");
 
     // ParaView: legacy VTK 5.1 ASCII with OFFSETS/CONNECTIVITY, double points
     let cube = io::read_particles(&data("cube_8_particles.vtk"), None).unwrap();

@@ -391,3 +391,56 @@ fn recycled_frames_reuse_the_grid_buffer() {
     assert_eq!(grid.values.as_ptr(), pointer, "a new buffer was allocated");
     assert_eq!(grid.values, values, "the recycled buffer changed the grid");
 }
+
+#[test]
+fn an_absurd_support_radius_is_warned_about_and_a_good_one_is_not() {
+    let scene = scenes::block(&scenes::BlockParams {
+        counts: [12, 12, 12],
+        ..Default::default()
+    })
+    .unwrap();
+    let s = scene.spacing;
+    let warnings = |radius: f32| {
+        let mut p = Pipeline::new(PipelineParams {
+            support_radius: Some(radius),
+            ..Default::default()
+        })
+        .unwrap();
+        let f = p.frame_through(&scene.particles, Through::Surface).unwrap();
+        (f.mean_neighbours, f.warnings)
+    };
+    let (n, w) = warnings(2.0 * s);
+    assert!(w.is_empty(), "{n} neighbours: {w:?}");
+    let (n, w) = warnings(1.2 * s);
+    assert!(
+        n < 10.0 && w.len() == 1 && w[0].contains("too small"),
+        "{n}: {w:?}"
+    );
+    let (n, w) = warnings(6.0 * s);
+    assert!(
+        n > 200.0 && w.len() == 1 && w[0].contains("too large"),
+        "{n}: {w:?}"
+    );
+    // the estimate a file gets lands in the usual range on the real files
+    for file in [
+        "dam_break_frame_23_24389_particles.bgeo",
+        "double_dam_break_frame_26_4732_particles.vtk",
+    ] {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data")
+            .join(file);
+        let set = fluid_surfels::io::read_particles(&path, None).unwrap();
+        let mut p = Pipeline::new(PipelineParams::default()).unwrap();
+        let f = p.frame_through(&set, Through::Surface).unwrap();
+        println!(
+            "{file}: radius {} mean neighbours {}",
+            f.radius, f.mean_neighbours
+        );
+        assert!(f.warnings.is_empty(), "{file}: {:?}", f.warnings);
+        assert!(
+            (20.0..80.0).contains(&f.mean_neighbours),
+            "{file}: {}",
+            f.mean_neighbours
+        );
+    }
+}

@@ -12,7 +12,7 @@ use fluid_surfels::surface::{self, NormalMethod, Surface, SurfaceParams};
 use fluid_surfels::{Error, ParticleSet};
 use serde::Serialize;
 
-use super::{check_output, ms, surface_particles};
+use super::{OutputKind, check_output, ms, surface_particles};
 
 /// Arguments of `detect`.
 #[derive(clap::Args)]
@@ -54,6 +54,8 @@ struct DetectReport {
     counts: surface::ClassCounts,
     flips: usize,
     mean_neighbours: f32,
+    /// Warnings about the support radius (neighbour counts far outside the usual range).
+    warnings: Vec<String>,
     timings_ms: DetectTimings,
     outputs: Vec<String>,
 }
@@ -122,7 +124,7 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
     let out = args.outputs.out.as_deref().map(PathBuf::from);
     let png = args.outputs.png.as_deref().map(PathBuf::from);
     for o in [&out, &png].into_iter().flatten() {
-        check_output(o, input.as_deref(), args.outputs.force)?;
+        check_output(o, input.as_deref(), args.outputs.force, OutputKind::Single)?;
     }
     let mut timings = DetectTimings::default();
     let t = Instant::now();
@@ -204,6 +206,7 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
         radius,
         spacing_estimate,
         out.as_deref(),
+        args.outputs.out_format,
         png.as_deref(),
     )?;
     timings.write = ms(t);
@@ -220,6 +223,9 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
         counts: surface.counts(),
         flips: surface.flips,
         mean_neighbours,
+        warnings: fluid_surfels::pipeline::neighbour_count_warning(radius, mean_neighbours)
+            .into_iter()
+            .collect(),
         timings_ms: timings,
         outputs,
     };
@@ -239,6 +245,9 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
             "  surface {}, interior {}, isolated {} (mean {:.1} neighbours)",
             c.surface, c.interior, c.isolated, report.mean_neighbours
         );
+        for w in &report.warnings {
+            println!("  warning: {w}");
+        }
         let t = &report.timings_ms;
         println!(
             "  ms: read {:.1}, neighbours {:.1}, classify {:.1}, normals {:.1}, write {:.1}",
@@ -258,11 +267,12 @@ pub fn write_outputs(
     radius: f32,
     spacing: Option<f32>,
     out: Option<&Path>,
+    out_format: Option<io::Format>,
     png: Option<&Path>,
 ) -> Result<Vec<String>, Error> {
     let mut outputs = Vec::new();
     if let Some(out) = out {
-        io::write_particles(out, &surface_particles(particles, surface), None)?;
+        io::write_particles(out, &surface_particles(particles, surface), out_format)?;
         outputs.push(out.display().to_string());
     }
     if let Some(png) = png {
@@ -330,6 +340,7 @@ fn detect_sequence(
                 radius,
                 None,
                 out.as_ref().map(|p| p.path(f)).as_deref(),
+                args.outputs.out_format,
                 png.as_ref().map(|p| p.path(f)).as_deref(),
             )?;
             Ok(FrameReport {

@@ -47,6 +47,8 @@ struct Info {
     bounds_min: Option<[f32; 3]>,
     bounds_max: Option<[f32; 3]>,
     spacing_estimate: Option<f32>,
+    /// Median distance to the nearest other particle.
+    nearest_distance: Option<f32>,
 }
 
 fn range(values: impl Iterator<Item = f64>) -> (Option<f64>, Option<f64>) {
@@ -190,6 +192,7 @@ pub fn info(args: &InfoArgs) -> Result<(), Error> {
         );
     }
     let bounds = set.bounds();
+    let spacing = neighbours::spacing_estimate(&set.positions).ok();
     let info = Info {
         file: args.file.display().to_string(),
         format: format.name(),
@@ -198,7 +201,8 @@ pub fn info(args: &InfoArgs) -> Result<(), Error> {
         attributes,
         bounds_min: bounds.map(|b| b.0.to_array()),
         bounds_max: bounds.map(|b| b.1.to_array()),
-        spacing_estimate: neighbours::estimate_spacing(&set.positions).ok(),
+        spacing_estimate: spacing.map(|e| e.spacing),
+        nearest_distance: spacing.map(|e| e.nearest),
     };
     if args.json {
         super::print_json(&info);
@@ -214,8 +218,10 @@ pub fn info(args: &InfoArgs) -> Result<(), Error> {
     }
     match info.spacing_estimate {
         Some(s) => println!(
-            "  spacing    {s:.6} (median nearest-neighbour distance; support radius 2x: {:.6})",
-            2.0 * s
+            "  spacing    {s:.6} (from the density of the {} nearest neighbours; support radius 2x: {:.6}; median nearest-neighbour distance {:.6})",
+            neighbours::SPACING_NEIGHBOURS,
+            2.0 * s,
+            info.nearest_distance.unwrap_or(s)
         ),
         None => println!("  spacing    unknown (fewer than two distinct particles)"),
     }

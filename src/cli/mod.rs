@@ -99,11 +99,15 @@ pub struct OutputArgs {
     #[arg(long, default_value_t = 1)]
     pub jobs: usize,
     /// Skip frames whose outputs exist (resume an interrupted sequence).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "force")]
     pub skip_existing: bool,
     /// Replace existing output files.
     #[arg(long)]
     pub force: bool,
+    /// Format of --out (default: from its extension; `xyz-raw`, bare little-endian f32 x y z
+    /// triplets, has no extension of its own).
+    #[arg(long, value_parser = format_parser())]
+    pub out_format: Option<Format>,
     /// Print one JSON object of statistics on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -184,27 +188,99 @@ pub fn progress(len: u64, what: &str) -> indicatif::ProgressBar {
     bar
 }
 
-/// Refuses to replace an existing file without `--force`, and never replaces the input.
-pub fn check_output(out: &Path, input: Option<&Path>, force: bool) -> Result<(), Error> {
+/// Whether an output belongs to a sequence (where `--skip-existing` is the other way out).
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub enum OutputKind {
+    /// One file of a one-file run.
+    Single,
+    /// A frame's file of a sequence.
+    Frame,
+}
+
+/// Checks an output before any work: its folder exists and takes files, it is not the input,
+/// and it does not exist unless `--force` replaces it.
+pub fn check_output(
+    out: &Path,
+    input: Option<&Path>,
+    force: bool,
+    kind: OutputKind,
+) -> Result<(), Error> {
+    let refuse = |kind: std::io::ErrorKind, why: String| -> Result<(), Error> {
+        Err(io::IoError::Os {
+            path: out.to_owned(),
+            source: std::io::Error::new(kind, why),
+        }
+        .into())
+    };
     let same = input.is_some_and(|i| {
         i == out || matches!((std::fs::canonicalize(i), std::fs::canonicalize(out)), (Ok(a), Ok(b)) if a == b)
     });
-    if same || (out.exists() && !force) {
-        let why = if same {
-            "it is the input file"
-        } else {
-            "it exists; pass --force to replace it (or --skip-existing for sequences)"
-        };
-        return Err(io::IoError::Os {
-            path: out.to_owned(),
-            source: std::io::Error::new(
-                std::io::ErrorKind::AlreadyExists,
-                format!("refusing to overwrite: {why}"),
-            ),
-        }
-        .into());
+    if same {
+        return refuse(
+            std::io::ErrorKind::AlreadyExists,
+            "refusing to overwrite: it is the input file".into(),
+        );
     }
-    Ok(())
+    if out.is_dir() {
+        return refuse(
+            std::io::ErrorKind::AlreadyExists,
+            "is a folder; name a file to write".into(),
+        );
+    }
+    if out.exists() && !force {
+        return refuse(
+            std::io::ErrorKind::AlreadyExists,
+            match kind {
+                OutputKind::Single => {
+                    "refusing to overwrite: it exists; pass --force to replace it"
+                }
+                OutputKind::Frame => {
+                    "refusing to overwrite: this frame's output exists; pass --force to replace \
+                     the frames that exist, or --skip-existing to keep them and do only the others"
+                }
+            }
+            .into(),
+        );
+    }
+    check_folder(out)
+}
+
+/// The folder `out` goes into exists and takes a new file (probed by creating and removing one).
+pub fn check_folder(out: &Path) -> Result<(), Error> {
+    let dir = match out.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let fail = |why: String| -> Result<(), Error> {
+        Err(io::IoError::Os {
+            path: out.to_owned(),
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, why),
+        }
+        .into())
+    };
+    if !dir.is_dir() {
+        return fail(format!(
+            "the output folder {} does not exist (create it first; nothing was done)",
+            dir.display()
+        ));
+    }
+    let probe = dir.join(format!(".fluid-surfels-probe-{}", std::process::id()));
+    match std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&probe)
+    {
+        Ok(_) => {
+            // a probe left behind is harmless; nothing to report if its removal fails
+            let _ = std::fs::remove_file(&probe);
+            Ok(())
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(()),
+        Err(e) => fail(format!(
+            "cannot write into the output folder {} ({e}; nothing was done)",
+            dir.display()
+        )),
+    }
 }
 
 /// How a subcommand runs over the frames of a sequence.
@@ -251,7 +327,7 @@ impl Sequence<'_> {
             }
             let input = self.input.path(f);
             for t in &targets {
-                check_output(t, Some(&input), self.force)?;
+                check_output(t, Some(&input), self.force, OutputKind::Frame)?;
             }
             todo.push(f);
         }

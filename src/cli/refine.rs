@@ -15,7 +15,7 @@ use fluid_surfels::{Error, ParticleSet};
 use glam::Vec3;
 use serde::Serialize;
 
-use super::{check_output, ms};
+use super::{OutputKind, check_output, ms};
 
 /// Arguments of `refine`.
 #[derive(clap::Args)]
@@ -123,14 +123,14 @@ fn run_refine(
 }
 
 fn write(
-    out: Option<&Path>,
+    (out, out_format): (Option<&Path>, Option<io::Format>),
     png: Option<&Path>,
     input: &[Vec3],
     refined: &Refined,
 ) -> Result<Vec<String>, Error> {
     let mut outputs = Vec::new();
     if let Some(out) = out {
-        io::write_particles(out, &refined.to_particle_set(), None)?;
+        io::write_particles(out, &refined.to_particle_set(), out_format)?;
         outputs.push(out.display().to_string());
     }
     if let Some(png) = png {
@@ -157,7 +157,7 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
     let out = args.outputs.out.as_deref().map(PathBuf::from);
     let png = args.outputs.png.as_deref().map(PathBuf::from);
     for o in [&out, &png].into_iter().flatten() {
-        check_output(o, input.as_deref(), args.outputs.force)?;
+        check_output(o, input.as_deref(), args.outputs.force, OutputKind::Single)?;
     }
     let t = Instant::now();
     let (source, radius, points, normals) = match (&input, args.source.scene) {
@@ -196,7 +196,12 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
     let t = Instant::now();
     let refined = run_refine(args, &points, &normals, &params(args, radius))?;
     let refine_ms = ms(t);
-    let outputs = write(out.as_deref(), png.as_deref(), &points, &refined)?;
+    let outputs = write(
+        (out.as_deref(), args.outputs.out_format),
+        png.as_deref(),
+        &points,
+        &refined,
+    )?;
     let report = RefineReport {
         source,
         frame: args.source.frame,
@@ -280,7 +285,10 @@ fn refine_sequence(args: &RefineArgs, pattern: &FramePattern) -> Result<(), Erro
             };
             let refined = run_refine(args, &p, &n, &params(args, radius))?;
             write(
-                out.as_ref().map(|x| x.path(f)).as_deref(),
+                (
+                    out.as_ref().map(|x| x.path(f)).as_deref(),
+                    args.outputs.out_format,
+                ),
                 png.as_ref().map(|x| x.path(f)).as_deref(),
                 &p,
                 &refined,

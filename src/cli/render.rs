@@ -13,10 +13,11 @@ use fluid_surfels::pipeline::{self, GpuPipeline, Pipeline, PipelineParams, Surfe
 use fluid_surfels::scenes::{self, ColumnParams, ColumnSim, SceneName};
 use fluid_surfels::sequence::{FramePattern, FrameRange};
 use fluid_surfels::splat::{self, Camera, Light, Render, SplatMode, SplatParams, Surfel};
+use fluid_surfels::view::UpAxis;
 use glam::Vec3;
 use serde::Serialize;
 
-use super::{check_output, ms};
+use super::{OutputKind, check_output, ms};
 
 /// Arguments of `render`.
 #[derive(clap::Args)]
@@ -58,6 +59,26 @@ pub struct RenderArgs {
     /// the surfels from the front, right and above).
     #[arg(long, value_parser = parse_camera, allow_hyphen_values = true)]
     pub camera: Option<Camera>,
+    /// A flat background colour R,G,B (0-255, as written in the PNG), for compositing and for
+    /// checks: the shaded splats' empty pixels, or the constant environment of the finished
+    /// frame (reflections show it too).
+    #[arg(long, value_parser = parse_rgb)]
+    pub background: Option<[u8; 3]>,
+    /// Paint the holes (background inside the silhouette closed by 3 pixels, as counted in the
+    /// report) magenta in the shaded splats, to see where they are.
+    #[arg(long)]
+    pub mark_holes: bool,
+    /// The up axis of --input or --surfels: x, y, z, -x, -y or -z (Houdini and Blender write
+    /// z-up). The file's points and --camera (given in the file's coordinates, its up the axis)
+    /// are turned so that the axis points up (+y) before anything runs, so the pool's floor, the
+    /// sunlight and the sky follow it. A --config scene file is read in the turned, y-up
+    /// coordinates.
+    #[arg(long, default_value = "y", value_parser = up_parser(), allow_hyphen_values = true)]
+    pub up: UpAxis,
+    /// Paint the specks (pixels darker than 0.6x the median of their 7x7 neighbourhood, as
+    /// counted in the report) red in the finished frame, to see where they are.
+    #[arg(long)]
+    pub mark_specks: bool,
     /// Draw plain point sprites instead of EWA splats (for comparison).
     #[arg(long)]
     pub sprites: bool,
@@ -94,9 +115,14 @@ pub struct RenderArgs {
     /// The PNG to write (a folder with --frames).
     #[arg(long, default_value = "render.png")]
     pub out: PathBuf,
-    /// Replace an existing output file.
+    /// Replace an existing output file (with --frames: the frames that exist).
     #[arg(long)]
     pub force: bool,
+    /// With --frames: keep the frames whose PNG exists and render only the others (resume an
+    /// interrupted sequence; the camera and the pool are still fitted on the range's first
+    /// frame).
+    #[arg(long, conflicts_with = "force")]
+    pub skip_existing: bool,
     /// Print one JSON object of statistics on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -119,6 +145,21 @@ pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
         ));
     }
     Ok((w, h))
+}
+
+pub fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
+    let v: Vec<u8> = s
+        .split(',')
+        .map(|x| {
+            x.trim()
+                .parse::<u8>()
+                .map_err(|e| format!("`{x}` is not a value from 0 to 255 ({e})"))
+        })
+        .collect::<Result<_, _>>()?;
+    match v[..] {
+        [r, g, b] => Ok([r, g, b]),
+        _ => Err(format!("`{s}`: expected R,G,B such as 255,255,255")),
+    }
 }
 
 fn parse_camera(s: &str) -> Result<Camera, String> {
@@ -146,6 +187,17 @@ fn parse_camera(s: &str) -> Result<Camera, String> {
         near: (distance * 1e-3).max(1e-4),
         far: distance * 100.0 + 1.0,
         ..Camera::default()
+    })
+}
+
+/// `--up AXIS`: the library's axis names.
+pub fn up_parser() -> impl clap::builder::TypedValueParser<Value = UpAxis> {
+    use clap::builder::TypedValueParser;
+    clap::builder::PossibleValuesParser::new(UpAxis::ALL.map(UpAxis::name)).map(|s| {
+        *UpAxis::ALL
+            .iter()
+            .find(|a| a.name() == s)
+            .expect("one of the possible values")
     })
 }
 
@@ -238,9 +290,29 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
         p.scene.optics.image_size = [args.size.0, args.size.1];
     }
     if let Some(c) = args.camera {
-        p.scene.camera = Some(c);
+        p.scene.camera = Some(turned_camera(c, args.up));
+    }
+    if let Some(rgb) = args.background {
+        // the splats store their colour as it is; the finished frame encodes linear radiance
+        // with gamma 2.2 (optics::encode)
+        let unit = rgb.map(|c| f32::from(c) / 255.0);
+        p.splat.background = [unit[0], unit[1], unit[2], 1.0];
+        p.scene.environment.kind = fluid_surfels::optics::EnvironmentKind::Constant;
+        p.scene.environment.colour = Vec3::from_array(unit.map(|c| c.powf(2.2)));
     }
     Ok(p)
+}
+
+/// A camera given in the file's coordinates, turned with the particles (`--up`).
+fn turned_camera(c: Camera, up: UpAxis) -> Camera {
+    // --camera's up is the file's up axis, which the turn makes +y
+    let q = up.to_y_up();
+    Camera {
+        eye: q * c.eye,
+        target: q * c.target,
+        up: Vec3::Y,
+        ..c
+    }
 }
 
 /// Where the frames come from.
@@ -325,7 +397,13 @@ impl Frames {
         frame: Option<usize>,
         through: Through,
     ) -> Result<(String, Option<usize>, pipeline::Frame), Error> {
-        let read = |path: &std::path::Path| io::read_particles(path, args.format);
+        let read = |path: &std::path::Path| {
+            let mut set = io::read_particles(path, args.format)?;
+            if args.up != UpAxis::Y {
+                set.rotate(args.up.to_y_up());
+            }
+            Ok::<_, Error>(set)
+        };
         Ok(match self {
             Self::Surfels(path) => {
                 let set = read(path)?;
@@ -380,6 +458,10 @@ struct RenderReport {
     backend: String,
     camera: Camera,
     covered_pixels: usize,
+    /// Background showing through inside the silhouette closed by 3 pixels (`quality::holes`).
+    holes: fluid_surfels::quality::Holes,
+    holes_fraction: f64,
+    enclosed_holes_fraction: f64,
     surfels_ms: f64,
     render_ms: f64,
     warnings: Vec<String>,
@@ -405,7 +487,13 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         return render_optics(args);
     }
     let input = args.input.as_deref().or(args.surfels.as_deref());
-    check_output(&args.out, input, args.force)?;
+    if args.skip_existing {
+        return Err(Error::InvalidArgument {
+            argument: "--skip-existing",
+            reason: "is for sequences (--frames); for one file, --force replaces it".into(),
+        });
+    }
+    check_output(&args.out, input, args.force, OutputKind::Single)?;
     let mut frames = Frames::of(args, false)?;
     let mut params = pipeline_params(args)?;
     if params.support_radius.is_none() {
@@ -418,12 +506,22 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         frames.frame(&mut pipeline, args, args.frame, Through::Surfels)?;
     let surfels_ms = ms(t);
     let surfels = &frame.render_surfels;
-    let camera = args.camera.unwrap_or_else(|| framing(surfels));
+    let camera = args
+        .camera
+        .map_or_else(|| framing(surfels), |c| turned_camera(c, args.up));
     let ctx = choose_gpu(args.cpu, args.gpu)?;
     let t = Instant::now();
     let render = render_with(ctx.as_ref(), surfels, &camera, &splat_params, args.size)?;
     let render_ms = ms(t);
-    fluid_surfels::preview::save_rgba_png(&render.image, &args.out)?;
+    let covered: Vec<bool> = render.colour.iter().map(|c| c[3] > 0.0).collect();
+    let holes =
+        fluid_surfels::quality::holes(&covered, render.width as usize, render.height as usize, 3);
+    if args.mark_holes {
+        let marked = fluid_surfels::quality::mark_holes(&render.image, &covered, 3);
+        fluid_surfels::preview::save_rgba_png(&marked, &args.out)?;
+    } else {
+        fluid_surfels::preview::save_rgba_png(&render.image, &args.out)?;
+    }
     let report = RenderReport {
         source,
         particles,
@@ -438,6 +536,9 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         backend: backend_name(ctx.as_ref()),
         camera,
         covered_pixels: render.covered_pixels(),
+        holes,
+        holes_fraction: holes.fraction(),
+        enclosed_holes_fraction: holes.enclosed_fraction(),
         surfels_ms,
         render_ms,
         warnings: frame.warnings,
@@ -464,13 +565,15 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
             println!("  warning: {w}");
         }
         println!(
-            "  {}x{} {:?} on the {}: {:.1} ms, {} pixels covered",
+            "  {}x{} {:?} on the {}: {:.1} ms, {} pixels covered, holes {:.3} % of the silhouette ({:.3} % enclosed)",
             report.width,
             report.height,
             report.mode,
             report.backend,
             render_ms,
-            report.covered_pixels
+            report.covered_pixels,
+            100.0 * report.holes_fraction,
+            100.0 * report.enclosed_holes_fraction
         );
         println!("  wrote {}", report.output);
     }
@@ -495,6 +598,12 @@ struct FrameReport {
     surfels_ms: f64,
     caustics_ms: Option<f64>,
     frame_ms: f64,
+    /// Pixels darker than 0.6x the median of their 7x7 neighbourhood (`quality::specks`), and
+    /// their fraction of the image.
+    specks: usize,
+    specks_fraction: f64,
+    /// Specks none of whose 8 neighbours is one (`quality::isolated`): 1-pixel dots, not lines.
+    isolated_specks: usize,
     warnings: Vec<String>,
 }
 
@@ -534,6 +643,9 @@ fn finished_frame(
                 surfels_ms: t.total_ms - t.caustics_ms - t.image_ms,
                 caustics_ms: Some(t.caustics_ms),
                 frame_ms: t.image_ms,
+                specks: 0,
+                specks_fraction: 0.0,
+                isolated_specks: 0,
                 warnings: f.warnings.clone(),
             };
             let image = fin.image.clone();
@@ -556,6 +668,9 @@ fn finished_frame(
                 surfels_ms: f.timings.total_ms,
                 caustics_ms: None,
                 frame_ms: ms(t),
+                specks: 0,
+                specks_fraction: 0.0,
+                isolated_specks: 0,
                 warnings: f.warnings.clone(),
             };
             Ok((source, image, report))
@@ -567,6 +682,19 @@ fn finished_frame(
 /// pipeline (hysteresis, camera, pool and scene box kept across the frames).
 fn render_optics(args: &RenderArgs) -> Result<(), Error> {
     let sequence = args.frames.is_some();
+    let input = args.input.as_deref().or(args.surfels.as_deref());
+    if sequence {
+        // the folder is made below; what must exist is the folder it goes into
+        super::check_folder(&args.out)?;
+    } else {
+        if args.skip_existing {
+            return Err(Error::InvalidArgument {
+                argument: "--skip-existing",
+                reason: "is for sequences (--frames); for one file, --force replaces it".into(),
+            });
+        }
+        check_output(&args.out, input, args.force, OutputKind::Single)?;
+    }
     let mut frames = Frames::of(args, sequence)?;
     let mut params = pipeline_params(args)?;
     if params.support_radius.is_none() {
@@ -588,39 +716,87 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
         None => None,
     };
     let Some(range) = args.frames else {
-        check_output(
-            &args.out,
-            args.input.as_deref().or(args.surfels.as_deref()),
-            args.force,
-        )?;
         let (source, image, report) =
             finished_frame(&mut pipeline, gpu.as_mut(), &mut frames, args, args.frame)?;
-        fluid_surfels::preview::save_rgba_png(&image, &args.out)?;
-        return report_frame(args, source, args.frame, &args.out, report);
+        fluid_surfels::preview::save_rgba_png(&marked(args, &image), &args.out)?;
+        return report_frame(args, source, args.frame, &args.out, &image, report);
     };
     let list: Vec<usize> = range.frames().collect();
-    // refuse before any work: every output that exists without --force
+    if args.out.exists() && !args.out.is_dir() {
+        return Err(Error::InvalidArgument {
+            argument: "--out",
+            reason: format!(
+                "{} is a file; with --frames --out names the folder of frame_NNNN.png",
+                args.out.display()
+            ),
+        });
+    }
+    // refuse before any work: every output that exists without --force or --skip-existing
     let outputs: Vec<PathBuf> = list
         .iter()
         .map(|f| args.out.join(format!("frame_{f:04}.png")))
         .collect();
-    for out in &outputs {
-        check_output(out, None, args.force)?;
-    }
+    let todo: Vec<bool> = outputs
+        .iter()
+        .map(|o| !(args.skip_existing && o.exists()))
+        .collect();
     std::fs::create_dir_all(&args.out).map_err(|e| Error::InvalidArgument {
         argument: "--out",
         reason: format!("{}: {e}", args.out.display()),
     })?;
-    let bar = super::progress(list.len() as u64, "rendering");
-    for (&frame, out) in list.iter().zip(&outputs) {
+    for (out, _) in outputs.iter().zip(&todo).filter(|(_, t)| **t) {
+        check_output(out, None, args.force, OutputKind::Frame)?;
+    }
+    let skipped = todo.iter().filter(|t| !**t).count();
+    if skipped == list.len() {
+        println!(
+            "all {} frames exist in {} (--skip-existing): nothing to do",
+            list.len(),
+            args.out.display()
+        );
+        return Ok(());
+    }
+    if skipped > 0 && !args.json {
+        println!(
+            "skipping {skipped} of {} frames whose PNG exists",
+            list.len()
+        );
+    }
+    if !todo[0] {
+        // a resumed sequence keeps the camera and the pool of a whole run: fitted on its first
+        // frame, rendered again but not written
+        finished_frame(
+            &mut pipeline,
+            gpu.as_mut(),
+            &mut frames,
+            args,
+            Some(list[0]),
+        )?;
+    }
+    let bar = super::progress((list.len() - skipped) as u64, "rendering");
+    for ((&frame, out), _) in list.iter().zip(&outputs).zip(&todo).filter(|(_, t)| **t) {
         let (source, image, report) =
             finished_frame(&mut pipeline, gpu.as_mut(), &mut frames, args, Some(frame))?;
-        fluid_surfels::preview::save_rgba_png(&image, out)?;
-        bar.suspend(|| report_frame(args, source, Some(frame), out, report))?;
+        fluid_surfels::preview::save_rgba_png(&marked(args, &image), out)?;
+        bar.suspend(|| report_frame(args, source, Some(frame), out, &image, report))?;
         bar.inc(1);
     }
     bar.finish_and_clear();
     Ok(())
+}
+
+/// The finished frame as written: with its specks painted red under `--mark-specks`.
+fn marked(args: &RenderArgs, image: &image::RgbaImage) -> image::RgbaImage {
+    let mut out = image.clone();
+    if args.mark_specks {
+        let mask = fluid_surfels::quality::speck_mask(image, 7, 0.6);
+        for (p, &s) in out.pixels_mut().zip(&mask) {
+            if s {
+                *p = image::Rgba([255, 0, 0, 255]);
+            }
+        }
+    }
+    out
 }
 
 fn report_frame(
@@ -628,8 +804,15 @@ fn report_frame(
     source: String,
     frame: Option<usize>,
     out: &std::path::Path,
-    stats: FrameReport,
+    image: &image::RgbaImage,
+    mut stats: FrameReport,
 ) -> Result<(), Error> {
+    let mask = fluid_surfels::quality::speck_mask(image, 7, 0.6);
+    stats.specks = mask.iter().filter(|&&s| s).count();
+    stats.isolated_specks =
+        fluid_surfels::quality::isolated(&mask, image.width() as usize, image.height() as usize);
+    stats.specks_fraction =
+        stats.specks as f64 / (f64::from(image.width()) * f64::from(image.height())).max(1.0);
     let r = OpticsFrameReport {
         source,
         frame,

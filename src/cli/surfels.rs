@@ -13,7 +13,7 @@ use fluid_surfels::surfels::{self, SurfelParams, Surfels};
 use glam::Vec3;
 use serde::Serialize;
 
-use super::{check_output, ms};
+use super::{OutputKind, check_output, ms};
 
 /// Arguments of `surfels`.
 #[derive(clap::Args)]
@@ -97,10 +97,14 @@ pub fn surfels_with(
     Ok((s, spec, density_ms, ms(t)))
 }
 
-fn write(s: &Surfels, out: Option<&Path>, png: Option<&Path>) -> Result<Vec<String>, Error> {
+fn write(
+    s: &Surfels,
+    (out, out_format): (Option<&Path>, Option<io::Format>),
+    png: Option<&Path>,
+) -> Result<Vec<String>, Error> {
     let mut outputs = Vec::new();
     if let Some(out) = out {
-        io::write_particles(out, &s.to_particle_set(), None)?;
+        io::write_particles(out, &s.to_particle_set(), out_format)?;
         outputs.push(out.display().to_string());
     }
     if let Some(png) = png {
@@ -121,7 +125,7 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
     let out = out_args.out.as_deref().map(PathBuf::from);
     let png = out_args.png.as_deref().map(PathBuf::from);
     for o in [&out, &png].into_iter().flatten() {
-        check_output(o, input.as_deref(), out_args.force)?;
+        check_output(o, input.as_deref(), out_args.force, OutputKind::Single)?;
     }
     let (source, positions, radius) = super::positions_of(
         input.as_deref(),
@@ -138,7 +142,7 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
     };
     let (s, spec, density_ms, extract_ms) =
         surfels_with(gpu.as_ref(), &positions, h, args.resolution, iso)?;
-    let outputs = write(&s, out.as_deref(), png.as_deref())?;
+    let outputs = write(&s, (out.as_deref(), out_args.out_format), png.as_deref())?;
     let report = SurfelsReport {
         source,
         particles: positions.len(),
@@ -185,7 +189,7 @@ fn surfels_sequence(args: &SurfelsArgs, pattern: &FramePattern, iso: f32) -> Res
         |_, f| {
             let particles = io::read_particles(&pattern.path(f), src.format)?;
             let (s, _, d, e) = surfels_of(&particles.positions, h, args.resolution, iso)?;
-            write(&s, out.as_ref().map(|x| x.path(f)).as_deref(), png.as_ref().map(|x| x.path(f)).as_deref())?;
+            write(&s, (out.as_ref().map(|x| x.path(f)).as_deref(), o.out_format), png.as_ref().map(|x| x.path(f)).as_deref())?;
             Ok(serde_json::json!({"frame": f, "particles": particles.len(), "surfels": s.len(), "density_ms": d, "extract_ms": e}))
         },
     )?;

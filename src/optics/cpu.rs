@@ -496,7 +496,11 @@ pub fn receiver_irradiance(stage: &Stage, c: &Caustics, p: Vec3, n: Vec3) -> Vec
     // the caustics map is the light's view: its texels belong to the surfaces the light sees,
     // so a point turned away from the light or shadowed by the receiver reads none of it (it
     // lit the outer faces of the pool's walls with the caustics of the floor behind them)
-    if !(facing > 0.0) || c.shadowed(p, n) {
+    // the receiver's own shadow by an exact ray towards the light (the light's geometry map,
+    // `Caustics::shadowed`, leaks light near contacts, where the occluder is nearer than its
+    // depth bias: the top of one wall over the corner of the next)
+    let eps = 1e-5 * stage.size;
+    if !(facing > 0.0) || stage.light_blocked(p + n * eps, eps) {
         return Vec3::ZERO;
     }
     let direct = if c.under_water(p) {

@@ -517,7 +517,9 @@ impl Stage {
         let mut scene = scene.clone();
         scene.environment.load()?;
         let water = crate::splat::bounds(surfels);
-        let receiver = scene.receiver.build(water)?;
+        let receiver = scene.receiver.build(
+            water.map(|(a, b)| (a, Vec3::new(b.x, pool_wall_top(surfels, a.y, b.y), b.z))),
+        )?;
         let (rmin, rmax) = receiver.bounds();
         let (all_min, all_max) = match (scene.optics.scene_bounds, water) {
             (Some([a, b]), _) => (a, b),
@@ -532,7 +534,17 @@ impl Stage {
         let views = light_views(&scene, screen_box, (all_min, all_max))?;
         let camera = match scene.camera {
             Some(c) => c,
-            None => Camera::framing(all_min, all_max),
+            // from higher than the particle previews (40 degrees instead of 24), so that the
+            // camera sees into the pool over its walls, and close: the box fills the picture
+            None => {
+                let [w, h] = scene.optics.image_size;
+                Camera::fitting(
+                    all_min,
+                    all_max,
+                    Vec3::new(0.55, 0.95, 1.0),
+                    w as f32 / h.max(1) as f32,
+                )
+            }
         };
         Ok(Self {
             scene,
@@ -591,6 +603,25 @@ impl Stage {
         let odd = (cell.x + cell.y).rem_euclid(2.0) >= 0.5;
         if odd { r.albedo * 0.55 } else { r.albedo }
     }
+}
+
+/// The top of an automatic pool's walls: 1.2x the water's level above its bottom `floor`, the
+/// level being the median height of the upward-facing surfels (normal within 60 degrees of +y):
+/// the free surface of the water's body, which the few tops of drops and splashes do not move.
+/// The water's bounding box would put the walls halfway up a splash (the dam break's climbs to
+/// 4 over a body 0.6 deep, and walls 2 high hid the water from every camera); at most `top`.
+fn pool_wall_top(surfels: &[Surfel], floor: f32, top: f32) -> f32 {
+    let mut up: Vec<f32> = surfels
+        .iter()
+        .filter(|s| s.is_drawable() && Vec3::from(s.normal).normalize_or_zero().y > 0.5)
+        .map(|s| s.position[1])
+        .collect();
+    if up.is_empty() {
+        return floor + 0.5 * (top - floor);
+    }
+    let mid = up.len() / 2;
+    let (_, level, _) = up.select_nth_unstable_by(mid, f32::total_cmp);
+    (floor + 1.2 * (*level - floor)).min(top)
 }
 
 /// Sets up the screen and map views of the light around the water box and the whole scene box.

@@ -60,7 +60,9 @@ impl Default for Receiver {
 }
 
 impl Receiver {
-    /// The triangles of the receiver, `water` the water's bounds (for `Auto`).
+    /// The triangles of the receiver. For `Auto`, `water` is the box to build the pool around:
+    /// the floor a margin below its `min.y`, the walls a margin outside it, up to its `max.y`
+    /// (see [`crate::optics::Stage::new`], which gives the water's level there, not its top).
     pub fn build(&self, water: Option<(Vec3, Vec3)>) -> Result<ReceiverGeometry, OpticsError> {
         if !(self.albedo.is_finite() && self.albedo.min_element() >= 0.0) {
             return Err(invalid("receiver.albedo", "must be finite and >= 0"));
@@ -81,7 +83,7 @@ impl Receiver {
                 let size = (b - a).max_element().max(1e-3);
                 let m = 0.02 * size;
                 let lo = Vec3::new(a.x - m, a.y - m, a.z - m);
-                let hi = Vec3::new(b.x + m, a.y + 0.5 * (b.y - a.y).max(size * 0.1), b.z + m);
+                let hi = Vec3::new(b.x + m, b.y.max(a.y + size * 0.05), b.z + m);
                 open_box(lo, hi)
             }
             ReceiverKind::Plane => {

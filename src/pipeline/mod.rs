@@ -447,6 +447,7 @@ impl Pipeline {
         let t = Instant::now();
         let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
         timings.neighbours_ms = ms(t);
+        warnings.extend(neighbour_count_warning(radius, nb.mean_count()));
         let t = Instant::now();
         let surface = self.detector.detect(particles, &nb)?;
         timings.detect_ms = ms(t);
@@ -478,6 +479,7 @@ impl Pipeline {
         }
         if through < Through::Surfels {
             frame.timings.total_ms = ms(total);
+            frame.warnings = warnings;
             return Ok(frame);
         }
         // stage 3: density grid and iso-surface surfels
@@ -486,7 +488,7 @@ impl Pipeline {
             SurfelSource::Refined => {
                 let r = frame.refined.as_ref().expect("refined above");
                 frame.render_surfels =
-                    splat::surfels_from(&r.positions, &r.normals, &r.radii, colour);
+                    splat::surfels_from(&r.positions, &r.normals, &r.gap_free_radii(), colour);
             }
             source => {
                 let (positions, radii) = match source {
@@ -856,4 +858,31 @@ pub fn iso_surfels_in(
         surfels_ms: ms(t),
         warning,
     }))
+}
+/// Mean neighbour counts outside which the support radius is probably wrong: SPH kernels are
+/// made for about 30-60 neighbours (h = 2 spacings gives 33); under 10 the surface detection
+/// sees every particle as a surface one and the grid breaks up into drops, over 200 the radius
+/// blurs the surface away and every stage slows down with the square of the count.
+pub const NEIGHBOUR_RANGE: (f32, f32) = (10.0, 200.0);
+
+/// A warning for [`Frame::warnings`] when `mean` neighbours at `radius` lie outside
+/// [`NEIGHBOUR_RANGE`].
+#[must_use]
+pub fn neighbour_count_warning(radius: f32, mean: f32) -> Option<String> {
+    let (lo, hi) = NEIGHBOUR_RANGE;
+    if mean < lo {
+        Some(format!(
+            "support radius {radius} gives {mean:.1} neighbours per particle (usual: 30-60): \
+             too small for this file, the surface breaks up into drops; give a larger --radius \
+             (about twice the particle spacing)"
+        ))
+    } else if mean > hi {
+        Some(format!(
+            "support radius {radius} gives {mean:.0} neighbours per particle (usual: 30-60): \
+             too large for this file, the surface is blurred and every stage is slow; give a \
+             smaller --radius (about twice the particle spacing)"
+        ))
+    } else {
+        None
+    }
 }

@@ -1,0 +1,374 @@
+//! Measures of a picture's quality that the tests, the `render --json` report and the benches
+//! share: holes inside a silhouette, isolated dark specks, and the mean difference of two frames.
+//!
+//! These turn what one sees when opening a PNG into numbers:
+//! - [`holes`]: background showing through inside the surface. The silhouette is *closed*
+//!   (dilated, then eroded, by a square of half-width `radius` pixels), which fills every gap
+//!   narrower than about `2 radius` pixels; the holes are the uncovered pixels of the closed
+//!   silhouette. A gap between two separate parts of the water wider than that is not a hole.
+//!   [`Holes::enclosed`] counts only those that the border cannot reach through the background:
+//!   in spray, the closing also fills the gaps between neighbouring drops, which are no holes.
+//! - [`specks`]: pixels much darker than their neighbourhood (below `ratio` times the median
+//!   luminance of the `window x window` square around them): the 1-pixel dark dots of a badly
+//!   normalised splat or a shadow test that fails on one texel.
+//! - [`mean_abs_diff`]: the mean absolute difference of two images' RGB values, in [0, 1].
+
+use image::RgbaImage;
+
+/// Holes inside a silhouette, from [`holes`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct Holes {
+    /// Pixels of the closed silhouette.
+    pub silhouette: usize,
+    /// Pixels of the closed silhouette that the mask does not cover.
+    pub holes: usize,
+    /// Those of `holes` that the image border cannot reach through uncovered pixels
+    /// (4-connected): pinholes and cracks of a surface, without the gaps between spray drops
+    /// that the closing fills but that open to the outside.
+    pub enclosed: usize,
+}
+
+impl Holes {
+    /// Holes as a fraction of the closed silhouette (0 for an empty one).
+    #[must_use]
+    pub fn fraction(&self) -> f64 {
+        self.holes as f64 / self.silhouette.max(1) as f64
+    }
+
+    /// Enclosed holes as a fraction of the closed silhouette.
+    #[must_use]
+    pub fn enclosed_fraction(&self) -> f64 {
+        self.enclosed as f64 / self.silhouette.max(1) as f64
+    }
+}
+
+/// Running maximum (`dilate`) or minimum of a boolean line over a window of half-width `r`;
+/// outside the line counts as `outside`.
+fn line_filter(src: &[bool], dst: &mut [bool], r: usize, dilate: bool, outside: bool) {
+    let n = src.len();
+    // prefix counts of set values make each window O(1)
+    let mut prefix = Vec::with_capacity(n + 1);
+    prefix.push(0usize);
+    for &v in src {
+        prefix.push(prefix.last().copied().unwrap_or(0) + usize::from(v));
+    }
+    for (i, d) in dst.iter_mut().enumerate() {
+        let lo = i.saturating_sub(r);
+        let hi = (i + r + 1).min(n);
+        let set = prefix[hi] - prefix[lo];
+        let cut = (i < r) || (i + r + 1 > n);
+        *d = if dilate {
+            set > 0 || (cut && outside)
+        } else {
+            set == hi - lo && (!cut || outside)
+        };
+    }
+}
+
+/// Dilation (`dilate`) or erosion of a `width x height` mask by a square of half-width `r`,
+/// separably (rows, then columns).
+fn morph(mask: &[bool], width: usize, height: usize, r: usize, dilate: bool) -> Vec<bool> {
+    // dilation: nothing outside the image; erosion: the outside counts as covered, so the
+    // closing contains the mask everywhere, borders included
+    let outside = !dilate;
+    let mut rows = vec![false; mask.len()];
+    for y in 0..height {
+        let s = y * width..(y + 1) * width;
+        line_filter(&mask[s.clone()], &mut rows[s], r, dilate, outside);
+    }
+    let mut out = vec![false; mask.len()];
+    let (mut col, mut res) = (vec![false; height], vec![false; height]);
+    for x in 0..width {
+        for y in 0..height {
+            col[y] = rows[y * width + x];
+        }
+        line_filter(&col, &mut res, r, dilate, outside);
+        for y in 0..height {
+            out[y * width + x] = res[y];
+        }
+    }
+    out
+}
+
+/// Morphological closing of a `width x height` mask (row-major) by a square of half-width
+/// `radius` pixels: dilation, then erosion. Contains the mask.
+///
+/// # Panics
+/// When `mask.len() != width * height`.
+#[must_use]
+pub fn closing(mask: &[bool], width: usize, height: usize, radius: usize) -> Vec<bool> {
+    assert_eq!(mask.len(), width * height, "mask of the wrong size");
+    let dilated = morph(mask, width, height, radius, true);
+    morph(&dilated, width, height, radius, false)
+}
+
+/// Holes of a coverage mask: the pixels inside its closing by `radius` pixels that it does not
+/// cover (see the module's documentation).
+///
+/// # Panics
+/// When `mask.len() != width * height`.
+#[must_use]
+pub fn holes(mask: &[bool], width: usize, height: usize, radius: usize) -> Holes {
+    let closed = closing(mask, width, height, radius);
+    let silhouette = closed.iter().filter(|&&c| c).count();
+    let holes = closed.iter().zip(mask).filter(|&(&c, &m)| c && !m).count();
+    let outside = reachable_from_border(mask, width, height);
+    let enclosed = (0..mask.len())
+        .filter(|&i| closed[i] && !mask[i] && !outside[i])
+        .count();
+    Holes {
+        silhouette,
+        holes,
+        enclosed,
+    }
+}
+
+/// The uncovered pixels that the image border reaches through uncovered pixels (4-connected).
+pub(crate) fn reachable_from_border(mask: &[bool], w: usize, h: usize) -> Vec<bool> {
+    let mut outside = vec![false; w * h];
+    let mut stack: Vec<usize> = (0..w * h)
+        .filter(|&i| {
+            let (x, y) = (i % w, i / w);
+            (x == 0 || y == 0 || x + 1 == w || y + 1 == h) && !mask[i]
+        })
+        .collect();
+    for &i in &stack {
+        outside[i] = true;
+    }
+    while let Some(i) = stack.pop() {
+        let (x, y) = (i % w, i / w);
+        let near = [
+            (x > 0).then(|| i - 1),
+            (x + 1 < w).then(|| i + 1),
+            (y > 0).then(|| i - w),
+            (y + 1 < h).then(|| i + w),
+        ];
+        for j in near.into_iter().flatten() {
+            if !outside[j] && !mask[j] {
+                outside[j] = true;
+                stack.push(j);
+            }
+        }
+    }
+    outside
+}
+
+/// `image` with the holes of `mask` (see [`holes`]) painted, to look at where they are: enclosed
+/// ones magenta, the others (open to the border, such as gaps between drops) cyan.
+///
+/// # Panics
+/// When `mask` is not one value per pixel of `image`.
+#[must_use]
+pub fn mark_holes(image: &RgbaImage, mask: &[bool], radius: usize) -> RgbaImage {
+    let (w, h) = (image.width() as usize, image.height() as usize);
+    let closed = closing(mask, w, h, radius);
+    let outside = reachable_from_border(mask, w, h);
+    let mut out = image.clone();
+    for (i, p) in out.pixels_mut().enumerate() {
+        if closed[i] && !mask[i] {
+            *p = if outside[i] {
+                image::Rgba([0, 255, 255, 255])
+            } else {
+                image::Rgba([255, 0, 255, 255])
+            };
+        }
+    }
+    out
+}
+
+/// The pixels of `image` that differ from `background` (RGB exactly): the silhouette of what
+/// was drawn on a flat background.
+#[must_use]
+pub fn coverage_on(image: &RgbaImage, background: [u8; 3]) -> Vec<bool> {
+    image.pixels().map(|p| p.0[..3] != background[..]).collect()
+}
+
+/// Rec. 709 luminance of an 8-bit RGB pixel, in [0, 255].
+fn luma(p: &image::Rgba<u8>) -> f32 {
+    0.2126 * f32::from(p[0]) + 0.7152 * f32::from(p[1]) + 0.0722 * f32::from(p[2])
+}
+
+/// Pixels darker than `ratio` times the median luminance of the `window x window` square
+/// around them (the square clipped at the borders). `window` is odd, 3 or more.
+///
+/// # Panics
+/// When `window` is even or below 3.
+#[must_use]
+pub fn specks(image: &RgbaImage, window: u32, ratio: f32) -> usize {
+    speck_mask(image, window, ratio)
+        .iter()
+        .filter(|&&s| s)
+        .count()
+}
+
+/// The pixels of `mask` (`width x height`, row-major) none of whose 8 neighbours is set: of a
+/// [`speck_mask`], the 1-pixel dots, without the thin dark lines (a shadow's edge, a wall's
+/// seam seen through the water) whose pixels the speck test flags too.
+///
+/// # Panics
+/// When `mask.len() != width * height`.
+#[must_use]
+pub fn isolated(mask: &[bool], width: usize, height: usize) -> usize {
+    assert_eq!(mask.len(), width * height, "mask of the wrong size");
+    (0..mask.len())
+        .filter(|&i| {
+            let (x, y) = ((i % width) as i64, (i / width) as i64);
+            mask[i]
+                && (-1..=1i64).all(|dy| {
+                    (-1..=1i64).all(|dx| {
+                        let (xx, yy) = (x + dx, y + dy);
+                        (dx == 0 && dy == 0)
+                            || xx < 0
+                            || yy < 0
+                            || xx >= width as i64
+                            || yy >= height as i64
+                            || !mask[yy as usize * width + xx as usize]
+                    })
+                })
+        })
+        .count()
+}
+
+/// The pixels [`specks`] counts, row-major.
+///
+/// # Panics
+/// When `window` is even or below 3.
+#[must_use]
+pub fn speck_mask(image: &RgbaImage, window: u32, ratio: f32) -> Vec<bool> {
+    assert!(
+        window >= 3 && window % 2 == 1,
+        "window must be odd and >= 3"
+    );
+    let (w, h) = (image.width() as usize, image.height() as usize);
+    let lum: Vec<f32> = image.pixels().map(luma).collect();
+    let r = (window / 2) as usize;
+    let mut values = Vec::with_capacity((window * window) as usize);
+    let mut mask = vec![false; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            values.clear();
+            for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+                values.extend_from_slice(
+                    &lum[yy * w + x.saturating_sub(r)..yy * w + (x + r + 1).min(w)],
+                );
+            }
+            let mid = values.len() / 2;
+            let (_, median, _) = values.select_nth_unstable_by(mid, f32::total_cmp);
+            mask[y * w + x] = lum[y * w + x] < ratio * *median;
+        }
+    }
+    mask
+}
+
+/// Mean absolute difference of the RGB values of two images of one size, in [0, 1].
+///
+/// # Panics
+/// When the sizes differ.
+#[must_use]
+pub fn mean_abs_diff(a: &RgbaImage, b: &RgbaImage) -> f64 {
+    assert_eq!(a.dimensions(), b.dimensions(), "images of different sizes");
+    let (mut sum, mut n) = (0u64, 0u64);
+    for (p, q) in a.pixels().zip(b.pixels()) {
+        for c in 0..3 {
+            sum += u64::from(p[c].abs_diff(q[c]));
+            n += 1;
+        }
+    }
+    sum as f64 / (255.0 * n.max(1) as f64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn disk(w: usize, h: usize, c: (f32, f32), r: f32) -> Vec<bool> {
+        (0..w * h)
+            .map(|i| {
+                let (x, y) = ((i % w) as f32 + 0.5, (i / w) as f32 + 0.5);
+                (x - c.0).powi(2) + (y - c.1).powi(2) <= r * r
+            })
+            .collect()
+    }
+
+    #[test]
+    fn closing_contains_the_mask_and_keeps_a_convex_shape() {
+        let (w, h) = (40, 30);
+        // a disk touching the border: closing neither loses nor (much) grows it
+        let m = disk(w, h, (5.0, 15.0), 9.0);
+        let c = closing(&m, w, h, 3);
+        assert!(m.iter().zip(&c).all(|(&a, &b)| !a || b));
+        let grown = c.iter().zip(&m).filter(|&(&c, &m)| c && !m).count();
+        assert!(grown <= 8, "closing grew a disk by {grown} pixels");
+        assert_eq!(holes(&m, w, h, 3).holes, grown);
+    }
+
+    #[test]
+    fn holes_count_pinholes_and_narrow_cracks_not_wide_gaps() {
+        let (w, h) = (60, 40);
+        let mut m = vec![false; w * h];
+        // two filled rectangles 12 px apart: the gap between them is no hole
+        for y in 5..35 {
+            for x in 5..25 {
+                m[y * w + x] = true;
+            }
+            for x in 37..55 {
+                m[y * w + x] = true;
+            }
+        }
+        assert_eq!(holes(&m, w, h, 3).holes, 0);
+        // a 3-px notch in the first one's edge: a hole of the closed silhouette, not enclosed
+        for y in 20..23 {
+            m[y * w + 5] = false;
+        }
+        let notch = holes(&m, w, h, 3);
+        assert_eq!((notch.holes, notch.enclosed), (3, 0));
+        for y in 20..23 {
+            m[y * w + 5] = true;
+        }
+        // three pinholes and a 2-px crack of 10 px in the first one
+        for &(x, y) in &[(10, 10), (15, 20), (20, 30)] {
+            m[y * w + x] = false;
+        }
+        for y in 12..22 {
+            for x in 12..14 {
+                m[y * w + x] = false;
+            }
+        }
+        let hl = holes(&m, w, h, 3);
+        assert_eq!(hl.holes, 3 + 20);
+        assert_eq!(hl.enclosed, 3 + 20);
+        assert_eq!(hl.silhouette, 30 * 20 + 30 * 18);
+        assert!((hl.fraction() - 23.0 / 1140.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn specks_find_dark_dots_on_smooth_gradients_only() {
+        let mut img = RgbaImage::from_fn(50, 40, |x, _| {
+            let v = (60 + 3 * x) as u8;
+            image::Rgba([v, v, v, 255])
+        });
+        assert_eq!(specks(&img, 7, 0.6), 0);
+        img.put_pixel(10, 10, image::Rgba([20, 20, 20, 255]));
+        img.put_pixel(30, 30, image::Rgba([100, 100, 100, 255])); // darker, not by 0.6x
+        img.put_pixel(0, 0, image::Rgba([0, 0, 0, 255])); // at a corner
+        assert_eq!(specks(&img, 7, 0.6), 2);
+        // a dark line is specks, not isolated ones; the dot is
+        for x in 20..30 {
+            img.put_pixel(x, 5, image::Rgba([10, 10, 10, 255]));
+        }
+        let mask = speck_mask(&img, 7, 0.6);
+        assert_eq!(mask.iter().filter(|&&m| m).count(), 12);
+        assert_eq!(isolated(&mask, 50, 40), 2);
+    }
+
+    #[test]
+    fn mean_abs_diff_is_in_unit_range() {
+        let a = RgbaImage::from_pixel(4, 4, image::Rgba([0, 0, 0, 255]));
+        let b = RgbaImage::from_pixel(4, 4, image::Rgba([255, 255, 255, 0]));
+        assert_eq!(mean_abs_diff(&a, &a), 0.0);
+        assert_eq!(mean_abs_diff(&a, &b), 1.0);
+        let mut c = a.clone();
+        c.put_pixel(0, 0, image::Rgba([51, 0, 0, 255]));
+        assert!((mean_abs_diff(&a, &c) - 0.2 / 48.0).abs() < 1e-12);
+    }
+}

