@@ -874,22 +874,27 @@ impl Refined {
             .into_par_iter()
             .map(|i| {
                 let (p, normal, r) = (self.positions[i], self.normals[i], self.radii[i]);
-                let mut tangent: Vec<f32> = tree
+                // tangent-plane distances of the same-side neighbours, on the stack
+                let mut tangent = [0f32; 16];
+                let mut count = 0;
+                for nb in tree
                     .query(&points[i])
                     .nearest_n::<SquaredEuclidean<f32>>(query)
                     .execute()
-                    .iter()
-                    .map(|nb| nb.item as usize)
-                    .filter(|&j| j != i && self.normals[j].dot(normal) > 0.5)
-                    .map(|j| {
-                        let d = self.positions[j] - p;
-                        (d - d.dot(normal) * normal).length()
-                    })
-                    .collect();
-                if tangent.len() < GAP_NEIGHBOURS {
+                {
+                    let j = nb.item as usize;
+                    if j == i || self.normals[j].dot(normal) <= 0.5 || count == tangent.len() {
+                        continue;
+                    }
+                    let d = self.positions[j] - p;
+                    tangent[count] = (d - d.dot(normal) * normal).length();
+                    count += 1;
+                }
+                if count < GAP_NEIGHBOURS {
                     return r;
                 }
-                let (_, d6, _) = tangent.select_nth_unstable_by(GAP_NEIGHBOURS - 1, f32::total_cmp);
+                let (_, d6, _) =
+                    tangent[..count].select_nth_unstable_by(GAP_NEIGHBOURS - 1, f32::total_cmp);
                 (0.75 * *d6).clamp(r, 3.0 * r)
             })
             .collect()

@@ -73,6 +73,21 @@ impl UpAxis {
     }
 }
 
+/// The field of view of the cameras [`Camera::framing`] and [`Camera::fitting`] make.
+const FRAMING_FOV_DEGREES: f32 = 40.0;
+
+/// The eight corners of the box `[min, max]`.
+#[must_use]
+pub fn box_corners(min: Vec3, max: Vec3) -> [Vec3; 8] {
+    std::array::from_fn(|k| {
+        Vec3::new(
+            if k & 1 == 0 { min.x } else { max.x },
+            if k & 2 == 0 { min.y } else { max.y },
+            if k & 4 == 0 { min.z } else { max.z },
+        )
+    })
+}
+
 /// A perspective look-at camera (right-handed, y up by default).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -109,26 +124,10 @@ impl Camera {
     /// direction as the particle previews; near and far planes bracket the box.
     #[must_use]
     pub fn framing(min: Vec3, max: Vec3) -> Self {
-        Self::framing_from(min, max, Vec3::new(0.55, 0.5, 1.0))
-    }
-
-    /// A camera that frames the box `[min, max]` looking from `direction` (towards the eye; y
-    /// up), its bounding sphere filling the view; near and far planes bracket the box.
-    #[must_use]
-    pub fn framing_from(min: Vec3, max: Vec3, direction: Vec3) -> Self {
-        let centre = (min + max) * 0.5;
         let radius = ((max - min).length() * 0.5).max(1e-6);
-        let fov_y_degrees: f32 = 40.0;
-        let distance = radius / (fov_y_degrees.to_radians() * 0.5).sin() * 1.05;
-        let direction = direction.try_normalize().unwrap_or(Vec3::Z);
-        Self {
-            eye: centre + direction * distance,
-            target: centre,
-            up: Vec3::Y,
-            fov_y_degrees,
-            near: (distance - 2.0 * radius).max(distance * 1e-3),
-            far: distance + 2.0 * radius,
-        }
+        let distance = radius / (FRAMING_FOV_DEGREES.to_radians() * 0.5).sin() * 1.05;
+        let back = Vec3::new(0.55, 0.5, 1.0).normalize();
+        Self::looking_at((min + max) * 0.5, back, distance, radius)
     }
 
     /// A camera looking from `direction` (towards the eye; y up) as close as it can be with
@@ -145,36 +144,33 @@ impl Camera {
         };
         let right = up_hint.cross(back).normalize();
         let up = back.cross(right);
-        let fov_y_degrees: f32 = 40.0;
-        let tan_y = (fov_y_degrees.to_radians() * 0.5).tan();
-        let tan_x = tan_y
-            * if aspect.is_finite() && aspect > 0.0 {
-                aspect
-            } else {
-                1.0
-            };
-        let half = (max - min) * 0.5;
-        let mut distance = 1e-6f32;
-        let mut reach = 1e-6f32;
-        for k in 0..8 {
-            let o = Vec3::new(
-                if k & 1 == 0 { -half.x } else { half.x },
-                if k & 2 == 0 { -half.y } else { half.y },
-                if k & 4 == 0 { -half.z } else { half.z },
-            );
+        let tan_y = (FRAMING_FOV_DEGREES.to_radians() * 0.5).tan();
+        let aspect = if aspect.is_finite() && aspect > 0.0 {
+            aspect
+        } else {
+            1.0
+        };
+        let (tan_x, mut distance, mut reach) = (tan_y * aspect, 1e-6f32, 1e-6f32);
+        for corner in box_corners(min, max) {
             // the corner's depth in front of the eye is distance - o.back
+            let o = corner - centre;
             let along = o.dot(back);
             distance = distance
                 .max(along + o.dot(right).abs() / tan_x)
                 .max(along + o.dot(up).abs() / tan_y);
             reach = reach.max(o.length());
         }
-        let distance = distance * 1.05;
+        Self::looking_at(centre, back, distance * 1.05, reach)
+    }
+
+    /// A camera `distance` from `centre` along `back` (unit), looking at it, y up, its near and
+    /// far planes bracketing a ball of radius `reach` around the centre.
+    fn looking_at(centre: Vec3, back: Vec3, distance: f32, reach: f32) -> Self {
         Self {
             eye: centre + back * distance,
             target: centre,
             up: Vec3::Y,
-            fov_y_degrees,
+            fov_y_degrees: FRAMING_FOV_DEGREES,
             near: (distance - 2.0 * reach).max(distance * 1e-3),
             far: distance + 2.0 * reach,
         }

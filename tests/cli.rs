@@ -897,6 +897,11 @@ fn render_takes_a_software_adapter_only_when_asked() {
 
 /// `render` on a copy of the double dam break in `dir`, with `extra` arguments.
 fn render_ddb(dir: &Path, extra: &[&str]) -> std::process::Output {
+    render_input(&dir.join("ddb.vtk"), extra)
+}
+
+/// `render` of `input`, small, on the CPU, the raw particles' surface, with `extra` arguments.
+fn render_input(input: &Path, extra: &[&str]) -> std::process::Output {
     bin()
         .args([
             "render",
@@ -907,10 +912,21 @@ fn render_ddb(dir: &Path, extra: &[&str]) -> std::process::Output {
             "particles",
         ])
         .arg("--input")
-        .arg(dir.join("ddb.vtk"))
+        .arg(input)
         .args(extra)
         .output()
         .unwrap()
+}
+
+/// A folder holding a copy of the double dam break as `ddb.vtk`, for [`render_ddb`].
+fn ddb_dir() -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(
+        data("double_dam_break_frame_26_4732_particles.vtk"),
+        dir.path().join("ddb.vtk"),
+    )
+    .unwrap();
+    dir
 }
 
 fn stderr_of(out: &std::process::Output) -> String {
@@ -920,13 +936,8 @@ fn stderr_of(out: &std::process::Output) -> String {
 
 #[test]
 fn render_papercuts_fail_early_with_what_to_do() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = ddb_dir();
     let d = dir.path();
-    std::fs::copy(
-        data("double_dam_break_frame_26_4732_particles.vtk"),
-        d.join("ddb.vtk"),
-    )
-    .unwrap();
     // a missing output folder is refused before any work
     let missing = d.join("no/such/folder/out.png");
     let e = stderr_of(&render_ddb(d, &["--out", missing.to_str().unwrap()]));
@@ -976,13 +987,8 @@ fn render_papercuts_fail_early_with_what_to_do() {
 
 #[test]
 fn render_background_is_flat_and_holes_are_reported() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = ddb_dir();
     let d = dir.path();
-    std::fs::copy(
-        data("double_dam_break_frame_26_4732_particles.vtk"),
-        d.join("ddb.vtk"),
-    )
-    .unwrap();
     let out = d.join("white.png");
     let report = json_of(&render_ddb(
         d,
@@ -1024,24 +1030,10 @@ fn render_up_z_turns_a_z_up_file_into_the_same_picture() {
     fluid_surfels::io::write_particles(&d.join("ddb_z.vtk"), &z_up, None).unwrap();
     let (a, b) = (d.join("y.png"), d.join("z.png"));
     succeeded(&render_ddb(d, &["--out", a.to_str().unwrap()]));
-    let z = bin()
-        .args([
-            "render",
-            "--cpu",
-            "--size",
-            "64x48",
-            "--source",
-            "particles",
-            "--up",
-            "z",
-        ])
-        .arg("--input")
-        .arg(d.join("ddb_z.vtk"))
-        .arg("--out")
-        .arg(&b)
-        .output()
-        .unwrap();
-    succeeded(&z);
+    succeeded(&render_input(
+        &d.join("ddb_z.vtk"),
+        &["--up", "z", "--out", b.to_str().unwrap()],
+    ));
     let (a, b) = (
         image::open(&a).unwrap().to_rgba8(),
         image::open(&b).unwrap().to_rgba8(),
@@ -1051,22 +1043,10 @@ fn render_up_z_turns_a_z_up_file_into_the_same_picture() {
     assert!(diff < 0.002, "mean abs diff {diff}");
     // without --up z the z-up file is seen lying on its side: a different picture
     let side = d.join("side.png");
-    let s = bin()
-        .args([
-            "render",
-            "--cpu",
-            "--size",
-            "64x48",
-            "--source",
-            "particles",
-            "--input",
-        ])
-        .arg(d.join("ddb_z.vtk"))
-        .arg("--out")
-        .arg(&side)
-        .output()
-        .unwrap();
-    succeeded(&s);
+    succeeded(&render_input(
+        &d.join("ddb_z.vtk"),
+        &["--out", side.to_str().unwrap()],
+    ));
     let side = image::open(&side).unwrap().to_rgba8();
     assert!(fluid_surfels::quality::mean_abs_diff(&a, &side) > 0.01);
 }

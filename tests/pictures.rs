@@ -206,8 +206,8 @@ fn finished_frames_of_the_real_files_match_their_golden_images_without_specks() 
         );
         // the goal is 0.05 % of the image; not reached: what the test flags are the dark edges
         // of shadows (the pool walls' lines along the water) and of the pool's seams seen
-        // through the water (0.44-0.61 % in all) and 1-pixel dark cells between caustic
-        // highlights (0.09-0.13 %); these bounds keep them from growing (the dark dashes on the
+        // through the water (0.44-0.60 % in all) and 1-pixel dark cells between caustic
+        // highlights (0.09-0.11 %); these bounds keep them from growing (the dark dashes on the
         // walls, before the splats' depth reach: 0.63 % on the dam break)
         assert!(fraction <= 0.007, "{name}: {specks} specks");
         assert!(

@@ -24,26 +24,34 @@ use fluid_surfels::io;
 use fluid_surfels::surface::{ParticleClass, Surface};
 use fluid_surfels::{Error, ParticleSet};
 
-/// `--scene NAME`: the library's scene names, parsed here (the library knows no clap).
-pub fn scene_parser() -> impl clap::builder::TypedValueParser<Value = SceneName> {
+/// A value chosen by one of the names `name` gives the values of `all` (the library's names,
+/// parsed here: the library knows no clap).
+pub fn names_parser<T: Copy + Send + Sync + 'static>(
+    all: &'static [T],
+    name: fn(T) -> &'static str,
+) -> impl clap::builder::TypedValueParser<Value = T> {
     use clap::builder::TypedValueParser;
-    clap::builder::PossibleValuesParser::new(SceneName::ALL.map(SceneName::as_str)).map(|s| {
-        *SceneName::ALL
-            .iter()
-            .find(|n| n.as_str() == s)
+    clap::builder::PossibleValuesParser::new(all.iter().map(|&v| name(v))).map(move |s| {
+        *all.iter()
+            .find(|&&v| name(v) == s)
             .expect("one of the possible values")
     })
 }
 
-/// `--format NAME`: the library's format names, parsed here.
+/// `--scene NAME`.
+pub fn scene_parser() -> impl clap::builder::TypedValueParser<Value = SceneName> {
+    names_parser(&SceneName::ALL, SceneName::as_str)
+}
+
+/// `--format NAME`.
 pub fn format_parser() -> impl clap::builder::TypedValueParser<Value = Format> {
-    use clap::builder::TypedValueParser;
-    clap::builder::PossibleValuesParser::new(Format::ALL.map(Format::name)).map(|s| {
-        *Format::ALL
-            .iter()
-            .find(|f| f.name() == s)
-            .expect("one of the possible values")
-    })
+    names_parser(&Format::ALL, Format::name)
+}
+
+/// `--up AXIS`.
+pub fn up_parser() -> impl clap::builder::TypedValueParser<Value = fluid_surfels::view::UpAxis> {
+    use fluid_surfels::view::UpAxis;
+    names_parser(&UpAxis::ALL, UpAxis::name)
 }
 
 /// Where a stage's particles come from (shared by `detect` and `refine`).
@@ -205,6 +213,18 @@ pub fn check_output(
     force: bool,
     kind: OutputKind,
 ) -> Result<(), Error> {
+    check_replaceable(out, input, force, kind)?;
+    check_folder(out)
+}
+
+/// [`check_output`] without the folder: for the frames of a sequence, whose folder is checked
+/// once.
+pub fn check_replaceable(
+    out: &Path,
+    input: Option<&Path>,
+    force: bool,
+    kind: OutputKind,
+) -> Result<(), Error> {
     let refuse = |kind: std::io::ErrorKind, why: String| -> Result<(), Error> {
         Err(io::IoError::Os {
             path: out.to_owned(),
@@ -242,7 +262,7 @@ pub fn check_output(
             .into(),
         );
     }
-    check_folder(out)
+    Ok(())
 }
 
 /// The folder `out` goes into exists and takes a new file (probed by creating and removing one).
@@ -319,6 +339,7 @@ impl Sequence<'_> {
     pub fn plan(&self) -> Result<(Vec<usize>, Vec<usize>), Error> {
         let mut todo = Vec::new();
         let mut skipped = Vec::new();
+        let mut folders = std::collections::HashSet::new();
         for &f in &self.frames {
             let targets: Vec<PathBuf> = self.outputs.iter().map(|p| p.path(f)).collect();
             if self.skip_existing && !targets.is_empty() && targets.iter().all(|t| t.exists()) {
@@ -327,7 +348,10 @@ impl Sequence<'_> {
             }
             let input = self.input.path(f);
             for t in &targets {
-                check_output(t, Some(&input), self.force, OutputKind::Frame)?;
+                check_replaceable(t, Some(&input), self.force, OutputKind::Frame)?;
+                if folders.insert(t.parent().map(Path::to_path_buf)) {
+                    check_folder(t)?;
+                }
             }
             todo.push(f);
         }

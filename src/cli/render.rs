@@ -73,7 +73,7 @@ pub struct RenderArgs {
     /// are turned so that the axis points up (+y) before anything runs, so the pool's floor, the
     /// sunlight and the sky follow it. A --config scene file is read in the turned, y-up
     /// coordinates.
-    #[arg(long, default_value = "y", value_parser = up_parser(), allow_hyphen_values = true)]
+    #[arg(long, default_value = "y", value_parser = super::up_parser(), allow_hyphen_values = true)]
     pub up: UpAxis,
     /// Paint the specks (pixels darker than 0.6x the median of their 7x7 neighbourhood, as
     /// counted in the report) red in the finished frame, to see where they are.
@@ -147,30 +147,29 @@ pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
     Ok((w, h))
 }
 
-pub fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
-    let v: Vec<u8> = s
-        .split(',')
+/// Comma-separated values of one type, each described as `what` in errors.
+fn parse_list<T: std::str::FromStr>(s: &str, what: &str) -> Result<Vec<T>, String>
+where
+    T::Err: std::fmt::Display,
+{
+    s.split(',')
         .map(|x| {
             x.trim()
-                .parse::<u8>()
-                .map_err(|e| format!("`{x}` is not a value from 0 to 255 ({e})"))
+                .parse::<T>()
+                .map_err(|e| format!("`{x}` is not {what} ({e})"))
         })
-        .collect::<Result<_, _>>()?;
-    match v[..] {
+        .collect()
+}
+
+pub fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
+    match parse_list::<u8>(s, "a value from 0 to 255")?[..] {
         [r, g, b] => Ok([r, g, b]),
         _ => Err(format!("`{s}`: expected R,G,B such as 255,255,255")),
     }
 }
 
 fn parse_camera(s: &str) -> Result<Camera, String> {
-    let v: Vec<f32> = s
-        .split(',')
-        .map(|x| {
-            x.trim()
-                .parse::<f32>()
-                .map_err(|e| format!("`{x}` is not a number ({e})"))
-        })
-        .collect::<Result<_, _>>()?;
+    let v: Vec<f32> = parse_list(s, "a number")?;
     if v.len() != 6 && v.len() != 7 {
         return Err(format!(
             "expected 6 or 7 numbers (eye, target, optional field of view), got {}",
@@ -187,17 +186,6 @@ fn parse_camera(s: &str) -> Result<Camera, String> {
         near: (distance * 1e-3).max(1e-4),
         far: distance * 100.0 + 1.0,
         ..Camera::default()
-    })
-}
-
-/// `--up AXIS`: the library's axis names.
-pub fn up_parser() -> impl clap::builder::TypedValueParser<Value = UpAxis> {
-    use clap::builder::TypedValueParser;
-    clap::builder::PossibleValuesParser::new(UpAxis::ALL.map(UpAxis::name)).map(|s| {
-        *UpAxis::ALL
-            .iter()
-            .find(|a| a.name() == s)
-            .expect("one of the possible values")
     })
 }
 
@@ -479,6 +467,12 @@ fn backend_name(ctx: Option<&GpuContext>) -> String {
 }
 
 pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
+    if args.skip_existing && args.frames.is_none() {
+        return Err(Error::InvalidArgument {
+            argument: "--skip-existing",
+            reason: "is for sequences (--frames); for one file, --force replaces it".into(),
+        });
+    }
     if args.optics
         || args.config.is_some()
         || args.frames.is_some()
@@ -487,12 +481,6 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         return render_optics(args);
     }
     let input = args.input.as_deref().or(args.surfels.as_deref());
-    if args.skip_existing {
-        return Err(Error::InvalidArgument {
-            argument: "--skip-existing",
-            reason: "is for sequences (--frames); for one file, --force replaces it".into(),
-        });
-    }
     check_output(&args.out, input, args.force, OutputKind::Single)?;
     let mut frames = Frames::of(args, false)?;
     let mut params = pipeline_params(args)?;
@@ -687,12 +675,6 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
         // the folder is made below; what must exist is the folder it goes into
         super::check_folder(&args.out)?;
     } else {
-        if args.skip_existing {
-            return Err(Error::InvalidArgument {
-                argument: "--skip-existing",
-                reason: "is for sequences (--frames); for one file, --force replaces it".into(),
-            });
-        }
         check_output(&args.out, input, args.force, OutputKind::Single)?;
     }
     let mut frames = Frames::of(args, sequence)?;
@@ -744,8 +726,9 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
         argument: "--out",
         reason: format!("{}: {e}", args.out.display()),
     })?;
+    super::check_folder(&args.out.join("frame_0000.png"))?;
     for (out, _) in outputs.iter().zip(&todo).filter(|(_, t)| **t) {
-        check_output(out, None, args.force, OutputKind::Frame)?;
+        super::check_replaceable(out, None, args.force, OutputKind::Frame)?;
     }
     let skipped = todo.iter().filter(|t| !**t).count();
     if skipped == list.len() {

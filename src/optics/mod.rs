@@ -632,15 +632,7 @@ fn light_views(
 ) -> Result<LightViews, OpticsError> {
     let p = &scene.optics;
     let light = &scene.light;
-    let corners = |(a, b): (Vec3, Vec3)| {
-        (0..8).map(move |k| {
-            Vec3::new(
-                if k & 1 == 0 { a.x } else { b.x },
-                if k & 2 == 0 { a.y } else { b.y },
-                if k & 4 == 0 { a.z } else { b.z },
-            )
-        })
-    };
+    let corners = |(a, b): (Vec3, Vec3)| crate::view::box_corners(a, b).into_iter();
     let size = (all.1 - all.0).length().max(1e-6);
     let resolution = |given: Option<[u32; 2]>, half: Vec2, long: u32| -> [u32; 2] {
         given.unwrap_or_else(|| {
