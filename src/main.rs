@@ -20,6 +20,8 @@ use cli::run::RunArgs;
 struct Cli {
     #[command(subcommand)]
     command: Option<Command>,
+    #[command(flatten)]
+    global: cli::GlobalArgs,
 }
 
 #[derive(Subcommand)]
@@ -88,9 +90,34 @@ fn quiet_lavapipe() {
     }
 }
 
+/// Every option of every subcommand takes negative numbers as values (`--radius -1` reaches
+/// the range check, which says what is allowed, instead of clap's "unexpected argument").
+fn negative_numbers(command: clap::Command) -> clap::Command {
+    command
+        .mut_args(|a| {
+            // only options that take a value (clap asserts it)
+            if matches!(
+                a.get_action(),
+                clap::ArgAction::Set | clap::ArgAction::Append
+            ) {
+                a.allow_negative_numbers(true)
+            } else {
+                a
+            }
+        })
+        .mut_subcommands(negative_numbers)
+}
+
+fn parse() -> Cli {
+    use clap::{CommandFactory, FromArgMatches};
+    let matches = negative_numbers(Cli::command()).get_matches();
+    Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit())
+}
+
 fn main() -> ExitCode {
     quiet_lavapipe();
-    let cli = Cli::parse();
+    let cli = parse();
+    cli::set_globals(cli.global.clone());
     let result = match cli.command {
         None => cli::run::run(&RunArgs {
             out_dir: PathBuf::from("out"),
@@ -113,17 +140,32 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
+            // what reaches the terminal is escaped: a file's bytes never drive it
             let message = e.to_string();
-            eprintln!("error: {message}");
+            eprintln!("error: {}", fluid_surfels::io::clean(&message, 1000));
             let mut source = std::error::Error::source(&e);
+            let mut shown = 0;
             while let Some(s) = source {
-                // most errors already quote their cause
-                if !message.contains(&s.to_string()) {
-                    eprintln!("  caused by: {s}");
+                // most errors already quote their cause; a short chain at most
+                let text = s.to_string();
+                if !message.contains(&text) && shown < 3 {
+                    eprintln!("  caused by: {}", fluid_surfels::io::clean(&text, 300));
+                    shown += 1;
                 }
                 source = s.source();
             }
             ExitCode::FAILURE
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::CommandFactory;
+
+    /// clap's own consistency checks over every subcommand, as the binary builds it.
+    #[test]
+    fn command_line_is_consistent() {
+        super::negative_numbers(super::Cli::command()).debug_assert();
     }
 }

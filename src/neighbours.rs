@@ -38,7 +38,7 @@ pub enum NeighbourError {
     NonFinitePosition { index: usize, position: [f32; 3] },
     /// The particles span too many cells of the given radius along one axis.
     #[error(
-        "the particles span {cells:?} cells of size {radius} (extent {extent:?}); at most {max} per axis are supported: use a larger radius or remove far-away particles"
+        "the particles span {cells:?} cells of size {radius} (extent {extent:?}); at most {max} per axis are supported: use a larger radius, or drop far-away particles (`--bounds MIN_X,MIN_Y,MIN_Z,MAX_X,MAX_Y,MAX_Z` on the command line, `ParticleSet::crop` in the library)"
     )]
     GridTooLarge {
         cells: [u64; 3],

@@ -225,6 +225,21 @@ impl ParticleSet {
         }
     }
 
+    /// The particles inside the box `[lo, hi]` (bounds included), with all attributes, and how
+    /// many were outside: what a leaked particle far from the fluid needs before the set can be
+    /// gridded (splashsurf's particle AABB filter; `--bounds` on the command line).
+    #[must_use]
+    pub fn crop(&self, lo: Vec3, hi: Vec3) -> (Self, usize) {
+        let inside: Vec<usize> = (0..self.len())
+            .filter(|&i| {
+                let p = self.positions[i];
+                p.cmpge(lo).all() && p.cmple(hi).all()
+            })
+            .collect();
+        let outside = self.len() - inside.len();
+        (self.select(&inside), outside)
+    }
+
     /// Checks that every attribute has one entry per particle, that positions are finite and
     /// that ids are unique.
     pub fn validate(&self) -> Result<(), ParticleSetError> {

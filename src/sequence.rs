@@ -24,6 +24,27 @@ pub enum SequenceError {
     /// No file of the sequence was found on disk.
     #[error("no file matches `{pattern}` in {}", dir.display())]
     NoFrames { pattern: String, dir: PathBuf },
+    /// Frames of the range asked for have no file.
+    #[error(
+        "frames of `{range}` have no file: {}{} (`{}` does not exist); give a --frames range of frames that exist",
+        list(missing), if *more { " and more" } else { "" }, first_path.display()
+    )]
+    MissingFrames {
+        range: String,
+        /// The first few missing frames.
+        missing: Vec<usize>,
+        /// Whether there are more than those.
+        more: bool,
+        first_path: PathBuf,
+    },
+}
+
+fn list(frames: &[usize]) -> String {
+    frames
+        .iter()
+        .map(usize::to_string)
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 /// A file name with one placeholder for the frame number.
@@ -90,6 +111,39 @@ impl FramePattern {
         PathBuf::from(format!("{}{number}{}", self.prefix, self.suffix))
     }
 
+    /// The frames to work on: those of `range`, every one checked to have its file before any
+    /// work starts (refused with the first few missing, [`SequenceError::MissingFrames`]), or
+    /// with no range every file on disk that matches. Nothing is allocated per frame of the
+    /// range beyond the files found, so a range of a billion frames costs what the files do.
+    pub fn frames(&self, range: Option<FrameRange>) -> Result<Vec<usize>, SequenceError> {
+        const SHOWN: usize = 5;
+        let Some(range) = range else {
+            return self.existing_frames();
+        };
+        let mut found = Vec::new();
+        let mut missing = Vec::new();
+        let mut more = false;
+        for f in range.frames() {
+            if self.path(f).is_file() {
+                found.push(f);
+            } else if missing.len() == SHOWN {
+                more = true;
+                break;
+            } else {
+                missing.push(f);
+            }
+        }
+        if let Some(&first) = missing.first() {
+            return Err(SequenceError::MissingFrames {
+                range: range.to_string(),
+                missing,
+                more,
+                first_path: self.path(first),
+            });
+        }
+        Ok(found)
+    }
+
     /// The frame numbers of the files on disk that match the pattern, sorted.
     pub fn existing_frames(&self) -> Result<Vec<usize>, SequenceError> {
         let full = format!("{}{{}}{}", self.prefix, self.suffix);
@@ -145,6 +199,28 @@ impl FrameRange {
     /// The frame numbers in order.
     pub fn frames(&self) -> impl Iterator<Item = usize> + '_ {
         (self.start..self.end).step_by(self.step)
+    }
+
+    /// How many frames the range holds (computed, not counted).
+    #[must_use]
+    pub fn len(&self) -> usize {
+        (self.end - self.start).div_ceil(self.step)
+    }
+
+    /// Whether the range holds no frame (never, for a parsed range).
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.end <= self.start
+    }
+}
+
+impl std::fmt::Display for FrameRange {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}..{}", self.start, self.end)?;
+        if self.step != 1 {
+            write!(f, ":{}", self.step)?;
+        }
+        Ok(())
     }
 }
 

@@ -265,6 +265,7 @@ pub struct View {
     pub(crate) orthographic: bool,
     pub(crate) depth_offset: f32,
     pub(crate) low_pass: f32,
+    pub(crate) max_fragments: u64,
     pub(crate) sharpness: f32,
     pub(crate) sprites: bool,
 }
@@ -326,6 +327,7 @@ impl View {
             orthographic: false,
             depth_offset: params.depth_offset,
             low_pass: params.low_pass_px,
+            max_fragments: params.max_fragments,
             sharpness: params.sharpness,
             sprites: params.mode == SplatMode::Sprites,
         })

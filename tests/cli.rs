@@ -1141,3 +1141,281 @@ fn detect_writes_xyz_raw_with_out_format() {
         12 * back.len() as u64
     );
 }
+
+/// Frame ranges and job counts: checked against the files before any work, nothing allocated
+/// per frame of the range (issue 18).
+#[test]
+fn absurd_frame_ranges_and_job_counts_are_refused_at_once() {
+    let dir = ddb_dir();
+    std::fs::rename(dir.path().join("ddb.vtk"), dir.path().join("ddb_0.vtk")).unwrap();
+    let pattern = dir.path().join("ddb_{}.vtk").display().to_string();
+    for range in ["0..18446744073709551615", "0..1000000000", "0..=3"] {
+        let t = std::time::Instant::now();
+        let out = bin()
+            .args(["detect", "--input", &pattern, "--frames", range, "--out"])
+            .arg(dir.path().join("out_{}.ply"))
+            .output()
+            .unwrap();
+        let err = stderr_of(&out);
+        assert!(
+            err.contains("have no file") && err.contains("1, 2, 3") && err.contains("ddb_1.vtk"),
+            "{range}: {err}"
+        );
+        assert!(t.elapsed().as_secs() < 20, "{range}: {:?}", t.elapsed());
+        assert!(
+            !dir.path().join("out_0.ply").exists(),
+            "no work before the check"
+        );
+    }
+    let out = bin()
+        .args(["info", &pattern, "--jobs", "1000000"])
+        .output()
+        .unwrap();
+    assert!(stderr_of(&out).contains("1 to 1024"));
+    let out = bin()
+        .args(["detect", "--scene", "column", "--frame", "100000000"])
+        .output()
+        .unwrap();
+    assert!(stderr_of(&out).contains("last frame"));
+}
+
+/// Work whose cost grows faster than its input is predicted and refused with the prediction
+/// (issue 18): refinement steps, the low-pass radius.
+#[test]
+fn predicted_costs_over_the_limits_are_refused_with_the_figures() {
+    let dir = ddb_dir();
+    let input = dir.path().join("ddb.vtk");
+    let out = bin()
+        .args([
+            "refine",
+            "--steps",
+            "8",
+            "--memory-budget",
+            "64M",
+            "--input",
+        ])
+        .arg(&input)
+        .output()
+        .unwrap();
+    let err = stderr_of(&out);
+    assert!(
+        err.contains("would make up to") && err.contains("memory budget of 64 MiB"),
+        "{err}"
+    );
+    let t = std::time::Instant::now();
+    let out = bin()
+        .args([
+            "render",
+            "--cpu",
+            "--low-pass",
+            "1e9",
+            "--size",
+            "800x600",
+            "--input",
+        ])
+        .arg(&input)
+        .arg("--out")
+        .arg(dir.path().join("lp.png"))
+        .output()
+        .unwrap();
+    let err = stderr_of(&out);
+    assert!(
+        err.contains("pixel fragments") && err.contains("--low-pass"),
+        "{err}"
+    );
+    assert!(t.elapsed().as_secs() < 60, "{:?}", t.elapsed());
+    // an image whose buffers do not fit in what is left under a 3 GiB address-space limit
+    let big = dir.path().join("big.png");
+    let out = Command::new("sh")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 3000000 && exec '{}' render --cpu --size 8192x8192 --input '{}' --out '{}'",
+            env!("CARGO_BIN_EXE_fluid-surfels"),
+            input.display(),
+            big.display()
+        ))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1), "an error exit, not an abort");
+    let err = stderr_of(&out);
+    assert!(err.contains("8192x8192 render needs 5120 MiB"), "{err}");
+    // negative values reach the range checks, which say what is allowed
+    let neg = dir.path().join("neg.png").display().to_string();
+    let out = render_ddb(dir.path(), &["--low-pass", "-2", "--out", &neg]);
+    assert!(stderr_of(&out).contains("must be finite and >= 0"));
+    let out = bin()
+        .args(["detect", "--radius", "-1", "--input"])
+        .arg(&input)
+        .output()
+        .unwrap();
+    assert!(stderr_of(&out).contains("must be finite and > 0, got -1"));
+    // a NaN radius is named as the radius, not as the grid's box
+    let out = bin()
+        .args(["surfels", "--radius", "nan", "--input"])
+        .arg(&input)
+        .arg("--out")
+        .arg(dir.path().join("s.ply"))
+        .output()
+        .unwrap();
+    let err = stderr_of(&out);
+    assert!(err.contains("radius") && !err.contains("box"), "{err}");
+}
+
+/// One particle leaked a billion units away: the error says `--bounds` exists, and with it the
+/// file works and the report counts what was dropped (issue 18).
+#[test]
+fn bounds_drop_leaked_particles_and_are_suggested() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut set = fluid_surfels::io::read_particles(
+        Path::new(&data("double_dam_break_frame_26_4732_particles.vtk")),
+        None,
+    )
+    .unwrap();
+    set.positions.push(glam::Vec3::new(1e9, 0.0, 0.0));
+    let set = fluid_surfels::ParticleSet::from_positions(set.positions);
+    let leak = dir.path().join("leak.ply");
+    fluid_surfels::io::write_particles(&leak, &set, None).unwrap();
+    let out = bin()
+        .args(["detect", "--input"])
+        .arg(&leak)
+        .output()
+        .unwrap();
+    let err = stderr_of(&out);
+    assert!(err.contains("--bounds"), "{err}");
+    let out = bin()
+        .args(["detect", "--json", "--bounds", "-2,-1,-2,2,2,2", "--input"])
+        .arg(&leak)
+        .output()
+        .unwrap();
+    let report = json_of(&out);
+    assert_eq!(report["outside_bounds"], 1);
+    assert_eq!(report["particles"], 4732);
+    let out = bin()
+        .args(["detect", "--bounds", "1,0,0,0,1,1", "--input"])
+        .arg(&leak)
+        .output()
+        .unwrap();
+    assert!(stderr_of(&out).contains("min <= its max"));
+}
+
+/// Surfels read from a file: a huge radius is named as the radius, zero and negative radii
+/// are skipped with a count (issue 18).
+#[test]
+fn surfel_files_with_bad_radii_are_named_or_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let write = |name: &str, radii: Vec<f64>| {
+        let n = radii.len();
+        let mut set = fluid_surfels::ParticleSet::from_positions(
+            (0..n)
+                .map(|i| glam::Vec3::new((i % 10) as f32 * 0.1, (i / 10) as f32 * 0.1, 0.0))
+                .collect(),
+        );
+        set.normals = Some(vec![glam::Vec3::Z; n]);
+        set.extra.push(fluid_surfels::Attribute::scalar(
+            "radius",
+            fluid_surfels::ScalarKind::F32,
+            radii,
+        ));
+        let path = dir.path().join(name);
+        fluid_surfels::io::write_particles(&path, &set, None).unwrap();
+        path
+    };
+    let mut radii = vec![0.08; 100];
+    radii[17] = 1e30;
+    let huge = write("huge.ply", radii);
+    let out = bin()
+        .args(["render", "--cpu", "--size", "64x48", "--surfels"])
+        .arg(&huge)
+        .arg("--out")
+        .arg(dir.path().join("h.png"))
+        .output()
+        .unwrap();
+    let err = stderr_of(&out);
+    assert!(
+        err.contains("surfel 17 has radius") && !err.contains("camera"),
+        "{err}"
+    );
+    let mut radii = vec![0.08; 100];
+    for r in &mut radii[..7] {
+        *r = 0.0;
+    }
+    radii[50] = -1.0;
+    let zero = write("zero.ply", radii);
+    let out = bin()
+        .args(["render", "--cpu", "--size", "64x48", "--surfels"])
+        .arg(&zero)
+        .arg("--out")
+        .arg(dir.path().join("z.png"))
+        .output()
+        .unwrap();
+    succeeded(&out);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("warning: 8 of 100 surfels cannot be drawn"),
+        "{text}"
+    );
+}
+
+/// A file that inflates beyond the memory budget is refused by a process whose address space
+/// is limited below what inflating would take, with the budget named instead of an abort
+/// (issue 18).
+#[test]
+fn a_zlib_bomb_is_refused_under_a_lowered_address_space_limit() {
+    use std::io::Write;
+    let dir = tempfile::tempdir().unwrap();
+    // one compressed MiB of zeros repeated 1200 times: 1.2 GiB declared, 1.2 MB on disk
+    let mib = vec![0u8; 1 << 20];
+    let mut e = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::best());
+    e.write_all(&mib).unwrap();
+    let block = e.finish().unwrap();
+    let copies = 1200u32;
+    let points = u64::from(copies) * (1 << 20) / 12;
+    let mut file = format!("<VTKFile type=\"UnstructuredGrid\" compressor=\"vtkZLibDataCompressor\" header_type=\"UInt32\"><UnstructuredGrid><Piece NumberOfPoints=\"{points}\"><Points><DataArray type=\"Float32\" NumberOfComponents=\"3\" format=\"appended\" offset=\"0\"/></Points></Piece></UnstructuredGrid><AppendedData encoding=\"raw\">_").into_bytes();
+    for v in [copies, 1 << 20, 0] {
+        file.extend_from_slice(&v.to_le_bytes());
+    }
+    for _ in 0..copies {
+        file.extend_from_slice(&(block.len() as u32).to_le_bytes());
+    }
+    for _ in 0..copies {
+        file.extend_from_slice(&block);
+    }
+    file.extend_from_slice(b"</AppendedData></VTKFile>");
+    let bomb = dir.path().join("bomb.vtu");
+    std::fs::write(&bomb, &file).unwrap();
+    let limited = |kib: u64, file: &Path| {
+        Command::new("sh")
+            .arg("-c")
+            .arg(format!(
+                "ulimit -v {kib} && exec '{}' info '{}'",
+                env!("CARGO_BIN_EXE_fluid-surfels"),
+                file.display()
+            ))
+            .output()
+            .unwrap()
+    };
+    // a header claiming 4 GiB from a few compressed bytes: refused from the header alone
+    let mut liar = b"<VTKFile type=\"UnstructuredGrid\" compressor=\"vtkZLibDataCompressor\" header_type=\"UInt32\"><UnstructuredGrid><Piece NumberOfPoints=\"8\"><Points><DataArray type=\"Float32\" NumberOfComponents=\"3\" format=\"appended\" offset=\"0\"/></Points></Piece></UnstructuredGrid><AppendedData encoding=\"raw\">_".to_vec();
+    for v in [1u32, u32::MAX, u32::MAX, 10] {
+        liar.extend_from_slice(&v.to_le_bytes());
+    }
+    liar.extend_from_slice(&[0x78, 0x9c, 3, 0, 0, 0, 0, 1, 0, 0]);
+    liar.extend_from_slice(b"</AppendedData></VTKFile>");
+    let liar_path = dir.path().join("liar.vtu");
+    std::fs::write(&liar_path, &liar).unwrap();
+    let out = limited(1_500_000, &liar_path);
+    assert_eq!(out.status.code(), Some(1), "an error exit, not an abort");
+    let err = stderr_of(&out);
+    assert!(err.contains("inflates 1032x at most"), "{err}");
+    // 1.5 GiB of address space, less than the points need: the limit is what is available
+    let out = limited(1_500_000, &bomb);
+    assert_eq!(out.status.code(), Some(1), "an error exit, not an abort");
+    let err = stderr_of(&out);
+    assert!(err.contains("bytes of memory available"), "{err}");
+    // 8 GiB: the points fit, but inflating 1.2 GiB is over the 1 GiB budget
+    let out = limited(8 << 20, &bomb);
+    assert_eq!(out.status.code(), Some(1), "an error exit, not an abort");
+    let err = stderr_of(&out);
+    assert!(err.contains("memory budget of 1073741824"), "{err}");
+    assert!(!err.contains("memory allocation"), "{err}");
+}

@@ -400,10 +400,11 @@ fn counts_beyond_memory_and_gzip_bombs_are_refused_without_allocating() {
     let mut bgeo = io::to_bytes(Format::Bgeo, &rich_set(2), Path::new("x")).unwrap();
     bgeo[9..13].copy_from_slice(&i32::MAX.to_be_bytes());
     assert!(parse(Format::Bgeo, &bgeo).is_err());
-    // gzipped BGEO whose header says 2^31 points: refused from the header (memory or data)
+    // gzipped BGEO whose header says 2^31 points: refused from the header, more than the
+    // gzip stream can inflate to
     let gz = gzip(&bgeo, flate2::Compression::default());
     let e = parse(Format::Bgeo, &gz).unwrap_err();
-    assert!(matches!(e, IoError::TooLarge { .. }), "{e}");
+    assert!(e.to_string().contains("gzipped bytes can hold"), "{e}");
     // a gzip bomb: a 2-point header followed by 2 GiB of zeros (about 2 MiB compressed)
     let small = io::to_bytes(Format::Bgeo, &rich_set(2), Path::new("x")).unwrap();
     let mut bomb = Vec::new();
@@ -428,7 +429,114 @@ fn counts_beyond_memory_and_gzip_bombs_are_refused_without_allocating() {
     }
     v.extend_from_slice(b"</AppendedData></VTKFile>");
     let e = parse(Format::Vtu, &v).unwrap_err();
-    assert!(matches!(e, IoError::TooLarge { .. }), "{e}");
+    assert!(e.to_string().contains("inflates 1032x at most"), "{e}");
+}
+
+/// The values a lying size field is set to: zero, 2^31, 2^32 - 1 and 2^63.
+const FIELD_VALUES: [u64; 4] = [0, 1 << 31, u32::MAX as u64, 1 << 63];
+
+/// Offsets where a file's blocks begin: line starts (keywords of text headers), XML tags, the
+/// appended data's start and every array's offset in it.
+fn block_boundaries(bytes: &[u8]) -> Vec<usize> {
+    let mut at: Vec<usize> = vec![0, bytes.len()];
+    let text_part = bytes.len().min(4096);
+    for (i, &b) in bytes[..text_part].iter().enumerate() {
+        if b == b'\n' || b == b'<' {
+            at.push(i + 1);
+        }
+    }
+    let find = |needle: &[u8]| bytes.windows(needle.len()).position(|w| w == needle);
+    if let Some(tag) = find(b"<AppendedData") {
+        let start = tag + bytes[tag..].iter().position(|&c| c == b'_').unwrap_or(0) + 1;
+        at.push(start);
+        let xml = String::from_utf8_lossy(&bytes[..tag]);
+        for part in xml.split("offset=\"").skip(1) {
+            if let Some(o) = part.split('"').next().and_then(|o| o.parse::<usize>().ok()) {
+                at.push(start + o);
+            }
+        }
+    }
+    at.retain(|&k| k <= bytes.len());
+    at.sort_unstable();
+    at.dedup();
+    at
+}
+
+/// Every structured mutation of a file: truncation at, one and two before and one after every
+/// block boundary; a byte deleted and one inserted there and at a stride through the whole file
+/// (inside the binary blocks); every text number in the header and every binary word (32- and
+/// 64-bit, both byte orders) at a boundary set to each of [`FIELD_VALUES`].
+fn structured_mutations(bytes: &[u8]) -> Vec<Vec<u8>> {
+    let mut out = Vec::new();
+    let bounds = block_boundaries(bytes);
+    let stride = (bytes.len() / 60).max(1);
+    let mut edits: Vec<usize> = bounds.clone();
+    edits.extend((0..bytes.len()).step_by(stride));
+    for &b in &bounds {
+        // two before: a binary block followed by its line end, one byte short
+        for cut in [b.saturating_sub(2), b.saturating_sub(1), b, b + 1] {
+            if cut < bytes.len() {
+                out.push(bytes[..cut].to_vec());
+            }
+        }
+    }
+    for &at in &edits {
+        if at < bytes.len() {
+            let mut d = bytes.to_vec();
+            d.remove(at);
+            out.push(d);
+            let mut i = bytes.to_vec();
+            i.insert(at, b'7');
+            out.push(i);
+        }
+    }
+    // decimal numbers in the text part (counts, sizes, offsets)
+    let text_part = bytes.len().min(4096);
+    let mut k = 0;
+    while k < text_part {
+        if bytes[k].is_ascii_digit() && (k == 0 || !bytes[k - 1].is_ascii_alphanumeric()) {
+            let end = k + bytes[k..].iter().take_while(|b| b.is_ascii_digit()).count();
+            for v in FIELD_VALUES {
+                let mut m = bytes[..k].to_vec();
+                m.extend_from_slice(v.to_string().as_bytes());
+                m.extend_from_slice(&bytes[end..]);
+                out.push(m);
+            }
+            k = end;
+        } else {
+            k += 1;
+        }
+    }
+    // binary words at block boundaries and just after them (the size headers of blocks)
+    for &b in &bounds {
+        for at in [b, b + 4, b + 8, b + 12] {
+            for v in FIELD_VALUES {
+                for word in [
+                    (v as u32).to_le_bytes().to_vec(),
+                    (v as u32).to_be_bytes().to_vec(),
+                    v.to_le_bytes().to_vec(),
+                    v.to_be_bytes().to_vec(),
+                ] {
+                    if at + word.len() <= bytes.len() {
+                        let mut m = bytes.to_vec();
+                        m[at..at + word.len()].copy_from_slice(&word);
+                        out.push(m);
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
+/// An error message a user can read: no control character, at most 300 characters.
+fn assert_readable(e: &IoError, what: &str) {
+    let text = e.to_string();
+    assert!(
+        !text.chars().any(char::is_control) && text.chars().count() <= 300,
+        "{what}: {} characters: {text:?}",
+        text.chars().count()
+    );
 }
 
 #[test]
@@ -439,6 +547,7 @@ fn mutated_files_never_panic() {
         .and_then(|s| s.parse().ok())
         .unwrap_or(7);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let start = std::time::Instant::now();
     let set = rich_set(20);
     let mut cases: Vec<(Format, Vec<u8>)> = Format::ALL
         .iter()
@@ -447,6 +556,33 @@ fn mutated_files_never_panic() {
     for encoding in [vtu::Encoding::Ascii, vtu::Encoding::Base64] {
         cases.push((Format::Vtu, vtu::to_bytes_with(&set, encoding)));
     }
+    for (compressed, header64) in [(false, true), (true, false), (true, true)] {
+        cases.push((
+            Format::Vtu,
+            appended_base64(&set, compressed, header64, Streams::EachBlock),
+        ));
+    }
+    let coords: Vec<u8> = set
+        .positions
+        .iter()
+        .flat_map(|p| p.to_array())
+        .flat_map(f32::to_le_bytes)
+        .collect();
+    let (header, blocks) = zlib_blocks(&coords, 100, false);
+    cases.push((
+        Format::Vtu,
+        vtu_raw_zlib(set.len() as u64, &header, &blocks.concat()),
+    ));
+    for (_, bytes, _) in binary_vtk_dialects(&set) {
+        cases.push((Format::Vtk, bytes));
+    }
+    cases.push((
+        Format::Bgeo,
+        gzip(
+            &io::to_bytes(Format::Bgeo, &set, Path::new("x")).unwrap(),
+            flate2::Compression::fast(),
+        ),
+    ));
     cases.push((
         Format::Vtk,
         std::fs::read(data("cube_8_particles.vtk")).unwrap(),
@@ -456,7 +592,22 @@ fn mutated_files_never_panic() {
         std::fs::read(data("cube_normals.ply")).unwrap(),
     ));
     let mut parsed = 0;
-    for (format, original) in &cases {
+    let mut total = 0;
+    let mut check = |format: Format, bytes: &[u8], what: &dyn Fn() -> String| {
+        let result = std::panic::catch_unwind(|| io::parse_bytes(format, bytes, Path::new("m")));
+        let Ok(result) = result else {
+            panic!(
+                "seed {seed} (FLUID_SURFELS_SEED): {format:?} {} panicked",
+                what()
+            );
+        };
+        match result {
+            Ok(_) => parsed += 1,
+            Err(e) => assert_readable(&e, &format!("{format:?} {}", what())),
+        }
+        total += 1;
+    };
+    for (case, (format, original)) in cases.iter().enumerate() {
         for round in 0..400 {
             let mut bytes = original.clone();
             for _ in 0..rng.random_range(1..4) {
@@ -464,7 +615,7 @@ fn mutated_files_never_panic() {
                 match rng.random_range(0..5) {
                     0 if !bytes.is_empty() => bytes[at] ^= 1 << rng.random_range(0..8),
                     1 if !bytes.is_empty() => {
-                        bytes[at] = [0, 0xff, b'9', b'-', b'\n', b' '][rng.random_range(0..6)]
+                        bytes[at] = [0, 0xff, b'9', b'-', b'\n', b' ', 0x1b][rng.random_range(0..7)]
                     }
                     2 if !bytes.is_empty() => {
                         bytes.remove(at);
@@ -473,16 +624,19 @@ fn mutated_files_never_panic() {
                     _ => bytes.truncate(at),
                 }
             }
-            let result =
-                std::panic::catch_unwind(|| io::parse_bytes(*format, &bytes, Path::new("m")));
-            assert!(
-                result.is_ok(),
-                "seed {seed} (FLUID_SURFELS_SEED): {format:?} round {round} panicked"
-            );
-            parsed += result.unwrap().is_ok() as usize;
+            check(*format, &bytes, &|| format!("case {case} round {round}"));
+        }
+        for (k, m) in structured_mutations(original).iter().enumerate() {
+            check(*format, m, &|| {
+                format!("case {case} structured mutation {k}")
+            });
         }
     }
-    println!("{} mutated files, {parsed} still read", cases.len() * 400);
+    println!(
+        "{total} mutated files ({} cases), {parsed} still read, {:.1} s",
+        cases.len(),
+        start.elapsed().as_secs_f64()
+    );
 }
 
 #[test]
@@ -556,36 +710,14 @@ LOOKUP_TABLE default
     assert_eq!(s.attribute("id").unwrap().values, vec![40.0, 41.0]);
 }
 
-/// zlib-compresses `data` into VTK's block layout with a UInt32 header.
-fn vtk_zlib_block(data: &[u8], block: usize) -> (Vec<u8>, Vec<u8>) {
-    use std::io::Write;
-    let chunks: Vec<&[u8]> = data.chunks(block).collect();
-    let compressed: Vec<Vec<u8>> = chunks
-        .iter()
-        .map(|c| {
-            let mut e = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::default());
-            e.write_all(c).unwrap();
-            e.finish().unwrap()
-        })
-        .collect();
-    let mut header = Vec::new();
-    let last = chunks.last().map_or(0, |c| c.len());
-    for v in [chunks.len(), block, if last == block { 0 } else { last }] {
-        header.extend_from_slice(&(v as u32).to_le_bytes());
-    }
-    for c in &compressed {
-        header.extend_from_slice(&(c.len() as u32).to_le_bytes());
-    }
-    (header, compressed.concat())
-}
-
 #[test]
 fn vtu_compressed_and_poly_data() {
     use base64::Engine as _;
     let b64 = base64::engine::general_purpose::STANDARD;
     let points: Vec<f32> = (0..300).map(|i| i as f32 * 0.25 - 7.0).collect();
     let raw: Vec<u8> = points.iter().flat_map(|v| v.to_le_bytes()).collect();
-    let (header, blocks) = vtk_zlib_block(&raw, 256);
+    let (header, blocks) = zlib_blocks(&raw, 256, false);
+    let blocks = blocks.concat();
     let expected: Vec<Vec3> = points
         .chunks(3)
         .map(|c| Vec3::new(c[0], c[1], c[2]))
@@ -610,4 +742,350 @@ fn vtu_compressed_and_poly_data() {
     let at = bad.len() - 40;
     bad[at] ^= 0xff;
     assert!(io::parse_bytes(Format::Vtu, &bad, Path::new("p.vtu")).is_err());
+}
+
+/// zlib-compresses `data` into VTK's block layout: the header (block count, block size, last
+/// block size, compressed sizes; `u32` or `u64` little-endian) and each compressed block.
+fn zlib_blocks(data: &[u8], block: usize, header64: bool) -> (Vec<u8>, Vec<Vec<u8>>) {
+    use std::io::Write;
+    let chunks: Vec<&[u8]> = data.chunks(block).collect();
+    let compressed: Vec<Vec<u8>> = chunks
+        .iter()
+        .map(|c| {
+            let mut e = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::default());
+            e.write_all(c).unwrap();
+            e.finish().unwrap()
+        })
+        .collect();
+    let last = chunks.last().map_or(0, |c| c.len());
+    let mut header = Vec::new();
+    let mut put = |v: usize| {
+        if header64 {
+            header.extend_from_slice(&(v as u64).to_le_bytes())
+        } else {
+            header.extend_from_slice(&(v as u32).to_le_bytes())
+        }
+    };
+    for v in [chunks.len(), block, if last == block { 0 } else { last }] {
+        put(v);
+    }
+    for c in &compressed {
+        put(c.len());
+    }
+    (header, compressed)
+}
+
+/// How the base64 streams of a compressed array are cut.
+#[derive(Clone, Copy, Debug)]
+enum Streams {
+    /// Header, then all blocks as one stream.
+    HeaderAndBlocks,
+    /// Header, then each block its own stream.
+    EachBlock,
+}
+
+/// The positions and some point arrays of `set` as a VTU file with `<AppendedData
+/// encoding="base64">`, every array its own base64 stream (and for zlib data its header and its
+/// blocks), as VTK's XML writers encode appended data.
+fn appended_base64(set: &ParticleSet, compressed: bool, header64: bool, cut: Streams) -> Vec<u8> {
+    use base64::Engine as _;
+    let b64 = base64::engine::general_purpose::STANDARD;
+    let n = set.len();
+    let le = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    let flat = |v: &[Vec3]| v.iter().flat_map(|p| p.to_array()).collect::<Vec<f32>>();
+    let density: Vec<f32> = set
+        .attribute("density")
+        .unwrap()
+        .values
+        .iter()
+        .map(|&v| v as f32)
+        .collect();
+    let phase: Vec<u8> = set
+        .attribute("phase")
+        .unwrap()
+        .values
+        .iter()
+        .flat_map(|&v| (v as i32).to_le_bytes())
+        .collect();
+    let ids: Vec<u8> = set
+        .ids
+        .as_ref()
+        .unwrap()
+        .iter()
+        .flat_map(|i| i.to_le_bytes())
+        .collect();
+    let arrays: [(&str, &str, usize, Vec<u8>); 5] = [
+        ("Points", "Float32", 3, le(&flat(&set.positions))),
+        (
+            "velocity",
+            "Float32",
+            3,
+            le(&flat(set.velocities.as_ref().unwrap())),
+        ),
+        ("density", "Float32", 1, le(&density)),
+        ("phase", "Int32", 1, phase),
+        ("id", "UInt32", 1, ids),
+    ];
+    let mut text = String::new();
+    let mut tags = Vec::new();
+    for (name, ty, comps, bytes) in &arrays {
+        tags.push(format!(
+            "<DataArray type=\"{ty}\" Name=\"{name}\" NumberOfComponents=\"{comps}\" format=\"appended\" offset=\"{}\"/>",
+            text.len()
+        ));
+        if compressed {
+            // blocks smaller than the array, so that there are several
+            let (header, blocks) = zlib_blocks(bytes, 100, header64);
+            text.push_str(&b64.encode(&header));
+            match cut {
+                Streams::HeaderAndBlocks => text.push_str(&b64.encode(blocks.concat())),
+                Streams::EachBlock => {
+                    for b in &blocks {
+                        text.push_str(&b64.encode(b));
+                    }
+                }
+            }
+        } else {
+            let size = if header64 {
+                (bytes.len() as u64).to_le_bytes().to_vec()
+            } else {
+                (bytes.len() as u32).to_le_bytes().to_vec()
+            };
+            text.push_str(&b64.encode(&size));
+            text.push_str(&b64.encode(bytes));
+        }
+    }
+    let header_type = if header64 { "UInt64" } else { "UInt32" };
+    let compressor = if compressed {
+        " compressor=\"vtkZLibDataCompressor\""
+    } else {
+        ""
+    };
+    format!(
+        "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"1.0\" byte_order=\"LittleEndian\" header_type=\"{header_type}\"{compressor}>\n<UnstructuredGrid><Piece NumberOfPoints=\"{n}\" NumberOfCells=\"0\">\n<PointData>{}{}{}{}</PointData>\n<Points>{}</Points>\n</Piece></UnstructuredGrid>\n<AppendedData encoding=\"base64\">\n_{text}\n</AppendedData>\n</VTKFile>\n",
+        tags[1], tags[2], tags[3], tags[4], tags[0]
+    )
+    .into_bytes()
+}
+
+#[test]
+fn appended_base64_reads_per_array_like_raw() {
+    // 37 points: sizes that are not multiples of 3, so that every stream ends in `=` padding
+    let set = rich_set(37);
+    let raw = parse(Format::Vtu, &vtu::to_bytes(&set)).unwrap();
+    let mut cases = 0;
+    for compressed in [false, true] {
+        for header64 in [false, true] {
+            for cut in [Streams::HeaderAndBlocks, Streams::EachBlock] {
+                if !compressed && matches!(cut, Streams::EachBlock) {
+                    continue;
+                }
+                let bytes = appended_base64(&set, compressed, header64, cut);
+                let text = String::from_utf8_lossy(&bytes);
+                assert!(
+                    text.contains("=="),
+                    "the streams are padded inside the section"
+                );
+                let s = parse(Format::Vtu, &bytes).unwrap_or_else(|e| {
+                    panic!("compressed {compressed}, UInt64 {header64}, {cut:?}: {e}")
+                });
+                assert_eq!(s.positions, raw.positions);
+                assert_eq!(s.velocities, raw.velocities);
+                assert_eq!(s.ids, raw.ids);
+                for name in ["density", "phase"] {
+                    assert_eq!(
+                        s.attribute(name).unwrap().values,
+                        raw.attribute(name).unwrap().values,
+                        "{name}"
+                    );
+                }
+                cases += 1;
+            }
+        }
+    }
+    assert_eq!(cases, 6);
+}
+
+/// Binary legacy VTK files of `set` in three dialects: 3.0 POLYDATA, 4.2 UNSTRUCTURED_GRID (as
+/// SPlisHSPlasH writes it) and 5.1 POLYDATA, each with its `POINTS` block's byte range.
+fn binary_vtk_dialects(set: &ParticleSet) -> Vec<(&'static str, Vec<u8>, std::ops::Range<usize>)> {
+    let v42 = io::to_bytes(Format::Vtk, set, Path::new("x")).unwrap();
+    let find =
+        |hay: &[u8], needle: &[u8]| hay.windows(needle.len()).position(|w| w == needle).unwrap();
+    let points_at = |b: &[u8]| {
+        let start = find(b, b"POINTS");
+        let data = start + b[start..].iter().position(|&c| c == b'\n').unwrap() + 1;
+        data..data + 12 * set.len()
+    };
+    let cells = find(&v42, b"\nCELLS");
+    let point_data = find(&v42, b"POINT_DATA");
+    let poly = |version: &str| {
+        let mut b = v42[..cells + 1].to_vec();
+        b.extend_from_slice(&v42[point_data..]);
+        let text = String::from_utf8_lossy(&b[..40]).into_owned();
+        let head = text
+            .replace("Version 4.2", &format!("Version {version}"))
+            .replace("UNSTRUCTURED_GRID", "POLYDATA");
+        let mut out = head.as_bytes().to_vec();
+        out.extend_from_slice(&b[40..]);
+        // the header line grew by the dataset name's change
+        out
+    };
+    let mut out = Vec::new();
+    for (name, bytes) in [
+        ("3.0 POLYDATA", poly("3.0")),
+        ("4.2", v42.clone()),
+        ("5.1 POLYDATA", poly("5.1")),
+    ] {
+        let range = points_at(&bytes);
+        out.push((name, bytes, range));
+    }
+    out
+}
+
+#[test]
+fn binary_vtk_with_bytes_deleted_or_inserted_in_points_errs_without_panic() {
+    let set = rich_set(50);
+    for (name, bytes, points) in binary_vtk_dialects(&set) {
+        let s = parse(Format::Vtk, &bytes).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(s.positions, set.positions, "{name}");
+        let mut errors = 0;
+        for at in points.clone() {
+            for insert in [false, true] {
+                let mut b = bytes.clone();
+                if insert {
+                    b.insert(at, 0x41);
+                } else {
+                    b.remove(at);
+                }
+                let r = std::panic::catch_unwind(|| parse(Format::Vtk, &b));
+                let r =
+                    r.unwrap_or_else(|_| panic!("{name}: byte {at} (insert {insert}) panicked"));
+                errors += r.is_err() as usize;
+            }
+        }
+        // the file cut one byte short of its POINTS block, and at every byte of it
+        for end in points.start..=points.end {
+            let r = std::panic::catch_unwind(|| parse(Format::Vtk, &bytes[..end - 1]));
+            assert!(
+                matches!(r, Ok(Err(_))),
+                "{name}: cut at {} did not give a clean error",
+                end - 1
+            );
+        }
+        println!(
+            "{name}: {errors} of {} edits in POINTS refused",
+            2 * points.len()
+        );
+    }
+}
+
+/// A VTU file of one zlib-compressed Float32 Points array in raw appended data, `points` points,
+/// with the given compression header and blocks.
+fn vtu_raw_zlib(points: u64, header: &[u8], blocks: &[u8]) -> Vec<u8> {
+    let mut v = format!("<VTKFile type=\"UnstructuredGrid\" compressor=\"vtkZLibDataCompressor\" header_type=\"UInt32\"><UnstructuredGrid><Piece NumberOfPoints=\"{points}\"><Points><DataArray type=\"Float32\" NumberOfComponents=\"3\" format=\"appended\" offset=\"0\"/></Points></Piece></UnstructuredGrid><AppendedData encoding=\"raw\">_").into_bytes();
+    v.extend_from_slice(header);
+    v.extend_from_slice(blocks);
+    v.extend_from_slice(b"</AppendedData></VTKFile>");
+    v
+}
+
+#[test]
+fn zlib_headers_and_bombs_are_refused_before_allocating() {
+    // a 2.6 kB file whose header claims 4,294,967,295 uncompressed bytes in one block
+    let data: Vec<u8> = (0..2400u32)
+        .flat_map(|i| (i as f32).to_le_bytes())
+        .collect();
+    let (mut header, blocks) = zlib_blocks(&data[..], 1 << 16, false);
+    header[4..8].copy_from_slice(&u32::MAX.to_le_bytes());
+    header[8..12].copy_from_slice(&u32::MAX.to_le_bytes());
+    let file = vtu_raw_zlib(800, &header, &blocks.concat());
+    assert!(file.len() < 4000, "{}", file.len());
+    let e = parse(Format::Vtu, &file).unwrap_err();
+    assert!(e.to_string().contains("inflates 1032x at most"), "{e}");
+    // an honest bomb: the same compressed megabyte of zeros repeated, a point count to match;
+    // refused by the budget before inflating
+    let mib = vec![0u8; 1 << 20];
+    let (one, block) = zlib_blocks(&mib, 1 << 20, false);
+    let copies = 40usize;
+    let mut header = Vec::new();
+    for v in [copies, 1 << 20, 0] {
+        header.extend_from_slice(&(v as u32).to_le_bytes());
+    }
+    for _ in 0..copies {
+        header.extend_from_slice(&one[12..16]);
+    }
+    let file = vtu_raw_zlib(
+        (copies as u64 * (1 << 20)) / 12,
+        &header,
+        &block[0].repeat(copies),
+    );
+    let small = io::ReadOptions {
+        memory_budget: 16 << 20,
+    };
+    let e = io::parse_bytes_with(Format::Vtu, &file, Path::new("bomb.vtu"), &small).unwrap_err();
+    assert!(matches!(e, IoError::OverBudget { .. }), "{e}");
+    assert!(e.to_string().contains("--memory-budget"), "{e}");
+    // within a budget that holds it, it reads (40 Mi zeros: 3.5 M points at the origin)
+    let roomy = io::ReadOptions {
+        memory_budget: 64 << 20,
+    };
+    let s = io::parse_bytes_with(Format::Vtu, &file, Path::new("bomb.vtu"), &roomy).unwrap();
+    assert_eq!(s.len(), copies * (1 << 20) / 12);
+    // gzipped BGEO: the declared size against the budget too
+    let big = rich_set(5000);
+    let gz = gzip(
+        &io::to_bytes(Format::Bgeo, &big, Path::new("x")).unwrap(),
+        flate2::Compression::default(),
+    );
+    let tiny = io::ReadOptions {
+        memory_budget: 64 << 10,
+    };
+    let e = io::parse_bytes_with(Format::Bgeo, &gz, Path::new("b.bgeo.gz"), &tiny).unwrap_err();
+    assert!(matches!(e, IoError::OverBudget { .. }), "{e}");
+}
+
+#[test]
+fn messages_quote_escape_and_cut_what_the_file_holds() {
+    // a terminal escape and a NUL in a VTK keyword line, an 8 kB token in a PLY value
+    let text = b"# vtk DataFile Version 3.0\nt\nASCII\nDATASET POLYDATA\n\x1b[31mPOINTS\x00 1 float\n0 0 0\n";
+    let e = parse(Format::Vtk, text).unwrap_err().to_string();
+    assert!(!e.chars().any(char::is_control), "{e:?}");
+    assert!(e.contains("\\u{1b}") && e.contains("\\0"), "{e}");
+    let long = format!(
+        "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 {}\n",
+        "9x".repeat(4000)
+    );
+    let e = parse(Format::Ply, long.as_bytes()).unwrap_err().to_string();
+    assert!(e.len() < 300, "{} characters: {e}", e.len());
+    assert!(e.contains("\"9x9x"), "found value quoted: {e}");
+}
+
+/// What the fuzz targets found, in `tests/data/fuzz/`: each gives an error a user can read.
+/// Three were error messages that escaped control characters from the file at up to eight
+/// output characters each, which made them over 300 characters long; one a coordinate that fits
+/// an f64 but not an f32, printed in full (256 digits) as the non-finite value (2026-12-02).
+#[test]
+fn fuzz_findings_read_cleanly() {
+    let dir = data("fuzz");
+    let mut n = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        let format = match path.extension().and_then(|e| e.to_str()) {
+            Some("vtk") => Format::Vtk,
+            Some("vtu") => Format::Vtu,
+            Some("bgeo") => Format::Bgeo,
+            Some("ply") => Format::Ply,
+            Some("xyz") => Format::Xyz,
+            Some("json") => Format::Json,
+            _ => continue,
+        };
+        let bytes = std::fs::read(&path).unwrap();
+        match io::parse_bytes(format, &bytes, Path::new("fuzz")) {
+            Ok(_) => {}
+            Err(e) => assert_readable(&e, &path.display().to_string()),
+        }
+        n += 1;
+    }
+    assert!(n >= 4, "{n} findings in {}", dir.display());
 }

@@ -160,7 +160,7 @@ fn malformed_ascii_ply_data() {
     // non-numeric text, with its line
     let e = parse_err(format!("{HEADER}0 0 0\n1 one 1\n").as_bytes());
     assert_eq!(location(&e), Location::Line(9));
-    assert!(e.to_string().contains("found one"), "{e}");
+    assert!(e.to_string().contains("found \"one\""), "{e}");
     // too few values (count says 2, file has 1): refused from the size alone
     let e = parse_err(format!("{HEADER}0 0 0\n").as_bytes());
     assert!(e.to_string().contains("wrong counts or truncated"), "{e}");

@@ -673,7 +673,7 @@ pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
         None
     } else {
         let t = Instant::now();
-        let r = splat::render_view_cpu(&surfels, &view);
+        let r = splat::render_view_cpu(&surfels, &view)?;
         Some((ms(t), r))
     };
     let gpu = match fluid_surfels::gpu::GpuContext::headless() {

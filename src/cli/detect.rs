@@ -43,6 +43,9 @@ pub enum NormalChoice {
 
 #[derive(Serialize)]
 struct DetectReport {
+    /// Particles dropped by `--bounds` (only with it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    outside_bounds: Option<usize>,
     source: String,
     particles: usize,
     radius: f32,
@@ -137,7 +140,7 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
                     "--frame applies to the column scene; use --frames with an --input pattern for sequences",
                 ));
             }
-            let particles = io::read_particles(path, args.source.format)?;
+            let particles = super::read_particles(path, args.source.format)?;
             timings.read = ms(t);
             let f = surface_frame(&particles, params, args.source.radius)?;
             if args.source.radius.is_none() {
@@ -212,6 +215,7 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
     timings.write = ms(t);
 
     let report = DetectReport {
+        outside_bounds: super::outside_bounds(),
         source,
         particles: particles.len(),
         radius,
@@ -330,7 +334,7 @@ fn detect_sequence(
         || Pipeline::new(surface_params(params, Some(radius))),
         |pipeline, f| {
             let t = Instant::now();
-            let particles = io::read_particles(&pattern.path(f), args.source.format)?;
+            let particles = super::read_particles(&pattern.path(f), args.source.format)?;
             let surface = pipeline
                 .frame_through(&particles, Through::Surface)?
                 .surface;

@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use fluid_surfels::io::{self, Format};
+use fluid_surfels::io::Format;
 use fluid_surfels::sequence::{FramePattern, FrameRange};
 use fluid_surfels::{Error, neighbours};
 use rayon::prelude::*;
@@ -79,13 +79,11 @@ struct FrameInfo {
 
 /// One line per frame of a sequence.
 fn info_sequence(args: &InfoArgs, pattern: &FramePattern) -> Result<(), Error> {
-    let frames: Vec<usize> = match args.frames {
-        Some(r) => r.frames().collect(),
-        None => pattern.existing_frames()?,
-    };
+    let frames = super::sequence_frames(pattern, args.frames)?;
+    let jobs = super::jobs(args.jobs, frames.len())?;
     let bar = super::progress(frames.len() as u64, "info");
     let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(args.jobs.max(1))
+        .num_threads(jobs)
         .build()
         .map_err(|e| Error::InvalidArgument {
             argument: "--jobs",
@@ -95,7 +93,7 @@ fn info_sequence(args: &InfoArgs, pattern: &FramePattern) -> Result<(), Error> {
         frames
             .par_iter()
             .map(|&f| {
-                let set = io::read_particles(&pattern.path(f), args.format)?;
+                let set = super::read_particles(&pattern.path(f), args.format)?;
                 bar.inc(1);
                 let b = set.bounds();
                 Ok(FrameInfo {
@@ -140,7 +138,7 @@ pub fn info(args: &InfoArgs) -> Result<(), Error> {
         Some(f) => f,
         None => Format::from_path(&args.file)?,
     };
-    let set = io::read_particles(&args.file, Some(format))?;
+    let set = super::read_particles(&args.file, Some(format))?;
     let mut attributes = Vec::new();
     let mut push =
         |name: &str, kind: &str, components: usize, values: &mut dyn Iterator<Item = f64>| {

@@ -54,6 +54,115 @@ pub fn up_parser() -> impl clap::builder::TypedValueParser<Value = fluid_surfels
     names_parser(&UpAxis::ALL, UpAxis::name)
 }
 
+/// Options of every subcommand that reads particle files.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct GlobalArgs {
+    /// Keep only the particles inside this box, MIN_X,MIN_Y,MIN_Z,MAX_X,MAX_Y,MAX_Z (in the
+    /// file's coordinates); the others are dropped and counted (`outside_bounds` in reports).
+    /// For simulations that leak particles far from the fluid.
+    #[arg(long, global = true, value_parser = parse_bounds, allow_hyphen_values = true)]
+    pub bounds: Option<[f32; 6]>,
+    /// The most memory that decompressing a file (gzipped BGEO, zlib VTK XML) and the points of
+    /// `refine` may take, in bytes with an optional K, M or G suffix (powers of 1024); work
+    /// predicted to need more is refused before it starts.
+    #[arg(long, global = true, value_parser = parse_bytes, default_value = "1G")]
+    pub memory_budget: u64,
+}
+
+fn parse_bounds(text: &str) -> Result<[f32; 6], String> {
+    let v: Vec<f32> = render::parse_list(text, "a number")?;
+    let Ok(v) = <[f32; 6]>::try_from(v) else {
+        return Err(format!(
+            "`{text}`: six numbers MIN_X,MIN_Y,MIN_Z,MAX_X,MAX_Y,MAX_Z"
+        ));
+    };
+    if v.iter().any(|x| !x.is_finite()) || (0..3).any(|k| v[k] > v[k + 3]) {
+        return Err(format!(
+            "`{text}`: six finite numbers MIN_X,MIN_Y,MIN_Z,MAX_X,MAX_Y,MAX_Z with each min <= its max"
+        ));
+    }
+    Ok(v)
+}
+
+fn parse_bytes(text: &str) -> Result<u64, String> {
+    let t = text.trim();
+    let (digits, unit) = match t.char_indices().find(|(_, c)| c.is_ascii_alphabetic()) {
+        Some((k, _)) => t.split_at(k),
+        None => (t, ""),
+    };
+    let shift = match unit.to_ascii_uppercase().trim_end_matches(['B', 'I']) {
+        "" => 0,
+        "K" => 10,
+        "M" => 20,
+        "G" => 30,
+        "T" => 40,
+        _ => return Err(format!("`{text}`: a size in bytes, like 512M or 2G")),
+    };
+    let n: f64 = digits
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{text}`: a size in bytes, like 512M or 2G"))?;
+    let bytes = n * (1u64 << shift) as f64;
+    if !(bytes.is_finite() && bytes >= 1.0 && bytes < u64::MAX as f64) {
+        return Err(format!("`{text}`: a size of at least one byte"));
+    }
+    Ok(bytes as u64)
+}
+
+static GLOBALS: std::sync::OnceLock<GlobalArgs> = std::sync::OnceLock::new();
+static OUTSIDE_BOUNDS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
+/// Keeps the global options for [`read_particles`] (called once, by `main`).
+pub fn set_globals(args: GlobalArgs) {
+    // a second call keeps the first: there is only one command line
+    let _ = GLOBALS.set(args);
+}
+
+fn globals() -> GlobalArgs {
+    GLOBALS.get().cloned().unwrap_or(GlobalArgs {
+        bounds: None,
+        memory_budget: io::DEFAULT_MEMORY_BUDGET,
+    })
+}
+
+/// `--memory-budget`.
+pub fn memory_budget() -> u64 {
+    globals().memory_budget
+}
+
+/// Particles dropped by `--bounds` so far (`None` without `--bounds`), for the reports.
+pub fn outside_bounds() -> Option<usize> {
+    globals()
+        .bounds
+        .map(|_| OUTSIDE_BOUNDS.load(Ordering::Relaxed))
+}
+
+/// Reads a particle file with the command line's `--memory-budget`, and drops the particles
+/// outside `--bounds` (saying how many on stderr).
+pub fn read_particles(path: &Path, format: Option<Format>) -> Result<ParticleSet, Error> {
+    let g = globals();
+    let options = io::ReadOptions {
+        memory_budget: g.memory_budget,
+    };
+    let set = io::read_particles_with(path, format, &options)?;
+    let Some(b) = g.bounds else {
+        return Ok(set);
+    };
+    let (kept, outside) = set.crop(
+        glam::Vec3::new(b[0], b[1], b[2]),
+        glam::Vec3::new(b[3], b[4], b[5]),
+    );
+    if outside > 0 {
+        OUTSIDE_BOUNDS.fetch_add(outside, Ordering::Relaxed);
+        eprintln!(
+            "note: {}: {outside} of {} particles outside --bounds dropped",
+            path.display(),
+            set.len()
+        );
+    }
+    Ok(kept)
+}
+
 /// Where a stage's particles come from (shared by `detect` and `refine`).
 #[derive(clap::Args)]
 #[command(group = clap::ArgGroup::new("source").required(true).args(["input", "scene"]))]
@@ -133,7 +242,7 @@ pub fn positions_of(
 ) -> Result<(String, Vec<glam::Vec3>, f32), Error> {
     match (input, scene) {
         (Some(path), _) => {
-            let particles = io::read_particles(path, format)?;
+            let particles = read_particles(path, format)?;
             let r = match radius {
                 Some(r) => r,
                 None => 2.0 * fluid_surfels::neighbours::estimate_spacing(&particles.positions)?,
@@ -367,7 +476,7 @@ impl Sequence<'_> {
         process: impl Fn(&mut S, usize) -> Result<R, Error> + Sync,
     ) -> Result<SequenceRun<R>, Error> {
         let (todo, skipped) = self.plan()?;
-        let jobs = self.jobs.clamp(1, todo.len().max(1));
+        let jobs = jobs(self.jobs, todo.len())?;
         let block = todo.len().div_ceil(jobs).max(1);
         let blocks: Vec<&[usize]> = todo.chunks(block).collect();
         let bar = progress(todo.len() as u64, self.label);
@@ -428,15 +537,29 @@ impl Sequence<'_> {
     }
 }
 
-/// The frames of a sequence: the range given, or every file of the pattern found on disk.
+/// The frames of a sequence: the range given (every frame's file checked to exist before any
+/// work), or every file of the pattern found on disk.
 pub fn sequence_frames(
     pattern: &FramePattern,
     range: Option<fluid_surfels::sequence::FrameRange>,
 ) -> Result<Vec<usize>, Error> {
-    Ok(match range {
-        Some(r) => r.frames().collect(),
-        None => pattern.existing_frames()?,
-    })
+    Ok(pattern.frames(range)?)
+}
+
+/// The most frames processed at once: each job holds its frame's data in memory.
+pub const MAX_JOBS: usize = 1024;
+
+/// `--jobs`, checked (1 to [`MAX_JOBS`]) and capped at the number of frames.
+pub fn jobs(jobs: usize, frames: usize) -> Result<usize, Error> {
+    if jobs == 0 || jobs > MAX_JOBS {
+        return Err(Error::InvalidArgument {
+            argument: "--jobs",
+            reason: format!(
+                "{jobs} frames at once; give 1 to {MAX_JOBS} (each job holds a frame in memory)"
+            ),
+        });
+    }
+    Ok(jobs.min(frames.max(1)))
 }
 
 /// An output pattern that must have a placeholder because the input is a sequence.
@@ -494,7 +617,7 @@ pub fn prepare_sequence<'a>(
     let radius = match (source.radius, todo.first()) {
         (Some(r), _) => r,
         (None, Some(&f)) => {
-            let first = fluid_surfels::io::read_particles(&pattern.path(f), source.format)?;
+            let first = read_particles(&pattern.path(f), source.format)?;
             2.0 * fluid_surfels::neighbours::estimate_spacing(&first.positions)?
         }
         (None, None) => 0.0,

@@ -50,6 +50,9 @@ pub enum HeightChoice {
 
 #[derive(Serialize)]
 struct RefineReport {
+    /// Particles dropped by `--bounds` (only with it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    outside_bounds: Option<usize>,
     source: String,
     frame: Option<usize>,
     radius: f32,
@@ -105,6 +108,7 @@ fn params(args: &RefineArgs, radius: f32) -> RefineParams {
             HeightChoice::Min => HeightRule::Min,
             HeightChoice::Average => HeightRule::Average,
         },
+        memory_budget: super::memory_budget(),
         ..RefineParams::with_radius(radius)
     }
 }
@@ -162,7 +166,7 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
     let t = Instant::now();
     let (source, radius, points, normals) = match (&input, args.source.scene) {
         (Some(path), _) => {
-            let particles = io::read_particles(path, args.source.format)?;
+            let particles = super::read_particles(path, args.source.format)?;
             let radius = match args.source.radius {
                 Some(r) => r,
                 None => 2.0 * neighbours::estimate_spacing(&particles.positions)?,
@@ -203,6 +207,7 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
         &refined,
     )?;
     let report = RefineReport {
+        outside_bounds: super::outside_bounds(),
         source,
         frame: args.source.frame,
         radius,
@@ -274,7 +279,7 @@ fn refine_sequence(args: &RefineArgs, pattern: &FramePattern) -> Result<(), Erro
         || detection_pipeline(radius),
         |pipeline, f| {
             let t = Instant::now();
-            let particles = io::read_particles(&pattern.path(f), args.source.format)?;
+            let particles = super::read_particles(&pattern.path(f), args.source.format)?;
             let (p, n) = if args.surface_input {
                 surface_points(&particles, radius, true)?
             } else {

@@ -8,7 +8,7 @@ use std::time::Instant;
 use fluid_surfels::Error;
 use fluid_surfels::density::Resolution;
 use fluid_surfels::gpu::GpuContext;
-use fluid_surfels::io::{self, Format};
+use fluid_surfels::io::Format;
 use fluid_surfels::pipeline::{self, GpuPipeline, Pipeline, PipelineParams, SurfelSource, Through};
 use fluid_surfels::scenes::{self, ColumnParams, ColumnSim, SceneName};
 use fluid_surfels::sequence::{FramePattern, FrameRange};
@@ -88,6 +88,11 @@ pub struct RenderArgs {
     /// Screen-space low-pass radius in pixels (default 1; 0 switches it off).
     #[arg(long)]
     pub low_pass: Option<f32>,
+    /// The most pixel fragments a render may cost (the sum of the splats' screen rectangles,
+    /// counted before drawing); more is refused with the count (default 10^9, about a minute
+    /// of the CPU reference on two cores).
+    #[arg(long)]
+    pub max_fragments: Option<u64>,
     /// Render on the GPU (an error without an adapter; a software one such as lavapipe is taken
     /// too). Default: a hardware GPU when one is found, otherwise the CPU reference.
     #[arg(long, conflicts_with = "cpu")]
@@ -148,7 +153,7 @@ pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
 }
 
 /// Comma-separated values of one type, each described as `what` in errors.
-fn parse_list<T: std::str::FromStr>(s: &str, what: &str) -> Result<Vec<T>, String>
+pub fn parse_list<T: std::str::FromStr>(s: &str, what: &str) -> Result<Vec<T>, String>
 where
     T::Err: std::fmt::Display,
 {
@@ -270,6 +275,10 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
     if let Some(l) = args.low_pass {
         p.splat.low_pass_px = l;
     }
+    if let Some(m) = args.max_fragments {
+        p.splat.max_fragments = m;
+        p.scene.optics.splat.max_fragments = m;
+    }
     if let Some((w, h)) = args.caustics_resolution {
         p.scene.optics.caustics_resolution = Some([w, h]);
     }
@@ -386,7 +395,7 @@ impl Frames {
         through: Through,
     ) -> Result<(String, Option<usize>, pipeline::Frame), Error> {
         let read = |path: &std::path::Path| {
-            let mut set = io::read_particles(path, args.format)?;
+            let mut set = super::read_particles(path, args.format)?;
             if args.up != UpAxis::Y {
                 set.rotate(args.up.to_y_up());
             }
@@ -412,6 +421,7 @@ impl Frames {
             }
             Self::Column(sim) => {
                 let target = frame.unwrap_or(ColumnParams::SPLASH_FRAME);
+                ColumnParams::check_frame(target)?;
                 if sim.frame() > target {
                     return Err(Error::InvalidArgument {
                         argument: "--frames",
@@ -435,6 +445,9 @@ impl Frames {
 
 #[derive(Serialize)]
 struct RenderReport {
+    /// Particles dropped by `--bounds` (only with it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    outside_bounds: Option<usize>,
     source: String,
     particles: Option<usize>,
     surfel_source: Option<&'static str>,
@@ -511,6 +524,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         fluid_surfels::preview::save_rgba_png(&render.image, &args.out)?;
     }
     let report = RenderReport {
+        outside_bounds: super::outside_bounds(),
         source,
         particles,
         surfel_source: particles
@@ -597,6 +611,9 @@ struct FrameReport {
 
 #[derive(Serialize)]
 struct OpticsFrameReport {
+    /// Particles dropped by `--bounds` (only with it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    outside_bounds: Option<usize>,
     source: String,
     frame: Option<usize>,
     output: String,
@@ -703,7 +720,13 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
         fluid_surfels::preview::save_rgba_png(&marked(args, &image), &args.out)?;
         return report_frame(args, source, args.frame, &args.out, &image, report);
     };
-    let list: Vec<usize> = range.frames().collect();
+    let list: Vec<usize> = match &frames {
+        Frames::Pattern(pattern) => pattern.frames(Some(range))?,
+        _ => {
+            fluid_surfels::scenes::ColumnParams::check_frame(range.end - 1)?;
+            range.frames().collect()
+        }
+    };
     if args.out.exists() && !args.out.is_dir() {
         return Err(Error::InvalidArgument {
             argument: "--out",
@@ -797,6 +820,7 @@ fn report_frame(
     stats.specks_fraction =
         stats.specks as f64 / (f64::from(image.width()) * f64::from(image.height())).max(1.0);
     let r = OpticsFrameReport {
+        outside_bounds: super::outside_bounds(),
         source,
         frame,
         output: out.display().to_string(),

@@ -38,6 +38,7 @@ pub fn column_to_frame(
     params: PipelineParams,
     through: Through,
 ) -> Result<ColumnFrame, Error> {
+    ColumnParams::check_frame(frame)?;
     let mut sim = ColumnSim::new(ColumnParams::default())?;
     let params = PipelineParams {
         support_radius: Some(params.support_radius.unwrap_or(sim.support_radius())),

@@ -41,6 +41,9 @@ pub struct SurfelsArgs {
 
 #[derive(Serialize)]
 struct SurfelsReport {
+    /// Particles dropped by `--bounds` (only with it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    outside_bounds: Option<usize>,
     source: String,
     particles: usize,
     h: f32,
@@ -87,6 +90,7 @@ pub fn surfels_with(
             .ok_or(fluid_surfels::density::DensityError::Empty)?;
         return Ok((iso.surfels, iso.grid.spec, iso.density_ms, iso.surfels_ms));
     };
+    points.check()?;
     let spec = GridSpec::around(positions, h, Resolution::LongestAxis(resolution))?;
     spec.check_memory(grid.memory_budget)?;
     let t = Instant::now();
@@ -144,6 +148,7 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
         surfels_with(gpu.as_ref(), &positions, h, args.resolution, iso)?;
     let outputs = write(&s, (out.as_deref(), out_args.out_format), png.as_deref())?;
     let report = SurfelsReport {
+        outside_bounds: super::outside_bounds(),
         source,
         particles: positions.len(),
         h,
@@ -187,7 +192,7 @@ fn surfels_sequence(args: &SurfelsArgs, pattern: &FramePattern, iso: f32) -> Res
     let run = sequence.run(
         || Ok(()),
         |_, f| {
-            let particles = io::read_particles(&pattern.path(f), src.format)?;
+            let particles = super::read_particles(&pattern.path(f), src.format)?;
             let (s, _, d, e) = surfels_of(&particles.positions, h, args.resolution, iso)?;
             write(&s, (out.as_ref().map(|x| x.path(f)).as_deref(), o.out_format), png.as_ref().map(|x| x.path(f)).as_deref())?;
             Ok(serde_json::json!({"frame": f, "particles": particles.len(), "surfels": s.len(), "density_ms": d, "extract_ms": e}))

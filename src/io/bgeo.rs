@@ -12,7 +12,8 @@
 use std::path::Path;
 
 use super::{
-    IoError, Location, RawAttribute, assemble, check_allocation, named_arrays, positions_from,
+    IoError, Location, RawAttribute, ReadOptions, assemble, check_allocation, check_budget,
+    named_arrays, positions_from,
 };
 use crate::particles::{ParticleSet, ScalarKind};
 
@@ -142,7 +143,10 @@ fn header(data: &[u8], path: &Path) -> Result<(usize, Vec<AttributeDef>, usize),
                 return Err(IoError::unsupported(
                     path,
                     Location::Byte(at as u64),
-                    format!("BGEO attribute type {other} (attribute `{name}`)"),
+                    format!(
+                        "BGEO attribute type {other} (attribute {})",
+                        super::quoted(&name)
+                    ),
                 ));
             }
         };
@@ -165,6 +169,15 @@ fn header(data: &[u8], path: &Path) -> Result<(usize, Vec<AttributeDef>, usize),
 
 /// Parses a BGEO file held in memory (gzipped or not); `path` names it in errors.
 pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
+    parse_with(bytes, path, &ReadOptions::default())
+}
+
+/// [`parse`] within a memory budget for decompression.
+pub fn parse_with(
+    bytes: &[u8],
+    path: &Path,
+    options: &ReadOptions,
+) -> Result<ParticleSet, IoError> {
     if bytes.starts_with(&[0x1f, 0x8b]) {
         // Decompress a prefix for the header, then exactly as much as the header declares: a
         // stream that inflates far beyond it (a gzip bomb) is cut off, not buffered.
@@ -172,9 +185,24 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
             super::gunzip_limited(path, bytes, 1 << 20).map_err(|_| truncated_gzip(path, bytes))?;
         let (points, defs, start) = header(&prefix, path)?;
         let needed = start as u128 + points as u128 * record_size(&defs) as u128;
-        check_allocation(path, Location::Byte(9), needed * 3)?;
+        if needed > bytes.len() as u128 * super::DEFLATE_MAX_RATIO {
+            return Err(IoError::parse(
+                path,
+                Location::Byte(9),
+                format!("a point count that {} gzipped bytes can hold", bytes.len()),
+                format!("{points} points of {} bytes", record_size(&defs)),
+            ));
+        }
         // room for a particle-system primitive listing every point, and detail attributes
         let slack = 4 * points as u128 + (1 << 20);
+        check_budget(
+            path,
+            Location::Byte(9),
+            "the gzip stream",
+            needed + slack,
+            options,
+        )?;
+        check_allocation(path, Location::Byte(9), needed * 3)?;
         let limit = u64::try_from(needed + slack).unwrap_or(u64::MAX);
         let (data, more) =
             super::gunzip_limited(path, bytes, limit).map_err(|_| truncated_gzip(path, bytes))?;

@@ -94,6 +94,15 @@ pub enum IoError {
         needed: u128,
         available: u64,
     },
+    /// Decompressing the file would take more memory than the reader's budget allows.
+    #[error("{}: {location}: {what} inflates to {needed} bytes, more than the memory budget of {budget} bytes (raise it with --memory-budget, or `ReadOptions::memory_budget`)", path.display())]
+    OverBudget {
+        path: PathBuf,
+        location: Location,
+        what: String,
+        needed: u128,
+        budget: u64,
+    },
     /// The format cannot be told from the file name.
     #[error("{}: cannot tell the format from the extension `{extension}`; known: .ply .vtk .vtu .bgeo .bgeo.gz .xyz .txt .csv .json (or pass --format)", path.display())]
     UnknownFormat { path: PathBuf, extension: String },
@@ -123,8 +132,8 @@ impl IoError {
         Self::Parse {
             path: path.to_owned(),
             location,
-            expected: expected.into(),
-            found: found.into(),
+            expected: clean(&expected.into(), 120),
+            found: clean(&found.into(), 100),
         }
     }
 
@@ -132,7 +141,7 @@ impl IoError {
         Self::Unsupported {
             path: path.to_owned(),
             location,
-            what: what.into(),
+            what: clean(&what.into(), 120),
         }
     }
 
@@ -143,7 +152,8 @@ impl IoError {
             Self::Parse { location, .. }
             | Self::NonFinite { location, .. }
             | Self::Unsupported { location, .. }
-            | Self::TooLarge { location, .. } => Some(*location),
+            | Self::TooLarge { location, .. }
+            | Self::OverBudget { location, .. } => Some(*location),
             _ => None,
         }
     }
@@ -230,23 +240,64 @@ impl Format {
     }
 }
 
+/// The memory budget of decompression when reading, and of the density grid
+/// ([`crate::pipeline::GridParams::memory_budget`]): 1 GiB.
+pub const DEFAULT_MEMORY_BUDGET: u64 = 1 << 30;
+
+/// How files are read.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ReadOptions {
+    /// The most bytes that decompressing a file (gzipped BGEO, zlib blocks of VTK XML) may
+    /// produce; a file that declares or inflates to more is refused with
+    /// [`IoError::OverBudget`] before the memory is taken. Default [`DEFAULT_MEMORY_BUDGET`].
+    pub memory_budget: u64,
+}
+
+impl Default for ReadOptions {
+    fn default() -> Self {
+        Self {
+            memory_budget: DEFAULT_MEMORY_BUDGET,
+        }
+    }
+}
+
 /// Reads a particle file, in `format` or else the format its extension names.
 pub fn read_particles(path: &Path, format: Option<Format>) -> Result<ParticleSet, IoError> {
+    read_particles_with(path, format, &ReadOptions::default())
+}
+
+/// [`read_particles`] with explicit [`ReadOptions`].
+pub fn read_particles_with(
+    path: &Path,
+    format: Option<Format>,
+    options: &ReadOptions,
+) -> Result<ParticleSet, IoError> {
     let format = match format {
         Some(f) => f,
         None => Format::from_path(path)?,
     };
     let bytes = std::fs::read(path).map_err(|e| IoError::os(path, e))?;
-    parse_bytes(format, &bytes, path)
+    parse_bytes_with(format, &bytes, path, options)
 }
 
 /// Parses a particle file held in memory; `path` names it in errors.
 pub fn parse_bytes(format: Format, bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
+    parse_bytes_with(format, bytes, path, &ReadOptions::default())
+}
+
+/// [`parse_bytes`] with explicit [`ReadOptions`].
+pub fn parse_bytes_with(
+    format: Format,
+    bytes: &[u8],
+    path: &Path,
+    options: &ReadOptions,
+) -> Result<ParticleSet, IoError> {
     match format {
         Format::Ply => ply::parse(bytes, path),
         Format::Vtk => vtk::parse(bytes, path),
-        Format::Vtu => vtu::parse(bytes, path),
-        Format::Bgeo => bgeo::parse(bytes, path),
+        Format::Vtu => vtu::parse_with(bytes, path, options),
+        Format::Bgeo => bgeo::parse_with(bytes, path, options),
         Format::Xyz | Format::Csv => xyz::parse(bytes, path),
         Format::XyzRaw => xyz::parse_raw(bytes, path),
         Format::Json => json::parse(bytes, path),
@@ -318,30 +369,124 @@ pub fn describe(bytes: &[u8]) -> String {
     } else if head.first().is_some_and(|&c| c == b'[' || c == b'{') {
         "JSON-like text".into()
     } else if std::str::from_utf8(head).is_ok() {
-        let line: String = String::from_utf8_lossy(head)
-            .lines()
-            .next()
-            .unwrap_or("")
-            .chars()
-            .take(40)
-            .collect();
-        format!("text starting `{line}`")
+        let line = String::from_utf8_lossy(head);
+        format!(
+            "text starting {}",
+            quoted(line.lines().next().unwrap_or(""))
+        )
     } else {
         "binary data".into()
     }
 }
 
-/// Memory this machine can still give, in bytes (MemAvailable; 8 GiB where unknown).
+/// Memory this process can still take, in bytes: the machine's `MemAvailable`, lowered to what
+/// is left under the process's address-space limit (`ulimit -v`) when one is set; 8 GiB where
+/// neither is known.
 #[must_use]
 pub fn available_memory() -> u64 {
-    std::fs::read_to_string("/proc/meminfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("MemAvailable:"))
-                .and_then(|l| l.split_whitespace().nth(1)?.parse::<u64>().ok())
+    let field = |text: &str, key: &str| {
+        text.lines().find(|l| l.starts_with(key)).and_then(|l| {
+            l[key.len()..]
+                .split_whitespace()
+                .next()?
+                .parse::<u64>()
+                .ok()
         })
-        .map_or(8 << 30, |kib| kib * 1024)
+    };
+    let machine = std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|s| field(&s, "MemAvailable:"))
+        .map_or(8 << 30, |kib| kib * 1024);
+    // "Max address space  <soft> <hard> bytes"; the soft limit is the one that fails allocations
+    let limit = std::fs::read_to_string("/proc/self/limits")
+        .ok()
+        .and_then(|s| field(&s, "Max address space"));
+    match limit {
+        Some(limit) => {
+            let used = std::fs::read_to_string("/proc/self/status")
+                .ok()
+                .and_then(|s| field(&s, "VmSize:"))
+                .map_or(0, |kib| kib * 1024);
+            machine.min(limit.saturating_sub(used))
+        }
+        None => machine,
+    }
+}
+
+/// Refuses to decompress `needed` bytes beyond the budget.
+pub(crate) fn check_budget(
+    path: &Path,
+    location: Location,
+    what: &str,
+    needed: u128,
+    options: &ReadOptions,
+) -> Result<(), IoError> {
+    if needed > options.memory_budget as u128 {
+        return Err(IoError::OverBudget {
+            path: path.to_owned(),
+            location,
+            what: what.to_owned(),
+            needed,
+            budget: options.memory_budget,
+        });
+    }
+    check_allocation(path, location, needed)
+}
+
+/// How many characters of a value found in a file an error shows.
+pub(crate) const FOUND_CHARS: usize = 60;
+
+/// The most bytes one byte of deflate (zlib, gzip) data can inflate to: a stored length code
+/// of 258 bytes takes at least two bits, so about 1032 (RFC 1951, §3.2.5).
+pub(crate) const DEFLATE_MAX_RATIO: u128 = 1032;
+
+/// Text from a file made safe for a message: control and invisible formatting characters
+/// escaped (`\u{1b}`, `\n`), cut to at most `max` characters of output with `...` after.
+#[must_use]
+pub fn clean(text: &str, max: usize) -> String {
+    let mut out = String::new();
+    let mut len = 0;
+    for c in text.chars() {
+        let invisible = matches!(c, '\u{200b}'..='\u{200f}' | '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}' | '\u{feff}');
+        let piece: String = if c.is_control() || invisible {
+            c.escape_debug().collect()
+        } else {
+            c.to_string()
+        };
+        let n = piece.chars().count();
+        if len + n > max {
+            out.push_str("...");
+            break;
+        }
+        out.push_str(&piece);
+        len += n;
+    }
+    out
+}
+
+/// A value found in a file, quoted and escaped as Rust's `{:?}` writes strings, cut to about
+/// 60 characters of output: `"1 x 1"`, `"\u{1b}[31m"`.
+#[must_use]
+pub fn quoted(text: &str) -> String {
+    let mut out = String::from("\"");
+    let mut len = 0;
+    for c in text.chars() {
+        // as `str`'s Debug: a single quote stays as it is
+        let piece: String = if c == '\'' {
+            c.to_string()
+        } else {
+            c.escape_debug().collect()
+        };
+        let n = piece.chars().count();
+        if len + n > FOUND_CHARS {
+            out.push_str("\"...");
+            return out;
+        }
+        out.push_str(&piece);
+        len += n;
+    }
+    out.push('"');
+    out
 }
 
 /// Refuses an allocation of `needed` bytes that the machine cannot hold.
@@ -538,7 +683,7 @@ pub(crate) fn positions_from(
                 path: path.to_owned(),
                 location: location_of(i),
                 index: i,
-                value: bad.to_string(),
+                value: format!("{bad:e}"),
             });
         }
         out.push(p);

@@ -202,11 +202,7 @@ fn parse_header(bytes: &[u8], path: &Path) -> Result<Header, IoError> {
 }
 
 fn truncate(s: &str) -> String {
-    if s.len() > 40 {
-        format!("{}...", &s.chars().take(40).collect::<String>())
-    } else {
-        s.to_owned()
-    }
+    super::quoted(s)
 }
 
 /// Reads values one by one from the data section, in either encoding.
@@ -433,7 +429,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                                     path: path.to_owned(),
                                     location: at,
                                     index: record,
-                                    value: v.to_string(),
+                                    value: format!("{v:e}"),
                                 });
                             }
                             columns[p_index].push(v);

@@ -111,8 +111,14 @@ impl<'a> Cursor<'a> {
     /// Reads `count` values of type `t`; binary values are big-endian and end with a newline.
     fn values(&mut self, count: u64, t: VtkType, what: &str) -> Result<Vec<f64>, IoError> {
         let remaining = (self.bytes.len() - self.pos) as u128;
-        let min_bytes = count as u128 * if self.binary { t.size as u128 } else { 2 };
-        if min_bytes > remaining + 1 {
+        // binary values fill `size` bytes each; ASCII values take a digit and a separator
+        // each, but the last may end the file without one
+        let fits = if self.binary {
+            count as u128 * t.size as u128 <= remaining
+        } else {
+            (count as u128 * 2).saturating_sub(1) <= remaining
+        };
+        if !fits {
             return Err(IoError::parse(
                 self.path,
                 self.at(),
@@ -175,13 +181,13 @@ impl<'a> Cursor<'a> {
                         format!("end of file after {}", out.len()),
                     ));
                 }
-                let token = std::str::from_utf8(&self.bytes[start..self.pos]).unwrap_or("?");
+                let token = String::from_utf8_lossy(&self.bytes[start..self.pos]);
                 let v: f64 = token.parse().map_err(|_| {
                     IoError::parse(
                         self.path,
                         Location::Line(line),
                         format!("a number ({what})"),
-                        token,
+                        super::quoted(&token),
                     )
                 })?;
                 out.push(if t.kind == ScalarKind::F32 {
@@ -206,7 +212,8 @@ fn number<T: std::str::FromStr>(
     what: &str,
 ) -> Result<T, IoError> {
     let w = word.ok_or_else(|| c.err(what.to_owned(), "end of line"))?;
-    w.parse().map_err(|_| c.err(what.to_owned(), w))
+    w.parse()
+        .map_err(|_| c.err(what.to_owned(), super::quoted(w)))
 }
 
 fn data_type(c: &Cursor<'_>, word: Option<&str>) -> Result<VtkType, IoError> {
@@ -215,7 +222,7 @@ fn data_type(c: &Cursor<'_>, word: Option<&str>) -> Result<VtkType, IoError> {
         IoError::unsupported(
             c.path,
             Location::Line(c.line),
-            format!("the VTK data type `{w}`"),
+            format!("the VTK data type {}", super::quoted(w)),
         )
     })
 }
@@ -241,7 +248,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
         .rsplit(' ')
         .next()
         .and_then(|v| v.parse().ok())
-        .ok_or_else(|| c.err("`# vtk DataFile Version X.Y`", first))?;
+        .ok_or_else(|| c.err("`# vtk DataFile Version X.Y`", super::quoted(first)))?;
     if !(1.0..6.0).contains(&version) {
         return Err(IoError::unsupported(
             path,
@@ -253,7 +260,12 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
     match c.line()? {
         Some("ASCII") => c.binary = false,
         Some("BINARY") => c.binary = true,
-        other => return Err(c.err("ASCII or BINARY", other.unwrap_or("end of file"))),
+        other => {
+            return Err(c.err(
+                "ASCII or BINARY",
+                other.map_or("end of file".into(), super::quoted),
+            ));
+        }
     }
     let binary = c.binary;
     let mut positions: Option<Vec<glam::Vec3>> = None;
@@ -277,7 +289,8 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                         path,
                         Location::Line(c.line),
                         format!(
-                            "the dataset type {other} (particles come as UNSTRUCTURED_GRID or POLYDATA)"
+                            "the dataset type {} (particles come as UNSTRUCTURED_GRID or POLYDATA)",
+                            super::quoted(other)
                         ),
                     ));
                 }
@@ -288,7 +301,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                 let t = data_type(&c, words.next())?;
                 let start = c.pos;
                 let line = c.line + 1;
-                let coords = c.values(3 * n, t, "point coordinates")?;
+                let coords = c.values(n.saturating_mul(3), t, "point coordinates")?;
                 positions = Some(positions_from(path, &coords, |i| {
                     if binary {
                         Location::Byte((start + 3 * i * t.size) as u64)
@@ -309,7 +322,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                         c.binary = binary;
                         let mut w = l.split_whitespace();
                         if w.next().map(str::to_ascii_uppercase).as_deref() != Some(label) {
-                            return Err(c.err(format!("`{label} <type>`"), l));
+                            return Err(c.err(format!("`{label} <type>`"), super::quoted(l)));
                         }
                         let t = data_type(&c, w.next())?;
                         c.values(count, t, label)?;
@@ -329,7 +342,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                 if in_point_data && Some(n) != point_count {
                     return Err(c.err(
                         format!("POINT_DATA {} (the POINTS count)", point_count.unwrap_or(0)),
-                        line,
+                        super::quoted(line),
                     ));
                 }
             }
@@ -383,9 +396,12 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                     }
                 }
                 let Some(n) = data_count else {
-                    return Err(c.err("POINT_DATA or CELL_DATA before an array", line));
+                    return Err(c.err(
+                        "POINT_DATA or CELL_DATA before an array",
+                        super::quoted(line),
+                    ));
                 };
-                let values = c.values(n * components as u64, t, &name)?;
+                let values = c.values(n.saturating_mul(components as u64), t, &name)?;
                 if in_point_data {
                     attributes.push(RawAttribute {
                         name,
@@ -403,7 +419,11 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                 } else {
                     vtk_type("float")
                 };
-                c.values(size * 4, t.expect("known VTK types"), "a lookup table")?;
+                c.values(
+                    size.saturating_mul(4),
+                    t.expect("known VTK types"),
+                    "a lookup table",
+                )?;
             }
             "FIELD" => {
                 let _name = words.next();
@@ -422,7 +442,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                     if components == 0 || components > 64 {
                         return Err(c.err("1 to 64 components", components.to_string()));
                     }
-                    let values = c.values(tuples * components as u64, t, &name)?;
+                    let values = c.values(tuples.saturating_mul(components as u64), t, &name)?;
                     if in_point_data && Some(tuples) == point_count {
                         attributes.push(RawAttribute {
                             name,
@@ -445,7 +465,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
             _ => {
                 return Err(c.err(
                     "a VTK keyword (DATASET, POINTS, CELLS, POINT_DATA, SCALARS, FIELD...)",
-                    line,
+                    super::quoted(line),
                 ));
             }
         }

@@ -16,8 +16,8 @@ use base64::engine::general_purpose::STANDARD as BASE64;
 use quick_xml::events::{BytesStart, Event};
 
 use super::{
-    IoError, Location, RawAttribute, assemble, check_allocation, named_arrays, positions_from,
-    push_value, read_value,
+    IoError, Location, RawAttribute, ReadOptions, assemble, check_allocation, check_budget,
+    named_arrays, positions_from, push_value, read_value,
 };
 use crate::particles::{ParticleSet, ScalarKind};
 
@@ -120,6 +120,15 @@ fn attr(e: &BytesStart<'_>, key: &str) -> Option<String> {
 
 /// Parses a whole VTK XML file held in memory; `path` names it in errors.
 pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
+    parse_with(bytes, path, &ReadOptions::default())
+}
+
+/// [`parse`] within a memory budget for decompression.
+pub fn parse_with(
+    bytes: &[u8],
+    path: &Path,
+    options: &ReadOptions,
+) -> Result<ParticleSet, IoError> {
     let start = bytes
         .iter()
         .position(|b| !b.is_ascii_whitespace())
@@ -193,6 +202,18 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
     let (info, arrays) = scan(xml, path, appended.is_some())?;
 
     let points_total: u128 = info.pieces.iter().map(|&p| p as u128).sum();
+    // a point takes at least 12 bytes of data, which zlib can shrink by at most its ratio
+    if points_total * 12 > bytes.len() as u128 * super::DEFLATE_MAX_RATIO {
+        return Err(IoError::parse(
+            path,
+            Location::Byte(0),
+            format!(
+                "a NumberOfPoints that a file of {} bytes can hold",
+                bytes.len()
+            ),
+            points_total.to_string(),
+        ));
+    }
     check_allocation(path, Location::Byte(0), points_total * 48)?;
     let mut coords: Vec<f64> = Vec::new();
     let mut named: Vec<RawAttribute> = Vec::new();
@@ -210,12 +231,12 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                         a.components.to_string(),
                     ));
                 }
-                let values = decode(a, n * 3, &info, appended, path)?;
+                let values = decode(a, n * 3, &info, appended, path, options)?;
                 piece_of_coords.push(a.piece);
                 coords.extend(values);
             }
             Section::PointData => {
-                let values = decode(a, n * a.components, &info, appended, path)?;
+                let values = decode(a, n * a.components, &info, appended, path, options)?;
                 match by_name.get(&a.name) {
                     Some(&k) if named[k].components == a.components => {
                         named[k].values.extend(values)
@@ -306,7 +327,8 @@ fn scan(
                             path,
                             Location::Byte(at),
                             format!(
-                                "VTK XML type `{kind}` (particles come as UnstructuredGrid or PolyData)"
+                                "VTK XML type {} (particles come as UnstructuredGrid or PolyData)",
+                                super::quoted(&kind)
                             ),
                         ));
                     }
@@ -318,7 +340,7 @@ fn scan(
                             return Err(IoError::unsupported(
                                 path,
                                 Location::Byte(at),
-                                format!("header type {other}"),
+                                format!("header type {}", super::quoted(other)),
                             ));
                         }
                     };
@@ -329,7 +351,7 @@ fn scan(
                             return Err(IoError::unsupported(
                                 path,
                                 Location::Byte(at),
-                                format!("the compressor {other} (only zlib)"),
+                                format!("the compressor {} (only zlib)", super::quoted(other)),
                             ));
                         }
                     }
@@ -337,7 +359,12 @@ fn scan(
                 "Piece" => {
                     let n = attr(&e, "NumberOfPoints").unwrap_or_default();
                     let n: u64 = n.parse().map_err(|_| {
-                        IoError::parse(path, Location::Byte(at), "NumberOfPoints=\"<count>\"", n)
+                        IoError::parse(
+                            path,
+                            Location::Byte(at),
+                            "NumberOfPoints=\"<count>\"",
+                            super::quoted(&n),
+                        )
                     })?;
                     info.pieces.push(n);
                 }
@@ -352,7 +379,7 @@ fn scan(
                         IoError::unsupported(
                             path,
                             Location::Byte(at),
-                            format!("DataArray type `{ty_name}`"),
+                            format!("DataArray type {}", super::quoted(&ty_name)),
                         )
                     })?;
                     let components = attr(&e, "NumberOfComponents")
@@ -445,14 +472,21 @@ fn decode(
     info: &FileInfo,
     appended: Option<(bool, &[u8], usize)>,
     path: &Path,
+    options: &ReadOptions,
 ) -> Result<Vec<f64>, IoError> {
     let at = Location::Byte(a.at);
+    let need = count * a.ty.size;
     let bytes: Vec<u8> = match a.format.as_str() {
         "ascii" => {
-            let mut out = Vec::with_capacity(count);
+            let mut out = Vec::with_capacity(count.min(a.text.len() / 2 + 1));
             for token in a.text.split_ascii_whitespace() {
                 let v: f64 = token.parse().map_err(|_| {
-                    IoError::parse(path, at, format!("numbers in array `{}`", a.name), token)
+                    IoError::parse(
+                        path,
+                        at,
+                        format!("numbers in array `{}`", a.name),
+                        super::quoted(token),
+                    )
                 })?;
                 out.push(if a.ty.kind == ScalarKind::F32 {
                     v as f32 as f64
@@ -471,8 +505,17 @@ fn decode(
             return Ok(out);
         }
         "binary" => {
-            let text: String = a.text.split_ascii_whitespace().collect();
-            block_from_base64(text.as_bytes(), info, path, at)?
+            let text: Vec<u8> = a
+                .text
+                .bytes()
+                .filter(|b| !b.is_ascii_whitespace())
+                .collect();
+            let mut stream = Stream::Base64 {
+                text: &text,
+                pos: 0,
+                pending: Vec::new(),
+            };
+            read_block(&mut stream, info, need, path, at, options)?
         }
         "appended" => {
             let Some((raw, data, data_start)) = appended else {
@@ -486,7 +529,7 @@ fn decode(
             let offset = a
                 .offset
                 .ok_or_else(|| IoError::parse(path, at, "an offset attribute", "none"))?;
-            let location = Location::Byte((data_start + offset) as u64);
+            let location = Location::Byte(data_start.saturating_add(offset) as u64);
             let tail = data.get(offset..).ok_or_else(|| {
                 IoError::parse(
                     path,
@@ -495,21 +538,30 @@ fn decode(
                     format!("{} bytes of appended data (truncated file)", data.len()),
                 )
             })?;
-            if raw {
-                block_from_raw(tail, info, path, location)?
+            // base64 appended data is one stream per array (VTK's writers encode each array,
+            // and a compressed array's header and blocks, on their own, `=` padding included)
+            let mut stream = if raw {
+                Stream::Raw {
+                    bytes: tail,
+                    pos: 0,
+                }
             } else {
-                block_from_base64(tail, info, path, location)?
-            }
+                Stream::Base64 {
+                    text: tail,
+                    pos: 0,
+                    pending: Vec::new(),
+                }
+            };
+            read_block(&mut stream, info, need, path, location, options)?
         }
         other => {
             return Err(IoError::unsupported(
                 path,
                 at,
-                format!("DataArray format `{other}`"),
+                format!("DataArray format {}", super::quoted(other)),
             ));
         }
     };
-    let need = count * a.ty.size;
     if bytes.len() < need {
         return Err(IoError::parse(
             path,
@@ -541,6 +593,76 @@ fn decode(
     })
 }
 
+/// The bytes of one array's data as the file holds them: raw appended bytes, or base64 text
+/// read as a sequence of four-character groups, each decoded on its own where needed, so that
+/// several streams one after another (each with its `=` padding) read as their concatenation.
+enum Stream<'a> {
+    Raw {
+        bytes: &'a [u8],
+        pos: usize,
+    },
+    Base64 {
+        text: &'a [u8],
+        pos: usize,
+        /// decoded bytes of the last group not yet taken
+        pending: Vec<u8>,
+    },
+}
+
+impl Stream<'_> {
+    /// The most bytes still readable.
+    fn capacity(&self) -> usize {
+        match self {
+            Self::Raw { bytes, pos } => bytes.len() - pos,
+            Self::Base64 { text, pos, pending } => pending.len() + (text.len() - pos) / 4 * 3,
+        }
+    }
+
+    /// The next `n` bytes; refused before allocating when the data cannot hold them.
+    fn take(&mut self, n: usize, what: &str) -> Result<Vec<u8>, String> {
+        if n > self.capacity() {
+            return Err(format!(
+                "{what} of {n} bytes, but at most {} bytes are left (wrong size or truncated file)",
+                self.capacity()
+            ));
+        }
+        match self {
+            Self::Raw { bytes, pos } => {
+                let out = bytes[*pos..*pos + n].to_vec();
+                *pos += n;
+                Ok(out)
+            }
+            Self::Base64 { text, pos, pending } => {
+                let mut out = std::mem::take(pending);
+                out.reserve(n.saturating_sub(out.len()));
+                while out.len() < n {
+                    let chars = ((n - out.len()).div_ceil(3) * 4).min(text.len() - *pos);
+                    if chars < 4 {
+                        return Err(format!("{what} of {n} bytes, but the base64 text ends"));
+                    }
+                    let before = out.len();
+                    // one call for the whole run; group by group where padding ends a stream
+                    // inside it
+                    if BASE64
+                        .decode_vec(&text[*pos..*pos + chars], &mut out)
+                        .is_ok()
+                    {
+                        *pos += chars;
+                    } else {
+                        out.truncate(before);
+                        BASE64
+                            .decode_vec(&text[*pos..*pos + 4], &mut out)
+                            .map_err(|e| format!("base64 data ({e})"))?;
+                        *pos += 4;
+                    }
+                }
+                *pending = out.split_off(n);
+                Ok(out)
+            }
+        }
+    }
+}
+
 fn header_value(b: &[u8], info: &FileInfo) -> u64 {
     let mut v = [0u8; 8];
     v[..info.header_size].copy_from_slice(&b[..info.header_size]);
@@ -550,152 +672,76 @@ fn header_value(b: &[u8], info: &FileInfo) -> u64 {
     u64::from_le_bytes(v)
 }
 
-/// The uncompressed bytes of one raw appended block: `[header][data]`.
-fn block_from_raw(
-    tail: &[u8],
+/// The uncompressed bytes of one array's block: `[size][data]`, or for zlib data
+/// `[blocks][block size][last size][compressed sizes...][compressed blocks]`. Every size the
+/// header gives is checked against what is left of the data before anything is allocated, and
+/// the inflated total against `need` (what the array's point count needs), zlib's largest
+/// ratio and the memory budget.
+fn read_block(
+    stream: &mut Stream<'_>,
     info: &FileInfo,
+    need: usize,
     path: &Path,
     at: Location,
+    options: &ReadOptions,
 ) -> Result<Vec<u8>, IoError> {
     let h = info.header_size;
-    let short =
-        |what: &str| IoError::parse(path, at, what.to_owned(), "end of data (truncated file)");
-    if !info.compressed {
-        let size = header_value(tail.get(..h).ok_or_else(|| short("a block size"))?, info) as usize;
-        return tail
-            .get(h..h.saturating_add(size))
-            .map(<[u8]>::to_vec)
-            .ok_or_else(|| short("the block's data"));
-    }
-    let nblocks = header_value(tail.get(..h).ok_or_else(|| short("a block count"))?, info) as usize;
-    let header_len = nblocks
-        .checked_add(3)
-        .and_then(|k| k.checked_mul(h))
-        .ok_or_else(|| short("a compression header"))?;
-    let header = tail
-        .get(..header_len)
-        .ok_or_else(|| short("a compression header"))?;
-    inflate_blocks(header, &tail[header_len..], info, path, at)
-}
-
-/// The uncompressed bytes of one base64 block (inline or appended).
-fn block_from_base64(
-    text: &[u8],
-    info: &FileInfo,
-    path: &Path,
-    at: Location,
-) -> Result<Vec<u8>, IoError> {
-    let h = info.header_size;
-    let bad = |e: String| IoError::parse(path, at, "base64 data", e);
-    let b64_len = |bytes: usize| bytes.div_ceil(3) * 4;
-    // the end of this block's text: up to the next whitespace (appended data may hold more)
-    let text = &text[..text
-        .iter()
-        .position(u8::is_ascii_whitespace)
-        .unwrap_or(text.len())];
-    if !info.compressed {
-        // VTK writes header and data as one base64 stream; some writers encode them apart
-        if let Ok(all) = BASE64.decode(text) {
-            let size = header_value(
-                all.get(..h).ok_or_else(|| bad("no block size".into()))?,
-                info,
-            ) as usize;
-            return all
-                .get(h..h + size)
-                .map(<[u8]>::to_vec)
-                .ok_or_else(|| bad("fewer bytes than the block size".into()));
-        }
-        let head_chars = b64_len(h).min(text.len());
-        let head = BASE64
-            .decode(&text[..head_chars])
-            .map_err(|e| bad(e.to_string()))?;
-        let size = header_value(
-            head.get(..h).ok_or_else(|| bad("no block size".into()))?,
-            info,
-        ) as usize;
-        let data = BASE64
-            .decode(&text[head_chars..])
-            .map_err(|e| bad(e.to_string()))?;
-        return data
-            .get(..size)
-            .map(<[u8]>::to_vec)
-            .ok_or_else(|| bad("fewer bytes than the block size".into()));
-    }
-    // compressed: the header [nblocks, block size, last size, sizes...] is encoded on its own
-    let first = BASE64
-        .decode(
-            text.get(..b64_len(h))
-                .ok_or_else(|| bad("no header".into()))?,
-        )
-        .map_err(|e| bad(e.to_string()))?;
-    let nblocks = header_value(&first, info) as usize;
-    let header_bytes = nblocks
-        .checked_add(3)
-        .and_then(|k| k.checked_mul(h))
-        .ok_or_else(|| bad("a header too large".into()))?;
-    let head_chars = b64_len(header_bytes);
-    let header = BASE64
-        .decode(
-            text.get(..head_chars)
-                .ok_or_else(|| bad("a truncated header".into()))?,
-        )
-        .map_err(|e| bad(e.to_string()))?;
-    let data = BASE64
-        .decode(&text[head_chars..])
-        .map_err(|e| bad(e.to_string()))?;
-    inflate_blocks(&header, &data, info, path, at)
-}
-
-/// Inflates zlib blocks described by a VTK compression header.
-fn inflate_blocks(
-    header: &[u8],
-    data: &[u8],
-    info: &FileInfo,
-    path: &Path,
-    at: Location,
-) -> Result<Vec<u8>, IoError> {
-    use std::io::Read;
-    let h = info.header_size;
-    let value = |k: usize| {
-        header
-            .get(k * h..(k + 1) * h)
-            .map(|b| header_value(b, info))
+    let fail = |e: String| IoError::parse(path, at, "an array's binary data", e);
+    let value = |stream: &mut Stream<'_>, what: &str| -> Result<u64, IoError> {
+        Ok(header_value(&stream.take(h, what).map_err(fail)?, info))
     };
-    let short = || IoError::parse(path, at, "a complete compression header", "a truncated one");
-    let nblocks = value(0).ok_or_else(short)? as usize;
-    let block = value(1).ok_or_else(short)?;
-    let last = value(2).ok_or_else(short)?;
+    if !info.compressed {
+        let size = value(stream, "a block size")?;
+        let size = usize::try_from(size).unwrap_or(usize::MAX);
+        return stream.take(size, "a block").map_err(fail);
+    }
+    let nblocks = value(stream, "a block count")?;
+    let block = value(stream, "a block size")?;
+    let last = value(stream, "a last block size")?;
+    if nblocks as u128 * h as u128 > stream.capacity() as u128 {
+        return Err(fail(format!(
+            "a compression header of {nblocks} blocks, more than the {} bytes left hold",
+            stream.capacity()
+        )));
+    }
+    let mut sizes = Vec::with_capacity(nblocks as usize);
+    for _ in 0..nblocks {
+        sizes.push(value(stream, "a compressed block size")?);
+    }
+    let compressed: u128 = sizes.iter().map(|&s| s as u128).sum();
     let total = if nblocks == 0 {
         0
     } else {
-        block as u128 * (nblocks as u128 - 1)
-            + if last == 0 {
-                block as u128
-            } else {
-                last as u128
-            }
+        block as u128 * (nblocks as u128 - 1) + if last == 0 { block } else { last } as u128
     };
-    check_allocation(path, at, total)?;
+    if total > compressed * super::DEFLATE_MAX_RATIO {
+        return Err(fail(format!(
+            "a header claiming {total} bytes from {compressed} compressed (zlib inflates 1032x at most)"
+        )));
+    }
+    if total < need as u128 {
+        return Err(fail(format!(
+            "{total} bytes in the compression header for an array of {need} bytes (wrong \
+             count or truncated file)"
+        )));
+    }
+    check_budget(path, at, "a zlib-compressed array", total, options)?;
     let mut out = Vec::with_capacity(total as usize);
-    let mut pos = 0usize;
-    for k in 0..nblocks {
-        let size = value(3 + k).ok_or_else(short)? as usize;
-        let chunk = data.get(pos..pos + size).ok_or_else(|| {
-            IoError::parse(
-                path,
-                at,
-                format!("compressed block {k} of {size} bytes"),
-                "end of data (truncated file)",
+    for (k, &size) in sizes.iter().enumerate() {
+        let chunk = stream
+            .take(
+                usize::try_from(size).unwrap_or(usize::MAX),
+                "a compressed block",
             )
-        })?;
-        pos += size;
-        let expect = if k + 1 == nblocks && last != 0 {
+            .map_err(fail)?;
+        let expect = if k + 1 == sizes.len() && last != 0 {
             last
         } else {
             block
         };
         let before = out.len();
-        flate2::read::ZlibDecoder::new(chunk)
+        use std::io::Read;
+        flate2::read::ZlibDecoder::new(&chunk[..])
             .take(expect)
             .read_to_end(&mut out)
             .map_err(|e| IoError::parse(path, at, "zlib data", e.to_string()))?;

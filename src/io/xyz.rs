@@ -86,7 +86,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                     path,
                     Location::Line(line_no),
                     "a number",
-                    *token,
+                    super::quoted(token),
                 ));
             };
             if c < 3 && !(v as f32).is_finite() {
@@ -94,7 +94,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                     path: path.to_owned(),
                     location: Location::Line(line_no),
                     index: particle,
-                    value: (*token).to_owned(),
+                    value: super::clean(token, super::FOUND_CHARS),
                 });
             }
             columns[c].push(v);
@@ -122,7 +122,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                 path: path.to_owned(),
                 location: Location::Line(1),
                 index: p,
-                value: columns[c][p].to_string(),
+                value: format!("{:e}", columns[c][p]),
             });
         }
     }

@@ -178,7 +178,7 @@ pub fn deposit(map: &mut [[f32; 4]], width: u32, height: u32, p: [Vec2; 3], valu
 pub fn caustics_cpu(stage: &Stage, surfels: &[Surfel]) -> Result<Caustics, OpticsError> {
     let screen = stage.views.screen;
     let map = stage.views.map;
-    let water = render_view_cpu(surfels, &screen);
+    let water = render_view_cpu(surfels, &screen)?;
     let ior = stage.scene.water.ior;
     let sigma = stage.scene.water.extinction;
     let eps = 1e-5 * stage.size;
@@ -529,7 +529,7 @@ pub fn frame_cpu(
         size.0,
         size.1,
     )?;
-    let water = render_view_cpu(surfels, &view);
+    let water = render_view_cpu(surfels, &view)?;
     let linear: Vec<[f32; 4]> = (0..(size.0 * size.1) as usize)
         .into_par_iter()
         .map(|i| {

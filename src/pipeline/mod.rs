@@ -558,6 +558,18 @@ impl Pipeline {
             timings: FrameTimings::default(),
             warnings: Vec::new(),
         };
+        let skipped = frame
+            .render_surfels
+            .iter()
+            .filter(|s| !s.is_drawable())
+            .count();
+        if skipped > 0 {
+            frame.warnings.push(format!(
+                "{skipped} of {} surfels cannot be drawn (a radius that is zero, negative or not \
+                 finite, or a zero normal) and are skipped",
+                frame.render_surfels.len()
+            ));
+        }
         if through >= Through::Splats {
             self.render(&mut frame, through)?;
         }
@@ -845,6 +857,8 @@ pub fn iso_surfels_in(
     if points.is_empty() {
         return Ok(None);
     }
+    // the radius first: a NaN radius would otherwise surface as a NaN grid box
+    points.check()?;
     let (spec, warning) = grid_for(&points, grid)?;
     let t = Instant::now();
     let values = density::points_grid_in(points, &spec, grid.kernel, grid.memory_budget, buffer)?;

@@ -49,6 +49,20 @@ impl ColumnParams {
     pub const INITIAL_FRAME: usize = 1;
     /// A frame of the nearly settled pool.
     pub const EQUILIBRIUM_FRAME: usize = 150;
+    /// The last frame the simulation is run to (five and a half minutes at 30 frames a
+    /// second): later frames are refused rather than simulated for hours.
+    pub const LAST_FRAME: usize = 10_000;
+
+    /// Refuses a frame past [`Self::LAST_FRAME`].
+    pub fn check_frame(frame: usize) -> Result<(), SceneError> {
+        if frame > Self::LAST_FRAME {
+            return Err(SceneError::FrameTooLate {
+                frame,
+                last: Self::LAST_FRAME,
+            });
+        }
+        Ok(())
+    }
 }
 
 impl Default for ColumnParams {

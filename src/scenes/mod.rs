@@ -28,6 +28,11 @@ pub enum SceneError {
     /// A frame was asked of a scene that has only one.
     #[error("scene `{scene}` is static; only `column` has frames (got --frame {frame})")]
     NoFrames { scene: &'static str, frame: usize },
+    /// A frame beyond the last one the column simulation is run to.
+    #[error(
+        "frame {frame} of the `column` scene is past its last frame {last} (the frames are simulated in order, each costs a solver step)"
+    )]
+    FrameTooLate { frame: usize, last: usize },
 }
 
 /// A solid whose boundary is known exactly.
@@ -370,8 +375,10 @@ pub fn build(name: SceneName, frame: Option<usize>) -> Result<Scene, SceneError>
             }
         }
         SceneName::Column => {
+            let frame = frame.unwrap_or(ColumnParams::SPLASH_FRAME);
+            ColumnParams::check_frame(frame)?;
             let mut sim = ColumnSim::new(ColumnParams::default())?;
-            sim.advance_to(frame.unwrap_or(ColumnParams::SPLASH_FRAME));
+            sim.advance_to(frame);
             Ok(sim.scene())
         }
     }

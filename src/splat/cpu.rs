@@ -41,19 +41,14 @@ pub fn render_cpu(
     height: u32,
 ) -> Result<Render, SplatError> {
     let v = View::new(camera, light, params, width, height)?;
-    Ok(render_view_cpu(surfels, &v))
+    render_view_cpu(surfels, &v)
 }
 
-/// [`render_cpu`] for a prepared view.
-#[must_use]
-pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Render {
+/// [`render_cpu`] for a prepared view; refused before rasterising when the splats would cost
+/// more pixel fragments than the view's limit ([`SplatError::TooCostly`]).
+pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Result<Render, SplatError> {
     let (w, h) = (v.width as usize, v.height as usize);
-    // the pixel columns and rows whose centres lie in a frame's rectangle
-    let span = |lo: f32, hi: f32, n: usize| -> (usize, usize) {
-        let a = (lo - 0.5).ceil().clamp(0.0, n as f32) as usize;
-        let b = (hi - 0.5).ceil().clamp(0.0, n as f32) as usize;
-        (a, b)
-    };
+    let span = super::pixel_span;
     // frame, colour, unit normal and pixel spans of every surfel that is drawn, in input order
     let placed: Vec<Placed> = surfels
         .par_iter()
@@ -69,6 +64,11 @@ pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Render {
             })
         })
         .collect();
+    let fragments: u128 = placed
+        .iter()
+        .map(|p| (p.xs.1 - p.xs.0) as u128 * (p.ys.1 - p.ys.0) as u128)
+        .sum();
+    super::check_cost(placed.len(), fragments, v)?;
     // the surfels of each band of rows, in input order (so each band reads only its own)
     let mut in_band: Vec<Vec<u32>> = vec![Vec::new(); h.div_ceil(BAND)];
     for (k, p) in placed.iter().enumerate() {
@@ -153,11 +153,11 @@ pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Render {
                 row[4 * x..4 * x + 4].copy_from_slice(&to_unorm8(c));
             }
         });
-    Render {
+    Ok(Render {
         width: v.width,
         height: v.height,
         image,
         colour,
         normal_depth,
-    }
+    })
 }

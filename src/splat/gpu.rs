@@ -579,6 +579,11 @@ pub fn render_gpu(
     height: u32,
 ) -> Result<Render, GpuError> {
     let view = View::new(camera, light, params, width, height)?;
+    crate::splat::check_cost(
+        surfels.len(),
+        crate::splat::fragments(surfels, &view),
+        &view,
+    )?;
     let renderer = SplatRenderer::new(&ctx.device, wgpu::TextureFormat::Rgba8Unorm, width, height)?;
     let buffer = SplatRenderer::upload(&ctx.device, surfels);
     Ok(render_timed(ctx, &renderer, &buffer, &view)?.0)

@@ -43,6 +43,20 @@ pub enum SplatError {
     /// The image size is zero or too large.
     #[error("image size {width}x{height} must be between 1 and {max} on each side")]
     InvalidSize { width: u32, height: u32, max: u32 },
+    /// The splats would cover more pixels than the limit: the work grows with the image size
+    /// times the splats' screen areas, which the low-pass radius widens quadratically.
+    #[error(
+        "the {surfels} splats would cover {fragments} pixel fragments ({} per splat, with a low-pass radius of {low_pass_px} px) at {width}x{height}, over the limit of {limit}: lower the low-pass radius (--low-pass) or the image size, or raise the limit (`SplatParams::max_fragments`, --max-fragments)",
+        fragments / (*surfels as u128).max(1)
+    )]
+    TooCostly {
+        surfels: usize,
+        fragments: u128,
+        limit: u64,
+        low_pass_px: f32,
+        width: u32,
+        height: u32,
+    },
 }
 
 /// What the splats are drawn as.
@@ -76,6 +90,11 @@ pub struct SplatParams {
     pub background: [f32; 4],
     /// EWA splats or plain point sprites.
     pub mode: SplatMode,
+    /// The most pixel fragments (the sum over splats of the pixels of each one's screen
+    /// rectangle, counted before rasterising) a render may cost; more is refused with
+    /// [`SplatError::TooCostly`]. Default 10^9, about a minute of the CPU reference on two
+    /// cores (measured: 2.3 x 10^9 fragments in 150 s); ordinary frames cost 10^6 to 10^8.
+    pub max_fragments: u64,
 }
 
 impl Default for SplatParams {
@@ -86,6 +105,7 @@ impl Default for SplatParams {
             sharpness: 2.0,
             background: [0.08, 0.09, 0.11, 1.0],
             mode: SplatMode::Ewa,
+            max_fragments: 1_000_000_000,
         }
     }
 }
@@ -231,6 +251,26 @@ pub fn surfels_from_particles(set: &crate::ParticleSet) -> Result<Vec<Surfel>, S
             name: "surfels",
             reason: "the file has no scalar `radius` attribute".into(),
         })?;
+    // a radius beyond any view of the set: the camera fitted around it would not be finite
+    let extent = set
+        .bounds()
+        .map_or(0.0, |(lo, hi)| (hi - lo).length())
+        .max(f32::MIN_POSITIVE);
+    let limit = MAX_RADIUS_PER_EXTENT * extent;
+    if let Some(i) = radius
+        .values
+        .iter()
+        .position(|&r| (r as f32).is_infinite() || r as f32 > limit && set.len() > 1)
+    {
+        return Err(SplatError::InvalidParameter {
+            name: "radius",
+            reason: format!(
+                "surfel {i} has radius {}, more than {MAX_RADIUS_PER_EXTENT} times the {extent} \
+                 extent of the surfels (zero, negative and NaN radii are skipped with a count)",
+                radius.values[i]
+            ),
+        });
+    }
     Ok((0..set.len())
         .map(|i| {
             let colour = set.colours.as_ref().map_or(WATER, |c| {
@@ -279,6 +319,69 @@ pub fn drawable(surfels: &[Surfel]) -> (Vec<Surfel>, usize) {
 
 /// Largest image side.
 pub const MAX_SIZE: u32 = 16384;
+
+/// The pixel columns (or rows) whose centres lie in `[lo, hi)` of a line of `n` pixels.
+pub(crate) fn pixel_span(lo: f32, hi: f32, n: usize) -> (usize, usize) {
+    let a = (lo - 0.5).ceil().clamp(0.0, n as f32) as usize;
+    let b = (hi - 0.5).ceil().clamp(0.0, n as f32) as usize;
+    (a, b)
+}
+
+/// The pixel fragments a render of `surfels` in `v` costs, known before rasterising: the sum
+/// over drawn splats of the pixels of their screen rectangles.
+#[must_use]
+pub fn fragments(surfels: &[Surfel], v: &View) -> u128 {
+    use rayon::prelude::*;
+    let (w, h) = (v.width as usize, v.height as usize);
+    surfels
+        .par_iter()
+        .filter(|s| s.is_drawable())
+        .filter_map(|s| frame(s, v))
+        .map(|f| {
+            let xs = pixel_span(f.rect.x, f.rect.z, w);
+            let ys = pixel_span(f.rect.y, f.rect.w, h);
+            (xs.1 - xs.0) as u128 * (ys.1 - ys.0) as u128
+        })
+        .sum()
+}
+
+/// Bytes a render holds per pixel: the depth, the accumulated colour and normal-depth, and the
+/// image (4 + 16 + 16 + 4), with the read-back copies of the GPU path as much again.
+pub const BYTES_PER_PIXEL: u64 = 80;
+
+/// Refuses a render of `fragments` pixel fragments over the view's limit, or whose buffers
+/// would not fit in the memory left.
+pub(crate) fn check_cost(surfels: usize, fragments: u128, v: &View) -> Result<(), SplatError> {
+    let bytes = v.width as u128 * v.height as u128 * BYTES_PER_PIXEL as u128;
+    let available = crate::io::available_memory();
+    if bytes > available as u128 {
+        return Err(SplatError::InvalidParameter {
+            name: "size",
+            reason: format!(
+                "a {}x{} render needs {} MiB of buffers ({BYTES_PER_PIXEL} bytes a pixel), more than the {} MiB of memory available",
+                v.width,
+                v.height,
+                bytes >> 20,
+                available >> 20
+            ),
+        });
+    }
+    if fragments > v.max_fragments as u128 {
+        return Err(SplatError::TooCostly {
+            surfels,
+            fragments,
+            limit: v.max_fragments,
+            low_pass_px: v.low_pass,
+            width: v.width,
+            height: v.height,
+        });
+    }
+    Ok(())
+}
+
+/// The largest surfel radius read from a file, as a multiple of the extent (bounding box
+/// diagonal) of the surfels' centres.
+pub const MAX_RADIUS_PER_EXTENT: f32 = 1000.0;
 
 /// Orthonormal tangent of a unit normal (Duff et al. 2017), as `basis_tangent` in the WGSL.
 fn basis_tangent(n: Vec3) -> Vec3 {
