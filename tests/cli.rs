@@ -1419,3 +1419,107 @@ fn a_zlib_bomb_is_refused_under_a_lowered_address_space_limit() {
     assert!(err.contains("memory budget of 1073741824"), "{err}");
     assert!(!err.contains("memory allocation"), "{err}");
 }
+
+/// `--up` on the stage commands turns their pictures, not the points they write (issue 14).
+#[test]
+fn stage_pictures_take_up_and_written_points_keep_the_files_axes() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let set = fluid_surfels::io::read_particles(
+        Path::new(&data("double_dam_break_frame_26_4732_particles.vtk")),
+        None,
+    )
+    .unwrap();
+    let mut z_up = set.clone();
+    z_up.rotate(fluid_surfels::view::UpAxis::Z.to_y_up().inverse());
+    fluid_surfels::io::write_particles(&d.join("y.vtk"), &set, None).unwrap();
+    fluid_surfels::io::write_particles(&d.join("z.vtk"), &z_up, None).unwrap();
+    let run = |cmd: &str, input: &str, up: &str, tag: &str| {
+        let png = d.join(format!("{cmd}_{tag}.png"));
+        let out = d.join(format!("{cmd}_{tag}.ply"));
+        succeeded(
+            &bin()
+                .args([cmd, "--input"])
+                .arg(d.join(input))
+                .args(["--up", up, "--radius", "0.14", "--png"])
+                .arg(&png)
+                .arg("--out")
+                .arg(&out)
+                .output()
+                .unwrap(),
+        );
+        (
+            image::open(&png).unwrap().to_rgba8(),
+            fluid_surfels::io::read_particles(&out, None).unwrap(),
+        )
+    };
+    for cmd in ["detect", "refine", "surfels"] {
+        let (a, pa) = run(cmd, "y.vtk", "y", "y");
+        let (b, pb) = run(cmd, "z.vtk", "z", "z");
+        let (side, _) = run(cmd, "z.vtk", "y", "side");
+        let same = fluid_surfels::quality::mean_abs_diff(&a, &b);
+        let other = fluid_surfels::quality::mean_abs_diff(&a, &side);
+        println!("{cmd}: mean abs diff {same} turned, {other} on its side");
+        assert!(
+            same < 0.01 && other > 2.0 * same,
+            "{cmd}: {same} against {other}"
+        );
+        // the written points are in the file's own axes: the z-up file's stay z-up
+        let span = |s: &fluid_surfels::ParticleSet| {
+            let (lo, hi) = s.bounds().unwrap();
+            hi - lo
+        };
+        let (ya, zb) = (span(&pa), span(&pb));
+        assert!(
+            (ya.y - zb.z).abs() < 0.05 * ya.y.max(1e-3),
+            "{cmd}: y extent {} written as z extent {}",
+            ya.y,
+            zb.z
+        );
+    }
+}
+
+/// `render --frames --fit union` fits the sequence's camera and pool to every frame's
+/// particles; the column scene, whose frames are simulated, refuses it (issue 14).
+#[test]
+fn render_sequence_fits_the_union_of_the_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let set = fluid_surfels::io::read_particles(
+        Path::new(&data("double_dam_break_frame_26_4732_particles.vtk")),
+        None,
+    )
+    .unwrap();
+    let mut moved = set.clone();
+    for p in &mut moved.positions {
+        p.x += 2.0;
+    }
+    fluid_surfels::io::write_particles(&d.join("f_0.vtk"), &set, None).unwrap();
+    fluid_surfels::io::write_particles(&d.join("f_1.vtk"), &moved, None).unwrap();
+    let render = |fit: &str| {
+        let out = d.join(fit);
+        let run = bin()
+            .args([
+                "render", "--cpu", "--size", "96x72", "--frames", "0..=1", "--fit", fit,
+            ])
+            .arg("--input")
+            .arg(d.join("f_{}.vtk"))
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        succeeded(&run);
+        image::open(out.join("frame_0001.png")).unwrap().to_rgba8()
+    };
+    let (first, union) = (render("first"), render("union"));
+    assert!(fluid_surfels::quality::mean_abs_diff(&first, &union) > 0.01);
+    let out = bin()
+        .args([
+            "render", "--cpu", "--scene", "column", "--frames", "0..2", "--fit", "union",
+        ])
+        .arg("--out")
+        .arg(d.join("col"))
+        .output()
+        .unwrap();
+    assert!(stderr_of(&out).contains("needs an --input pattern"));
+}

@@ -444,3 +444,136 @@ fn an_absurd_support_radius_is_warned_about_and_a_good_one_is_not() {
         );
     }
 }
+
+/// The leaf keys of a TOML value, as dotted paths.
+fn leaf_keys(prefix: &str, value: &toml::Value, out: &mut Vec<String>) {
+    match value {
+        toml::Value::Table(t) => {
+            for (k, v) in t {
+                let path = if prefix.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{prefix}.{k}")
+                };
+                leaf_keys(&path, v, out);
+            }
+        }
+        _ => out.push(prefix.to_owned()),
+    }
+}
+
+/// `examples/scenes/every_key.toml` documents every key at its default value: it reads as
+/// `PipelineParams::default()`, names every key the defaults serialise to, and mentions the
+/// optional ones; the other example scenes read.
+#[test]
+fn example_scene_files_read_and_document_every_key() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/scenes");
+    let every = dir.join("every_key.toml");
+    let params = PipelineParams::from_toml_file(&every).unwrap();
+    let mut defaults = PipelineParams::default();
+    // relative paths are resolved against the file's folder; the defaults hold none
+    defaults.scene.resolve_paths(&dir);
+    assert_eq!(
+        params, defaults,
+        "every_key.toml holds a value that is not the default"
+    );
+    let mut expected = toml::Value::try_from(PipelineParams::default()).unwrap();
+    let table = expected.as_table_mut().unwrap();
+    let scene = table.remove("scene").unwrap();
+    for (k, v) in scene.as_table().unwrap() {
+        table.insert(k.clone(), v.clone());
+    }
+    let text = std::fs::read_to_string(&every).unwrap();
+    let file: toml::Value = toml::from_str(&text).unwrap();
+    let (mut want, mut have) = (Vec::new(), Vec::new());
+    leaf_keys("", &expected, &mut want);
+    leaf_keys("", &file, &mut have);
+    let missing: Vec<&String> = want.iter().filter(|k| !have.contains(k)).collect();
+    assert!(missing.is_empty(), "every_key.toml lacks {missing:?}");
+    for optional in [
+        "support_radius",
+        "resolution",
+        "[camera]",
+        "eye",
+        "fov_y_degrees",
+        "path",
+        "image",
+        "caustics_resolution",
+        "map_resolution",
+        "scene_bounds",
+    ] {
+        assert!(
+            text.contains(&format!("# {optional}")),
+            "every_key.toml does not mention `{optional}`"
+        );
+    }
+    let mut files = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            PipelineParams::from_toml_file(&path)
+                .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            files += 1;
+        }
+    }
+    assert!(files >= 2, "{files}");
+}
+
+/// A sequence fitted to the union of its frames (`Pipeline::fit_to`) keeps one camera and one
+/// pool that hold every frame's water; fitted to the first frame only, water that moves later
+/// leaves the pool (issue 14).
+#[test]
+fn views_fitted_to_the_union_hold_every_frames_water() {
+    let (a, _, h) = block_and_drop();
+    // the second frame: the block moved by twice its width along x
+    let (lo_a, hi_a) = a.bounds().unwrap();
+    let mut b = a.clone();
+    let shift = Vec3::new(2.0 * (hi_a.x - lo_a.x), 0.0, 0.0);
+    for p in &mut b.positions {
+        *p += shift;
+    }
+    let (lo_b, hi_b) = b.bounds().unwrap();
+    let run = |union: bool| {
+        let mut scene = optics::OpticsScene::default();
+        scene.optics.image_size = [96, 72];
+        let mut p = Pipeline::new(PipelineParams {
+            support_radius: Some(h),
+            scene,
+            ..Default::default()
+        })
+        .unwrap();
+        if union {
+            p.fit_to(
+                lo_a.min(lo_b) - Vec3::splat(h),
+                hi_a.max(hi_b) + Vec3::splat(h),
+            )
+            .unwrap();
+        }
+        let fa = p.frame(&a).unwrap();
+        let fb = p.frame(&b).unwrap();
+        let (sa, sb) = (
+            &fa.finished.as_ref().unwrap().stage,
+            &fb.finished.as_ref().unwrap().stage,
+        );
+        assert_eq!(sa.camera, sb.camera, "one camera for the sequence");
+        let (pool_lo, pool_hi) = sb.receiver.bounds();
+        let holds = |lo: Vec3, hi: Vec3| {
+            lo.x >= pool_lo.x && lo.z >= pool_lo.z && hi.x <= pool_hi.x && hi.z <= pool_hi.z
+        };
+        (holds(lo_a, hi_a), holds(lo_b, hi_b))
+    };
+    assert_eq!(
+        run(true),
+        (true, true),
+        "the union's pool holds both frames"
+    );
+    assert_eq!(
+        run(false),
+        (true, false),
+        "the first frame's pool misses the moved water"
+    );
+    // a box that is not one is refused
+    let mut p = Pipeline::new(PipelineParams::default()).unwrap();
+    assert!(p.fit_to(Vec3::ONE, Vec3::ZERO).is_err());
+    assert!(p.fit_to(Vec3::ZERO, Vec3::splat(f32::NAN)).is_err());
+}

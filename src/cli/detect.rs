@@ -210,7 +210,7 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
         spacing_estimate,
         out.as_deref(),
         args.outputs.out_format,
-        png.as_deref(),
+        png.as_deref().map(|p| (p, args.outputs.up)),
     )?;
     timings.write = ms(t);
 
@@ -272,20 +272,21 @@ pub fn write_outputs(
     spacing: Option<f32>,
     out: Option<&Path>,
     out_format: Option<io::Format>,
-    png: Option<&Path>,
+    png: Option<(&Path, fluid_surfels::view::UpAxis)>,
 ) -> Result<Vec<String>, Error> {
     let mut outputs = Vec::new();
     if let Some(out) = out {
         io::write_particles(out, &surface_particles(particles, surface), out_format)?;
         outputs.push(out.display().to_string());
     }
-    if let Some(png) = png {
-        let (lo, hi) = particles
+    if let Some((png, up)) = png {
+        let positions = super::turned(&particles.positions, up);
+        let (lo, hi) = fluid_surfels::ParticleSet::from_positions(positions.clone())
             .bounds()
             .unwrap_or((glam::Vec3::ZERO, glam::Vec3::ONE));
         let spacing = spacing.unwrap_or(radius * 0.5);
         let picture = preview::render_points(
-            &particles.positions,
+            &positions,
             &fluid_surfels::preview::class_colours(&surface.classes),
             spacing * 0.5,
             &PreviewCamera::framing(lo, hi),
@@ -345,7 +346,10 @@ fn detect_sequence(
                 None,
                 out.as_ref().map(|p| p.path(f)).as_deref(),
                 args.outputs.out_format,
-                png.as_ref().map(|p| p.path(f)).as_deref(),
+                png.as_ref()
+                    .map(|p| p.path(f))
+                    .as_deref()
+                    .map(|p| (p, args.outputs.up)),
             )?;
             Ok(FrameReport {
                 frame: f,

@@ -228,6 +228,16 @@ pub struct OutputArgs {
     /// Print one JSON object of statistics on stdout instead of text.
     #[arg(long)]
     pub json: bool,
+    /// The file's axis that points up, for the --png picture (Houdini and Blender write z-up):
+    /// x, y, z, -x, -y or -z. The points written with --out keep the file's coordinates.
+    #[arg(long, default_value = "y", value_parser = up_parser(), allow_hyphen_values = true)]
+    pub up: fluid_surfels::view::UpAxis,
+}
+
+/// Positions turned so that `up` points along +y, for pictures.
+pub fn turned(positions: &[glam::Vec3], up: fluid_surfels::view::UpAxis) -> Vec<glam::Vec3> {
+    let q = up.to_y_up();
+    positions.iter().map(|&p| q * p).collect()
 }
 
 /// The positions of a particle file or a built-in scene (the `column` scene at `frame`, by

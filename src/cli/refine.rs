@@ -128,7 +128,7 @@ fn run_refine(
 
 fn write(
     (out, out_format): (Option<&Path>, Option<io::Format>),
-    png: Option<&Path>,
+    png: Option<(&Path, fluid_surfels::view::UpAxis)>,
     input: &[Vec3],
     refined: &Refined,
 ) -> Result<Vec<String>, Error> {
@@ -137,8 +137,10 @@ fn write(
         io::write_particles(out, &refined.to_particle_set(), out_format)?;
         outputs.push(out.display().to_string());
     }
-    if let Some(png) = png {
-        let picture = preview::refinement_picture(input, refined, 700)?;
+    if let Some((png, up)) = png {
+        let mut turned = refined.clone();
+        turned.positions = super::turned(&refined.positions, up);
+        let picture = preview::refinement_picture(&super::turned(input, up), &turned, 700)?;
         preview::save_png(&picture, png)?;
         outputs.push(png.display().to_string());
     }
@@ -202,7 +204,7 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
     let refine_ms = ms(t);
     let outputs = write(
         (out.as_deref(), args.outputs.out_format),
-        png.as_deref(),
+        png.as_deref().map(|p| (p, args.outputs.up)),
         &points,
         &refined,
     )?;
@@ -294,7 +296,10 @@ fn refine_sequence(args: &RefineArgs, pattern: &FramePattern) -> Result<(), Erro
                     out.as_ref().map(|x| x.path(f)).as_deref(),
                     args.outputs.out_format,
                 ),
-                png.as_ref().map(|x| x.path(f)).as_deref(),
+                png.as_ref()
+                    .map(|x| x.path(f))
+                    .as_deref()
+                    .map(|x| (x, args.outputs.up)),
                 &p,
                 &refined,
             )?;

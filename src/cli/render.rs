@@ -114,6 +114,12 @@ pub struct RenderArgs {
     /// receives frame_NNNN.png.
     #[arg(long)]
     pub frames: Option<FrameRange>,
+    /// With --frames: what the camera and the pool (kept for the whole sequence) are fitted to:
+    /// `first`, the first frame's water, or `union`, the bounds of every frame's particles
+    /// (read once before rendering; --input patterns only), so that water that moves or rises
+    /// later stays in view. A camera or pool given by --camera or --config is kept as given.
+    #[arg(long, value_enum, default_value = "first")]
+    pub fit: FitChoice,
     /// Virtual screen of the caustics, WIDTHxHEIGHT (default: 256 on the water's longer side).
     #[arg(long, value_parser = parse_size)]
     pub caustics_resolution: Option<(u32, u32)>,
@@ -192,6 +198,15 @@ fn parse_camera(s: &str) -> Result<Camera, String> {
         far: distance * 100.0 + 1.0,
         ..Camera::default()
     })
+}
+
+/// `--fit`: what a sequence's camera and pool are fitted to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum FitChoice {
+    /// The first frame's water.
+    First,
+    /// The bounds of every frame's particles.
+    Union,
 }
 
 /// `--source` on the command line.
@@ -768,6 +783,21 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
             list.len()
         );
     }
+    if args.fit == FitChoice::Union {
+        let Frames::Pattern(pattern) = &frames else {
+            return Err(Error::InvalidArgument {
+                argument: "--fit",
+                reason: "`union` reads the frames' files first: it needs an --input pattern (the \
+                         column scene's frames are simulated in order)"
+                    .into(),
+            });
+        };
+        let (lo, hi) = union_bounds(pattern, &list, args)?;
+        match gpu.as_mut() {
+            Some((_, g)) => g.cpu_mut().fit_to(lo, hi)?,
+            None => pipeline.fit_to(lo, hi)?,
+        }
+    }
     if !todo[0] {
         // a resumed sequence keeps the camera and the pool of a whole run: fitted on its first
         // frame, rendered again but not written
@@ -789,6 +819,41 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
     }
     bar.finish_and_clear();
     Ok(())
+}
+
+/// The union of the particle bounds of `frames`, in the turned (`--up`) coordinates, widened by
+/// the support radius (given, or twice the spacing estimated on the first frame) so that the
+/// surfels around the particles lie inside too.
+fn union_bounds(
+    pattern: &FramePattern,
+    frames: &[usize],
+    args: &RenderArgs,
+) -> Result<(Vec3, Vec3), Error> {
+    use rayon::prelude::*;
+    let bounds: Vec<(Vec3, Vec3, f32)> = frames
+        .par_iter()
+        .enumerate()
+        .map(|(k, &f)| {
+            let mut set = super::read_particles(&pattern.path(f), args.format)?;
+            if args.up != UpAxis::Y {
+                set.rotate(args.up.to_y_up());
+            }
+            let pad = match (args.radius, k) {
+                (Some(r), _) => r,
+                (None, 0) => 2.0 * fluid_surfels::neighbours::estimate_spacing(&set.positions)?,
+                _ => 0.0,
+            };
+            let (lo, hi) = set.bounds().unwrap_or((Vec3::ZERO, Vec3::ZERO));
+            Ok((lo, hi, pad))
+        })
+        .collect::<Result<_, Error>>()?;
+    let pad = bounds.iter().map(|b| b.2).fold(0.0, f32::max);
+    let (lo, hi) = bounds
+        .iter()
+        .map(|b| (b.0, b.1))
+        .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)))
+        .unwrap_or((Vec3::ZERO, Vec3::ZERO));
+    Ok((lo - Vec3::splat(pad), hi + Vec3::splat(pad)))
 }
 
 /// The finished frame as written: with its specks painted red under `--mark-specks`.

@@ -104,15 +104,18 @@ pub fn surfels_with(
 fn write(
     s: &Surfels,
     (out, out_format): (Option<&Path>, Option<io::Format>),
-    png: Option<&Path>,
+    png: Option<(&Path, fluid_surfels::view::UpAxis)>,
 ) -> Result<Vec<String>, Error> {
     let mut outputs = Vec::new();
     if let Some(out) = out {
         io::write_particles(out, &s.to_particle_set(), out_format)?;
         outputs.push(out.display().to_string());
     }
-    if let Some(png) = png {
-        preview::save_png(&preview::surfels_picture(s, None, 800)?, png)?;
+    if let Some((png, up)) = png {
+        let mut turned = s.clone();
+        turned.positions = super::turned(&s.positions, up);
+        turned.normals = super::turned(&s.normals, up);
+        preview::save_png(&preview::surfels_picture(&turned, None, 800)?, png)?;
         outputs.push(png.display().to_string());
     }
     Ok(outputs)
@@ -146,7 +149,11 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
     };
     let (s, spec, density_ms, extract_ms) =
         surfels_with(gpu.as_ref(), &positions, h, args.resolution, iso)?;
-    let outputs = write(&s, (out.as_deref(), out_args.out_format), png.as_deref())?;
+    let outputs = write(
+        &s,
+        (out.as_deref(), out_args.out_format),
+        png.as_deref().map(|p| (p, out_args.up)),
+    )?;
     let report = SurfelsReport {
         outside_bounds: super::outside_bounds(),
         source,
@@ -194,7 +201,11 @@ fn surfels_sequence(args: &SurfelsArgs, pattern: &FramePattern, iso: f32) -> Res
         |_, f| {
             let particles = super::read_particles(&pattern.path(f), src.format)?;
             let (s, _, d, e) = surfels_of(&particles.positions, h, args.resolution, iso)?;
-            write(&s, (out.as_ref().map(|x| x.path(f)).as_deref(), o.out_format), png.as_ref().map(|x| x.path(f)).as_deref())?;
+            write(
+                &s,
+                (out.as_ref().map(|x| x.path(f)).as_deref(), o.out_format),
+                png.as_ref().map(|x| x.path(f)).as_deref().map(|x| (x, o.up)),
+            )?;
             Ok(serde_json::json!({"frame": f, "particles": particles.len(), "surfels": s.len(), "density_ms": d, "extract_ms": e}))
         },
     )?;

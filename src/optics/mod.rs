@@ -513,10 +513,26 @@ impl Stage {
     /// Checks the scene, builds the receiver (and its BVH), loads the environment image and sets
     /// up the light's views around the surfels.
     pub fn new(scene: &OpticsScene, surfels: &[Surfel]) -> Result<Self, OpticsError> {
+        Self::fitted(scene, surfels, None)
+    }
+
+    /// [`Stage::new`] with the pool and the camera fitted to the water's bounds widened to
+    /// `fit` (the union of a sequence's frames, say), so that every frame's water lies inside
+    /// what is fitted; the light's screen still follows this frame's water.
+    pub fn fitted(
+        scene: &OpticsScene,
+        surfels: &[Surfel],
+        fit: Option<(Vec3, Vec3)>,
+    ) -> Result<Self, OpticsError> {
         scene.validate()?;
         let mut scene = scene.clone();
         scene.environment.load()?;
-        let water = crate::splat::bounds(surfels);
+        let own = crate::splat::bounds(surfels);
+        let water = match (own, fit) {
+            (Some((a, b)), Some((c, d))) => Some((a.min(c), b.max(d))),
+            (None, f) => f,
+            (w, None) => w,
+        };
         let receiver = scene.receiver.build(
             water.map(|(a, b)| (a, Vec3::new(b.x, pool_wall_top(surfels, a.y, b.y), b.z))),
         )?;
@@ -529,7 +545,7 @@ impl Stage {
         let size = (all_max - all_min).length().max(1e-6);
         let screen_box = match scene.optics.screen_bounds {
             Some([a, b]) => (a, b),
-            None => water.unwrap_or((all_min, all_max)),
+            None => own.or(water).unwrap_or((all_min, all_max)),
         };
         let views = light_views(&scene, screen_box, (all_min, all_max))?;
         let camera = match scene.camera {

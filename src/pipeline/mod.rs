@@ -346,6 +346,8 @@ pub struct Pipeline {
     detector: SurfaceDetector,
     radius: Option<f32>,
     views: Option<Views>,
+    /// The box the views are fitted to besides the first frame's water ([`Pipeline::fit_to`]).
+    fit: Option<(Vec3, Vec3)>,
     /// The density grid's buffer, handed back by [`Pipeline::recycle`] for the next frame.
     grid_buffer: Vec<f32>,
 }
@@ -359,9 +361,27 @@ impl Pipeline {
             detector: SurfaceDetector::new(params.surface)?,
             radius: params.support_radius,
             views: None,
+            fit: None,
             grid_buffer: Vec::new(),
             params,
         })
+    }
+
+    /// Fits the camera, the pool and the scene box of the sequence to the box `[lo, hi]` as well
+    /// as to the first rendered frame's water: give the union of every frame's particle bounds
+    /// (widened by the support radius) so that the water of every frame lies inside the views
+    /// kept from the first one (`keep_views`). Call before the first frame; a later call refits
+    /// on the next frame.
+    pub fn fit_to(&mut self, lo: Vec3, hi: Vec3) -> Result<(), Error> {
+        if !(lo.is_finite() && hi.is_finite() && lo.cmple(hi).all()) {
+            return Err(Error::InvalidArgument {
+                argument: "fit_to",
+                reason: format!("[{lo}, {hi}] is not a finite box"),
+            });
+        }
+        self.fit = Some((lo, hi));
+        self.views = None;
+        Ok(())
     }
 
     /// The parameters.
@@ -633,7 +653,10 @@ impl Pipeline {
         let camera = match &self.views {
             Some(v) if self.params.keep_views => v.camera,
             _ => self.params.scene.camera.unwrap_or_else(|| {
-                let (lo, hi) = splat::bounds(surfels).unwrap_or((Vec3::ZERO, Vec3::ONE));
+                let (lo, hi) = match (splat::bounds(surfels), self.fit) {
+                    (Some((a, b)), Some((c, d))) => (a.min(c), b.max(d)),
+                    (w, f) => w.or(f).unwrap_or((Vec3::ZERO, Vec3::ONE)),
+                };
                 Camera::framing(lo, hi)
             }),
         };
@@ -661,7 +684,7 @@ impl Pipeline {
             Some(k) => k,
             None => {
                 // a provisional stage fits the pool and the camera around this frame's water
-                let first = Stage::new(&scene, surfels)?;
+                let first = Stage::fitted(&scene, surfels, self.fit)?;
                 let mut receiver = scene.receiver.clone();
                 let (rmin, rmax) = first.receiver.bounds();
                 if receiver.kind == ReceiverKind::Auto {
@@ -669,7 +692,11 @@ impl Pipeline {
                     receiver.min = rmin;
                     receiver.max = rmax;
                 }
-                let (lo, hi) = match splat::bounds(surfels) {
+                let water = match (splat::bounds(surfels), self.fit) {
+                    (Some((a, b)), Some((c, d))) => Some((a.min(c), b.max(d))),
+                    (w, f) => w.or(f),
+                };
+                let (lo, hi) = match water {
                     Some((a, b)) => (rmin.min(a), rmax.max(b)),
                     None => (rmin, rmax),
                 };
