@@ -929,6 +929,15 @@ fn ddb_dir() -> tempfile::TempDir {
     dir
 }
 
+/// The double dam break's particles.
+fn ddb_set() -> fluid_surfels::ParticleSet {
+    fluid_surfels::io::read_particles(
+        Path::new(&data("double_dam_break_frame_26_4732_particles.vtk")),
+        None,
+    )
+    .unwrap()
+}
+
 fn stderr_of(out: &std::process::Output) -> String {
     assert!(!out.status.success(), "expected a failure");
     String::from_utf8_lossy(&out.stderr).into_owned()
@@ -1018,11 +1027,7 @@ fn render_background_is_flat_and_holes_are_reported() {
 fn render_up_z_turns_a_z_up_file_into_the_same_picture() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let set = fluid_surfels::io::read_particles(
-        Path::new(&data("double_dam_break_frame_26_4732_particles.vtk")),
-        None,
-    )
-    .unwrap();
+    let set = ddb_set();
     fluid_surfels::io::write_particles(&d.join("ddb.vtk"), &set, None).unwrap();
     // the same water written by a z-up tool: y-up turned back by the inverse of --up z's turn
     let mut z_up = set.clone();
@@ -1055,11 +1060,7 @@ fn render_up_z_turns_a_z_up_file_into_the_same_picture() {
 fn render_sequence_resumes_with_skip_existing_and_the_first_frames_camera() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let set = fluid_surfels::io::read_particles(
-        Path::new(&data("double_dam_break_frame_26_4732_particles.vtk")),
-        None,
-    )
-    .unwrap();
+    let set = ddb_set();
     // three frames: the water moves along x, so a camera fitted on another frame differs
     for f in 1..=3 {
         let mut s = set.clone();
@@ -1266,11 +1267,7 @@ fn predicted_costs_over_the_limits_are_refused_with_the_figures() {
 #[test]
 fn bounds_drop_leaked_particles_and_are_suggested() {
     let dir = tempfile::tempdir().unwrap();
-    let mut set = fluid_surfels::io::read_particles(
-        Path::new(&data("double_dam_break_frame_26_4732_particles.vtk")),
-        None,
-    )
-    .unwrap();
+    let mut set = ddb_set();
     set.positions.push(glam::Vec3::new(1e9, 0.0, 0.0));
     let set = fluid_surfels::ParticleSet::from_positions(set.positions);
     let leak = dir.path().join("leak.ply");
@@ -1425,11 +1422,7 @@ fn a_zlib_bomb_is_refused_under_a_lowered_address_space_limit() {
 fn stage_pictures_take_up_and_written_points_keep_the_files_axes() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let set = fluid_surfels::io::read_particles(
-        Path::new(&data("double_dam_break_frame_26_4732_particles.vtk")),
-        None,
-    )
-    .unwrap();
+    let set = ddb_set();
     let mut z_up = set.clone();
     z_up.rotate(fluid_surfels::view::UpAxis::Z.to_y_up().inverse());
     fluid_surfels::io::write_particles(&d.join("y.vtk"), &set, None).unwrap();
@@ -1485,11 +1478,7 @@ fn stage_pictures_take_up_and_written_points_keep_the_files_axes() {
 fn render_sequence_fits_the_union_of_the_frames() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let set = fluid_surfels::io::read_particles(
-        Path::new(&data("double_dam_break_frame_26_4732_particles.vtk")),
-        None,
-    )
-    .unwrap();
+    let set = ddb_set();
     let mut moved = set.clone();
     for p in &mut moved.positions {
         p.x += 2.0;

@@ -205,3 +205,124 @@ fn streamed_extraction_equals_whole_grid_extraction() {
         .is_err()
     );
 }
+
+/// Distance from `p` to the triangle `abc` (Ericson, Real-Time Collision Detection, §5.1.5).
+fn point_triangle_distance(p: Vec3, a: Vec3, b: Vec3, c: Vec3) -> f32 {
+    let (ab, ac, ap) = (b - a, c - a, p - a);
+    let (d1, d2) = (ab.dot(ap), ac.dot(ap));
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return ap.length();
+    }
+    let bp = p - b;
+    let (d3, d4) = (ab.dot(bp), ac.dot(bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return bp.length();
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        return (p - (a + ab * (d1 / (d1 - d3)))).length();
+    }
+    let cp = p - c;
+    let (d5, d6) = (ab.dot(cp), ac.dot(cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return cp.length();
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        return (p - (a + ac * (d2 / (d2 - d6)))).length();
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0 {
+        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        return (p - (b + (c - b) * w)).length();
+    }
+    let denom = 1.0 / (va + vb + vc);
+    let (v, w) = (vb * denom, vc * denom);
+    (p - (a + ab * v + ac * w)).length()
+}
+
+/// Our surfels against splashsurf's marching-cubes mesh (the peer of issue 17) on the same
+/// particles, with the same kernel (cubic spline), support radius and cell size: how far each
+/// surfel lies from the mesh, in cell sizes. The two iso-values are defined differently
+/// (splashsurf: 0.6 of the rest density; ours: a fraction of one lone particle's peak), so the
+/// surfaces are offset by a fraction of a cell; the test also matches the iso-values.
+#[test]
+fn surfels_lie_on_splashsurfs_mesh() {
+    use splashsurf_lib::nalgebra::Vector3;
+    let scene = scenes::block(&scenes::BlockParams {
+        counts: [16, 16, 16],
+        ..Default::default()
+    })
+    .unwrap();
+    let p = &scene.particles.positions;
+    let (s, h) = (scene.spacing, scene.support_radius);
+    let cell = h / 3.0;
+    let t = std::time::Instant::now();
+    let params = splashsurf_lib::Parameters::new(0.5 * s, h, cell);
+    let peer: Vec<Vector3<f32>> = p.iter().map(|q| Vector3::new(q.x, q.y, q.z)).collect();
+    let reconstruction = splashsurf_lib::reconstruct_surface::<i64, f32>(&peer, &params).unwrap();
+    let peer_ms = t.elapsed().as_secs_f64() * 1e3;
+    let mesh = &reconstruction.mesh;
+    let v: Vec<Vec3> = mesh
+        .vertices
+        .iter()
+        .map(|q| Vec3::new(q.x, q.y, q.z))
+        .collect();
+    assert!(
+        mesh.triangles.len() > 1000,
+        "{} triangles",
+        mesh.triangles.len()
+    );
+    let t = std::time::Instant::now();
+    let spec = GridSpec::around(p, h, Resolution::CellSize(cell)).unwrap();
+    let grid = density::density_grid(p, &spec, Kernel::CubicSpline, h, 1 << 32).unwrap();
+    let ours =
+        surfels::extract(&grid, p, Kernel::CubicSpline, h, &SurfelParams::default()).unwrap();
+    let ours_ms = t.elapsed().as_secs_f64() * 1e3;
+    // the same iso-value as splashsurf's: its density is sum_j m W with m = rho_0 (2 r)^3 =
+    // rho_0 s^3 (a cube per particle), so its threshold 0.6 rho_0 is sum_j W = 0.6 / s^3, here
+    // as a fraction of one particle's peak
+    let matched = SurfelParams {
+        iso_fraction: 0.6 / (s * s * s) / Kernel::CubicSpline.peak(h),
+        ..SurfelParams::default()
+    };
+    let same_iso = surfels::extract(&grid, p, Kernel::CubicSpline, h, &matched).unwrap();
+    let distances = |surfels: &surfels::Surfels| -> (f32, f32) {
+        let d: Vec<f32> = surfels
+            .positions
+            .iter()
+            .map(|&q| {
+                mesh.triangles
+                    .iter()
+                    .map(|t| point_triangle_distance(q, v[t[0]], v[t[1]], v[t[2]]))
+                    .fold(f32::INFINITY, f32::min)
+                    / cell
+            })
+            .collect();
+        let mean = d.iter().sum::<f32>() / d.len() as f32;
+        (mean, d.iter().copied().fold(0.0, f32::max))
+    };
+    let (mean, max) = distances(&ours);
+    let (mean_same, max_same) = distances(&same_iso);
+    println!(
+        "{} particles, splashsurf {} triangles in {peer_ms:.0} ms, ours {} surfels in {ours_ms:.0} ms (test build, not a benchmark); distance to its mesh in cells: our default iso mean {mean:.3} max {max:.3}, at its iso-value mean {mean_same:.3} max {max_same:.3}",
+        p.len(),
+        mesh.triangles.len(),
+        ours.len()
+    );
+    // measured 2026-12-02: default iso mean 0.54, max 0.69 cells, our surface outside theirs
+    // alike everywhere (the bounding boxes: 0.843 against 0.815 across); at splashsurf's
+    // iso-value mean 0.17, max 0.45, ours now slightly inside (0.798 across). What remains is
+    // not explained yet (a candidate: marching cubes places its vertices by linear
+    // interpolation along cell edges, ours are projected onto the iso-surface by Newton steps).
+    // The bounds pin this agreement so that a faster path cannot drift (issue 17 measures it on
+    // the real files).
+    assert!(
+        mean < 0.6 && max < 0.8,
+        "default iso: mean {mean}, max {max} cells"
+    );
+    assert!(
+        mean_same < 0.25 && max_same < 0.6,
+        "same iso: mean {mean_same}, max {max_same} cells"
+    );
+}
