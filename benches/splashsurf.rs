@@ -3,8 +3,8 @@
 //! the same particles with the same kernel (cubic spline), support radius and cell size, in one
 //! run. The surface each gives is compared in `tests/surfels.rs::surfels_lie_on_splashsurfs_mesh`.
 //!
-//! Size: the density benchmark's case, a jittered block of 150,000 particles (53 x 53 x 53 =
-//! 148,877), cells of a third of the support radius.
+//! Sizes: the density benchmark's case, a jittered block of 150,000 particles (53 x 53 x 53 =
+//! 148,877), cells of a third of the support radius; and the two real files of `tests/data/`.
 
 use std::hint::black_box;
 
@@ -50,5 +50,50 @@ fn reconstruct(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, reconstruct);
+/// The two real files of `tests/data/`, each at twice its estimated spacing (the pipeline's
+/// default radius), cells of a third of it, splashsurf's iso-value for both.
+fn real_files(c: &mut Criterion) {
+    for name in [
+        "double_dam_break_frame_26_4732_particles.vtk",
+        "dam_break_frame_23_24389_particles.bgeo",
+    ] {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data")
+            .join(name);
+        let p = fluid_surfels::io::read_particles(&path, None)
+            .expect("the shipped file")
+            .positions;
+        let s = fluid_surfels::neighbours::estimate_spacing(&p).expect("a spacing");
+        let (h, cell) = (2.0 * s, 2.0 * s / 3.0);
+        let peer: Vec<Vector3<f32>> = p.iter().map(|q| Vector3::new(q.x, q.y, q.z)).collect();
+        let params = splashsurf_lib::Parameters::new(0.5 * s, h, cell);
+        let iso = SurfelParams {
+            iso_fraction: 0.6 / (s * s * s) / Kernel::CubicSpline.peak(h),
+            ..SurfelParams::default()
+        };
+        let mut group = c.benchmark_group(format!(
+            "reconstruct_{}",
+            name.split('_').take(3).collect::<Vec<_>>().join("_")
+        ));
+        group.sample_size(10);
+        group.bench_function("splashsurf_0_14_marching_cubes", |b| {
+            b.iter(|| {
+                splashsurf_lib::reconstruct_surface::<i64, f32>(black_box(&peer), &params)
+                    .expect("a reconstruction")
+            })
+        });
+        group.bench_function("fluid_surfels_density_and_surfels", |b| {
+            b.iter(|| {
+                let spec =
+                    GridSpec::around(black_box(&p), h, Resolution::CellSize(cell)).expect("a grid");
+                let grid = density::density_grid(&p, &spec, Kernel::CubicSpline, h, 1 << 32)
+                    .expect("within memory");
+                surfels::extract(&grid, &p, Kernel::CubicSpline, h, &iso).expect("surfels")
+            })
+        });
+        group.finish();
+    }
+}
+
+criterion_group!(benches, reconstruct, real_files);
 criterion_main!(benches);
