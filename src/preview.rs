@@ -196,7 +196,7 @@ pub fn save_png(image: &RgbImage, path: &Path) -> Result<(), PreviewError> {
 }
 
 /// Bounds of points, or the unit box when there is no finite one.
-fn bounds_or_unit<'a>(points: impl IntoIterator<Item = &'a Vec3>) -> (Vec3, Vec3) {
+pub fn bounds_or_unit<'a>(points: impl IntoIterator<Item = &'a Vec3>) -> (Vec3, Vec3) {
     let (lo, hi) = points
         .into_iter()
         .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &p| {

@@ -200,18 +200,6 @@ impl FrameRange {
     pub fn frames(&self) -> impl Iterator<Item = usize> + '_ {
         (self.start..self.end).step_by(self.step)
     }
-
-    /// How many frames the range holds (computed, not counted).
-    #[must_use]
-    pub fn len(&self) -> usize {
-        (self.end - self.start).div_ceil(self.step)
-    }
-
-    /// Whether the range holds no frame (never, for a parsed range).
-    #[must_use]
-    pub fn is_empty(&self) -> bool {
-        self.end <= self.start
-    }
 }
 
 impl std::fmt::Display for FrameRange {

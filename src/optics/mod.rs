@@ -528,11 +528,7 @@ impl Stage {
         let mut scene = scene.clone();
         scene.environment.load()?;
         let own = crate::splat::bounds(surfels);
-        let water = match (own, fit) {
-            (Some((a, b)), Some((c, d))) => Some((a.min(c), b.max(d))),
-            (None, f) => f,
-            (w, None) => w,
-        };
+        let water = crate::view::union_boxes(own, fit);
         let receiver = scene.receiver.build(
             water.map(|(a, b)| (a, Vec3::new(b.x, pool_wall_top(surfels, a.y, b.y), b.z))),
         )?;

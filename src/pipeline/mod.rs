@@ -122,7 +122,7 @@ impl Default for GridParams {
             kernel: Kernel::Wyvill,
             cells_per_radius: 3.0,
             resolution: None,
-            memory_budget: 1 << 30,
+            memory_budget: crate::io::DEFAULT_MEMORY_BUDGET,
         }
     }
 }
@@ -653,10 +653,8 @@ impl Pipeline {
         let camera = match &self.views {
             Some(v) if self.params.keep_views => v.camera,
             _ => self.params.scene.camera.unwrap_or_else(|| {
-                let (lo, hi) = match (splat::bounds(surfels), self.fit) {
-                    (Some((a, b)), Some((c, d))) => (a.min(c), b.max(d)),
-                    (w, f) => w.or(f).unwrap_or((Vec3::ZERO, Vec3::ONE)),
-                };
+                let (lo, hi) = crate::view::union_boxes(splat::bounds(surfels), self.fit)
+                    .unwrap_or((Vec3::ZERO, Vec3::ONE));
                 Camera::framing(lo, hi)
             }),
         };
@@ -692,14 +690,9 @@ impl Pipeline {
                     receiver.min = rmin;
                     receiver.max = rmax;
                 }
-                let water = match (splat::bounds(surfels), self.fit) {
-                    (Some((a, b)), Some((c, d))) => Some((a.min(c), b.max(d))),
-                    (w, f) => w.or(f),
-                };
-                let (lo, hi) = match water {
-                    Some((a, b)) => (rmin.min(a), rmax.max(b)),
-                    None => (rmin, rmax),
-                };
+                let water = crate::view::union_boxes(splat::bounds(surfels), self.fit);
+                let (lo, hi) =
+                    crate::view::union_boxes(water, Some((rmin, rmax))).unwrap_or((rmin, rmax));
                 // room for the water to rise and spread in later frames
                 let pad = 0.1 * (hi - lo).max_element();
                 let bounds = [lo - Vec3::splat(pad), hi + Vec3::splat(pad)];

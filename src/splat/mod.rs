@@ -260,7 +260,7 @@ pub fn surfels_from_particles(set: &crate::ParticleSet) -> Result<Vec<Surfel>, S
     if let Some(i) = radius
         .values
         .iter()
-        .position(|&r| (r as f32).is_infinite() || r as f32 > limit && set.len() > 1)
+        .position(|&r| (r as f32).is_infinite() || (set.len() > 1 && r as f32 > limit))
     {
         return Err(SplatError::InvalidParameter {
             name: "radius",
