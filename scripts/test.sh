@@ -25,8 +25,9 @@ fi
 
 echo "== cargo fmt --check"
 cargo fmt --all -- --check
-echo "== cargo clippy (all targets, warnings are errors)"
+echo "== cargo clippy (all targets and the Python bindings, warnings are errors)"
 cargo clippy --locked --all-targets -- -D warnings
+cargo clippy --locked -p fluid-surfels-python --all-targets -- -D warnings
 echo "== cargo doc (warnings are errors)"
 RUSTDOCFLAGS="-D warnings" cargo doc --locked --no-deps
 echo "== cargo test (unit, integration, doc tests; examples and benches built)"
@@ -45,3 +46,23 @@ echo "== example: the viewer without a window (headless), 2 frames"
 cargo run --locked --quiet --example viewer -- --headless --frames 2 --size 96x72 --out "$example_out/viewer"
 test -s "$example_out/viewer/frame_0001.png"
 rm -rf "$example_out"
+
+echo "== Python bindings: the wheel built by maturin, installed in a virtual environment, pytest"
+# needs python3 (3.9 or later) with venv; maturin, numpy and pytest come from the package index
+py_env="target/python-env"
+if [ ! -x "$py_env/bin/python" ]; then
+  python3 -m venv "$py_env"
+fi
+"$py_env/bin/python" -m pip install --quiet --disable-pip-version-check "maturin>=1.9,<2" "numpy>=1.21" "pytest>=7"
+wheel_dir="$(mktemp -d)"
+wheel_start=$(date +%s)
+# the dev profile (optimised, see Cargo.toml) shares the test build's dependencies; --strip keeps
+# the wheel small
+"$py_env/bin/maturin" build --locked --quiet --profile dev --strip \
+  --manifest-path python/Cargo.toml --interpreter "$py_env/bin/python" --out "$wheel_dir"
+echo "wheel built in $(( $(date +%s) - wheel_start )) s: $(ls "$wheel_dir")"
+"$py_env/bin/python" -m pip install --quiet --disable-pip-version-check --force-reinstall --no-deps "$wheel_dir"/*.whl
+rm -rf "$wheel_dir"
+# the command line the tests compare with: the one the cargo tests built
+(cd python/tests && FLUID_SURFELS_BIN="$PWD/../../target/debug/fluid-surfels" \
+  "../../$py_env/bin/python" -m pytest -q -p no:cacheprovider .)

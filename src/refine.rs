@@ -58,7 +58,7 @@ pub enum HeightRule {
 
 /// Parameters of the refinement.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct RefineParams {
     /// Initial visibility radius `r0`: the SPH support radius of the simulation (§3.2.1).
     pub initial_radius: f32,

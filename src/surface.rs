@@ -45,7 +45,7 @@ pub enum NormalMethod {
 
 /// Parameters of surface detection.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct SurfaceParams {
     /// A particle not yet at the surface becomes surface when its centre-of-mass offset exceeds
     /// this fraction of the support radius. Default 0.14, the middle of the range 0.11-0.19

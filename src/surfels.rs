@@ -23,7 +23,7 @@ use crate::neighbours::CellGrid;
 
 /// Parameters of surfel extraction.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct SurfelParams {
     /// Iso-value as a fraction of one particle's peak density `F(0, h)`. Default 0.75, so that a
     /// lone drop still shows (as a sphere of radius about 0.3 h). Measured on a jittered sphere

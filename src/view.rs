@@ -99,7 +99,7 @@ pub fn box_corners(min: Vec3, max: Vec3) -> [Vec3; 8] {
 
 /// A perspective look-at camera (right-handed, y up by default).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct Camera {
     /// Eye position (world units).
     pub eye: Vec3,
@@ -231,7 +231,7 @@ impl Camera {
 
 /// A directional light with Blinn-Phong shading.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct Light {
     /// Direction towards the light (need not be unit length).
     pub direction: Vec3,

@@ -1508,3 +1508,97 @@ fn render_sequence_fits_the_union_of_the_frames() {
         .unwrap();
     assert!(stderr_of(&out).contains("needs an --input pattern"));
 }
+
+/// `render --save-surfels` writes the surfels it renders: read back with `--surfels` and drawn
+/// from the same camera they give the same image, for the shaded splats and the finished frame;
+/// with `--frames` it is refused, and an existing file is kept without `--force`.
+#[test]
+fn render_saves_the_surfels_it_draws() {
+    let dir = ddb_dir();
+    let saved = dir.path().join("surfels.ply");
+    let first = dir.path().join("first.png");
+    let out = render_ddb(
+        dir.path(),
+        &[
+            "--save-surfels",
+            saved.to_str().unwrap(),
+            "--out",
+            first.to_str().unwrap(),
+            "--json",
+        ],
+    );
+    let report = json_of(&out);
+    let set = fluid_surfels::io::read_particles(&saved, None).unwrap();
+    assert_eq!(
+        set.len() as u64,
+        report["surfels"].as_u64().unwrap(),
+        "every rendered surfel is written"
+    );
+    assert!(set.normals.is_some() && set.attribute("radius").is_some());
+    // drawn again from the file, with the first run's camera
+    let c = &report["camera"];
+    let camera: Vec<String> = ["eye", "target"]
+        .iter()
+        .flat_map(|k| c[k].as_array().unwrap().clone())
+        .map(|v| v.as_f64().unwrap().to_string())
+        .chain([c["fov_y_degrees"].as_f64().unwrap().to_string()])
+        .collect();
+    let again = dir.path().join("again.png");
+    let out = bin()
+        .args(["render", "--cpu", "--size", "64x48", "--surfels"])
+        .arg(&saved)
+        .args(["--camera", &camera.join(","), "--out"])
+        .arg(&again)
+        .output()
+        .unwrap();
+    succeeded(&out);
+    let (a, b) = (
+        image::open(&first).unwrap().to_rgba8(),
+        image::open(&again).unwrap().to_rgba8(),
+    );
+    let diff = fluid_surfels::quality::mean_abs_diff(&a, &b);
+    assert!(diff < 1e-3, "mean absolute difference {diff}");
+    // the finished frame's surfels too
+    let frame_surfels = dir.path().join("frame_surfels.vtk");
+    let out = render_ddb(
+        dir.path(),
+        &[
+            "--optics",
+            "--save-surfels",
+            frame_surfels.to_str().unwrap(),
+            "--out",
+            dir.path().join("frame.png").to_str().unwrap(),
+        ],
+    );
+    succeeded(&out);
+    let frame_set = fluid_surfels::io::read_particles(&frame_surfels, None).unwrap();
+    assert_eq!(frame_set.positions, set.positions);
+    // an existing file is kept without --force; not with --frames
+    let before = std::fs::read(&saved).unwrap();
+    let out = render_ddb(
+        dir.path(),
+        &[
+            "--save-surfels",
+            saved.to_str().unwrap(),
+            "--out",
+            dir.path().join("third.png").to_str().unwrap(),
+        ],
+    );
+    assert!(stderr_of(&out).contains("surfels.ply"));
+    assert_eq!(std::fs::read(&saved).unwrap(), before);
+    let out = bin()
+        .args([
+            "render",
+            "--scene",
+            "column",
+            "--frames",
+            "0..2",
+            "--save-surfels",
+        ])
+        .arg(&saved)
+        .arg("--out")
+        .arg(dir.path().join("seq"))
+        .output()
+        .unwrap();
+    assert!(stderr_of(&out).contains("--save-surfels"));
+}

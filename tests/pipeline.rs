@@ -331,11 +331,59 @@ fn pipeline_params_load_from_one_toml_with_the_scene() {
     assert!(e.contains("cells"), "{e}");
     let e = PipelineParams::from_toml_str("[lihgt]\nx = 1", std::path::Path::new(".")).unwrap_err();
     assert!(e.contains("lihgt"), "{e}");
+    // a misspelt key in any table is refused, never silently left at its default
+    for table in [
+        "surface",
+        "refine",
+        "grid",
+        "surfels",
+        "splat",
+        "camera",
+        "light",
+        "receiver",
+        "water",
+        "environment",
+        "optics",
+    ] {
+        let text = format!("[{table}]\nmisspelt_key = 1");
+        let e = PipelineParams::from_toml_str(&text, std::path::Path::new(".")).unwrap_err();
+        assert!(e.contains("misspelt_key"), "[{table}]: {e}");
+    }
     let bad = PipelineParams {
         support_radius: Some(f32::NAN),
         ..Default::default()
     };
     assert!(Pipeline::new(bad).is_err());
+}
+
+/// The table a binding builds its keyword arguments from reads back to the same parameters
+/// (defaults, the column's, and one with every optional key set), and the column's parameters
+/// carry the simulation's own support radius.
+#[test]
+fn pipeline_params_round_trip_through_one_table() {
+    let mut full = pipeline::column_params();
+    full.grid.resolution = Some(Resolution::LongestAxis(96));
+    full.scene.optics.caustics_resolution = Some([64, 32]);
+    full.source = SurfelSource::Refined;
+    for params in [PipelineParams::default(), pipeline::column_params(), full] {
+        let table = params.to_table().unwrap();
+        assert!(
+            !table.contains_key("scene"),
+            "the scene's keys sit beside the pipeline's"
+        );
+        let back = PipelineParams::from_table(table.clone(), std::path::Path::new(".")).unwrap();
+        assert_eq!(back, params, "{table}");
+        // and as the text of a file
+        let text = toml::to_string(&table).unwrap();
+        let back = PipelineParams::from_toml_str(&text, std::path::Path::new(".")).unwrap();
+        assert_eq!(back, params, "{text}");
+    }
+    let sim = ColumnSim::new(ColumnParams::default()).unwrap();
+    assert_eq!(
+        pipeline::column_params().support_radius,
+        Some(sim.support_radius())
+    );
+    assert!(pipeline::column_params().scene.camera.is_some());
 }
 
 /// Bad frames give errors, an empty frame gives an empty result, and a grid over the memory

@@ -8,7 +8,7 @@ use std::time::Instant;
 use fluid_surfels::Error;
 use fluid_surfels::density::Resolution;
 use fluid_surfels::gpu::GpuContext;
-use fluid_surfels::io::Format;
+use fluid_surfels::io::{self, Format};
 use fluid_surfels::pipeline::{self, GpuPipeline, Pipeline, PipelineParams, SurfelSource, Through};
 use fluid_surfels::scenes::{self, ColumnParams, ColumnSim, SceneName};
 use fluid_surfels::sequence::{FramePattern, FrameRange};
@@ -123,6 +123,11 @@ pub struct RenderArgs {
     /// Virtual screen of the caustics, WIDTHxHEIGHT (default: 256 on the water's longer side).
     #[arg(long, value_parser = parse_size)]
     pub caustics_resolution: Option<(u32, u32)>,
+    /// Also write the surfels the frame renders (positions, normals and a `radius` attribute:
+    /// what --surfels reads back) to this particle file, in the coordinates of the rendering
+    /// (turned by --up). One frame only, not with --frames.
+    #[arg(long, conflicts_with = "frames")]
+    pub save_surfels: Option<PathBuf>,
     /// The PNG to write (a folder with --frames).
     #[arg(long, default_value = "render.png")]
     pub out: PathBuf,
@@ -510,6 +515,9 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     }
     let input = args.input.as_deref().or(args.surfels.as_deref());
     check_output(&args.out, input, args.force, OutputKind::Single)?;
+    if let Some(path) = &args.save_surfels {
+        check_output(path, input, args.force, OutputKind::Single)?;
+    }
     let mut frames = Frames::of(args, false)?;
     let mut params = pipeline_params(args)?;
     if params.support_radius.is_none() {
@@ -522,6 +530,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         frames.frame(&mut pipeline, args, args.frame, Through::Surfels)?;
     let surfels_ms = ms(t);
     let surfels = &frame.render_surfels;
+    save_surfels(args, surfels)?;
     let camera = args
         .camera
         .map_or_else(|| framing(surfels), |c| turned_camera(c, args.up));
@@ -597,6 +606,14 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     Ok(())
 }
 
+/// Writes the rendered surfels to `--save-surfels`, when given.
+fn save_surfels(args: &RenderArgs, surfels: &[Surfel]) -> Result<(), Error> {
+    if let Some(path) = &args.save_surfels {
+        io::write_particles(path, &splat::surfels_to_particles(surfels), None)?;
+    }
+    Ok(())
+}
+
 /// Statistics of one finished frame.
 #[derive(Clone, Debug, Serialize)]
 struct FrameReport {
@@ -649,6 +666,7 @@ fn finished_frame(
     match gpu {
         None => {
             let (source, _, f) = frames.frame(pipeline, args, frame, Through::Frame)?;
+            save_surfels(args, &f.render_surfels)?;
             let fin = f.finished.as_ref().expect("through the frame");
             let t = &f.timings;
             let report = FrameReport {
@@ -674,6 +692,7 @@ fn finished_frame(
         }
         Some((ctx, gpu)) => {
             let (source, _, f) = frames.frame(pipeline, args, frame, Through::Surfels)?;
+            save_surfels(args, &f.render_surfels)?;
             let t = Instant::now();
             let image = gpu.render_frame_image(ctx, &f)?;
             let report = FrameReport {
@@ -708,6 +727,9 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
         super::check_folder(&args.out)?;
     } else {
         check_output(&args.out, input, args.force, OutputKind::Single)?;
+        if let Some(path) = &args.save_surfels {
+            check_output(path, input, args.force, OutputKind::Single)?;
+        }
     }
     let mut frames = Frames::of(args, sequence)?;
     let mut params = pipeline_params(args)?;

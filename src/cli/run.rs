@@ -8,7 +8,7 @@ use fluid_surfels::density::Points;
 use fluid_surfels::io;
 use fluid_surfels::pipeline::{self, Frame, Pipeline, PipelineParams, SurfelSource, Through};
 use fluid_surfels::preview::{self, PreviewCamera};
-use fluid_surfels::scenes::{ColumnParams, ColumnSim, column_pool};
+use fluid_surfels::scenes::{ColumnParams, ColumnSim};
 use fluid_surfels::splat::{self, Light, SplatMode, SplatParams};
 use fluid_surfels::surface::SurfaceParams;
 
@@ -51,12 +51,11 @@ pub fn column_to_frame(
     Ok(ColumnFrame { sim, frame: f })
 }
 
-/// The column scene's pipeline settings: the tank as the pool, its camera.
+/// The column scene's pipeline settings ([`pipeline::column_params`]) with `surface`.
 pub fn column_params(surface: SurfaceParams) -> PipelineParams {
     PipelineParams {
         surface,
-        scene: column_pool(ColumnParams::default().tank),
-        ..PipelineParams::default()
+        ..pipeline::column_params()
     }
 }
 

@@ -204,6 +204,13 @@ impl PipelineParams {
     /// [`PipelineParams::from_toml_file`] from text, relative paths taken from `base`.
     pub fn from_toml_str(text: &str, base: &Path) -> Result<Self, String> {
         let table: toml::Table = toml::from_str(text).map_err(|e| e.to_string())?;
+        Self::from_table(table, base)
+    }
+
+    /// [`PipelineParams::from_toml_str`] from a table already parsed (or built by a binding from
+    /// keyword arguments): the pipeline's keys and the scene's side by side, every key optional,
+    /// unknown keys refused.
+    pub fn from_table(table: toml::Table, base: &Path) -> Result<Self, String> {
         let (ours, theirs): (toml::Table, toml::Table) = table
             .into_iter()
             .partition(|(k, _)| PIPELINE_KEYS.contains(&k.as_str()));
@@ -215,6 +222,17 @@ impl PipelineParams {
             .map_err(|e: toml::de::Error| e.to_string())?;
         params.scene.resolve_paths(base);
         Ok(params)
+    }
+
+    /// Every parameter as one table in the layout of a pipeline file (the pipeline's keys and
+    /// the scene's side by side; unset optional keys left out): what
+    /// [`PipelineParams::from_table`] reads back to the same parameters.
+    pub fn to_table(&self) -> Result<toml::Table, String> {
+        let mut table = toml::Table::try_from(&self.scene).map_err(|e| e.to_string())?;
+        let mut ours = toml::Table::try_from(self).map_err(|e| e.to_string())?;
+        ours.remove("scene");
+        table.extend(ours);
+        Ok(table)
     }
 
     /// Checks what can be checked before any particle is seen.
@@ -724,6 +742,20 @@ impl Pipeline {
         o.caustics_resolution = Some(o.caustics_resolution.unwrap_or(kept.screen));
         o.map_resolution = Some(o.map_resolution.unwrap_or(kept.map));
         Ok(scene)
+    }
+}
+
+/// The parameters of the main job on the built-in `column` scene: the simulation's support
+/// radius, the tank as the pool ([`crate::scenes::column_pool`]) and its fixed camera, every other
+/// value at its default.
+#[must_use]
+pub fn column_params() -> PipelineParams {
+    let column = crate::scenes::ColumnParams::default();
+    PipelineParams {
+        // the simulation's own support radius (ColumnSim::support_radius)
+        support_radius: Some(2.0 * column.spacing),
+        scene: crate::scenes::column_pool(column.tank),
+        ..PipelineParams::default()
     }
 }
 

@@ -21,7 +21,7 @@ use crate::particles::ParticleSet;
 
 /// Parameters of the column simulation. Lengths in metres, times in seconds, y is up.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct ColumnParams {
     /// Particle spacing of the initial lattice (the data in `../shared/data` uses 0.05; the
     /// column is smaller to keep 3,000 particles in a meaningful tank).

@@ -99,7 +99,7 @@ pub struct Scene {
 
 /// Parameters of the jittered block.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct BlockParams {
     /// Particles along x, y and z.
     pub counts: [u32; 3],
@@ -139,7 +139,7 @@ impl BlockParams {
 
 /// Parameters of the jittered sphere.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct SphereParams {
     /// Sphere radius in units of the spacing.
     pub radius_in_spacings: f32,

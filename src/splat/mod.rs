@@ -73,7 +73,7 @@ pub enum SplatMode {
 
 /// Parameters of the splatting passes.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct SplatParams {
     /// Pass 1 depth offset epsilon as a multiple of each surfel's radius. Surfaces closer than
     /// epsilon along the view ray blend; farther behind they are hidden. Default 1.0: neighbouring
@@ -232,6 +232,21 @@ pub fn surfels_from(
         .zip(radii)
         .map(|((&p, &n), &r)| Surfel::disk(p, n, r, colour))
         .collect()
+}
+
+/// Surfels as a point set: positions, normals and a `radius` attribute, what
+/// [`surfels_from_particles`] reads back (the colours are left out).
+#[must_use]
+pub fn surfels_to_particles(surfels: &[Surfel]) -> crate::ParticleSet {
+    let mut set =
+        crate::ParticleSet::from_positions(surfels.iter().map(|s| s.position.into()).collect());
+    set.normals = Some(surfels.iter().map(|s| s.normal.into()).collect());
+    set.extra.push(crate::Attribute::scalar(
+        "radius",
+        crate::ScalarKind::F32,
+        surfels.iter().map(|s| f64::from(s.radius)).collect(),
+    ));
+    set
 }
 
 /// Surfels from a point set read from a file: positions, normals (required), a `radius`

@@ -1,0 +1,166 @@
+"""Type stubs of the extension module fluid_surfels._native (re-exported by fluid_surfels)."""
+
+from os import PathLike
+from typing import Any, Literal, Optional, Sequence, Union
+
+import numpy as np
+import numpy.typing as npt
+
+__version__: str
+FORMATS: list[str]
+"""The file formats `read` and `write` take: ply, vtk, vtu, bgeo, xyz, xyz-raw, csv, json."""
+
+_Path = Union[str, "PathLike[str]"]
+_Points = npt.NDArray[Union[np.float32, np.float64]]
+_Ids = npt.NDArray[np.integer[Any]]
+_Through = Literal["surface", "refine", "surfels", "splats", "frame"]
+
+class Error(Exception):
+    """An error of the library (a file it cannot read, a particle set it cannot use, work over
+    a limit); the message is the library's. Wrong dtypes and shapes raise ValueError instead."""
+
+class Refined:
+    """The upsampled surface of one frame (Solenthaler et al. 2007, §3.2-3.4)."""
+
+    positions: npt.NDArray[np.float32]
+    """(K, 3): the surface points first (in the order of Frame.surface_indices), then each
+    step's new points."""
+    normals: npt.NDArray[np.float32]
+    """(K, 3) unit normals."""
+    steps: npt.NDArray[np.uint8]
+    """(K,) the step that made each point (0 for the surface particles)."""
+    weights: npt.NDArray[np.float32]
+    """(K,) interpolation weights (eq. 17-19)."""
+    radii: npt.NDArray[np.float32]
+    """(K,) splat radius of each point."""
+    kernel_radii: npt.NDArray[np.float32]
+    """(K,) density kernel radius of each point (the chain's density grid)."""
+    final_radius: float
+    """The radius after the last step."""
+    def __len__(self) -> int: ...
+
+class Surfels:
+    """Oriented disks on the water's surface."""
+
+    positions: npt.NDArray[np.float32]
+    """(M, 3) centres."""
+    normals: npt.NDArray[np.float32]
+    """(M, 3) unit normals, out of the water."""
+    radii: npt.NDArray[np.float32]
+    """(M,) disk radii."""
+    iso: float
+    """The iso-value of the density grid they lie on (nan for the 'refined' source)."""
+    def __len__(self) -> int: ...
+
+class Frame:
+    """One frame through the pipeline: every intermediate that was computed."""
+
+    radius: float
+    """The support radius used."""
+    mean_neighbours: float
+    """Mean neighbour count at the support radius (usual: 30-60)."""
+    classes: npt.NDArray[np.uint8]
+    """(N,) class of every particle: 0 interior, 1 surface, 2 isolated (fluid_surfels.INTERIOR,
+    SURFACE, ISOLATED)."""
+    offsets: npt.NDArray[np.float32]
+    """(N,) centre-of-mass offset d/r of every particle (eq. 2)."""
+    normals: npt.NDArray[np.float32]
+    """(N, 3) outward normals of the surface particles (zero for the others)."""
+    flips: int
+    """Particles (matched by id) whose surface state changed since the previous frame."""
+    surface_indices: npt.NDArray[np.uint32]
+    """(S,) indices of the particles that were refined (surface and isolated ones)."""
+    refined: Optional[Refined]
+    """The refined surface, from through="refine" on (None for the 'particles' source)."""
+    surfels: Optional[Surfels]
+    """The surfels that are rendered, from through="surfels" on."""
+    image: Optional[npt.NDArray[np.uint8]]
+    """(H, W, 4) RGBA: the shaded splats (through="splats") or the finished frame
+    (through="frame"); None before."""
+    timings: dict[str, float]
+    """Milliseconds per stage: neighbours_ms, detect_ms, refine_ms, density_ms, surfels_ms,
+    splats_ms, caustics_ms, image_ms, total_ms."""
+    warnings: list[str]
+    """What a user should know (a support radius far off, a grid coarsened to fit its memory
+    budget)."""
+
+class Pipeline:
+    """The chain from particles to pixels, on the CPU: surface detection (with hysteresis across
+    the frames of a sequence), upsampling, density grid, surfels, EWA splats and optics.
+
+    Keyword arguments are the keys of a pipeline file (see examples/scenes/every_key.toml),
+    tables as dicts: Pipeline(support_radius=0.1, refine={"steps": 2},
+    optics={"image_size": [640, 480]}). Unset keys keep their defaults; unknown keys and values
+    out of range raise ValueError.
+    """
+
+    def __init__(self, **params: Any) -> None: ...
+    @staticmethod
+    def from_toml(path: _Path) -> Pipeline:
+        """A pipeline from a TOML file (the format of `render --config`)."""
+    @property
+    def params(self) -> dict[str, Any]:
+        """Every parameter in the layout of a pipeline file; Pipeline(**p.params) is the same
+        pipeline."""
+    @property
+    def support_radius(self) -> Optional[float]:
+        """The support radius in use (None before the first frame when it is estimated)."""
+    def frame(
+        self,
+        positions: _Points,
+        ids: Optional[_Ids] = None,
+        velocities: Optional[_Points] = None,
+        *,
+        through: _Through = "surfels",
+    ) -> Frame:
+        """Runs one frame. positions: (N, 3) float32 or float64 (any layout; float32
+        C-contiguous is copied once in one pass). ids: (N,) integers that keep the hysteresis of
+        surface detection with each particle when the order changes. through: how far the chain
+        runs."""
+    def render(
+        self,
+        positions: _Points,
+        ids: Optional[_Ids] = None,
+        velocities: Optional[_Points] = None,
+        *,
+        image: Literal["frame", "splats"] = "frame",
+    ) -> npt.NDArray[np.uint8]:
+        """The whole chain on one frame; its image as an (H, W, 4) uint8 RGBA array: the
+        finished frame (caustics, refraction, reflection) or the shaded splats."""
+    def fit_to(self, lo: Sequence[float], hi: Sequence[float]) -> None:
+        """Fits the sequence's camera, pool and scene box to the box [lo, hi] as well as to the
+        first rendered frame's water (give the union of every frame's bounds)."""
+    def reset(self) -> None:
+        """Forgets what the sequence kept (hysteresis, estimated radius, camera and pool)."""
+
+def read(
+    path: _Path, format: Optional[str] = None, *, memory_budget: Optional[int] = None
+) -> dict[str, Any]:
+    """Reads a particle file into a dict of arrays: positions (N, 3) float32 and, where the file
+    has them, ids (N,) uint32, masses (N,) float32, velocities and normals (N, 3) float32,
+    colours (N, 3) uint8; attributes: a dict of the file's other per-particle attributes by
+    name, (N,) or (N, C), in the type the file stores."""
+
+def write(
+    path: _Path,
+    positions: _Points,
+    *,
+    ids: Optional[_Ids] = None,
+    masses: Optional[npt.NDArray[Union[np.float32, np.float64]]] = None,
+    velocities: Optional[_Points] = None,
+    normals: Optional[_Points] = None,
+    colours: Optional[npt.NDArray[np.uint8]] = None,
+    attributes: Optional[dict[str, npt.NDArray[Any]]] = None,
+    format: Optional[str] = None,
+    overwrite: bool = False,
+) -> None:
+    """Writes a particle file (format by extension unless given). An existing file is replaced
+    only with overwrite=True (FileExistsError otherwise); the file is written whole or not at
+    all."""
+
+def column_frames(last: int) -> list[dict[str, npt.NDArray[Any]]]:
+    """The built-in column scene (2,880 particles of a collapsing water column, simulated),
+    frames 0 to last: dicts with positions, ids, masses and velocities."""
+
+def column_params() -> dict[str, Any]:
+    """The parameters of the main job on the column scene, for Pipeline(**column_params())."""

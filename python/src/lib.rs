@@ -1,0 +1,1035 @@
+//! Python bindings of fluid-surfels: [`fluid_surfels::pipeline::Pipeline`] from NumPy arrays.
+//!
+//! Built into the wheel `fluid_surfels` by maturin (`python/pyproject.toml`); this crate is the
+//! extension module `fluid_surfels._native`, which the package's `__init__.py` re-exports. The
+//! library crate itself has no Python dependency.
+//!
+//! Conventions: arrays in are checked here (dtype, shape, rows) and refused with a `ValueError`
+//! that names what was expected; everything the crate refuses becomes `fluid_surfels.Error`
+//! carrying the crate's message. The work runs with the GIL released. Arrays out are handed to
+//! NumPy without a copy (a `Vec` becomes the array's buffer; points are `float32` of shape
+//! `(N, 3)`).
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+use fluid_surfels::io::{self, Format, ReadOptions};
+use fluid_surfels::pipeline::{self, Through};
+use fluid_surfels::scenes::{ColumnParams, ColumnSim};
+use fluid_surfels::{Attribute, ParticleSet, ScalarKind};
+use glam::Vec3;
+use numpy::{
+    Element, PyArray1, PyArray2, PyArrayDescrMethods, PyArrayMethods, PyUntypedArray,
+    PyUntypedArrayMethods,
+};
+use pyo3::create_exception;
+use pyo3::exceptions::{PyException, PyFileExistsError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::{PyBool, PyDict, PyFloat, PyInt, PyList, PyString, PyTuple};
+
+create_exception!(
+    fluid_surfels,
+    Error,
+    PyException,
+    "An error of the fluid-surfels library (a file it cannot read, a particle set it cannot use, \
+     work over a limit); the message is the library's."
+);
+
+/// The crate's error as `fluid_surfels.Error`: its message and the causes it does not already
+/// quote (as the command line prints them).
+fn crate_error(e: fluid_surfels::Error) -> PyErr {
+    Error::new_err(message_of(&e))
+}
+
+fn message_of(e: &dyn std::error::Error) -> String {
+    let mut message = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        let text = s.to_string();
+        if !message.contains(&text) {
+            message.push_str(": ");
+            message.push_str(&text);
+        }
+        source = s.source();
+    }
+    message
+}
+
+fn value_error(message: String) -> PyErr {
+    PyValueError::new_err(message)
+}
+
+// ---------------------------------------------------------------------------------------------
+// arrays in
+
+/// `obj` as a NumPy array, or a `ValueError` saying what `name` must be.
+fn ndarray<'py>(
+    name: &str,
+    obj: &Bound<'py, PyAny>,
+    expected: &str,
+) -> PyResult<Bound<'py, PyUntypedArray>> {
+    obj.cast::<PyUntypedArray>().cloned().map_err(|_| {
+        let ty = obj
+            .get_type()
+            .name()
+            .map_or_else(|_| "?".to_string(), |n| n.to_string());
+        value_error(format!(
+            "`{name}` must be a NumPy array of {expected}, got a {ty} (numpy.asarray converts it)"
+        ))
+    })
+}
+
+/// Checks that an array has `shape` (`None` for the rows: any count, or `rows` when given).
+fn check_shape(
+    name: &str,
+    array: &Bound<'_, PyUntypedArray>,
+    columns: Option<usize>,
+    rows: Option<usize>,
+) -> PyResult<usize> {
+    let shape = array.shape();
+    let wanted = match columns {
+        Some(c) => format!("(N, {c})"),
+        None => "(N,)".to_string(),
+    };
+    let ok = match columns {
+        Some(c) => shape.len() == 2 && shape[1] == c,
+        None => shape.len() == 1,
+    };
+    if !ok {
+        return Err(value_error(format!(
+            "`{name}` must have shape {wanted}, got shape {}",
+            shape_text(shape)
+        )));
+    }
+    if let Some(n) = rows
+        && shape[0] != n
+    {
+        return Err(value_error(format!(
+            "`{name}` has {} rows but there are {n} particles",
+            shape[0]
+        )));
+    }
+    Ok(shape[0])
+}
+
+fn shape_text(shape: &[usize]) -> String {
+    match shape {
+        [n] => format!("({n},)"),
+        _ => format!(
+            "({})",
+            shape
+                .iter()
+                .map(ToString::to_string)
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    }
+}
+
+fn dtype_name(array: &Bound<'_, PyUntypedArray>) -> String {
+    array
+        .dtype()
+        .str()
+        .map_or_else(|_| "?".to_string(), |s| s.to_string())
+}
+
+fn is<T: Element>(array: &Bound<'_, PyUntypedArray>) -> bool {
+    array.dtype().is_equiv_to(&numpy::dtype::<T>(array.py()))
+}
+
+/// The values of a float32 or float64 array of any layout, row-major, as `f32`.
+fn floats(name: &str, array: &Bound<'_, PyUntypedArray>) -> PyResult<Vec<f32>> {
+    if is::<f32>(array) {
+        let a = array.cast::<numpy::PyArrayDyn<f32>>()?.readonly();
+        // C-contiguous: one copy of the buffer; any other layout (as_slice also takes Fortran
+        // order, whose buffer is not row-major) element by element in row-major order
+        if array.is_c_contiguous()
+            && let Ok(flat) = a.as_slice()
+        {
+            return Ok(flat.to_vec());
+        }
+        return Ok(a.as_array().iter().copied().collect());
+    }
+    if is::<f64>(array) {
+        let a = array.cast::<numpy::PyArrayDyn<f64>>()?.readonly();
+        return Ok(a.as_array().iter().map(|&v| v as f32).collect());
+    }
+    Err(value_error(format!(
+        "`{name}` must have dtype float32 or float64, got {} (convert with \
+         {name}.astype(numpy.float32))",
+        dtype_name(array)
+    )))
+}
+
+/// An `(N, 3)` float32/float64 array as points (`rows`: the particle count it must have).
+fn points(name: &str, obj: &Bound<'_, PyAny>, rows: Option<usize>) -> PyResult<Vec<Vec3>> {
+    let array = ndarray(name, obj, "shape (N, 3), dtype float32 or float64")?;
+    check_shape(name, &array, Some(3), rows)?;
+    let flat = floats(name, &array)?;
+    Ok(flat
+        .chunks_exact(3)
+        .map(|c| Vec3::new(c[0], c[1], c[2]))
+        .collect())
+}
+
+/// Integer values of one array, converted to `u32` when every value fits.
+fn try_ints<T>(name: &str, array: &Bound<'_, PyUntypedArray>) -> Option<PyResult<Vec<u32>>>
+where
+    T: Element + Copy + TryInto<u32> + std::fmt::Display,
+{
+    if !is::<T>(array) {
+        return None;
+    }
+    let a = match array.cast::<numpy::PyArrayDyn<T>>() {
+        Ok(a) => a.readonly(),
+        Err(e) => return Some(Err(e.into())),
+    };
+    let view = a.as_array();
+    Some(
+        view.iter()
+            .enumerate()
+            .map(|(i, &v)| {
+                v.try_into().map_err(|_| {
+                    value_error(format!(
+                        "`{name}`[{i}] is {v}: ids must lie in 0..=4294967295"
+                    ))
+                })
+            })
+            .collect(),
+    )
+}
+
+/// A `(N,)` integer array as particle ids.
+fn ids(obj: &Bound<'_, PyAny>, rows: usize) -> PyResult<Vec<u32>> {
+    let name = "ids";
+    let array = ndarray(name, obj, "shape (N,), an integer dtype")?;
+    check_shape(name, &array, None, Some(rows))?;
+    try_ints::<u32>(name, &array)
+        .or_else(|| try_ints::<i32>(name, &array))
+        .or_else(|| try_ints::<i64>(name, &array))
+        .or_else(|| try_ints::<u64>(name, &array))
+        .or_else(|| try_ints::<u16>(name, &array))
+        .or_else(|| try_ints::<i16>(name, &array))
+        .or_else(|| try_ints::<u8>(name, &array))
+        .or_else(|| try_ints::<i8>(name, &array))
+        .unwrap_or_else(|| {
+            Err(value_error(format!(
+                "`ids` must have an integer dtype (uint32, int32, int64...), got {}",
+                dtype_name(&array)
+            )))
+        })
+}
+
+/// The particle set of `positions` and the optional per-particle arrays.
+fn particle_set(
+    positions: &Bound<'_, PyAny>,
+    ids_in: Option<&Bound<'_, PyAny>>,
+    velocities: Option<&Bound<'_, PyAny>>,
+) -> PyResult<ParticleSet> {
+    let mut set = ParticleSet::from_positions(points("positions", positions, None)?);
+    let n = set.positions.len();
+    if let Some(i) = ids_in {
+        set.ids = Some(ids(i, n)?);
+    }
+    if let Some(v) = velocities {
+        set.velocities = Some(points("velocities", v, Some(n))?);
+    }
+    Ok(set)
+}
+
+// ---------------------------------------------------------------------------------------------
+// arrays out
+
+/// Points as a flat `f32` buffer without copying them.
+fn flat(points: Vec<Vec3>) -> Vec<f32> {
+    const _: () = assert!(size_of::<Vec3>() == 3 * size_of::<f32>());
+    const _: () = assert!(align_of::<Vec3>() == align_of::<f32>());
+    let mut points = std::mem::ManuallyDrop::new(points);
+    let (ptr, len, cap) = (points.as_mut_ptr(), points.len(), points.capacity());
+    // SAFETY: glam's `Vec3` is `#[repr(C)] { x: f32, y: f32, z: f32 }`: three `f32` without
+    // padding (size and alignment asserted above), so `cap` of them are `3 cap` `f32` in the same
+    // allocation, with the same layout (size `12 cap`, alignment 4) for the deallocation; `len`
+    // initialised points are `3 len` initialised floats. The original `Vec` is not dropped.
+    unsafe { Vec::from_raw_parts(ptr.cast::<f32>(), 3 * len, 3 * cap) }
+}
+
+fn points_out(py: Python<'_>, points: Vec<Vec3>) -> PyResult<Py<PyAny>> {
+    let n = points.len();
+    Ok(PyArray1::from_vec(py, flat(points))
+        .reshape([n, 3])?
+        .into_any()
+        .unbind())
+}
+
+fn vector_out<T: Element>(py: Python<'_>, values: Vec<T>) -> Py<PyAny> {
+    PyArray1::from_vec(py, values).into_any().unbind()
+}
+
+fn image_out(py: Python<'_>, image: image::RgbaImage) -> PyResult<Py<PyAny>> {
+    let (w, h) = image.dimensions();
+    Ok(PyArray1::from_vec(py, image.into_raw())
+        .reshape([h as usize, w as usize, 4])?
+        .into_any()
+        .unbind())
+}
+
+// ---------------------------------------------------------------------------------------------
+// parameters: Python values <-> TOML values (the layout of a pipeline file)
+
+/// A Python value as a TOML value; `None` leaves a key out. `path` names it in errors.
+fn to_toml(path: &str, value: &Bound<'_, PyAny>) -> PyResult<Option<toml::Value>> {
+    if value.is_none() {
+        return Ok(None);
+    }
+    // NumPy scalars and arrays: their Python equivalents
+    if !value.is_instance_of::<PyString>()
+        && !value.is_instance_of::<PyList>()
+        && let Ok(list) = value.call_method0("tolist")
+    {
+        return to_toml(path, &list);
+    }
+    if value.is_instance_of::<PyBool>() {
+        return Ok(Some(toml::Value::Boolean(value.extract()?)));
+    }
+    if value.is_instance_of::<PyInt>() {
+        let v: i64 = value
+            .extract()
+            .map_err(|_| value_error(format!("parameter `{path}`: integer out of range")))?;
+        return Ok(Some(toml::Value::Integer(v)));
+    }
+    if value.is_instance_of::<PyFloat>() {
+        return Ok(Some(toml::Value::Float(value.extract()?)));
+    }
+    if let Ok(s) = value.cast::<PyString>() {
+        return Ok(Some(toml::Value::String(s.to_str()?.to_string())));
+    }
+    if let Ok(d) = value.cast::<PyDict>() {
+        return Ok(Some(toml::Value::Table(to_table(path, d)?)));
+    }
+    if value.is_instance_of::<PyList>() || value.is_instance_of::<PyTuple>() {
+        let mut items = Vec::new();
+        for (i, item) in value.try_iter()?.enumerate() {
+            let item = item?;
+            let p = format!("{path}[{i}]");
+            match to_toml(&p, &item)? {
+                Some(v) => items.push(v),
+                None => return Err(value_error(format!("parameter `{p}` is None"))),
+            }
+        }
+        return Ok(Some(toml::Value::Array(items)));
+    }
+    let ty = value
+        .get_type()
+        .name()
+        .map_or_else(|_| "?".to_string(), |n| n.to_string());
+    Err(value_error(format!(
+        "parameter `{path}`: a {ty} cannot be a parameter (use numbers, strings, booleans, \
+         lists and dicts)"
+    )))
+}
+
+fn to_table(path: &str, dict: &Bound<'_, PyDict>) -> PyResult<toml::Table> {
+    let mut table = toml::Table::new();
+    for (k, v) in dict.iter() {
+        let key: String = k
+            .extract()
+            .map_err(|_| value_error(format!("parameter names must be strings (in `{path}`)")))?;
+        let p = if path.is_empty() {
+            key.clone()
+        } else {
+            format!("{path}.{key}")
+        };
+        if let Some(value) = to_toml(&p, &v)? {
+            table.insert(key, value);
+        }
+    }
+    Ok(table)
+}
+
+/// A TOML value as a Python value.
+fn from_toml<'py>(py: Python<'py>, value: &toml::Value) -> PyResult<Bound<'py, PyAny>> {
+    Ok(match value {
+        toml::Value::String(s) => s.into_pyobject(py)?.into_any(),
+        toml::Value::Integer(i) => i.into_pyobject(py)?.into_any(),
+        toml::Value::Float(f) => float_out(*f).into_pyobject(py)?.into_any(),
+        toml::Value::Boolean(b) => b.into_pyobject(py)?.to_owned().into_any(),
+        toml::Value::Datetime(d) => d.to_string().into_pyobject(py)?.into_any(),
+        toml::Value::Array(items) => {
+            let list = PyList::empty(py);
+            for item in items {
+                list.append(from_toml(py, item)?)?;
+            }
+            list.into_any()
+        }
+        toml::Value::Table(table) => dict_of(py, table)?.into_any(),
+    })
+}
+
+/// A float of the parameters as Python shows it: the parameters are `f32`, which TOML widens to
+/// `f64` (0.05 becomes 0.05000000074505806); a value that is exactly an `f32` is given as the
+/// shortest decimal that reads back to that `f32`, so that `Pipeline(**p.params)` is the same
+/// pipeline and the dict shows what was given.
+fn float_out(f: f64) -> f64 {
+    let single = f as f32;
+    if f64::from(single) == f && single.is_finite() {
+        single.to_string().parse().unwrap_or(f)
+    } else {
+        f
+    }
+}
+
+fn dict_of<'py>(py: Python<'py>, table: &toml::Table) -> PyResult<Bound<'py, PyDict>> {
+    let dict = PyDict::new(py);
+    for (k, v) in table {
+        dict.set_item(k, from_toml(py, v)?)?;
+    }
+    Ok(dict)
+}
+
+fn through_of(name: &str) -> PyResult<Through> {
+    Ok(match name {
+        "surface" => Through::Surface,
+        "refine" => Through::Refine,
+        "surfels" => Through::Surfels,
+        "splats" => Through::Splats,
+        "frame" => Through::Frame,
+        other => {
+            return Err(value_error(format!(
+                "`through` must be one of surface, refine, surfels, splats, frame; got {other:?}"
+            )));
+        }
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// classes
+
+/// The upsampled surface of one frame (stage 2).
+#[pyclass(frozen, module = "fluid_surfels")]
+struct Refined {
+    /// (K, 3) float32: the surface points first (in the order of `Frame.surface_indices`), then
+    /// each step's new points.
+    #[pyo3(get)]
+    positions: Py<PyAny>,
+    /// (K, 3) float32 unit normals.
+    #[pyo3(get)]
+    normals: Py<PyAny>,
+    /// (K,) uint8: the step that made each point (0 for the surface particles).
+    #[pyo3(get)]
+    steps: Py<PyAny>,
+    /// (K,) float32: the interpolation weights (Solenthaler et al. eq. 17-19).
+    #[pyo3(get)]
+    weights: Py<PyAny>,
+    /// (K,) float32: the splat radius of each point.
+    #[pyo3(get)]
+    radii: Py<PyAny>,
+    /// (K,) float32: the density kernel radius of each point (the chain's grid).
+    #[pyo3(get)]
+    kernel_radii: Py<PyAny>,
+    /// The radius after the last step.
+    #[pyo3(get)]
+    final_radius: f64,
+    len: usize,
+}
+
+#[pymethods]
+impl Refined {
+    fn __len__(&self) -> usize {
+        self.len
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "Refined(points={}, final_radius={})",
+            self.len, self.final_radius
+        )
+    }
+}
+
+/// Surfels: oriented disks on the water's surface (stage 3).
+#[pyclass(frozen, module = "fluid_surfels")]
+struct Surfels {
+    /// (M, 3) float32 centres.
+    #[pyo3(get)]
+    positions: Py<PyAny>,
+    /// (M, 3) float32 unit normals, out of the water.
+    #[pyo3(get)]
+    normals: Py<PyAny>,
+    /// (M,) float32 disk radii.
+    #[pyo3(get)]
+    radii: Py<PyAny>,
+    /// The iso-value of the density grid they lie on (NaN for the `refined` source).
+    #[pyo3(get)]
+    iso: f64,
+    len: usize,
+}
+
+#[pymethods]
+impl Surfels {
+    fn __len__(&self) -> usize {
+        self.len
+    }
+
+    fn __repr__(&self) -> String {
+        format!("Surfels(count={}, iso={})", self.len, self.iso)
+    }
+}
+
+/// One frame through the pipeline: every intermediate that was computed, as NumPy arrays.
+#[pyclass(frozen, module = "fluid_surfels")]
+struct Frame {
+    /// The support radius used.
+    #[pyo3(get)]
+    radius: f64,
+    /// Mean neighbour count at the support radius.
+    #[pyo3(get)]
+    mean_neighbours: f64,
+    /// (N,) uint8 class of every particle: 0 interior, 1 surface, 2 isolated.
+    #[pyo3(get)]
+    classes: Py<PyAny>,
+    /// (N,) float32 centre-of-mass offset of every particle (Solenthaler et al. eq. 2).
+    #[pyo3(get)]
+    offsets: Py<PyAny>,
+    /// (N, 3) float32 outward normals (zero for interior and isolated particles).
+    #[pyo3(get)]
+    normals: Py<PyAny>,
+    /// Particles (matched by id) whose surface state changed since the previous frame.
+    #[pyo3(get)]
+    flips: usize,
+    /// (S,) uint32: the particles that were refined (surface and isolated ones, in order).
+    #[pyo3(get)]
+    surface_indices: Py<PyAny>,
+    /// The refined surface, from `through="refine"` on (None for the `particles` source).
+    #[pyo3(get)]
+    refined: Option<Py<Refined>>,
+    /// The surfels that are rendered, from `through="surfels"` on.
+    #[pyo3(get)]
+    surfels: Option<Py<Surfels>>,
+    /// (H, W, 4) uint8 RGBA: the shaded splats (`through="splats"`) or the finished frame
+    /// (`through="frame"`); None before.
+    #[pyo3(get)]
+    image: Option<Py<PyAny>>,
+    /// Milliseconds per stage (`neighbours_ms`, `detect_ms`, ..., `total_ms`).
+    #[pyo3(get)]
+    timings: Py<PyAny>,
+    /// What a user should know (a radius far off, a grid coarsened to fit the memory budget).
+    #[pyo3(get)]
+    warnings: Vec<String>,
+    particles: usize,
+}
+
+#[pymethods]
+impl Frame {
+    fn __repr__(&self, py: Python<'_>) -> String {
+        let count = |n: Option<usize>| n.map_or_else(|| "None".to_string(), |n| n.to_string());
+        let refined = count(self.refined.as_ref().map(|r| r.get().len));
+        let surfels = count(self.surfels.as_ref().map(|s| s.get().len));
+        let image = self
+            .image
+            .as_ref()
+            .and_then(|i| i.bind(py).getattr("shape").ok().map(|s| s.to_string()));
+        format!(
+            "Frame(particles={}, radius={}, refined={refined}, surfels={surfels}, image={})",
+            self.particles,
+            self.radius,
+            image.unwrap_or_else(|| "None".into())
+        )
+    }
+}
+
+fn frame_out(py: Python<'_>, frame: pipeline::Frame) -> PyResult<Frame> {
+    let particles = frame.surface.classes.len();
+    let surface = frame.surface;
+    let classes: Vec<u8> = surface.classes.iter().map(|&c| c as u8).collect();
+    let refined = match frame.refined {
+        Some(r) => {
+            let len = r.len();
+            Some(Py::new(
+                py,
+                Refined {
+                    positions: points_out(py, r.positions)?,
+                    normals: points_out(py, r.normals)?,
+                    steps: vector_out(py, r.steps),
+                    weights: vector_out(py, r.weights),
+                    radii: vector_out(py, r.radii),
+                    kernel_radii: vector_out(py, r.kernel_radii),
+                    final_radius: float_out(r.final_radius.into()),
+                    len,
+                },
+            )?)
+        }
+        None => None,
+    };
+    let surfels = match (frame.surfels, frame.render_surfels.is_empty()) {
+        (Some(s), _) => {
+            let len = s.len();
+            Some(Py::new(
+                py,
+                Surfels {
+                    positions: points_out(py, s.positions)?,
+                    normals: points_out(py, s.normals)?,
+                    radii: vector_out(py, s.radii),
+                    iso: float_out(s.iso.into()),
+                    len,
+                },
+            )?)
+        }
+        // the refined source renders the refined points with their gap-free radii
+        (None, false) => {
+            let r = &frame.render_surfels;
+            Some(Py::new(
+                py,
+                Surfels {
+                    positions: points_out(py, r.iter().map(|s| s.position.into()).collect())?,
+                    normals: points_out(py, r.iter().map(|s| s.normal.into()).collect())?,
+                    radii: vector_out(py, r.iter().map(|s| s.radius).collect()),
+                    iso: f64::NAN,
+                    len: r.len(),
+                },
+            )?)
+        }
+        (None, true) => None,
+    };
+    let image = match (frame.finished, frame.splats) {
+        (Some(f), _) => Some(image_out(py, f.image)?),
+        (None, Some(s)) => Some(image_out(py, s.image)?),
+        (None, None) => None,
+    };
+    let timings =
+        toml::Value::try_from(frame.timings).map_err(|e| Error::new_err(e.to_string()))?;
+    Ok(Frame {
+        radius: float_out(frame.radius.into()),
+        mean_neighbours: float_out(frame.mean_neighbours.into()),
+        classes: vector_out(py, classes),
+        offsets: vector_out(py, surface.offsets),
+        normals: points_out(py, surface.normals)?,
+        flips: surface.flips,
+        surface_indices: vector_out(py, frame.surface_indices),
+        refined,
+        surfels,
+        image,
+        timings: from_toml(py, &timings)?.unbind(),
+        warnings: frame.warnings,
+        particles,
+    })
+}
+
+/// The chain from particles to pixels, on the CPU: surface detection (with hysteresis across
+/// the frames of a sequence), upsampling, density grid, surfels, EWA splats and optics.
+///
+/// `Pipeline(**params)` takes the keys of a pipeline file as keyword arguments, tables as dicts:
+/// `Pipeline(support_radius=0.1, refine={"steps": 2}, optics={"image_size": [640, 480]})`.
+/// Unset keys keep their defaults (the papers' values); unknown keys are refused.
+#[pyclass(frozen, module = "fluid_surfels")]
+struct Pipeline {
+    inner: Mutex<pipeline::Pipeline>,
+}
+
+fn pipeline_error(e: fluid_surfels::Error) -> PyErr {
+    match e {
+        // settings out of range are the caller's values
+        fluid_surfels::Error::Pipeline(_) | fluid_surfels::Error::Surface(_) => {
+            value_error(message_of(&e))
+        }
+        e => crate_error(e),
+    }
+}
+
+impl Pipeline {
+    fn with(params: pipeline::PipelineParams) -> PyResult<Self> {
+        Ok(Self {
+            inner: Mutex::new(pipeline::Pipeline::new(params).map_err(pipeline_error)?),
+        })
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, pipeline::Pipeline> {
+        // a panic inside a frame is a bug; the pipeline's state is still usable
+        self.inner
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+}
+
+#[pymethods]
+impl Pipeline {
+    #[new]
+    #[pyo3(signature = (**params))]
+    fn new(params: Option<&Bound<'_, PyDict>>) -> PyResult<Self> {
+        let table = match params {
+            Some(d) => to_table("", d)?,
+            None => toml::Table::new(),
+        };
+        let params = pipeline::PipelineParams::from_table(table, Path::new("."))
+            .map_err(|e| value_error(format!("invalid pipeline parameters: {e}")))?;
+        Self::with(params)
+    }
+
+    /// A pipeline from a TOML file (the format of `render --config`; relative paths are
+    /// relative to the file).
+    #[staticmethod]
+    fn from_toml(path: PathBuf) -> PyResult<Self> {
+        let params = pipeline::PipelineParams::from_toml_file(&path)
+            .map_err(|e| pipeline_error(e.into()))?;
+        Self::with(params)
+    }
+
+    /// Every parameter, as a dict in the layout of a pipeline file (`Pipeline(**p.params)` is
+    /// the same pipeline).
+    #[getter]
+    fn params<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let table = self.lock().params().to_table().map_err(Error::new_err)?;
+        dict_of(py, &table)
+    }
+
+    /// The support radius in use (None before the first frame when it is estimated).
+    #[getter]
+    fn support_radius(&self) -> Option<f64> {
+        self.lock().support_radius().map(|r| float_out(r.into()))
+    }
+
+    /// Runs one frame: `positions` (N, 3) float32 or float64; `ids` (N,) integers keep the
+    /// hysteresis of surface detection attached to each particle when the order changes between
+    /// frames; `velocities` (N, 3). `through` stops the chain early: "surface", "refine",
+    /// "surfels" (default), "splats" (shaded splats image) or "frame" (finished image with
+    /// caustics, refraction and reflection).
+    #[pyo3(signature = (positions, ids=None, velocities=None, *, through="surfels"))]
+    fn frame(
+        &self,
+        py: Python<'_>,
+        positions: &Bound<'_, PyAny>,
+        ids: Option<&Bound<'_, PyAny>>,
+        velocities: Option<&Bound<'_, PyAny>>,
+        through: &str,
+    ) -> PyResult<Frame> {
+        let through = through_of(through)?;
+        let set = particle_set(positions, ids, velocities)?;
+        let frame = py
+            .detach(|| self.lock().frame_through(&set, through))
+            .map_err(crate_error)?;
+        frame_out(py, frame)
+    }
+
+    /// The whole chain on one frame, returning its image as an (H, W, 4) uint8 RGBA array:
+    /// `image="frame"` (default) the finished frame, `image="splats"` the shaded splats.
+    #[pyo3(signature = (positions, ids=None, velocities=None, *, image="frame"))]
+    fn render(
+        &self,
+        py: Python<'_>,
+        positions: &Bound<'_, PyAny>,
+        ids: Option<&Bound<'_, PyAny>>,
+        velocities: Option<&Bound<'_, PyAny>>,
+        image: &str,
+    ) -> PyResult<Py<PyAny>> {
+        let through = match image {
+            "frame" => Through::Frame,
+            "splats" => Through::Splats,
+            other => {
+                return Err(value_error(format!(
+                    "`image` must be \"frame\" or \"splats\", got {other:?}"
+                )));
+            }
+        };
+        let set = particle_set(positions, ids, velocities)?;
+        let frame = py
+            .detach(|| self.lock().frame_through(&set, through))
+            .map_err(crate_error)?;
+        let picture = match (frame.finished, frame.splats) {
+            (Some(f), _) => f.image,
+            (None, Some(s)) => s.image,
+            (None, None) => return Err(Error::new_err("the frame made no image")),
+        };
+        image_out(py, picture)
+    }
+
+    /// Fits the camera, the pool and the scene box of the sequence to the box [lo, hi] as well as
+    /// to the first rendered frame's water (give the union of every frame's bounds).
+    fn fit_to(&self, lo: [f32; 3], hi: [f32; 3]) -> PyResult<()> {
+        self.lock()
+            .fit_to(Vec3::from(lo), Vec3::from(hi))
+            .map_err(pipeline_error)
+    }
+
+    /// Forgets what the sequence kept (hysteresis, estimated radius, camera and pool).
+    fn reset(&self) {
+        self.lock().reset();
+    }
+
+    fn __repr__(&self) -> String {
+        let p = self.lock();
+        let radius = p
+            .support_radius()
+            .map_or_else(|| "None".to_string(), |r| r.to_string());
+        format!(
+            "Pipeline(source={:?}, support_radius={radius})",
+            p.params().source.as_str(),
+        )
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// files
+
+fn format_of(name: Option<&str>) -> PyResult<Option<Format>> {
+    let Some(name) = name else { return Ok(None) };
+    Format::ALL
+        .into_iter()
+        .find(|f| f.name() == name)
+        .map(Some)
+        .ok_or_else(|| {
+            let names: Vec<&str> = Format::ALL.iter().map(|f| f.name()).collect();
+            value_error(format!(
+                "`format` must be one of {}, got {name:?}",
+                names.join(", ")
+            ))
+        })
+}
+
+fn kind_of(array: &Bound<'_, PyUntypedArray>) -> Option<ScalarKind> {
+    [
+        (is::<i8>(array), ScalarKind::I8),
+        (is::<u8>(array), ScalarKind::U8),
+        (is::<i16>(array), ScalarKind::I16),
+        (is::<u16>(array), ScalarKind::U16),
+        (is::<i32>(array), ScalarKind::I32),
+        (is::<u32>(array), ScalarKind::U32),
+        (is::<f32>(array), ScalarKind::F32),
+        (is::<f64>(array), ScalarKind::F64),
+    ]
+    .into_iter()
+    .find_map(|(yes, kind)| yes.then_some(kind))
+}
+
+/// An extra attribute's values in the dtype it was read with.
+fn attribute_out(py: Python<'_>, a: &Attribute, n: usize) -> PyResult<Py<PyAny>> {
+    macro_rules! typed {
+        ($t:ty) => {{
+            let v: Vec<$t> = a.values.iter().map(|&x| x as $t).collect();
+            PyArray1::from_vec(py, v).into_any()
+        }};
+    }
+    let array = match a.kind {
+        ScalarKind::I8 => typed!(i8),
+        ScalarKind::U8 => typed!(u8),
+        ScalarKind::I16 => typed!(i16),
+        ScalarKind::U16 => typed!(u16),
+        ScalarKind::I32 => typed!(i32),
+        ScalarKind::U32 => typed!(u32),
+        ScalarKind::F32 => typed!(f32),
+        ScalarKind::F64 => typed!(f64),
+    };
+    Ok(if a.components == 1 {
+        array.unbind()
+    } else {
+        array
+            .call_method1("reshape", ((n, a.components),))?
+            .unbind()
+    })
+}
+
+/// Reads a particle file (PLY, legacy VTK, VTU/VTP, BGEO, XYZ, CSV, JSON; by extension unless
+/// `format` names one) into a dict of NumPy arrays: `positions` (N, 3) float32 and, where the
+/// file has them, `ids` (N,) uint32, `masses` (N,) float32, `velocities` and `normals` (N, 3)
+/// float32, `colours` (N, 3) uint8, and `attributes`: a dict of the other per-particle
+/// attributes by name, (N,) or (N, C), in the type the file stores.
+#[pyfunction]
+#[pyo3(signature = (path, format=None, *, memory_budget=None))]
+fn read<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    format: Option<&str>,
+    memory_budget: Option<u64>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let format = format_of(format)?;
+    let mut options = ReadOptions::default();
+    if let Some(b) = memory_budget {
+        options.memory_budget = b;
+    }
+    let set = py
+        .detach(|| io::read_particles_with(&path, format, &options))
+        .map_err(|e| crate_error(e.into()))?;
+    particles_out(py, set)
+}
+
+fn particles_out(py: Python<'_>, set: ParticleSet) -> PyResult<Bound<'_, PyDict>> {
+    let n = set.len();
+    let dict = PyDict::new(py);
+    dict.set_item("positions", points_out(py, set.positions)?)?;
+    if let Some(ids) = set.ids {
+        dict.set_item("ids", vector_out(py, ids))?;
+    }
+    if let Some(m) = set.masses {
+        dict.set_item("masses", vector_out(py, m))?;
+    }
+    if let Some(v) = set.velocities {
+        dict.set_item("velocities", points_out(py, v)?)?;
+    }
+    if let Some(v) = set.normals {
+        dict.set_item("normals", points_out(py, v)?)?;
+    }
+    if let Some(c) = set.colours {
+        let flat: Vec<u8> = c.into_iter().flatten().collect();
+        dict.set_item("colours", PyArray1::from_vec(py, flat).reshape([n, 3])?)?;
+    }
+    let attributes = PyDict::new(py);
+    for a in &set.extra {
+        attributes.set_item(&a.name, attribute_out(py, a, n)?)?;
+    }
+    dict.set_item("attributes", attributes)?;
+    Ok(dict)
+}
+
+/// Writes a particle file (by extension unless `format` names one; PLY and VTK binary), with
+/// the optional per-particle arrays and `attributes` (a dict of (N,) or (N, C) arrays of 8- to
+/// 32-bit integers or floats, written in their own type). An existing file is replaced only with
+/// `overwrite=True`; the file is written whole or not at all.
+#[pyfunction]
+#[pyo3(signature = (path, positions, *, ids=None, masses=None, velocities=None, normals=None,
+                    colours=None, attributes=None, format=None, overwrite=false))]
+#[allow(clippy::too_many_arguments)]
+fn write(
+    py: Python<'_>,
+    path: PathBuf,
+    positions: &Bound<'_, PyAny>,
+    ids: Option<&Bound<'_, PyAny>>,
+    masses: Option<&Bound<'_, PyAny>>,
+    velocities: Option<&Bound<'_, PyAny>>,
+    normals: Option<&Bound<'_, PyAny>>,
+    colours: Option<&Bound<'_, PyAny>>,
+    attributes: Option<&Bound<'_, PyDict>>,
+    format: Option<&str>,
+    overwrite: bool,
+) -> PyResult<()> {
+    let format = format_of(format)?;
+    let mut set = particle_set(positions, ids, velocities)?;
+    let n = set.len();
+    if let Some(m) = masses {
+        let array = ndarray("masses", m, "shape (N,), dtype float32 or float64")?;
+        check_shape("masses", &array, None, Some(n))?;
+        set.masses = Some(floats("masses", &array)?);
+    }
+    if let Some(v) = normals {
+        set.normals = Some(points("normals", v, Some(n))?);
+    }
+    if let Some(c) = colours {
+        let array = ndarray("colours", c, "shape (N, 3), dtype uint8")?;
+        check_shape("colours", &array, Some(3), Some(n))?;
+        if !is::<u8>(&array) {
+            return Err(value_error(format!(
+                "`colours` must have dtype uint8, got {}",
+                dtype_name(&array)
+            )));
+        }
+        let a = array.cast::<PyArray2<u8>>()?.readonly();
+        let view = a.as_array();
+        set.colours = Some(
+            view.rows()
+                .into_iter()
+                .map(|r| [r[0], r[1], r[2]])
+                .collect(),
+        );
+    }
+    if let Some(attrs) = attributes {
+        for (k, v) in attrs.iter() {
+            let name: String = k
+                .extract()
+                .map_err(|_| value_error("attribute names must be strings".into()))?;
+            let label = format!("attributes[{name:?}]");
+            let array = ndarray(&label, &v, "shape (N,) or (N, C)")?;
+            let shape = array.shape().to_vec();
+            let components = match shape.as_slice() {
+                [rows] if *rows == n => 1,
+                [rows, c] if *rows == n && *c > 0 => *c,
+                _ => {
+                    return Err(value_error(format!(
+                        "`{label}` must have shape ({n},) or ({n}, C), got shape {}",
+                        shape_text(&shape)
+                    )));
+                }
+            };
+            let kind = kind_of(&array).ok_or_else(|| {
+                value_error(format!(
+                    "`{label}` must have an 8- to 32-bit integer or a float dtype, got {}",
+                    dtype_name(&array)
+                ))
+            })?;
+            let values: Vec<f64> = array
+                .call_method1("astype", ("float64",))?
+                .cast_into::<numpy::PyArrayDyn<f64>>()?
+                .readonly()
+                .as_array()
+                .iter()
+                .copied()
+                .collect();
+            set.extra.push(Attribute {
+                name,
+                kind,
+                components,
+                values,
+            });
+        }
+    }
+    if !overwrite && path.exists() {
+        return Err(PyFileExistsError::new_err(format!(
+            "{} exists; pass overwrite=True to replace it",
+            path.display()
+        )));
+    }
+    py.detach(|| io::write_particles(&path, &set, format))
+        .map_err(|e| crate_error(e.into()))
+}
+
+/// The particles of the built-in `column` scene (a collapsing water column, 2,880 particles,
+/// simulated), frames 0 to `last`: a list of dicts with `positions`, `ids`, `masses` and
+/// `velocities`, one per frame.
+#[pyfunction]
+fn column_frames(py: Python<'_>, last: usize) -> PyResult<Bound<'_, PyList>> {
+    let sets = py
+        .detach(|| -> Result<Vec<ParticleSet>, fluid_surfels::Error> {
+            ColumnParams::check_frame(last)?;
+            let mut sim = ColumnSim::new(ColumnParams::default())?;
+            let mut sets = Vec::with_capacity(last + 1);
+            loop {
+                sets.push(sim.particles().clone());
+                if sim.frame() >= last {
+                    return Ok(sets);
+                }
+                sim.step_frame();
+            }
+        })
+        .map_err(crate_error)?;
+    let list = PyList::empty(py);
+    for set in sets {
+        let d = particles_out(py, set)?;
+        d.del_item("attributes")?;
+        list.append(d)?;
+    }
+    Ok(list)
+}
+
+/// The parameters of the main job on the `column` scene (the simulation's support radius, the
+/// tank as the pool, its camera), as a dict for `Pipeline(**column_params())`.
+#[pyfunction]
+fn column_params(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
+    let table = pipeline::column_params()
+        .to_table()
+        .map_err(Error::new_err)?;
+    dict_of(py, &table)
+}
+
+/// The extension module `fluid_surfels._native`.
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("Error", m.py().get_type::<Error>())?;
+    m.add_class::<Pipeline>()?;
+    m.add_class::<Frame>()?;
+    m.add_class::<Refined>()?;
+    m.add_class::<Surfels>()?;
+    m.add_function(wrap_pyfunction!(read, m)?)?;
+    m.add_function(wrap_pyfunction!(write, m)?)?;
+    m.add_function(wrap_pyfunction!(column_frames, m)?)?;
+    m.add_function(wrap_pyfunction!(column_params, m)?)?;
+    let formats: Vec<&str> = Format::ALL.iter().map(|f| f.name()).collect();
+    m.add("FORMATS", formats)?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}
