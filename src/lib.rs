@@ -47,7 +47,7 @@ pub mod surface;
 pub mod surfels;
 pub mod view;
 
-pub use particles::{Attribute, ParticleSet, ScalarKind};
+pub use particles::{Attribute, ParticleSet, ParticleView, ScalarKind};
 
 /// Every error the crate returns.
 #[derive(Debug, thiserror::Error)]

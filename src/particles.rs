@@ -107,6 +107,103 @@ pub struct ParticleSet {
     pub extra: Vec<Attribute>,
 }
 
+/// A borrowed view of what the pipeline reads of a frame: positions and, when known, ids and
+/// masses. [`crate::pipeline::Pipeline::frame`] and surface detection take anything that turns
+/// into one: a `&ParticleSet`, or slices a caller holds elsewhere (a binding's arrays, a
+/// simulation's own buffers), which are then read where they lie, without a copy.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ParticleView<'a> {
+    /// Particle centres.
+    pub positions: &'a [Vec3],
+    /// Stable ids (see [`ParticleSet::ids`]).
+    pub ids: Option<&'a [u32]>,
+    /// Masses; all equal when absent.
+    pub masses: Option<&'a [f32]>,
+}
+
+impl<'a> From<&'a ParticleSet> for ParticleView<'a> {
+    fn from(set: &'a ParticleSet) -> Self {
+        set.view()
+    }
+}
+
+impl<'a> ParticleView<'a> {
+    /// Positions only.
+    #[must_use]
+    pub fn of_positions(positions: &'a [Vec3]) -> Self {
+        Self {
+            positions,
+            ..Self::default()
+        }
+    }
+
+    /// Number of particles.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    /// True when there is no particle.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    /// Mass of particle `i`, 1 when there are no masses.
+    #[must_use]
+    #[inline]
+    pub fn mass(&self, i: usize) -> f32 {
+        self.masses.map_or(1.0, |m| m[i])
+    }
+
+    /// Stable id of particle `i`: its id when there are ids, else its index.
+    #[must_use]
+    #[inline]
+    pub fn id(&self, i: usize) -> u32 {
+        self.ids.map_or(i as u32, |ids| ids[i])
+    }
+
+    /// Checks that ids and masses have one entry per particle, that positions are finite and
+    /// that ids are unique.
+    pub fn validate(&self) -> Result<(), ParticleSetError> {
+        let n = self.len();
+        check_length("id", n, self.ids.map(<[u32]>::len))?;
+        check_length("mass", n, self.masses.map(<[f32]>::len))?;
+        if let Some(index) = self.positions.iter().position(|p| !p.is_finite()) {
+            return Err(ParticleSetError::NonFinitePosition {
+                index,
+                position: self.positions[index].to_array(),
+            });
+        }
+        if let Some(ids) = self.ids {
+            let mut order: Vec<usize> = (0..n).collect();
+            order.sort_unstable_by_key(|&i| ids[i]);
+            for w in order.windows(2) {
+                if ids[w[0]] == ids[w[1]] {
+                    return Err(ParticleSetError::DuplicateId {
+                        id: ids[w[0]],
+                        first: w[0].min(w[1]),
+                        second: w[0].max(w[1]),
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// An attribute's entry count against the particle count.
+fn check_length(name: &str, expected: usize, found: Option<usize>) -> Result<(), ParticleSetError> {
+    match found {
+        Some(found) if found != expected => Err(ParticleSetError::LengthMismatch {
+            attribute: name.to_owned(),
+            expected,
+            found,
+        }),
+        _ => Ok(()),
+    }
+}
+
 /// What [`ParticleSet::validate`] found wrong.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ParticleSetError {
@@ -150,6 +247,16 @@ impl ParticleSet {
         Self {
             positions,
             ..Self::default()
+        }
+    }
+
+    /// The view the pipeline reads: positions, ids and masses, borrowed.
+    #[must_use]
+    pub fn view(&self) -> ParticleView<'_> {
+        ParticleView {
+            positions: &self.positions,
+            ids: self.ids.as_deref(),
+            masses: self.masses.as_deref(),
         }
     }
 
@@ -244,19 +351,11 @@ impl ParticleSet {
     /// that ids are unique.
     pub fn validate(&self) -> Result<(), ParticleSetError> {
         let n = self.len();
-        let check = |name: &str, len: Option<usize>| match len {
-            Some(found) if found != n => Err(ParticleSetError::LengthMismatch {
-                attribute: name.to_owned(),
-                expected: n,
-                found,
-            }),
-            _ => Ok(()),
-        };
-        check("id", self.ids.as_ref().map(Vec::len))?;
-        check("mass", self.masses.as_ref().map(Vec::len))?;
-        check("velocity", self.velocities.as_ref().map(Vec::len))?;
-        check("normal", self.normals.as_ref().map(Vec::len))?;
-        check("colour", self.colours.as_ref().map(Vec::len))?;
+        check_length("id", n, self.ids.as_ref().map(Vec::len))?;
+        check_length("mass", n, self.masses.as_ref().map(Vec::len))?;
+        check_length("velocity", n, self.velocities.as_ref().map(Vec::len))?;
+        check_length("normal", n, self.normals.as_ref().map(Vec::len))?;
+        check_length("colour", n, self.colours.as_ref().map(Vec::len))?;
         for a in &self.extra {
             if a.components == 0 || !a.values.len().is_multiple_of(a.components) {
                 return Err(ParticleSetError::LengthMismatch {
@@ -265,28 +364,10 @@ impl ParticleSet {
                     found: a.values.len(),
                 });
             }
-            check(&a.name, Some(a.values.len() / a.components))?;
+            check_length(&a.name, n, Some(a.values.len() / a.components))?;
         }
-        if let Some(index) = self.positions.iter().position(|p| !p.is_finite()) {
-            return Err(ParticleSetError::NonFinitePosition {
-                index,
-                position: self.positions[index].to_array(),
-            });
-        }
-        if let Some(ids) = &self.ids {
-            let mut order: Vec<usize> = (0..n).collect();
-            order.sort_unstable_by_key(|&i| ids[i]);
-            for w in order.windows(2) {
-                if ids[w[0]] == ids[w[1]] {
-                    return Err(ParticleSetError::DuplicateId {
-                        id: ids[w[0]],
-                        first: w[0].min(w[1]),
-                        second: w[0].max(w[1]),
-                    });
-                }
-            }
-        }
-        Ok(())
+        // finite positions and unique ids
+        self.view().validate()
     }
 }
 

@@ -28,7 +28,7 @@ use serde::{Deserialize, Serialize};
 use crate::kernels::{poly6, poly6_gradient};
 use crate::linalg::symmetric_eigen;
 use crate::neighbours::Neighbourhoods;
-use crate::particles::ParticleSet;
+use crate::particles::ParticleView;
 
 /// How surface normals are computed.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -187,7 +187,7 @@ impl IdSet {
     }
 
     /// The ids of the particles for which `keep(i)` holds.
-    fn collect(particles: &ParticleSet, keep: impl Fn(usize) -> bool) -> Self {
+    fn collect(particles: ParticleView<'_>, keep: impl Fn(usize) -> bool) -> Self {
         let n = particles.len();
         let max_id = (0..n).map(|i| particles.id(i)).max().unwrap_or(0) as usize;
         let kept = (0..n).filter(|&i| keep(i)).map(|i| particles.id(i));
@@ -215,7 +215,7 @@ struct History {
 /// Surface detection with hysteresis across the frames of one simulation.
 ///
 /// Keep one detector per simulation and call [`SurfaceDetector::detect`] on its frames in order.
-/// Particles are matched between frames by [`ParticleSet::ids`] when the set has ids, otherwise
+/// Particles are matched between frames by their ids ([`crate::ParticleSet::ids`]) when there are, otherwise
 /// by index (correct only when the simulation keeps its particle order).
 #[derive(Clone, Debug)]
 pub struct SurfaceDetector {
@@ -245,11 +245,13 @@ impl SurfaceDetector {
     }
 
     /// Classifies the particles of the next frame and computes normals of the surface ones.
-    pub fn detect(
+    /// `particles`: a `&ParticleSet` or a [`ParticleView`] of slices held elsewhere.
+    pub fn detect<'a>(
         &mut self,
-        particles: &ParticleSet,
+        particles: impl Into<ParticleView<'a>>,
         neighbourhoods: &Neighbourhoods,
     ) -> Result<Surface, SurfaceError> {
+        let particles = particles.into();
         check_sizes(particles, neighbourhoods)?;
         let start = Instant::now();
         let r = neighbourhoods.radius();
@@ -311,8 +313,8 @@ impl SurfaceDetector {
 }
 
 /// Detects the surface of a single frame (no history: every particle uses the high threshold).
-pub fn detect_surface(
-    particles: &ParticleSet,
+pub fn detect_surface<'a>(
+    particles: impl Into<ParticleView<'a>>,
     neighbourhoods: &Neighbourhoods,
     params: &SurfaceParams,
 ) -> Result<Surface, SurfaceError> {
@@ -320,7 +322,7 @@ pub fn detect_surface(
 }
 
 fn check_sizes(
-    particles: &ParticleSet,
+    particles: ParticleView<'_>,
     neighbourhoods: &Neighbourhoods,
 ) -> Result<(), SurfaceError> {
     if particles.len() != neighbourhoods.len() {
@@ -338,8 +340,8 @@ fn check_sizes(
                 found,
             })
     };
-    if let Some(e) = bad("id", particles.ids.as_ref().map(Vec::len))
-        .or_else(|| bad("mass", particles.masses.as_ref().map(Vec::len)))
+    if let Some(e) = bad("id", particles.ids.map(<[u32]>::len))
+        .or_else(|| bad("mass", particles.masses.map(<[f32]>::len)))
     {
         return Err(e.into());
     }
@@ -348,8 +350,12 @@ fn check_sizes(
 
 /// The vector `x_i - cm_i` of eq. 2 for every particle (zero for isolated particles).
 #[must_use]
-pub fn com_offsets(particles: &ParticleSet, neighbourhoods: &Neighbourhoods) -> Vec<Vec3> {
-    let x = &particles.positions;
+pub fn com_offsets<'a>(
+    particles: impl Into<ParticleView<'a>>,
+    neighbourhoods: &Neighbourhoods,
+) -> Vec<Vec3> {
+    let particles = particles.into();
+    let x = particles.positions;
     (0..particles.len())
         .into_par_iter()
         .map(|i| {
@@ -370,15 +376,16 @@ pub fn com_offsets(particles: &ParticleSet, neighbourhoods: &Neighbourhoods) -> 
 /// `offsets` are the vectors of [`com_offsets`]; they point out of the fluid and orient the
 /// covariance normal, whose sign the eigen-decomposition leaves open.
 #[must_use]
-pub fn surface_normals(
-    particles: &ParticleSet,
+pub fn surface_normals<'a>(
+    particles: impl Into<ParticleView<'a>>,
     neighbourhoods: &Neighbourhoods,
     classes: &[ParticleClass],
     offsets: &[Vec3],
     method: NormalMethod,
 ) -> Vec<Vec3> {
+    let particles = particles.into();
     let r = neighbourhoods.radius();
-    let x = &particles.positions;
+    let x = particles.positions;
     let densities = match method {
         NormalMethod::ColourField => Some(densities(particles, neighbourhoods)),
         NormalMethod::Covariance => None,
@@ -410,9 +417,13 @@ pub fn surface_normals(
 
 /// SPH density `rho_i = sum_j m_j W_poly6(x_i - x_j)` over the neighbourhood and the particle.
 #[must_use]
-pub fn densities(particles: &ParticleSet, neighbourhoods: &Neighbourhoods) -> Vec<f32> {
+pub fn densities<'a>(
+    particles: impl Into<ParticleView<'a>>,
+    neighbourhoods: &Neighbourhoods,
+) -> Vec<f32> {
+    let particles = particles.into();
     let r = neighbourhoods.radius();
-    let x = &particles.positions;
+    let x = particles.positions;
     (0..particles.len())
         .into_par_iter()
         .map(|i| {
@@ -429,8 +440,8 @@ pub fn densities(particles: &ParticleSet, neighbourhoods: &Neighbourhoods) -> Ve
 /// Smallest-eigenvalue eigenvector of the kernel-weighted covariance of the neighbourhood
 /// (particle included) about its weighted mean. The weight `m_j (1 - d^2/r^2)^3` favours close
 /// neighbours, which follow the local tangent plane best. Sign unresolved.
-fn covariance_normal(particles: &ParticleSet, i: usize, nb: &[u32], r: f32) -> Vec3 {
-    let x = &particles.positions;
+fn covariance_normal(particles: ParticleView<'_>, i: usize, nb: &[u32], r: f32) -> Vec3 {
+    let x = particles.positions;
     let weight = |j: usize| {
         let q = 1.0 - x[i].distance_squared(x[j]) / (r * r);
         particles.mass(j) * (q * q * q).max(0.0)
@@ -459,13 +470,14 @@ fn covariance_normal(particles: &ParticleSet, i: usize, nb: &[u32], r: f32) -> V
 /// one frame, no history, neighbourhoods as one `Vec` per particle, covariance normals.
 /// Returns the classes and normals (zero for non-surface particles).
 #[must_use]
-pub fn detect_reference(
-    particles: &ParticleSet,
+pub fn detect_reference<'a>(
+    particles: impl Into<ParticleView<'a>>,
     neighbours: &[Vec<u32>],
     radius: f32,
     params: &SurfaceParams,
 ) -> (Vec<ParticleClass>, Vec<Vec3>) {
-    let x = &particles.positions;
+    let particles = particles.into();
+    let x = particles.positions;
     let mut classes = Vec::with_capacity(x.len());
     let mut normals = Vec::with_capacity(x.len());
     for i in 0..x.len() {

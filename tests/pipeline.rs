@@ -625,3 +625,88 @@ fn views_fitted_to_the_union_hold_every_frames_water() {
     assert!(p.fit_to(Vec3::ONE, Vec3::ZERO).is_err());
     assert!(p.fit_to(Vec3::ZERO, Vec3::splat(f32::NAN)).is_err());
 }
+
+/// A frame read through a [`fluid_surfels::ParticleView`] of slices held elsewhere (what a
+/// binding or a game passes without copying) equals the frame of the same particles as a
+/// `ParticleSet`, and the view is checked like the set.
+#[test]
+fn a_view_of_borrowed_slices_gives_the_frame_of_the_set() {
+    use fluid_surfels::ParticleView;
+    let mut sim = ColumnSim::new(ColumnParams::default()).unwrap();
+    sim.advance_to(ColumnParams::SPLASH_FRAME);
+    let set = sim.particles().clone();
+    let params = pipeline::column_params();
+    let by_set = Pipeline::new(params.clone())
+        .unwrap()
+        .frame_through(&set, Through::Surfels)
+        .unwrap();
+    // the slices of some other owner, in the same order: the same frame
+    let positions = set.positions.clone();
+    let ids = set.ids.clone().unwrap();
+    let view = ParticleView {
+        positions: &positions,
+        ids: Some(&ids),
+        masses: None,
+    };
+    let by_view = Pipeline::new(params.clone())
+        .unwrap()
+        .frame_through(view, Through::Surfels)
+        .unwrap();
+    assert_eq!(by_view.surface.classes, by_set.surface.classes);
+    assert_eq!(
+        by_view.refined.as_ref().unwrap().positions,
+        by_set.refined.as_ref().unwrap().positions
+    );
+    assert_eq!(
+        by_view.surfels.as_ref().unwrap().positions,
+        by_set.surfels.as_ref().unwrap().positions
+    );
+    // in reverse order with their ids: the same class for each particle (the refinement
+    // depends on the order of its input, so it is not compared)
+    let reversed: Vec<Vec3> = positions.iter().rev().copied().collect();
+    let reversed_ids: Vec<u32> = ids.iter().rev().copied().collect();
+    let by_reversed = Pipeline::new(params)
+        .unwrap()
+        .frame_through(
+            ParticleView {
+                positions: &reversed,
+                ids: Some(&reversed_ids),
+                masses: None,
+            },
+            Through::Surface,
+        )
+        .unwrap();
+    let n = set.len();
+    for i in 0..n {
+        assert_eq!(
+            by_reversed.surface.classes[n - 1 - i],
+            by_set.surface.classes[i]
+        );
+    }
+    // checked like a set: lengths, finite positions, unique ids
+    let mut pipeline = Pipeline::new(pipeline::column_params()).unwrap();
+    let short = ParticleView {
+        ids: Some(&ids[1..]),
+        ..view
+    };
+    let e = pipeline.frame_through(short, Through::Surface).unwrap_err();
+    assert!(e.to_string().contains("id"), "{e}");
+    let mut twice = ids.clone();
+    twice[5] = twice[9];
+    let e = pipeline
+        .frame_through(
+            ParticleView {
+                ids: Some(&twice),
+                ..view
+            },
+            Through::Surface,
+        )
+        .unwrap_err();
+    assert!(e.to_string().contains(&twice[9].to_string()), "{e}");
+    let mut nan = positions.clone();
+    nan[3].x = f32::NAN;
+    let e = pipeline
+        .frame_through(ParticleView::of_positions(&nan), Through::Surface)
+        .unwrap_err();
+    assert!(e.to_string().contains('3'), "{e}");
+}

@@ -111,18 +111,24 @@ class Pipeline:
         ids: Optional[_Ids] = None,
         velocities: Optional[_Points] = None,
         *,
+        masses: Optional[npt.NDArray[Union[np.float32, np.float64]]] = None,
         through: _Through = "surfels",
     ) -> Frame:
-        """Runs one frame. positions: (N, 3) float32 or float64 (any layout; float32
-        C-contiguous is copied once in one pass). ids: (N,) integers that keep the hysteresis of
-        surface detection with each particle when the order changes. through: how far the chain
-        runs."""
+        """Runs one frame. positions: (N, 3) float32 or float64, any layout. ids: (N,) integers
+        that keep the hysteresis of surface detection with each particle when the order
+        changes. velocities: (N, 3), checked, read by no stage yet. masses: (N,) weights of the
+        centre of mass (all equal when absent). through: how far the chain runs.
+
+        C-contiguous float32 positions and masses and uint32 ids are read in place, without a
+        copy, while the GIL is released: do not write to them from another thread meanwhile;
+        other layouts and dtypes are converted once."""
     def render(
         self,
         positions: _Points,
         ids: Optional[_Ids] = None,
         velocities: Optional[_Points] = None,
         *,
+        masses: Optional[npt.NDArray[Union[np.float32, np.float64]]] = None,
         image: Literal["frame", "splats"] = "frame",
     ) -> npt.NDArray[np.uint8]:
         """The whole chain on one frame; its image as an (H, W, 4) uint8 RGBA array: the

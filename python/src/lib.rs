@@ -6,9 +6,11 @@
 //!
 //! Conventions: arrays in are checked here (dtype, shape, rows) and refused with a `ValueError`
 //! that names what was expected; everything the crate refuses becomes `fluid_surfels.Error`
-//! carrying the crate's message. The work runs with the GIL released. Arrays out are handed to
-//! NumPy without a copy (a `Vec` becomes the array's buffer; points are `float32` of shape
-//! `(N, 3)`).
+//! carrying the crate's message. The work runs with the GIL released. Arrays in are read where
+//! they lie when their layout is the pipeline's (C-contiguous, aligned `float32` positions and
+//! masses, `uint32` ids: a [`ParticleView`] of the NumPy buffers) and converted once otherwise.
+//! Arrays out are handed to NumPy without a copy (a `Vec` becomes the array's buffer; points are
+//! `float32` of shape `(N, 3)`).
 
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
@@ -16,11 +18,11 @@ use std::sync::Mutex;
 use fluid_surfels::io::{self, Format, ReadOptions};
 use fluid_surfels::pipeline::{self, Through};
 use fluid_surfels::scenes::{ColumnParams, ColumnSim};
-use fluid_surfels::{Attribute, ParticleSet, ScalarKind};
+use fluid_surfels::{Attribute, ParticleSet, ParticleView, ScalarKind};
 use glam::Vec3;
 use numpy::{
-    Element, PyArray1, PyArray2, PyArrayDescrMethods, PyArrayMethods, PyUntypedArray,
-    PyUntypedArrayMethods,
+    Element, PyArray1, PyArray2, PyArrayDescrMethods, PyArrayMethods, PyReadonlyArray1,
+    PyReadonlyArray2, PyUntypedArray, PyUntypedArrayMethods,
 };
 use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyFileExistsError, PyValueError};
@@ -137,8 +139,18 @@ fn is<T: Element>(array: &Bound<'_, PyUntypedArray>) -> bool {
     array.dtype().is_equiv_to(&numpy::dtype::<T>(array.py()))
 }
 
+/// The array itself when its elements are aligned, else an aligned copy (NumPy makes unaligned
+/// arrays from byte buffers at odd offsets; Rust may only read aligned values).
+fn aligned<'py>(array: &Bound<'py, PyUntypedArray>) -> PyResult<Bound<'py, PyUntypedArray>> {
+    if array.is_aligned() {
+        return Ok(array.clone());
+    }
+    Ok(array.call_method0("copy")?.cast_into::<PyUntypedArray>()?)
+}
+
 /// The values of a float32 or float64 array of any layout, row-major, as `f32`.
 fn floats(name: &str, array: &Bound<'_, PyUntypedArray>) -> PyResult<Vec<f32>> {
+    let array = &aligned(array)?;
     if is::<f32>(array) {
         let a = array.cast::<numpy::PyArrayDyn<f32>>()?.readonly();
         // C-contiguous: one copy of the buffer; any other layout (as_slice also takes Fortran
@@ -204,6 +216,7 @@ fn ids(obj: &Bound<'_, PyAny>, rows: usize) -> PyResult<Vec<u32>> {
     let name = "ids";
     let array = ndarray(name, obj, "shape (N,), an integer dtype")?;
     check_shape(name, &array, None, Some(rows))?;
+    let array = aligned(&array)?;
     try_ints::<u32>(name, &array)
         .or_else(|| try_ints::<i32>(name, &array))
         .or_else(|| try_ints::<i64>(name, &array))
@@ -235,6 +248,140 @@ fn particle_set(
         set.velocities = Some(points("velocities", v, Some(n))?);
     }
     Ok(set)
+}
+
+/// Points read where they lie (a C-contiguous, aligned float32 array: the NumPy buffer is the
+/// slice the pipeline reads) or converted once (float64, strided, Fortran order).
+enum PointsIn<'py> {
+    Borrowed(PyReadonlyArray2<'py, f32>),
+    Owned(Vec<Vec3>),
+}
+
+impl PointsIn<'_> {
+    fn as_slice(&self) -> &[Vec3] {
+        match self {
+            // `points_in` checked that the cast succeeds
+            Self::Borrowed(a) => a
+                .as_slice()
+                .ok()
+                .and_then(|flat| bytemuck::try_cast_slice(flat).ok())
+                .unwrap_or_default(),
+            Self::Owned(v) => v,
+        }
+    }
+}
+
+/// An `(N, 3)` float32/float64 array as points, borrowed where the layout allows.
+fn points_in<'py>(
+    name: &str,
+    obj: &Bound<'py, PyAny>,
+    rows: Option<usize>,
+) -> PyResult<PointsIn<'py>> {
+    let array = ndarray(name, obj, "shape (N, 3), dtype float32 or float64")?;
+    check_shape(name, &array, Some(3), rows)?;
+    if is::<f32>(&array)
+        && array.is_c_contiguous()
+        && let Ok(a) = array.cast::<PyArray2<f32>>()?.try_readonly()
+        && a.as_slice()
+            .is_ok_and(|flat| bytemuck::try_cast_slice::<f32, Vec3>(flat).is_ok())
+    {
+        return Ok(PointsIn::Borrowed(a));
+    }
+    Ok(PointsIn::Owned(points(name, obj, rows)?))
+}
+
+/// Ids read where they lie (C-contiguous uint32) or converted once.
+enum IdsIn<'py> {
+    Borrowed(PyReadonlyArray1<'py, u32>),
+    Owned(Vec<u32>),
+}
+
+impl IdsIn<'_> {
+    fn as_slice(&self) -> &[u32] {
+        match self {
+            Self::Borrowed(a) => a.as_slice().unwrap_or_default(),
+            Self::Owned(v) => v,
+        }
+    }
+}
+
+fn ids_in<'py>(obj: &Bound<'py, PyAny>, rows: usize) -> PyResult<IdsIn<'py>> {
+    let array = ndarray("ids", obj, "shape (N,), an integer dtype")?;
+    check_shape("ids", &array, None, Some(rows))?;
+    if is::<u32>(&array)
+        && array.is_c_contiguous()
+        && let Ok(a) = array.cast::<PyArray1<u32>>()?.try_readonly()
+        && a.as_slice().is_ok()
+    {
+        return Ok(IdsIn::Borrowed(a));
+    }
+    Ok(IdsIn::Owned(ids(obj, rows)?))
+}
+
+/// Masses read where they lie (C-contiguous float32) or converted once.
+enum MassesIn<'py> {
+    Borrowed(PyReadonlyArray1<'py, f32>),
+    Owned(Vec<f32>),
+}
+
+impl MassesIn<'_> {
+    fn as_slice(&self) -> &[f32] {
+        match self {
+            Self::Borrowed(a) => a.as_slice().unwrap_or_default(),
+            Self::Owned(v) => v,
+        }
+    }
+}
+
+fn masses_in<'py>(obj: &Bound<'py, PyAny>, rows: usize) -> PyResult<MassesIn<'py>> {
+    let array = ndarray("masses", obj, "shape (N,), dtype float32 or float64")?;
+    check_shape("masses", &array, None, Some(rows))?;
+    if is::<f32>(&array)
+        && array.is_c_contiguous()
+        && let Ok(a) = array.cast::<PyArray1<f32>>()?.try_readonly()
+        && a.as_slice().is_ok()
+    {
+        return Ok(MassesIn::Borrowed(a));
+    }
+    Ok(MassesIn::Owned(floats("masses", &array)?))
+}
+
+/// The arrays of one frame, borrowed where their layout allows.
+struct FrameIn<'py> {
+    positions: PointsIn<'py>,
+    ids: Option<IdsIn<'py>>,
+    masses: Option<MassesIn<'py>>,
+}
+
+impl<'py> FrameIn<'py> {
+    fn new(
+        positions: &Bound<'py, PyAny>,
+        ids: Option<&Bound<'py, PyAny>>,
+        velocities: Option<&Bound<'py, PyAny>>,
+        masses: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Self> {
+        let positions = points_in("positions", positions, None)?;
+        let n = positions.as_slice().len();
+        let ids = ids.map(|i| ids_in(i, n)).transpose()?;
+        let masses = masses.map(|m| masses_in(m, n)).transpose()?;
+        if let Some(v) = velocities {
+            // checked for the caller; no stage of the chain reads velocities yet
+            points_in("velocities", v, Some(n))?;
+        }
+        Ok(Self {
+            positions,
+            ids,
+            masses,
+        })
+    }
+
+    fn view(&self) -> ParticleView<'_> {
+        ParticleView {
+            positions: self.positions.as_slice(),
+            ids: self.ids.as_ref().map(IdsIn::as_slice),
+            masses: self.masses.as_ref().map(MassesIn::as_slice),
+        }
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -689,35 +836,42 @@ impl Pipeline {
 
     /// Runs one frame: `positions` (N, 3) float32 or float64; `ids` (N,) integers keep the
     /// hysteresis of surface detection attached to each particle when the order changes between
-    /// frames; `velocities` (N, 3). `through` stops the chain early: "surface", "refine",
-    /// "surfels" (default), "splats" (shaded splats image) or "frame" (finished image with
-    /// caustics, refraction and reflection).
-    #[pyo3(signature = (positions, ids=None, velocities=None, *, through="surfels"))]
-    fn frame(
+    /// frames; `velocities` (N, 3) are checked but no stage reads them yet; `masses` (N,) weigh
+    /// the centre of mass of surface detection (all equal when absent). `through` stops the
+    /// chain early: "surface", "refine", "surfels" (default), "splats" (shaded splats image) or
+    /// "frame" (finished image with caustics, refraction and reflection).
+    ///
+    /// C-contiguous float32 positions and masses and uint32 ids are read where they lie, with
+    /// the GIL released: do not write to them from another thread during the call.
+    #[pyo3(signature = (positions, ids=None, velocities=None, *, masses=None, through="surfels"))]
+    fn frame<'py>(
         &self,
-        py: Python<'_>,
-        positions: &Bound<'_, PyAny>,
-        ids: Option<&Bound<'_, PyAny>>,
-        velocities: Option<&Bound<'_, PyAny>>,
+        py: Python<'py>,
+        positions: &Bound<'py, PyAny>,
+        ids: Option<&Bound<'py, PyAny>>,
+        velocities: Option<&Bound<'py, PyAny>>,
+        masses: Option<&Bound<'py, PyAny>>,
         through: &str,
     ) -> PyResult<Frame> {
         let through = through_of(through)?;
-        let set = particle_set(positions, ids, velocities)?;
+        let input = FrameIn::new(positions, ids, velocities, masses)?;
+        let view = input.view();
         let frame = py
-            .detach(|| self.lock().frame_through(&set, through))
+            .detach(|| self.lock().frame_through(view, through))
             .map_err(crate_error)?;
         frame_out(py, frame)
     }
 
     /// The whole chain on one frame, returning its image as an (H, W, 4) uint8 RGBA array:
     /// `image="frame"` (default) the finished frame, `image="splats"` the shaded splats.
-    #[pyo3(signature = (positions, ids=None, velocities=None, *, image="frame"))]
-    fn render(
+    #[pyo3(signature = (positions, ids=None, velocities=None, *, masses=None, image="frame"))]
+    fn render<'py>(
         &self,
-        py: Python<'_>,
-        positions: &Bound<'_, PyAny>,
-        ids: Option<&Bound<'_, PyAny>>,
-        velocities: Option<&Bound<'_, PyAny>>,
+        py: Python<'py>,
+        positions: &Bound<'py, PyAny>,
+        ids: Option<&Bound<'py, PyAny>>,
+        velocities: Option<&Bound<'py, PyAny>>,
+        masses: Option<&Bound<'py, PyAny>>,
         image: &str,
     ) -> PyResult<Py<PyAny>> {
         let through = match image {
@@ -729,9 +883,10 @@ impl Pipeline {
                 )));
             }
         };
-        let set = particle_set(positions, ids, velocities)?;
+        let input = FrameIn::new(positions, ids, velocities, masses)?;
+        let view = input.view();
         let frame = py
-            .detach(|| self.lock().frame_through(&set, through))
+            .detach(|| self.lock().frame_through(view, through))
             .map_err(crate_error)?;
         let picture = match (frame.finished, frame.splats) {
             (Some(f), _) => f.image,

@@ -152,10 +152,37 @@ def test_non_contiguous_and_float64_arrays_give_the_same_result():
     wide = np.zeros((len(pos), 7), dtype=np.float32)
     wide[:, 2:5] = pos
     fortran = np.asfortranarray(pos)
-    for variant in (wide[:, 2:5], fortran, pos.astype(np.float64), pos[::-1][::-1]):
-        f = fs.Pipeline(support_radius=0.1).frame(variant, d["ids"].astype(np.int64), through="refine")
+    # unaligned: float32 values at an odd byte offset of a buffer
+    raw = bytearray(pos.nbytes + 1)
+    unaligned = np.frombuffer(raw, dtype=np.float32, offset=1).reshape(-1, 3)
+    assert not unaligned.flags.aligned
+    np.copyto(unaligned, pos)
+    ids_raw = bytearray(d["ids"].nbytes + 1)
+    unaligned_ids = np.frombuffer(ids_raw, dtype=np.uint32, offset=1)
+    np.copyto(unaligned_ids, d["ids"])
+    variants = [(wide[:, 2:5], d["ids"]), (fortran, d["ids"].astype(np.int64)),
+                (pos.astype(np.float64), d["ids"][::-1].copy()[::-1]),
+                (pos[::-1][::-1], d["ids"].astype(np.int16 if len(pos) < 32768 else np.int32)),
+                (unaligned, unaligned_ids)]
+    for positions, ids in variants:
+        f = fs.Pipeline(support_radius=0.1).frame(positions, ids, through="refine")
         np.testing.assert_array_equal(f.classes, ref.classes)
         np.testing.assert_array_equal(f.refined.positions, ref.refined.positions)
+
+
+def test_masses_weigh_the_centre_of_mass():
+    d = fs.read(DAM_BREAK)
+    pos = d["positions"]
+    ref = fs.Pipeline(support_radius=0.1).frame(pos, through="surface")
+    ones = fs.Pipeline(support_radius=0.1).frame(pos, masses=np.ones(len(pos)), through="surface")
+    np.testing.assert_array_equal(ones.classes, ref.classes)
+    heavy_top = np.where(pos[:, 1] > np.median(pos[:, 1]), 10.0, 1.0).astype(np.float32)
+    weighed = fs.Pipeline(support_radius=0.1).frame(pos, masses=heavy_top, through="surface")
+    assert (weighed.classes != ref.classes).sum() > 10
+    with pytest.raises(ValueError, match="`masses` has 3 rows"):
+        fs.Pipeline().frame(pos, masses=np.ones(3))
+    with pytest.raises(ValueError, match="`masses` must have dtype float32 or float64, got float16"):
+        fs.Pipeline().frame(pos, masses=np.ones(len(pos), np.float16))
 
 
 def test_bad_input_raises_clear_exceptions():
@@ -171,6 +198,8 @@ def test_bad_input_raises_clear_exceptions():
         (lambda: p.frame(good, ids=np.arange(9)), ValueError, "`ids` has 9 rows but there are 10"),
         (lambda: p.frame(good, ids=np.arange(10) - 1), ValueError, r"`ids`\[0\] is -1"),
         (lambda: p.frame(good, ids=np.zeros(10, np.float32)), ValueError, "integer dtype"),
+        (lambda: p.frame(np.random.default_rng(0).random((10, 3)), ids=np.zeros(10, np.uint32)),
+         fs.Error, "(?i)id 0"),
         (lambda: p.frame(good, velocities=np.zeros((10, 4))), ValueError, "`velocities` must have shape"),
         (lambda: p.frame(good, through="everything"), ValueError, "`through` must be one of"),
         (lambda: p.render(good, image="depth"), ValueError, "`image` must be"),

@@ -18,7 +18,7 @@ use crate::optics::Stage;
 use crate::optics::gpu::{OpticsGpu, PreparedOptics};
 use crate::splat::gpu::{SplatRenderer, SurfelBuffer};
 use crate::view::{Light, View};
-use crate::{Error, ParticleSet};
+use crate::{Error, ParticleView};
 
 /// The WGSL of the presenting pass.
 pub const PRESENT_SHADER: &str = concat!(
@@ -192,12 +192,13 @@ impl GpuPipeline {
     /// Runs the frame's CPU stages on `particles` and records its GPU passes (caustics and the
     /// finished frame) into `encoder`; returns the CPU stages' frame (classes, refined points,
     /// surfels, timings). Submit the encoder, then [`GpuPipeline::render`] draws the frame.
-    pub fn prepare(
+    /// `particles`: a `&ParticleSet`, or a [`ParticleView`] of the game's own buffers.
+    pub fn prepare<'a>(
         &mut self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
         encoder: &mut wgpu::CommandEncoder,
-        particles: &ParticleSet,
+        particles: impl Into<ParticleView<'a>>,
     ) -> Result<Frame, Error> {
         let frame = self.cpu.frame_through(particles, Through::Surfels)?;
         self.prepare_frame(device, queue, encoder, &frame)?;

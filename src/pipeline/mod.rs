@@ -46,7 +46,7 @@ use crate::scenes::ColumnSim;
 use crate::splat::{self, Camera, Light, Render, SplatParams, Surfel};
 use crate::surface::{ParticleClass, Surface, SurfaceDetector, SurfaceParams};
 use crate::surfels::{self, SurfelParams, Surfels};
-use crate::{Error, ParticleSet};
+use crate::{Error, ParticleView};
 
 pub mod gpu;
 
@@ -458,32 +458,34 @@ impl Pipeline {
         }
     }
 
-    /// The whole chain on one frame.
-    pub fn frame(&mut self, particles: &ParticleSet) -> Result<Frame, Error> {
+    /// The whole chain on one frame: a `&ParticleSet`, or a [`ParticleView`] of positions (and
+    /// ids, masses) held elsewhere, read where they lie.
+    pub fn frame<'a>(&mut self, particles: impl Into<ParticleView<'a>>) -> Result<Frame, Error> {
         self.frame_through(particles, Through::Frame)
     }
 
     /// The chain on one frame, up to `through`.
-    pub fn frame_through(
+    pub fn frame_through<'a>(
         &mut self,
-        particles: &ParticleSet,
+        particles: impl Into<ParticleView<'a>>,
         through: Through,
     ) -> Result<Frame, Error> {
         let total = Instant::now();
+        let particles: ParticleView<'a> = particles.into();
         particles.validate()?;
         let mut timings = FrameTimings::default();
         let mut warnings = Vec::new();
         let radius = match self.radius {
             Some(r) => r,
             None => {
-                let r = 2.0 * neighbours::estimate_spacing(&particles.positions)?;
+                let r = 2.0 * neighbours::estimate_spacing(particles.positions)?;
                 self.radius = Some(r);
                 r
             }
         };
         // stage 1: surface detection with hysteresis
         let t = Instant::now();
-        let nb = Neighbourhoods::build(&particles.positions, radius, Backend::CellGrid)?;
+        let nb = Neighbourhoods::build(particles.positions, radius, Backend::CellGrid)?;
         timings.neighbours_ms = ms(t);
         warnings.extend(neighbour_count_warning(radius, nb.mean_count()));
         let t = Instant::now();
@@ -530,13 +532,16 @@ impl Pipeline {
             }
             source => {
                 let (positions, radii) = match source {
-                    SurfelSource::Chain => chain_points(
-                        particles,
-                        &frame.surface,
-                        frame.refined.as_ref().expect("refined above"),
-                        radius,
-                    ),
-                    _ => (particles.positions.clone(), Vec::new()),
+                    SurfelSource::Chain => {
+                        let (p, r) = chain_points(
+                            particles,
+                            &frame.surface,
+                            frame.refined.as_ref().expect("refined above"),
+                            radius,
+                        );
+                        (std::borrow::Cow::Owned(p), r)
+                    }
+                    _ => (std::borrow::Cow::Borrowed(particles.positions), Vec::new()),
                 };
                 let points = if radii.is_empty() {
                     Points::uniform(&positions, radius)
@@ -798,11 +803,12 @@ pub fn refined_indices(surface: &Surface) -> Vec<u32> {
 /// Positions and normals of the given particles (isolated ones keep a zero normal, and the
 /// refinement keeps them as they are).
 #[must_use]
-pub fn gather(
-    particles: &ParticleSet,
+pub fn gather<'a>(
+    particles: impl Into<ParticleView<'a>>,
     surface: &Surface,
     indices: &[u32],
 ) -> (Vec<Vec3>, Vec<Vec3>) {
+    let particles = particles.into();
     (
         indices
             .iter()
@@ -819,12 +825,13 @@ pub fn gather(
 /// radius `h`, then the refined surface points with the radii their refinement gives them
 /// ([`Refined::kernel_radii`]).
 #[must_use]
-pub fn chain_points(
-    particles: &ParticleSet,
+pub fn chain_points<'a>(
+    particles: impl Into<ParticleView<'a>>,
     surface: &Surface,
     refined: &Refined,
     h: f32,
 ) -> (Vec<Vec3>, Vec<f32>) {
+    let particles = particles.into();
     let interior = surface.indices_of(ParticleClass::Interior);
     let mut positions = Vec::with_capacity(interior.len() + refined.len());
     let mut radii = Vec::with_capacity(interior.len() + refined.len());

@@ -2,7 +2,7 @@
 the time the Rust pipeline measures inside the same call (`Frame.timings["total_ms"]`), on the
 column scene's splash frame (2,880 particles) and on a larger block of particles.
 
-    python python/bench_overhead.py [--repeat 15] [--json]
+    python python/benches/overhead.py [--repeat 15] [--json]
 
 The difference is the binding: checking and copying the arrays in, releasing and taking back the
 GIL, and handing the results to NumPy.
