@@ -276,14 +276,14 @@ impl ParticleSet {
     #[must_use]
     #[inline]
     pub fn mass(&self, i: usize) -> f32 {
-        self.masses.as_ref().map_or(1.0, |m| m[i])
+        self.view().mass(i)
     }
 
     /// Stable id of particle `i`: its id when the set has ids, else its index.
     #[must_use]
     #[inline]
     pub fn id(&self, i: usize) -> u32 {
-        self.ids.as_ref().map_or(i as u32, |ids| ids[i])
+        self.view().id(i)
     }
 
     /// Looks up an extra attribute by name.

@@ -211,12 +211,20 @@ where
     )
 }
 
+const IDS: &str = "shape (N,), an integer dtype";
+const MASSES: &str = "shape (N,), dtype float32 or float64";
+
 /// A `(N,)` integer array as particle ids.
 fn ids(obj: &Bound<'_, PyAny>, rows: usize) -> PyResult<Vec<u32>> {
+    let array = ndarray("ids", obj, IDS)?;
+    check_shape("ids", &array, None, Some(rows))?;
+    ids_of(&array)
+}
+
+/// The values of an integer array as ids.
+fn ids_of(array: &Bound<'_, PyUntypedArray>) -> PyResult<Vec<u32>> {
     let name = "ids";
-    let array = ndarray(name, obj, "shape (N,), an integer dtype")?;
-    check_shape(name, &array, None, Some(rows))?;
-    let array = aligned(&array)?;
+    let array = aligned(array)?;
     try_ints::<u32>(name, &array)
         .or_else(|| try_ints::<i32>(name, &array))
         .or_else(|| try_ints::<i64>(name, &array))
@@ -290,67 +298,48 @@ fn points_in<'py>(
     Ok(PointsIn::Owned(points(name, obj, rows)?))
 }
 
-/// Ids read where they lie (C-contiguous uint32) or converted once.
-enum IdsIn<'py> {
-    Borrowed(PyReadonlyArray1<'py, u32>),
-    Owned(Vec<u32>),
+/// A per-particle column read where it lies (C-contiguous, aligned, of the pipeline's type) or
+/// converted once.
+enum ColumnIn<'py, T: Element> {
+    Borrowed(PyReadonlyArray1<'py, T>),
+    Owned(Vec<T>),
 }
 
-impl IdsIn<'_> {
-    fn as_slice(&self) -> &[u32] {
+impl<T: Element> ColumnIn<'_, T> {
+    fn as_slice(&self) -> &[T] {
         match self {
+            // `column_in` checked that the slice exists
             Self::Borrowed(a) => a.as_slice().unwrap_or_default(),
             Self::Owned(v) => v,
         }
     }
 }
 
-fn ids_in<'py>(obj: &Bound<'py, PyAny>, rows: usize) -> PyResult<IdsIn<'py>> {
-    let array = ndarray("ids", obj, "shape (N,), an integer dtype")?;
-    check_shape("ids", &array, None, Some(rows))?;
-    if is::<u32>(&array)
+/// An `(N,)` array as a column of `T`, borrowed when it already is one, else `convert`ed.
+fn column_in<'py, T: Element>(
+    name: &str,
+    expected: &str,
+    obj: &Bound<'py, PyAny>,
+    rows: usize,
+    convert: impl FnOnce(&Bound<'py, PyUntypedArray>) -> PyResult<Vec<T>>,
+) -> PyResult<ColumnIn<'py, T>> {
+    let array = ndarray(name, obj, expected)?;
+    check_shape(name, &array, None, Some(rows))?;
+    if is::<T>(&array)
         && array.is_c_contiguous()
-        && let Ok(a) = array.cast::<PyArray1<u32>>()?.try_readonly()
+        && let Ok(a) = array.cast::<PyArray1<T>>()?.try_readonly()
         && a.as_slice().is_ok()
     {
-        return Ok(IdsIn::Borrowed(a));
+        return Ok(ColumnIn::Borrowed(a));
     }
-    Ok(IdsIn::Owned(ids(obj, rows)?))
-}
-
-/// Masses read where they lie (C-contiguous float32) or converted once.
-enum MassesIn<'py> {
-    Borrowed(PyReadonlyArray1<'py, f32>),
-    Owned(Vec<f32>),
-}
-
-impl MassesIn<'_> {
-    fn as_slice(&self) -> &[f32] {
-        match self {
-            Self::Borrowed(a) => a.as_slice().unwrap_or_default(),
-            Self::Owned(v) => v,
-        }
-    }
-}
-
-fn masses_in<'py>(obj: &Bound<'py, PyAny>, rows: usize) -> PyResult<MassesIn<'py>> {
-    let array = ndarray("masses", obj, "shape (N,), dtype float32 or float64")?;
-    check_shape("masses", &array, None, Some(rows))?;
-    if is::<f32>(&array)
-        && array.is_c_contiguous()
-        && let Ok(a) = array.cast::<PyArray1<f32>>()?.try_readonly()
-        && a.as_slice().is_ok()
-    {
-        return Ok(MassesIn::Borrowed(a));
-    }
-    Ok(MassesIn::Owned(floats("masses", &array)?))
+    Ok(ColumnIn::Owned(convert(&array)?))
 }
 
 /// The arrays of one frame, borrowed where their layout allows.
 struct FrameIn<'py> {
     positions: PointsIn<'py>,
-    ids: Option<IdsIn<'py>>,
-    masses: Option<MassesIn<'py>>,
+    ids: Option<ColumnIn<'py, u32>>,
+    masses: Option<ColumnIn<'py, f32>>,
 }
 
 impl<'py> FrameIn<'py> {
@@ -362,8 +351,12 @@ impl<'py> FrameIn<'py> {
     ) -> PyResult<Self> {
         let positions = points_in("positions", positions, None)?;
         let n = positions.as_slice().len();
-        let ids = ids.map(|i| ids_in(i, n)).transpose()?;
-        let masses = masses.map(|m| masses_in(m, n)).transpose()?;
+        let ids = ids
+            .map(|i| column_in("ids", IDS, i, n, |a| ids_of(a)))
+            .transpose()?;
+        let masses = masses
+            .map(|m| column_in("masses", MASSES, m, n, |a| floats("masses", a)))
+            .transpose()?;
         if let Some(v) = velocities {
             // checked for the caller; no stage of the chain reads velocities yet
             points_in("velocities", v, Some(n))?;
@@ -378,8 +371,8 @@ impl<'py> FrameIn<'py> {
     fn view(&self) -> ParticleView<'_> {
         ParticleView {
             positions: self.positions.as_slice(),
-            ids: self.ids.as_ref().map(IdsIn::as_slice),
-            masses: self.masses.as_ref().map(MassesIn::as_slice),
+            ids: self.ids.as_ref().map(ColumnIn::as_slice),
+            masses: self.masses.as_ref().map(ColumnIn::as_slice),
         }
     }
 }
@@ -1058,7 +1051,7 @@ fn write(
     let mut set = particle_set(positions, ids, velocities)?;
     let n = set.len();
     if let Some(m) = masses {
-        let array = ndarray("masses", m, "shape (N,), dtype float32 or float64")?;
+        let array = ndarray("masses", m, MASSES)?;
         check_shape("masses", &array, None, Some(n))?;
         set.masses = Some(floats("masses", &array)?);
     }
