@@ -710,3 +710,73 @@ fn a_view_of_borrowed_slices_gives_the_frame_of_the_set() {
         .unwrap_err();
     assert!(e.to_string().contains('3'), "{e}");
 }
+
+/// The whole chain gives the same output, bit for bit, on 1, 2 and 3 threads: the column's
+/// splash frame (with the hysteresis of the frames before it) through the finished frame and
+/// the shaded splats, and the double dam break file through the surfels.
+#[test]
+fn results_do_not_depend_on_the_thread_count() {
+    fn run(threads: usize) -> Vec<pipeline::Frame> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let mut params = pipeline::column_params();
+            params.scene.optics.image_size = [96, 72];
+            let mut out = Vec::new();
+            for through in [Through::Frame, Through::Splats] {
+                let mut pipeline = Pipeline::new(params.clone()).unwrap();
+                let mut sim = ColumnSim::new(ColumnParams::default()).unwrap();
+                out.push(
+                    pipeline::column_frame(
+                        &mut pipeline,
+                        &mut sim,
+                        ColumnParams::SPLASH_FRAME,
+                        through,
+                        |_| {},
+                    )
+                    .unwrap(),
+                );
+            }
+            let set = fluid_surfels::io::read_particles(
+                std::path::Path::new(concat!(
+                    env!("CARGO_MANIFEST_DIR"),
+                    "/tests/data/double_dam_break_frame_26_4732_particles.vtk"
+                )),
+                None,
+            )
+            .unwrap();
+            let mut pipeline = Pipeline::new(PipelineParams::default()).unwrap();
+            out.push(pipeline.frame_through(&set, Through::Surfels).unwrap());
+            out
+        })
+    }
+    let one = run(1);
+    for threads in [2, 3] {
+        let many = run(threads);
+        for (k, (a, b)) in one.iter().zip(&many).enumerate() {
+            let what = format!("frame {k} on {threads} threads");
+            assert_eq!(a.surface.classes, b.surface.classes, "{what}");
+            assert_eq!(a.surface.normals, b.surface.normals, "{what}");
+            let (ra, rb) = (a.refined.as_ref().unwrap(), b.refined.as_ref().unwrap());
+            assert_eq!(ra.positions, rb.positions, "{what}");
+            assert_eq!(ra.kernel_radii, rb.kernel_radii, "{what}");
+            assert_eq!(
+                a.grid.as_ref().unwrap().values,
+                b.grid.as_ref().unwrap().values,
+                "{what}"
+            );
+            let (sa, sb) = (a.surfels.as_ref().unwrap(), b.surfels.as_ref().unwrap());
+            assert_eq!(sa.positions, sb.positions, "{what}");
+            assert_eq!(sa.normals, sb.normals, "{what}");
+            assert_eq!(sa.radii, sb.radii, "{what}");
+            if let (Some(fa), Some(fb)) = (&a.finished, &b.finished) {
+                assert_eq!(fa.image, fb.image, "{what}");
+            }
+            if let (Some(fa), Some(fb)) = (&a.splats, &b.splats) {
+                assert_eq!(fa.image, fb.image, "{what}");
+            }
+        }
+    }
+}
