@@ -1602,3 +1602,28 @@ fn render_saves_the_surfels_it_draws() {
         .unwrap();
     assert!(stderr_of(&out).contains("--save-surfels"));
 }
+
+/// `render` prints a support radius far off on stderr as soon as it is known, before the work
+/// that follows: here before a splatting its fragment limit refuses.
+#[test]
+fn render_warns_of_an_absurd_radius_before_the_work() {
+    let dir = ddb_dir();
+    let out = render_ddb(
+        dir.path(),
+        &[
+            "--radius",
+            "0.5",
+            "--max-fragments",
+            "1",
+            "--out",
+            dir.path().join("r.png").to_str().unwrap(),
+        ],
+    );
+    let stderr = stderr_of(&out);
+    let warning = stderr
+        .find("warning: support radius 0.5 gives")
+        .unwrap_or_else(|| panic!("{stderr}"));
+    let error = stderr.find("error:").unwrap_or_else(|| panic!("{stderr}"));
+    assert!(warning < error, "{stderr}");
+    assert!(stderr.contains("too large"), "{stderr}");
+}

@@ -469,6 +469,29 @@ fn an_absurd_support_radius_is_warned_about_and_a_good_one_is_not() {
         n > 200.0 && w.len() == 1 && w[0].contains("too large"),
         "{n}: {w:?}"
     );
+    // told at once: a sink hears the warning before the work after the neighbour search, here
+    // before an upsampling that its memory budget refuses
+    let heard = std::sync::Arc::new(std::sync::Mutex::new(Vec::<String>::new()));
+    let mut p = Pipeline::new(PipelineParams {
+        support_radius: Some(1.2 * s),
+        refine: RefineParams {
+            memory_budget: 1,
+            ..Default::default()
+        },
+        ..Default::default()
+    })
+    .unwrap();
+    let sink = heard.clone();
+    p.on_warning(move |w| sink.lock().unwrap().push(w.to_string()));
+    let e = p
+        .frame_through(&scene.particles, Through::Refine)
+        .unwrap_err();
+    assert!(e.to_string().contains("memory budget"), "{e}");
+    let heard = heard.lock().unwrap().clone();
+    assert!(
+        heard.len() == 1 && heard[0].contains("too small"),
+        "{heard:?}"
+    );
     // the estimate a file gets lands in the usual range on the real files
     for file in [
         "dam_break_frame_23_24389_particles.bgeo",

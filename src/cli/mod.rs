@@ -299,6 +299,12 @@ pub fn surface_particles(particles: &ParticleSet, surface: &Surface) -> Particle
     out
 }
 
+/// Has `pipeline` print each warning on stderr as soon as it is known (a support radius far off
+/// is known before the long work), besides the report's list at the end.
+pub fn warn_at_once(pipeline: &mut fluid_surfels::pipeline::Pipeline) {
+    pipeline.on_warning(|w| eprintln!("warning: {}", io::clean(w, 1000)));
+}
+
 /// A progress bar on stderr when it is a terminal, hidden otherwise.
 pub fn progress(len: u64, what: &str) -> indicatif::ProgressBar {
     if !std::io::stderr().is_terminal() {

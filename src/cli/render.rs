@@ -525,6 +525,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     }
     let splat_params = params.splat;
     let mut pipeline = Pipeline::new(params)?;
+    super::warn_at_once(&mut pipeline);
     let t = Instant::now();
     let (source, particles, frame) =
         frames.frame(&mut pipeline, args, args.frame, Through::Surfels)?;
@@ -738,6 +739,7 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
     }
     let [w, h] = params.scene.optics.image_size;
     let mut pipeline = Pipeline::new(params.clone())?;
+    super::warn_at_once(&mut pipeline);
     let mut gpu = match choose_gpu(args.cpu, args.gpu)? {
         Some(ctx) => {
             let g = GpuPipeline::new(

@@ -368,7 +368,12 @@ pub struct Pipeline {
     fit: Option<(Vec3, Vec3)>,
     /// The density grid's buffer, handed back by [`Pipeline::recycle`] for the next frame.
     grid_buffer: Vec<f32>,
+    /// Told each warning as soon as it is known ([`Pipeline::on_warning`]).
+    warning_sink: Option<WarningSink>,
 }
+
+/// A function told each warning of a frame as soon as it is known.
+type WarningSink = Box<dyn FnMut(&str) + Send>;
 
 impl Pipeline {
     /// A pipeline for a new sequence. Reads the environment image, if any, once.
@@ -381,8 +386,27 @@ impl Pipeline {
             views: None,
             fit: None,
             grid_buffer: Vec::new(),
+            warning_sink: None,
             params,
         })
+    }
+
+    /// Tells `sink` each warning as soon as it is known, before the rest of the frame's work (a
+    /// support radius far off is known after the neighbour search, before the upsampling and the
+    /// grid): a command line prints it at once instead of after minutes of work. The warnings
+    /// are in [`Frame::warnings`] as well.
+    pub fn on_warning(&mut self, sink: impl FnMut(&str) + Send + 'static) {
+        self.warning_sink = Some(Box::new(sink));
+    }
+
+    /// Keeps `warning` for the frame and tells the sink.
+    fn warn(&mut self, warnings: &mut Vec<String>, warning: Option<String>) {
+        if let Some(w) = warning {
+            if let Some(sink) = self.warning_sink.as_mut() {
+                sink(&w);
+            }
+            warnings.push(w);
+        }
     }
 
     /// Fits the camera, the pool and the scene box of the sequence to the box `[lo, hi]` as well
@@ -487,7 +511,10 @@ impl Pipeline {
         let t = Instant::now();
         let nb = Neighbourhoods::build(particles.positions, radius, Backend::CellGrid)?;
         timings.neighbours_ms = ms(t);
-        warnings.extend(neighbour_count_warning(radius, nb.mean_count()));
+        self.warn(
+            &mut warnings,
+            neighbour_count_warning(radius, nb.mean_count()),
+        );
         let t = Instant::now();
         let surface = self.detector.detect(particles, &nb)?;
         timings.detect_ms = ms(t);
@@ -554,7 +581,7 @@ impl Pipeline {
                 {
                     frame.timings.density_ms = iso.density_ms;
                     frame.timings.surfels_ms = iso.surfels_ms;
-                    warnings.extend(iso.warning);
+                    self.warn(&mut warnings, iso.warning);
                     frame.render_surfels = splat::surfels_from(
                         &iso.surfels.positions,
                         &iso.surfels.normals,
@@ -606,13 +633,14 @@ impl Pipeline {
             .iter()
             .filter(|s| !s.is_drawable())
             .count();
-        if skipped > 0 {
-            frame.warnings.push(format!(
+        let warning = (skipped > 0).then(|| {
+            format!(
                 "{skipped} of {} surfels cannot be drawn (a radius that is zero, negative or not \
                  finite, or a zero normal) and are skipped",
                 frame.render_surfels.len()
-            ));
-        }
+            )
+        });
+        self.warn(&mut frame.warnings, warning);
         if through >= Through::Splats {
             self.render(&mut frame, through)?;
         }
