@@ -679,15 +679,37 @@ fn hidden_in_map(p: vec3<f32>) -> bool {
     return g > 0.0 && g < q.z - 3.0 * pixel_size(u.map, q.z);
 }
 
-// Mirror: Caustics::under_water.
-fn under_water(p: vec3<f32>) -> bool {
+// Mirror: Caustics::water_cover (the four screen texels about p that see water nearer the light
+// than p, bilinearly weighted; texels off the screen see none).
+fn water_cover(p: vec3<f32>) -> f32 {
     let q = project(u.screen, p);
-    let i = texel_of(u.screen, q);
-    if (i < 0) {
-        return false;
+    let w = i32(u.screen.viewport.x);
+    let h = i32(u.screen.viewport.y);
+    let x = q.x - 0.5;
+    let y = q.y - 0.5;
+    if (!(x >= -1.0 && y >= -1.0 && x <= f32(w) && y <= f32(h) && abs(q.z) < 3.0e38)) {
+        return 0.0;
     }
-    let d = vertices[i].surface.w;
-    return d > 0.0 && d < q.z;
+    let fx = floor(x);
+    let fy = floor(y);
+    let tx = x - fx;
+    let ty = y - fy;
+    var cover = 0.0;
+    for (var k = 0; k < 4; k++) {
+        let di = k % 2;
+        let dj = k / 2;
+        let wt = select(1.0 - tx, tx, di == 1) * select(1.0 - ty, ty, dj == 1);
+        let i = i32(fx) + di;
+        let j = i32(fy) + dj;
+        if (i < 0 || j < 0 || i >= w || j >= h) {
+            continue;
+        }
+        let d = vertices[j * w + i].surface.w;
+        if (d > 0.0 && d < q.z) {
+            cover += wt;
+        }
+    }
+    return cover;
 }
 
 // Whether the receiver shadows p (normal n) from the light. Mirror: `Stage::light_blocked` (an
@@ -724,10 +746,7 @@ fn receiver_irradiance(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
     if (!(facing > 0.0) || shadowed(p, n)) {
         return vec3<f32>(0.0);
     }
-    var direct = vec3<f32>(0.0);
-    if (!under_water(p)) {
-        direct = inc.e * facing;
-    }
+    let direct = inc.e * facing * (1.0 - water_cover(p));
     return direct + caustics_at(p, n);
 }
 

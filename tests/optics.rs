@@ -660,7 +660,7 @@ fn column_pool_outer_walls_get_the_direct_light() {
                 } else {
                     Vec3::new(lo.x + (hi.x - lo.x) * j as f32 / 24.0, a, hi.z)
                 };
-                if c.under_water(p) {
+                if c.water_cover(p) > 0.0 {
                     continue;
                 }
                 checked += 1;
@@ -813,4 +813,50 @@ fn dry_pool_pixels_show_the_analytic_direct_light() {
             "light {light}: {off} of {checked} pixels off"
         );
     }
+}
+
+/// The water's shadow on the floor ends in a ramp one texel of the light's screen wide, not in
+/// texel steps: along a line from under a water slab out into the sun, the share of the direct
+/// light the water takes (`water_cover`) goes from 1 to 0 and changes by no more than the
+/// distance walked in texels (the bound of bilinear filtering). Tested per texel, it jumped
+/// from 1 to 0 in one step: the saw-tooth edges and blocky drop shadows of issue 14.
+#[test]
+fn the_waters_shadow_edge_is_a_ramp_not_texel_steps() {
+    let surfels = height_field(0.6, 0.02, |_, _| 0.4);
+    let mut scene = OpticsScene::default();
+    scene.light.direction = Vec3::Y;
+    scene.receiver.kind = ReceiverKind::OpenBox;
+    scene.receiver.min = Vec3::new(-1.2, 0.0, -1.2);
+    scene.receiver.max = Vec3::new(1.2, 0.8, 1.2);
+    let stage = Stage::new(&scene, &surfels).unwrap();
+    let c = caustics_cpu(&stage, &surfels).unwrap();
+    let screen = &stage.views.screen;
+    let steps = 4000;
+    let samples: Vec<(f32, Vec3)> = (0..=steps)
+        .map(|k| {
+            // along the floor, diagonally (texel edges cross it in x and z), out from the centre
+            let t = 1.0 * k as f32 / steps as f32;
+            let p = Vec3::new(0.2 + t, 1e-4, 0.1 + 0.37 * t);
+            (c.water_cover(p), screen.project(p))
+        })
+        .collect();
+    assert_eq!(samples[0].0, 1.0, "under the slab");
+    assert_eq!(samples[steps].0, 0.0, "in the sun");
+    let ramp = samples
+        .iter()
+        .filter(|(c, _)| *c > 0.02 && *c < 0.98)
+        .count();
+    assert!(ramp > 10, "{ramp} samples on the edge's ramp");
+    let mut worst = 0f32;
+    for w in samples.windows(2) {
+        let ((a, qa), (b, qb)) = (w[0], w[1]);
+        let walked = (qb.x - qa.x).abs() + (qb.y - qa.y).abs();
+        worst = worst.max((b - a).abs() / walked.max(1e-9));
+        assert!(
+            (b - a).abs() <= walked + 1e-5,
+            "the cover jumps by {} over {walked} texels",
+            (b - a).abs()
+        );
+    }
+    println!("{ramp} samples on the ramp; steepest {worst:.3} per texel");
 }

@@ -281,7 +281,9 @@ fn camera_and_pool_stay_fixed_in_a_sequence() {
         let fa = p.frame(&a).unwrap();
         let fb = p.frame(&b).unwrap();
         assert_ne!(fa.render_surfels.len(), fb.render_surfels.len());
-        let (far, differing) = differing_far_from_water(&fa, &fb, 3);
+        // 4 pixels: the water's shadow reaches past its footprint by up to half a texel of the
+        // light's screen (the filtered cover), a pixel beyond 3 here
+        let (far, differing) = differing_far_from_water(&fa, &fb, 4);
         println!("keep_views {keep_views}: {differing} of {far} pixels away from the water differ");
         assert!(
             far > 128 * 128 / 20,

@@ -765,6 +765,18 @@ struct Pipeline {
     inner: Mutex<pipeline::Pipeline>,
 }
 
+/// The frame's warnings through Python's `warnings` module (`UserWarning`), so that they show
+/// (once per place, by default) and filters and `pytest.warns` see them; `Frame.warnings` keeps
+/// them too.
+fn warn(py: Python<'_>, warnings: &[String]) -> PyResult<()> {
+    let category = py.get_type::<pyo3::exceptions::PyUserWarning>();
+    for w in warnings {
+        let text = std::ffi::CString::new(w.replace('\0', " ")).unwrap_or_default();
+        PyErr::warn(py, &category, &text, 1)?;
+    }
+    Ok(())
+}
+
 fn pipeline_error(e: fluid_surfels::Error) -> PyErr {
     match e {
         // settings out of range are the caller's values
@@ -852,6 +864,7 @@ impl Pipeline {
         let frame = py
             .detach(|| self.lock().frame_through(view, through))
             .map_err(crate_error)?;
+        warn(py, &frame.warnings)?;
         frame_out(py, frame)
     }
 
@@ -881,6 +894,7 @@ impl Pipeline {
         let frame = py
             .detach(|| self.lock().frame_through(view, through))
             .map_err(crate_error)?;
+        warn(py, &frame.warnings)?;
         let picture = match (frame.finished, frame.splats) {
             (Some(f), _) => f.image,
             (None, Some(s)) => s.image,

@@ -320,3 +320,17 @@ def test_the_gil_is_released_during_a_frame():
     inside = [t for t in ticks if span["start"] < t < span["end"]]
     # the frame takes tens of milliseconds; a released GIL lets this loop tick thousands of times
     assert len(inside) > 100, (len(inside), span["end"] - span["start"])
+
+
+def test_warnings_reach_pythons_warnings_module():
+    """A support radius far off warns through `warnings` (UserWarning) and in Frame.warnings;
+    a good one does not."""
+    d = fs.read(DAM_BREAK)
+    with pytest.warns(UserWarning, match="too large"):
+        frame = fs.Pipeline(support_radius=0.5).frame(d["positions"], through="surface")
+    assert any("too large" in w for w in frame.warnings)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert fs.Pipeline().frame(d["positions"], through="surface").warnings == []

@@ -511,10 +511,12 @@ impl Pipeline {
         let t = Instant::now();
         let nb = Neighbourhoods::build(particles.positions, radius, Backend::CellGrid)?;
         timings.neighbours_ms = ms(t);
-        self.warn(
-            &mut warnings,
-            neighbour_count_warning(radius, nb.mean_count()),
-        );
+        if !particles.is_empty() {
+            self.warn(
+                &mut warnings,
+                neighbour_count_warning(radius, nb.mean_count()),
+            );
+        }
         let t = Instant::now();
         let surface = self.detector.detect(particles, &nb)?;
         timings.detect_ms = ms(t);
@@ -974,14 +976,14 @@ pub fn neighbour_count_warning(radius: f32, mean: f32) -> Option<String> {
     if mean < lo {
         Some(format!(
             "support radius {radius} gives {mean:.1} neighbours per particle (usual: 30-60): \
-             too small for this file, the surface breaks up into drops; give a larger --radius \
-             (about twice the particle spacing)"
+             too small for this file, the surface breaks up into drops; give a larger support \
+             radius (--radius, support_radius: about twice the particle spacing)"
         ))
     } else if mean > hi {
         Some(format!(
             "support radius {radius} gives {mean:.0} neighbours per particle (usual: 30-60): \
              too large for this file, the surface is blurred and every stage is slow; give a \
-             smaller --radius (about twice the particle spacing)"
+             smaller support radius (--radius, support_radius: about twice the particle spacing)"
         ))
     } else {
         None
