@@ -173,6 +173,35 @@ pub struct StepStats {
     pub moved: usize,
     /// Wall-clock time of the step.
     pub ms: f64,
+    /// Where the step's time went, in milliseconds: making the candidates, their type 2 checks,
+    /// the sequential type 3 checks with acceptance and registration, and the append, moves and
+    /// neighbourhood update (`bench refine` sums them).
+    pub phases: StepPhases,
+}
+
+/// Milliseconds of each phase of one step ([`StepStats::phases`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StepPhases {
+    pub candidates_ms: f64,
+    pub type2_ms: f64,
+    pub accept_ms: f64,
+    /// Of `update_ms`: the moves of eq. 17-19 (sequential).
+    pub moves_ms: f64,
+    pub update_ms: f64,
+}
+
+impl StepPhases {
+    /// The sum of two steps' phases.
+    #[must_use]
+    pub fn plus(self, o: Self) -> Self {
+        Self {
+            candidates_ms: self.candidates_ms + o.candidates_ms,
+            type2_ms: self.type2_ms + o.type2_ms,
+            accept_ms: self.accept_ms + o.accept_ms,
+            moves_ms: self.moves_ms + o.moves_ms,
+            update_ms: self.update_ms + o.update_ms,
+        }
+    }
 }
 
 /// The refined point set `P_n`.
@@ -604,7 +633,7 @@ fn append_and_update(
     beta: f32,
     last: bool,
     parallel: bool,
-) -> usize {
+) -> (usize, f64) {
     let n_old = pts.pos.len();
     for c in accepted {
         pts.pos.push(c.pos);
@@ -612,11 +641,13 @@ fn append_and_update(
         pts.step.push(step);
         pts.weight.push(c.weight);
     }
+    let t = Instant::now();
     let moved = apply_moves(pts, moves, accepted, registered, n_old, beta);
+    let moves_ms = t.elapsed().as_secs_f64() * 1e3;
     if last {
         // no update after the last step (§3.4)
         pts.nb.resize(pts.pos.len(), Vec::new());
-        return moved;
+        return (moved, moves_ms);
     }
     let r2 = r_next * r_next;
     let pos = &pts.pos;
@@ -684,7 +715,7 @@ fn append_and_update(
         old.extend(new); // old indices < n_old <= new indices: sorted
         pts.nb.push(old);
     }
-    moved
+    (moved, moves_ms)
 }
 
 /// Splat and kernel radii: `splat_factor * r_n` and `kernel_factor * r_n` for points that took
@@ -768,6 +799,8 @@ fn step_once(
     }
     let candidates: Vec<Candidate> = per_point.into_iter().flat_map(|p| p.0).collect();
     s.candidates = candidates.len();
+    s.phases.candidates_ms = t.elapsed().as_secs_f64() * 1e3;
+    let phase = Instant::now();
     // type 2 hits depend on the older points only
     let hits: Vec<Option<u32>> = match (params.collisions, parallel) {
         (false, _) => vec![None; candidates.len()],
@@ -777,6 +810,8 @@ fn step_once(
             .collect(),
         (true, false) => candidates.iter().map(|c| type2_hit(pts, c, beta)).collect(),
     };
+    s.phases.type2_ms = phase.elapsed().as_secs_f64() * 1e3;
+    let phase = Instant::now();
     // type 3, acceptance and registration, in candidate order
     let mut registered: Vec<Vec<u32>> = vec![Vec::new(); n_old];
     let mut children_of: Vec<Vec<u32>> = vec![Vec::new(); n_old];
@@ -802,7 +837,9 @@ fn step_once(
         accepted.push(*c);
     }
     s.resolved = moves.len();
-    s.moved = append_and_update(
+    s.phases.accept_ms = phase.elapsed().as_secs_f64() * 1e3;
+    let phase = Instant::now();
+    (s.moved, s.phases.moves_ms) = append_and_update(
         pts,
         &accepted,
         &moves,
@@ -815,6 +852,7 @@ fn step_once(
         parallel,
     );
     s.points_after = pts.pos.len();
+    s.phases.update_ms = phase.elapsed().as_secs_f64() * 1e3;
     s.ms = t.elapsed().as_secs_f64() * 1e3;
     Ok(s)
 }

@@ -293,6 +293,8 @@ struct RefineRow {
     reference_seconds: f64,
     reference_points_per_second: f64,
     speedup: f64,
+    /// Milliseconds per phase of the fastest parallel run, summed over its steps.
+    phases: fluid_surfels::refine::StepPhases,
 }
 
 #[derive(Serialize)]
@@ -335,10 +337,19 @@ pub fn bench_refine(args: &BenchRefineArgs) -> Result<(), Error> {
         let mut best = f64::INFINITY;
         let mut best_ref = f64::INFINITY;
         let mut p3 = 0;
+        let mut phases = fluid_surfels::refine::StepPhases::default();
         for _ in 0..args.repeat.max(1) {
             let t = Instant::now();
             let r = refine(&p, &n, &params)?;
-            best = best.min(t.elapsed().as_secs_f64());
+            let seconds = t.elapsed().as_secs_f64();
+            if seconds < best {
+                // the phases of the fastest run
+                phases = r
+                    .stats
+                    .iter()
+                    .fold(Default::default(), |a, s| s.phases.plus(a));
+            }
+            best = best.min(seconds);
             p3 = r.len();
             let t = Instant::now();
             let r = refine_reference(&p, &n, &params)?;
@@ -355,6 +366,7 @@ pub fn bench_refine(args: &BenchRefineArgs) -> Result<(), Error> {
             reference_seconds: best_ref,
             reference_points_per_second: p3 as f64 / best_ref,
             speedup: best_ref / best,
+            phases,
         });
     }
     let report = RefineBenchReport {
@@ -388,6 +400,22 @@ pub fn bench_refine(args: &BenchRefineArgs) -> Result<(), Error> {
             );
         }
         println!("  (points/s = P3 / seconds, as in the paper's Table 1)");
+        println!(
+            "  the parallel run's phases, ms over its steps: candidates | type 2 checks | type 3, accept, register (sequential) | update: moves (sequential) + neighbourhoods"
+        );
+        for r in &report.frames {
+            let p = r.phases;
+            println!(
+                "  {:<14} {:>8.1} {:>8.1} {:>8.1} {:>8.1} = {:.1} + {:.1}",
+                r.name,
+                p.candidates_ms,
+                p.type2_ms,
+                p.accept_ms,
+                p.update_ms,
+                p.moves_ms,
+                p.update_ms - p.moves_ms
+            );
+        }
     }
     Ok(())
 }
