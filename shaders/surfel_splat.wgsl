@@ -17,6 +17,12 @@
 //    convolution of the object-space kernel with a screen-space low-pass): a minified splat still
 //    covers about one pixel instead of falling between pixel centres.
 // 3. vs_fullscreen + fs_shade: divides by the weight and shades (Blinn-Phong, directional light).
+//
+// Mode 2 is particle splatting (Adams, Lenaerts, Dutré 2006, §3): each surfel's position and radius
+// is a sphere drawn as a screen square of the projected radius; pass 1 writes the nearest sphere
+// depth (eq. 5) pushed back by epsilon along the view axis; pass 2 reads that depth (bound at
+// binding 3 beside the read-only depth attachment) for the weight W1 W2 (eqs. 6, 7) and blends the
+// per-fragment sphere normals.
 
 struct Uniforms {
     // world -> view (rigid; the camera looks along -z)
@@ -43,11 +49,14 @@ struct Uniforms {
     low_pass: f32,
     // Gaussian weight exp(-sharpness * r^2)
     sharpness: f32,
-    // 0: EWA splats, 1: plain point sprites (round, nearest wins, no blending)
+    // 0: EWA splats, 1: plain point sprites (round, nearest wins, no blending), 2: particle
+    // spheres (Adams et al. 2006)
     mode: u32,
 }
 
 @group(0) @binding(0) var<uniform> u: Uniforms;
+// pass 1's depth buffer, read by pass 2 (the spheres' W2)
+@group(0) @binding(3) var visible_depth: texture_depth_2d;
 
 // A surfel as it is stored (64 bytes, `Surfel` in src/splat/mod.rs).
 struct SurfelIn {
@@ -139,21 +148,29 @@ fn splat_frame(position: vec3<f32>, radius: f32, normal: vec3<f32>, stretch: f32
     f.axis_u = uv / dot(uv, uv);
     f.axis_v = vv / dot(vv, vv);
     f.normal_view = nv;
-    // back faces culled (the camera is at the view-space origin; orthographic views look along -z)
-    if (dot(nv, select(c, vec3<f32>(0.0, 0.0, -1.0), u.material.y == 1.0)) >= 0.0) {
+    // back faces culled (the camera is at the view-space origin; orthographic views look along -z);
+    // spheres have none
+    if (u.mode != 2u && dot(nv, select(c, vec3<f32>(0.0, 0.0, -1.0), u.material.y == 1.0)) >= 0.0) {
         return f;
     }
     let eps = u.depth_offset * radius;
     var lo = vec2<f32>(0.0, 0.0);
     var hi = u.viewport;
     let centre_px = pixels_of(c);
-    if (u.mode == 1u) {
-        // a sprite: a screen disk of the projected radius around the projected centre
+    if (u.mode != 0u) {
+        // a sprite or a sphere: a screen disk of the projected radius around the projected centre
         if (centre_px.z <= 0.0) {
             return f;
         }
-        let r_px = radius * u.proj[1][1] * 0.5 * u.viewport.y / centre_px.z;
-        f.screen = vec4<f32>(centre_px.xy, r_px, 0.0);
+        var r_px = radius * u.proj[1][1] * 0.5 * u.viewport.y / centre_px.z;
+        var offset = 0.0;
+        if (u.mode == 2u) {
+            // at least the low-pass radius (mirror: `frame`); the world radius in axis_u.x
+            r_px = max(r_px, u.low_pass);
+            f.axis_u = vec3<f32>(radius, 0.0, 0.0);
+            offset = eps;
+        }
+        f.screen = vec4<f32>(centre_px.xy, r_px, offset);
         lo = max(lo, centre_px.xy - vec2<f32>(r_px + 1.0));
         hi = min(hi, centre_px.xy + vec2<f32>(r_px + 1.0));
     } else {
@@ -218,6 +235,8 @@ struct Fragment {
     // depth-buffer value without and with the offset
     ndc: f32,
     ndc_offset: f32,
+    // the sphere's normal at the fragment in view space (mode 2)
+    sphere_normal: vec3<f32>,
 }
 
 fn ndc_depth(p: vec3<f32>) -> f32 {
@@ -237,7 +256,14 @@ fn splat_fragment(pixel: vec2<f32>, centre: vec3<f32>, axis_u: vec3<f32>, axis_v
     let d = ray.dir;
     var r2 = 3.0e38;
     var depth = -centre.z;
-    if (u.mode == 1u) {
+    if (u.mode == 2u) {
+        // eq. 5 (mirror: `fragment`)
+        let e = (pixel - screen.xy) / screen.z;
+        r2 = dot(e, e);
+        let height = sqrt(max(1.0 - r2, 0.0));
+        depth = -centre.z - axis_u.x * height;
+        f.sphere_normal = vec3<f32>(e.x, -e.y, height);
+    } else if (u.mode == 1u) {
         let e = (pixel - screen.xy) / screen.z;
         r2 = dot(e, e);
     } else {
@@ -281,7 +307,11 @@ fn splat_fragment(pixel: vec2<f32>, centre: vec3<f32>, axis_u: vec3<f32>, axis_v
     }
     let p = o + d * depth;
     f.ndc = ndc_depth(p);
-    f.ndc_offset = ndc_depth(p + normalize(d) * screen.w);
+    if (u.mode == 2u) {
+        f.ndc_offset = ndc_depth(o + d * (depth + screen.w));
+    } else {
+        f.ndc_offset = ndc_depth(p + normalize(d) * screen.w);
+    }
     if (!(f.ndc >= 0.0 && f.ndc <= 1.0)) {
         return f;
     }
@@ -307,11 +337,26 @@ struct Accumulated {
     @builtin(frag_depth) depth: f32,
 }
 
-fn splat_weight(r2: f32) -> f32 {
+// The view depth of the point on a view ray whose depth-buffer value is `ndc` (mirror:
+// `View::linear_depth`).
+fn linear_depth(ndc: f32) -> f32 {
+    return (u.proj[3][2] - ndc * u.proj[3][3]) / (u.proj[2][2] - ndc * u.proj[2][3]);
+}
+
+// The weight of a fragment in pass 2, `buffer` pass 1's depth at its pixel (mirror: `weight`).
+fn splat_weight(f: Fragment, buffer: f32, epsilon: f32) -> f32 {
     if (u.mode == 1u) {
         return 1.0;
     }
-    return exp(-u.sharpness * r2);
+    if (u.mode == 2u) {
+        let w1 = 1.0 - sqrt(f.r2);
+        var w2 = 1.0;
+        if (epsilon > 0.0) {
+            w2 = clamp((linear_depth(buffer) - f.depth) / epsilon, 0.0, 1.0);
+        }
+        return w1 * w2;
+    }
+    return exp(-u.sharpness * f.r2);
 }
 
 @fragment
@@ -320,10 +365,16 @@ fn fs_attributes(s: SplatOut) -> Accumulated {
     if (!f.keep) {
         discard;
     }
-    let w = splat_weight(f.r2);
+    var buffer = 1.0;
+    var normal = s.normal_world;
+    if (u.mode == 2u) {
+        buffer = textureLoad(visible_depth, vec2<i32>(s.position.xy), 0);
+        normal = (u.inv_view * vec4<f32>(f.sphere_normal, 0.0)).xyz;
+    }
+    let w = splat_weight(f, buffer, s.screen.w);
     var out: Accumulated;
     out.colour = vec4<f32>(s.colour.rgb * w, w);
-    out.normal_depth = vec4<f32>(s.normal_world * w, f.depth * w);
+    out.normal_depth = vec4<f32>(normal * w, f.depth * w);
     out.depth = f.ndc;
     return out;
 }

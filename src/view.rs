@@ -276,7 +276,7 @@ pub struct View {
     pub(crate) low_pass: f32,
     pub(crate) max_fragments: u64,
     pub(crate) sharpness: f32,
-    pub(crate) sprites: bool,
+    pub(crate) mode: SplatMode,
 }
 
 impl View {
@@ -334,11 +334,16 @@ impl View {
             background: Vec4::from(params.background),
             shininess: light.shininess,
             orthographic: false,
-            depth_offset: params.depth_offset,
+            // Adams et al.'s spheres have their own epsilon (1.5 h, §4), the disks theirs
+            depth_offset: if params.mode == SplatMode::Spheres {
+                params.sphere_depth_offset
+            } else {
+                params.depth_offset
+            },
             low_pass: params.low_pass_px,
             max_fragments: params.max_fragments,
             sharpness: params.sharpness,
-            sprites: params.mode == SplatMode::Sprites,
+            mode: params.mode,
         })
     }
 
@@ -361,6 +366,15 @@ impl View {
     pub(crate) fn ndc_depth(&self, p: Vec3) -> f32 {
         let clip = self.proj * p.extend(1.0);
         clip.z / clip.w
+    }
+
+    /// The view depth `t` of the point on a view ray (`origin + t dir`, see [`View::ray`]) whose
+    /// depth-buffer value is `ndc`: the inverse of [`View::ndc_depth`] along the ray
+    /// (`linear_depth` in the WGSL). The projections here map view `z` alone to clip `z` and `w`:
+    /// `ndc = (Zz z + Wz) / (Zw z + Ww)` with `z = -t`, so `t = (Wz - ndc Ww) / (Zz - ndc Zw)`.
+    pub(crate) fn linear_depth(&self, ndc: f32) -> f32 {
+        let (z, w) = (self.proj.z_axis, self.proj.w_axis);
+        (w.z - ndc * w.w) / (z.z - ndc * z.w)
     }
 
     /// The view ray through a pixel position, in view space (`view_ray` in the WGSL): origin and

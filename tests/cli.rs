@@ -994,6 +994,70 @@ fn render_papercuts_fail_early_with_what_to_do() {
     assert!(e.contains("-z"), "{e}");
 }
 
+/// `render --renderer particle-splat` draws every particle of the `particles` source as a
+/// sphere of the support radius: the PNG is the library's particle splatting of those spheres
+/// from the camera the report gives.
+#[test]
+fn render_draws_particle_spheres_with_the_particle_splat_renderer() {
+    let dir = ddb_dir();
+    let d = dir.path();
+    let out = d.join("spheres.png");
+    let report = json_of(&render_ddb(
+        d,
+        &[
+            "--renderer",
+            "particle-splat",
+            "--json",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+    ));
+    assert_eq!(report["renderer"], "particle-splat", "{report}");
+    assert_eq!(report["mode"], "spheres", "{report}");
+    let set = ddb_set();
+    assert_eq!(report["surfels"].as_u64().unwrap(), set.len() as u64);
+    let camera: fluid_surfels::splat::Camera =
+        serde_json::from_value(report["camera"].clone()).unwrap();
+    let radius = 2.0 * fluid_surfels::neighbours::estimate_spacing(&set.positions).unwrap();
+    let spheres = fluid_surfels::splat::spheres_from(
+        &set.positions,
+        &[],
+        radius,
+        fluid_surfels::splat::WATER,
+    );
+    let params = fluid_surfels::splat::SplatParams {
+        mode: fluid_surfels::splat::SplatMode::Spheres,
+        ..Default::default()
+    };
+    let expected = fluid_surfels::splat::render_cpu(
+        &spheres,
+        &camera,
+        &fluid_surfels::splat::Light::default(),
+        &params,
+        64,
+        48,
+    )
+    .unwrap();
+    assert!(expected.covered_pixels() > 200);
+    let png = image::open(&out).unwrap().to_rgba8();
+    assert_eq!(
+        png, expected.image,
+        "the PNG is not the library's particle splatting"
+    );
+    // sprites are a mode of the EWA renderer
+    let e = stderr_of(&render_ddb(
+        d,
+        &[
+            "--renderer",
+            "particle-splat",
+            "--sprites",
+            "--out",
+            "x.png",
+        ],
+    ));
+    assert!(e.contains("cannot be used with"), "{e}");
+}
+
 #[test]
 fn render_background_is_flat_and_holes_are_reported() {
     let dir = ddb_dir();

@@ -428,6 +428,65 @@ fn gpu_pipeline_equals_the_gpu_optics_and_the_cpu_pipeline() {
     assert!(db >= 35.0, "shaded splats: {db:.1} dB");
 }
 
+/// Particle splatting (Adams et al. 2006) as the pipeline's renderer: `GpuPipeline` draws the
+/// same finished frame and shaded splats as the CPU `Pipeline` (column splash frame), so the
+/// spheres reach the optics on the GPU as on the CPU.
+#[test]
+fn gpu_pipeline_with_particle_splatting_equals_the_cpu_pipeline() {
+    let Some(ctx) = gpu::context_or_skip("gpu_pipeline_particle_splat").unwrap() else {
+        return;
+    };
+    let size = (128, 128);
+    let (mut sim, mut params) = column_setup(size);
+    params.renderer = pipeline::Renderer::ParticleSplat;
+    let mut cpu = Pipeline::new(params.clone()).unwrap();
+    let frame = pipeline::column_frame(
+        &mut cpu,
+        &mut sim,
+        scenes::ColumnParams::SPLASH_FRAME,
+        Through::Frame,
+        |_| {},
+    )
+    .unwrap();
+    assert!(frame.grid.is_none(), "particle splatting needs no grid");
+    let format = wgpu::TextureFormat::Rgba8Unorm;
+    let mut gpu = GpuPipeline::new(&ctx.device, &ctx.queue, format, size, &params).unwrap();
+    let image = gpu.render_frame_image(&ctx, &frame).unwrap();
+    let cpu_image = &frame.finished.as_ref().unwrap().image;
+    let db = splat::psnr(cpu_image, &image);
+    let cpu_splats = cpu
+        .frame_of_surfels(frame.render_surfels.clone(), Through::Splats)
+        .unwrap();
+    let cpu_splats = &cpu_splats.splats.as_ref().unwrap().image;
+    let target = gpu::texture_2d(
+        &ctx.device,
+        "splats",
+        size,
+        format,
+        wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+    );
+    let view = target.create_view(&Default::default());
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    gpu.encode_splats(&ctx.device, &ctx.queue, &mut encoder, &frame, &view)
+        .unwrap();
+    ctx.queue.submit([encoder.finish()]);
+    let splats = gpu::read_rgba8(&ctx, &target).unwrap();
+    let splats_db = splat::psnr(cpu_splats, &splats);
+    println!(
+        "particle splatting, column splash frame {}x{}: GpuPipeline against the CPU Pipeline {db:.1} dB (finished frame), {splats_db:.1} dB (shaded splats)",
+        size.0, size.1
+    );
+    if db < 35.0 {
+        let dir = std::env::temp_dir();
+        cpu_image
+            .save(dir.join("gpu_pipeline_ps-expected.png"))
+            .unwrap();
+        image.save(dir.join("gpu_pipeline_ps-actual.png")).unwrap();
+    }
+    assert!(db >= 35.0, "finished frame: {db:.1} dB");
+    assert!(splats_db >= 40.0, "shaded splats: {splats_db:.1} dB");
+}
+
 /// In a sequence `GpuPipeline` reuses its GPU resources (nothing created after the first frame:
 /// uniforms, receiver and surfels are written through the queue) and the reused resources give
 /// the image a fresh preparation of the same stage gives.

@@ -9,7 +9,9 @@ use fluid_surfels::Error;
 use fluid_surfels::density::Resolution;
 use fluid_surfels::gpu::GpuContext;
 use fluid_surfels::io::{self, Format};
-use fluid_surfels::pipeline::{self, GpuPipeline, Pipeline, PipelineParams, SurfelSource, Through};
+use fluid_surfels::pipeline::{
+    self, GpuPipeline, Pipeline, PipelineParams, Renderer, SurfelSource, Through,
+};
 use fluid_surfels::scenes::{self, ColumnParams, ColumnSim, SceneName};
 use fluid_surfels::sequence::{FramePattern, FrameRange};
 use fluid_surfels::splat::{self, Camera, Light, Render, SplatMode, SplatParams, Surfel};
@@ -48,6 +50,12 @@ pub struct RenderArgs {
     /// refined (the refined points as surfels).
     #[arg(long, value_enum, default_value = "chain")]
     pub source: SourceChoice,
+    /// How the surface is drawn: ewa (EWA surface splatting of the source's surfels) or
+    /// particle-splat (Adams et al. 2006: the source's points as spheres of their kernel
+    /// radius, blended within 1.5 radii of the nearest; no density grid), in the shaded splats
+    /// and in the finished frame alike.
+    #[arg(long, value_enum, default_value = "ewa")]
+    pub renderer: RendererChoice,
     /// Density grid points along the longest axis (default: spacing a third of the smallest
     /// kernel radius in use, within the grid's memory budget).
     #[arg(long)]
@@ -80,9 +88,10 @@ pub struct RenderArgs {
     #[arg(long)]
     pub mark_specks: bool,
     /// Draw plain point sprites instead of EWA splats (for comparison).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "renderer")]
     pub sprites: bool,
-    /// Depth offset epsilon in surfel radii (default 1).
+    /// Depth offset epsilon in surfel radii (default 1; with --renderer particle-splat in
+    /// sphere radii, default 1.5).
     #[arg(long)]
     pub depth_offset: Option<f32>,
     /// Screen-space low-pass radius in pixels (default 1; 0 switches it off).
@@ -222,6 +231,22 @@ pub enum SourceChoice {
     Refined,
 }
 
+/// `--renderer` on the command line.
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum RendererChoice {
+    Ewa,
+    ParticleSplat,
+}
+
+impl From<RendererChoice> for Renderer {
+    fn from(c: RendererChoice) -> Self {
+        match c {
+            RendererChoice::Ewa => Self::Ewa,
+            RendererChoice::ParticleSplat => Self::ParticleSplat,
+        }
+    }
+}
+
 impl From<SourceChoice> for SurfelSource {
     fn from(c: SourceChoice) -> Self {
         match c {
@@ -283,6 +308,7 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
         p.support_radius = args.radius;
     }
     p.source = args.source.into();
+    p.renderer = args.renderer.into();
     if let Some(r) = args.resolution {
         p.grid.resolution = Some(Resolution::LongestAxis(r));
     }
@@ -290,7 +316,10 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
         p.splat.mode = SplatMode::Sprites;
     }
     if let Some(d) = args.depth_offset {
-        p.splat.depth_offset = d;
+        match p.renderer {
+            Renderer::Ewa => p.splat.depth_offset = d,
+            Renderer::ParticleSplat => p.splat.sphere_depth_offset = d,
+        }
     }
     if let Some(l) = args.low_pass {
         p.splat.low_pass_px = l;
@@ -471,6 +500,7 @@ struct RenderReport {
     source: String,
     particles: Option<usize>,
     surfel_source: Option<&'static str>,
+    renderer: &'static str,
     surfels: usize,
     skipped_surfels: usize,
     width: u32,
@@ -523,8 +553,8 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     if params.support_radius.is_none() {
         params.support_radius = frames.support_radius();
     }
-    let splat_params = params.splat;
     let mut pipeline = Pipeline::new(params)?;
+    let splat_params = pipeline.splat_params();
     super::warn_at_once(&mut pipeline);
     let t = Instant::now();
     let (source, particles, frame) =
@@ -555,6 +585,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         surfel_source: particles
             .map(|_| args.source.into())
             .map(SurfelSource::as_str),
+        renderer: Renderer::from(args.renderer).as_str(),
         surfels: surfels.len(),
         skipped_surfels: surfels.iter().filter(|s| !s.is_drawable()).count(),
         width: args.size.0,
@@ -575,9 +606,10 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         super::print_json(&report);
     } else {
         println!(
-            "{}: {} surfels{} ({} skipped as undrawable){}",
+            "{}: {} {}{} ({} skipped as undrawable){}",
             report.source,
             report.surfels,
+            drawn_as(args),
             report
                 .surfel_source
                 .map(|s| format!(" from the {s} source"))
@@ -605,6 +637,14 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         println!("  wrote {}", report.output);
     }
     Ok(())
+}
+
+/// What the renderer draws, for the reports: surfels, or the spheres of particle splatting.
+fn drawn_as(args: &RenderArgs) -> &'static str {
+    match args.renderer {
+        RendererChoice::Ewa => "surfels",
+        RendererChoice::ParticleSplat => "spheres",
+    }
 }
 
 /// Writes the rendered surfels to `--save-surfels`, when given.
@@ -922,10 +962,11 @@ fn report_frame(
     } else {
         let s = &r.stats;
         println!(
-            "{}{}: {} surfels ({:.0} ms){}{}; frame {}x{} on the {}, {:.1} ms; wrote {}",
+            "{}{}: {} {} ({:.0} ms){}{}; frame {}x{} on the {}, {:.1} ms; wrote {}",
             r.source,
             frame.map(|f| format!(" frame {f}")).unwrap_or_default(),
             s.surfels,
+            drawn_as(args),
             s.surfels_ms,
             match (s.screen, s.map) {
                 (Some(a), Some(b)) =>

@@ -281,7 +281,7 @@ impl GpuPipeline {
     ) -> Result<(), Error> {
         let camera = self.cpu.splat_camera(&frame.render_surfels);
         let (w, h) = self.size;
-        let view = View::new(&camera, &Light::default(), &self.cpu.params().splat, w, h)?;
+        let view = View::new(&camera, &Light::default(), &self.cpu.splat_params(), w, h)?;
         self.splat_surfels
             .write(device, queue, &frame.render_surfels);
         self.splats

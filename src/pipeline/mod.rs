@@ -17,7 +17,10 @@
 //! then kept, so that what does not move renders the same in every frame.
 //!
 //! Where the rendered surfels come from is [`SurfelSource`]: the design chain (default), the
-//! density grid of the raw particles, or the refined points themselves.
+//! density grid of the raw particles, or the refined points themselves. How they are drawn is
+//! [`Renderer`]: EWA surface splatting of surfels (default), or particle splatting (Adams et al.
+//! 2006), which draws the source's points as spheres with neither a grid nor surfels; either
+//! gives the optics stage the same per-pixel depth and normal buffers to refract and reflect.
 //!
 //! ```
 //! use fluid_surfels::pipeline::{Pipeline, PipelineParams, Through};
@@ -82,6 +85,36 @@ impl SurfelSource {
     }
 }
 
+/// How the water surface is drawn, in the shaded splats and in the optics' views.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Renderer {
+    /// EWA surface splatting (Botsch et al. 2005) of the source's surfels: the design.
+    #[default]
+    Ewa,
+    /// Particle splatting (Adams et al. 2006, [`splat::SplatMode::Spheres`]): the source's
+    /// points drawn as spheres of their kernel radius (the zero level set of eq. 1), blended
+    /// within `sphere_depth_offset` radii of the nearest; no density grid and no surfels. The
+    /// points: `chain`, the interior particles with the support radius and the refined surface
+    /// points with their kernel radii; `particles`, every particle with the support radius;
+    /// `refined`, the refined points with their kernel radii.
+    ParticleSplat,
+}
+
+impl Renderer {
+    /// Every renderer, in the order of the documentation.
+    pub const ALL: [Self; 2] = [Self::Ewa, Self::ParticleSplat];
+
+    /// The name used in files and on the command line.
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Ewa => "ewa",
+            Self::ParticleSplat => "particle-splat",
+        }
+    }
+}
+
 /// How far [`Pipeline::frame_through`] runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -140,6 +173,8 @@ pub struct PipelineParams {
     pub refine: RefineParams,
     /// Where the rendered surfels come from.
     pub source: SurfelSource,
+    /// How they are drawn (EWA surfels or particle spheres).
+    pub renderer: Renderer,
     /// Stage 3: the density grid.
     pub grid: GridParams,
     /// Stage 3: surfels on the iso-surface.
@@ -161,6 +196,7 @@ impl Default for PipelineParams {
             surface: SurfaceParams::default(),
             refine: RefineParams::default(),
             source: SurfelSource::default(),
+            renderer: Renderer::default(),
             grid: GridParams::default(),
             surfels: SurfelParams::default(),
             splat: SplatParams::default(),
@@ -171,11 +207,12 @@ impl Default for PipelineParams {
 }
 
 /// The keys of a TOML file that belong to the pipeline; every other key is the optics scene's.
-const PIPELINE_KEYS: [&str; 8] = [
+const PIPELINE_KEYS: [&str; 9] = [
     "support_radius",
     "surface",
     "refine",
     "source",
+    "renderer",
     "grid",
     "surfels",
     "splat",
@@ -183,7 +220,7 @@ const PIPELINE_KEYS: [&str; 8] = [
 ];
 
 impl PipelineParams {
-    /// Reads a TOML file: the pipeline's tables (`support_radius`, `source`, `[surface]`,
+    /// Reads a TOML file: the pipeline's tables (`support_radius`, `source`, `renderer`, `[surface]`,
     /// `[refine]`, `[grid]`, `[surfels]`, `[splat]`, `keep_views`) beside the scene's
     /// (`[camera]`, `[light]`, `[receiver]`, `[water]`, `[environment]`, `[optics]`), so a scene
     /// file of `render --config` is a pipeline file too. Unknown keys are refused; relative paths
@@ -323,9 +360,10 @@ pub struct Frame {
     pub refined: Option<Refined>,
     /// The density grid (Chain and Particles sources).
     pub grid: Option<DensityGrid>,
-    /// Surfels on the iso-surface (Chain and Particles sources).
+    /// Surfels on the iso-surface (Chain and Particles sources, EWA renderer).
     pub surfels: Option<Surfels>,
-    /// The surfels that are rendered, whatever their source.
+    /// The surfels that are rendered, whatever their source (the spheres of
+    /// [`Renderer::ParticleSplat`]).
     pub render_surfels: Vec<Surfel>,
     /// The camera the frame is seen from.
     pub camera: Option<Camera>,
@@ -553,6 +591,42 @@ impl Pipeline {
         }
         // stage 3: density grid and iso-surface surfels
         let colour = splat::WATER;
+        if self.params.renderer == Renderer::ParticleSplat {
+            let (positions, radii) = match self.params.source {
+                SurfelSource::Chain => chain_points(
+                    particles,
+                    &frame.surface,
+                    frame.refined.as_ref().expect("refined above"),
+                    radius,
+                ),
+                SurfelSource::Particles => (particles.positions.to_vec(), Vec::new()),
+                SurfelSource::Refined => {
+                    let r = frame.refined.as_ref().expect("refined above");
+                    (r.positions.clone(), r.kernel_radii.clone())
+                }
+            };
+            frame.render_surfels = splat::spheres_from(&positions, &radii, radius, colour);
+        } else {
+            self.iso_or_refined_surfels(particles, &mut frame, radius, &mut warnings)?;
+        }
+        if through >= Through::Splats {
+            self.render(&mut frame, through)?;
+        }
+        frame.warnings = warnings;
+        frame.timings.total_ms = ms(total);
+        Ok(frame)
+    }
+
+    /// Stage 3 of the EWA renderer: the source's surfels (on the iso-surface of its density
+    /// grid, or the refined points themselves).
+    fn iso_or_refined_surfels(
+        &mut self,
+        particles: ParticleView<'_>,
+        frame: &mut Frame,
+        radius: f32,
+        warnings: &mut Vec<String>,
+    ) -> Result<(), Error> {
+        let colour = splat::WATER;
         match self.params.source {
             SurfelSource::Refined => {
                 let r = frame.refined.as_ref().expect("refined above");
@@ -583,7 +657,7 @@ impl Pipeline {
                 {
                     frame.timings.density_ms = iso.density_ms;
                     frame.timings.surfels_ms = iso.surfels_ms;
-                    self.warn(&mut warnings, iso.warning);
+                    self.warn(warnings, iso.warning);
                     frame.render_surfels = splat::surfels_from(
                         &iso.surfels.positions,
                         &iso.surfels.normals,
@@ -597,12 +671,7 @@ impl Pipeline {
                 }
             }
         }
-        if through >= Through::Splats {
-            self.render(&mut frame, through)?;
-        }
-        frame.warnings = warnings;
-        frame.timings.total_ms = ms(total);
-        Ok(frame)
+        Ok(())
     }
 
     /// Stages 4 and 5 on surfels made elsewhere (a file of surfels, another tool's): the shaded
@@ -692,12 +761,23 @@ impl Pipeline {
             surfels,
             &camera,
             &Light::default(),
-            &self.params.splat,
+            &self.splat_params(),
             w,
             h,
         )?);
         frame.timings.splats_ms = ms(t);
         Ok(())
+    }
+
+    /// The parameters of the shaded splats: `[splat]`, with the mode of the renderer
+    /// ([`splat::SplatMode::Spheres`] for [`Renderer::ParticleSplat`]).
+    #[must_use]
+    pub fn splat_params(&self) -> SplatParams {
+        let mut p = self.params.splat;
+        if self.params.renderer == Renderer::ParticleSplat {
+            p.mode = splat::SplatMode::Spheres;
+        }
+        p
     }
 
     /// The camera of the shaded splats: the sequence's kept camera, else the scene's, else one
@@ -724,6 +804,9 @@ impl Pipeline {
     /// the scene box, later frames of the sequence keep them.
     pub(crate) fn fitted_scene(&mut self, surfels: &[Surfel]) -> Result<OpticsScene, Error> {
         let mut scene = self.params.scene.clone();
+        if self.params.renderer == Renderer::ParticleSplat {
+            scene.optics.splat.mode = splat::SplatMode::Spheres;
+        }
         if !self.params.keep_views {
             return Ok(scene);
         }

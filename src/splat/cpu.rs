@@ -2,13 +2,13 @@
 //! ([`super::gpu`]) is tested against. Parallel over bands of rows; within a band, surfels blend
 //! in their order, so the image does not depend on the thread count.
 
-use glam::{Vec2, Vec3, Vec4};
+use glam::{Vec2, Vec3, Vec4, Vec4Swizzles};
 use image::RgbaImage;
 use rayon::prelude::*;
 
 use super::{
-    Camera, Frame, Light, Render, SplatError, SplatParams, Surfel, View, fragment, frame, shade,
-    weight,
+    Camera, Frame, Light, Render, SplatError, SplatMode, SplatParams, Surfel, View, fragment,
+    frame, shade, weight,
 };
 
 /// Converts a shaded pixel to 8 bits as an `Rgba8Unorm` store does (round to nearest).
@@ -101,6 +101,7 @@ pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Result<Render, SplatErro
             }
         });
     // pass 2: attributes, blended in surfel order like the GPU's ordered blending
+    let spheres = v.mode == SplatMode::Spheres;
     let mut colour = vec![[0.0f32; 4]; w * h];
     let mut normal_depth = vec![[0.0f32; 4]; w * h];
     colour
@@ -120,10 +121,16 @@ pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Result<Render, SplatErro
                         let Some(frag) = fragment(pixel, &p.frame, v) else {
                             continue;
                         };
-                        if frag.ndc > depth[y * w + x] {
+                        let buffer = depth[y * w + x];
+                        if frag.ndc > buffer {
                             continue;
                         }
-                        let wt = weight(frag.r2, v);
+                        let wt = weight(&frag, buffer, v);
+                        let n = if spheres {
+                            (v.inv_view * frag.sphere_normal.extend(0.0)).xyz()
+                        } else {
+                            n
+                        };
                         let i = (y - y0) * w + x;
                         let acc = &mut crow[i];
                         for ch in 0..3 {

@@ -15,7 +15,7 @@ use serde::Serialize;
 use wgpu::util::DeviceExt;
 
 use crate::gpu::{self, GpuContext, GpuError, REQUIRED_FEATURES, entry, texture_2d};
-use crate::splat::{Camera, Light, Render, SplatError, SplatParams, Surfel, View};
+use crate::splat::{Camera, Light, Render, SplatError, SplatMode, SplatParams, Surfel, View};
 
 /// The WGSL source of the three passes.
 pub const SHADER: &str = concat!(
@@ -102,6 +102,7 @@ struct Targets {
 pub struct SplatRenderer {
     format: wgpu::TextureFormat,
     splat_layout: wgpu::BindGroupLayout,
+    attributes_layout: wgpu::BindGroupLayout,
     shade_layout: wgpu::BindGroupLayout,
     visibility: wgpu::RenderPipeline,
     attributes: wgpu::RenderPipeline,
@@ -110,7 +111,15 @@ pub struct SplatRenderer {
     /// The uniforms and bind groups of [`SplatRenderer::encode_queued`] (one view per
     /// submission), made with the targets.
     uniforms: wgpu::Buffer,
-    bound: (wgpu::BindGroup, wgpu::BindGroup),
+    bound: BindGroups,
+}
+
+/// The bind groups of the three passes: uniforms; uniforms and pass 1's depth; uniforms and the
+/// accumulation textures.
+struct BindGroups {
+    splat: wgpu::BindGroup,
+    attributes: wgpu::BindGroup,
+    shade: wgpu::BindGroup,
 }
 
 fn create_targets(device: &wgpu::Device, width: u32, height: u32) -> Targets {
@@ -118,7 +127,12 @@ fn create_targets(device: &wgpu::Device, width: u32, height: u32) -> Targets {
     let accumulation = wgpu::TextureUsages::RENDER_ATTACHMENT
         | wgpu::TextureUsages::TEXTURE_BINDING
         | wgpu::TextureUsages::COPY_SRC;
-    let depth = texture("splat depth", DEPTH, wgpu::TextureUsages::RENDER_ATTACHMENT);
+    // pass 2 reads the depth too (the spheres' W2), beside its read-only attachment
+    let depth = texture(
+        "splat depth",
+        DEPTH,
+        wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+    );
     let colour = texture("splat colour accumulation", ACCUMULATION, accumulation);
     let normal = texture("splat normal accumulation", ACCUMULATION, accumulation);
     Targets {
@@ -157,6 +171,22 @@ impl SplatRenderer {
             label: Some("splat uniforms"),
             entries: &[entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT)],
         });
+        let attributes_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("splat attributes"),
+            entries: &[
+                entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 3,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Depth,
+                        view_dimension: wgpu::TextureViewDimension::D2,
+                        multisampled: false,
+                    },
+                    count: None,
+                },
+            ],
+        });
         let shade_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("splat shading"),
             entries: &[
@@ -169,6 +199,12 @@ impl SplatRenderer {
             device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                 label: Some("splat"),
                 bind_group_layouts: &[Some(&splat_layout)],
+                ..Default::default()
+            });
+        let attributes_pipeline_layout =
+            device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("splat attributes"),
+                bind_group_layouts: &[Some(&attributes_layout)],
                 ..Default::default()
             });
         let shade_pipeline_layout =
@@ -199,7 +235,11 @@ impl SplatRenderer {
             |label, fragment, targets: &[Option<wgpu::ColorTargetState>], write| {
                 device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
                     label: Some(label),
-                    layout: Some(&splat_pipeline_layout),
+                    layout: Some(if write {
+                        &splat_pipeline_layout
+                    } else {
+                        &attributes_pipeline_layout
+                    }),
                     vertex: wgpu::VertexState {
                         module: &module,
                         entry_point: Some("vs_splat"),
@@ -264,13 +304,15 @@ impl SplatRenderer {
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let bound = bind_groups(device, &splat_layout, &shade_layout, &targets, &uniforms);
+        let layouts = [&splat_layout, &attributes_layout, &shade_layout];
+        let bound = bind_groups(device, layouts, &targets, &uniforms);
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Validation(e.to_string()));
         }
         Ok(Self {
             format,
             splat_layout,
+            attributes_layout,
             shade_layout,
             visibility,
             attributes,
@@ -303,13 +345,7 @@ impl SplatRenderer {
         check_size(device, width, height)?;
         if (width, height) != self.size() {
             self.targets = create_targets(device, width, height);
-            self.bound = bind_groups(
-                device,
-                &self.splat_layout,
-                &self.shade_layout,
-                &self.targets,
-                &self.uniforms,
-            );
+            self.bound = bind_groups(device, self.layouts(), &self.targets, &self.uniforms);
         }
         Ok(())
     }
@@ -346,23 +382,21 @@ impl SplatRenderer {
         }
     }
 
-    fn bind_groups(
-        &self,
-        device: &wgpu::Device,
-        view: &View,
-    ) -> (wgpu::BindGroup, wgpu::BindGroup) {
+    fn layouts(&self) -> [&wgpu::BindGroupLayout; 3] {
+        [
+            &self.splat_layout,
+            &self.attributes_layout,
+            &self.shade_layout,
+        ]
+    }
+
+    fn bind_groups(&self, device: &wgpu::Device, view: &View) -> BindGroups {
         let uniforms = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("splat uniforms"),
             contents: bytemuck::bytes_of(&view.to_raw()),
             usage: wgpu::BufferUsages::UNIFORM,
         });
-        bind_groups(
-            device,
-            &self.splat_layout,
-            &self.shade_layout,
-            &self.targets,
-            &uniforms,
-        )
+        bind_groups(device, self.layouts(), &self.targets, &uniforms)
     }
 
     fn check_view(&self, view: &View) -> Result<(), GpuError> {
@@ -401,11 +435,11 @@ impl SplatRenderer {
         encoder: &mut wgpu::CommandEncoder,
         target: &wgpu::TextureView,
         surfels: &SurfelBuffer,
-        (splat, shade): &(wgpu::BindGroup, wgpu::BindGroup),
+        bound: &BindGroups,
     ) {
-        self.encode_visibility(encoder, surfels, splat);
-        self.encode_attributes(encoder, surfels, splat);
-        self.encode_shading(encoder, target, shade);
+        self.encode_visibility(encoder, surfels, &bound.splat);
+        self.encode_attributes(encoder, surfels, &bound.attributes);
+        self.encode_shading(encoder, target, &bound.shade);
     }
 
     /// [`Self::encode`] with the renderer's own uniform buffer, written through the queue: no
@@ -432,15 +466,13 @@ impl SplatRenderer {
         }
     }
 
-    /// The depth buffer as passes 1 (cleared) and 2 (loaded) attach it.
-    fn depth_attachment(
-        &self,
-        load: wgpu::LoadOp<f32>,
-    ) -> wgpu::RenderPassDepthStencilAttachment<'_> {
+    /// The depth buffer as pass 1 attaches it (cleared and written) and pass 2 (read-only, so
+    /// that its fragments can also read it as a texture).
+    fn depth_attachment(&self, write: bool) -> wgpu::RenderPassDepthStencilAttachment<'_> {
         wgpu::RenderPassDepthStencilAttachment {
             view: &self.targets.depth,
-            depth_ops: Some(wgpu::Operations {
-                load,
+            depth_ops: write.then_some(wgpu::Operations {
+                load: wgpu::LoadOp::Clear(1.0),
                 store: wgpu::StoreOp::Store,
             }),
             stencil_ops: None,
@@ -456,7 +488,7 @@ impl SplatRenderer {
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("splat visibility"),
             color_attachments: &[],
-            depth_stencil_attachment: Some(self.depth_attachment(wgpu::LoadOp::Clear(1.0))),
+            depth_stencil_attachment: Some(self.depth_attachment(true)),
             ..Default::default()
         });
         pass.set_pipeline(&self.visibility);
@@ -487,7 +519,7 @@ impl SplatRenderer {
                 clear(&self.targets.colour_view),
                 clear(&self.targets.normal_view),
             ],
-            depth_stencil_attachment: Some(self.depth_attachment(wgpu::LoadOp::Load)),
+            depth_stencil_attachment: Some(self.depth_attachment(false)),
             ..Default::default()
         });
         pass.set_pipeline(&self.attributes);
@@ -520,14 +552,13 @@ impl SplatRenderer {
     }
 }
 
-/// The passes' bind groups over `uniforms` and the targets' accumulation views.
+/// The passes' bind groups over `uniforms`, the depth and the targets' accumulation views.
 fn bind_groups(
     device: &wgpu::Device,
-    splat_layout: &wgpu::BindGroupLayout,
-    shade_layout: &wgpu::BindGroupLayout,
+    [splat_layout, attributes_layout, shade_layout]: [&wgpu::BindGroupLayout; 3],
     targets: &Targets,
     uniforms: &wgpu::Buffer,
-) -> (wgpu::BindGroup, wgpu::BindGroup) {
+) -> BindGroups {
     let splat = device.create_bind_group(&wgpu::BindGroupDescriptor {
         label: Some("splat uniforms"),
         layout: splat_layout,
@@ -535,6 +566,20 @@ fn bind_groups(
             binding: 0,
             resource: uniforms.as_entire_binding(),
         }],
+    });
+    let attributes = device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("splat attributes"),
+        layout: attributes_layout,
+        entries: &[
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: uniforms.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 3,
+                resource: wgpu::BindingResource::TextureView(&targets.depth),
+            },
+        ],
     });
     let shade = device.create_bind_group(&wgpu::BindGroupDescriptor {
         label: Some("splat shading"),
@@ -554,7 +599,11 @@ fn bind_groups(
             },
         ],
     });
-    (splat, shade)
+    BindGroups {
+        splat,
+        attributes,
+        shade,
+    }
 }
 
 fn check_size(device: &wgpu::Device, width: u32, height: u32) -> Result<(), GpuError> {
@@ -609,7 +658,7 @@ pub fn render_timed(
         wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
     );
     let output_view = output.create_view(&Default::default());
-    let (splat, shade) = renderer.bind_groups(device, view);
+    let bound = renderer.bind_groups(device, view);
     let mut times = PassTimes::default();
     let run = |record: &dyn Fn(&mut wgpu::CommandEncoder)| -> Result<f64, GpuError> {
         let mut encoder = device.create_command_encoder(&Default::default());
@@ -621,9 +670,9 @@ pub fn render_timed(
             .map_err(|e| GpuError::Readback(e.to_string()))?;
         Ok(start.elapsed().as_secs_f64() * 1e3)
     };
-    times.visibility_ms = run(&|e| renderer.encode_visibility(e, surfels, &splat))?;
-    times.attributes_ms = run(&|e| renderer.encode_attributes(e, surfels, &splat))?;
-    times.shading_ms = run(&|e| renderer.encode_shading(e, &output_view, &shade))?;
+    times.visibility_ms = run(&|e| renderer.encode_visibility(e, surfels, &bound.splat))?;
+    times.attributes_ms = run(&|e| renderer.encode_attributes(e, surfels, &bound.attributes))?;
+    times.shading_ms = run(&|e| renderer.encode_shading(e, &output_view, &bound.shade))?;
     let image = gpu::read_texture(ctx, &output, 4)?;
     let colour = gpu::read_texture(ctx, &renderer.targets.colour, 16)?;
     let normal = gpu::read_texture(ctx, &renderer.targets.normal, 16)?;
@@ -685,7 +734,11 @@ impl View {
             depth_offset: self.depth_offset,
             low_pass: self.low_pass,
             sharpness: self.sharpness,
-            mode: u32::from(self.sprites),
+            mode: match self.mode {
+                SplatMode::Ewa => 0,
+                SplatMode::Sprites => 1,
+                SplatMode::Spheres => 2,
+            },
         }
     }
 }

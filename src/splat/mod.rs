@@ -69,6 +69,13 @@ pub enum SplatMode {
     /// Plain point sprites: round screen disks of the projected radius, the nearest wins, no
     /// blending (the baseline the method improves on).
     Sprites,
+    /// Particle splatting (Adams, Lenaerts, Dutré 2006, §3): each surfel's position and radius
+    /// is a sphere (its normal and stretch are not used, see [`Surfel::sphere`]); the visibility
+    /// pass writes the nearest sphere depth (eq. 5) pushed back by `sphere_depth_offset` radii;
+    /// the attribute pass blends the per-fragment sphere normals of the spheres within that
+    /// distance with the weight `W1 W2` (eqs. 6, 7): the linear fall-off to the projected rim
+    /// times the depth fall-off to the shifted depth.
+    Spheres,
 }
 
 /// Parameters of the splatting passes.
@@ -88,8 +95,12 @@ pub struct SplatParams {
     pub sharpness: f32,
     /// Colour of pixels no surfel covers (linear RGBA).
     pub background: [f32; 4],
-    /// EWA splats or plain point sprites.
+    /// EWA splats, plain point sprites, or particle spheres.
     pub mode: SplatMode,
+    /// The depth offset epsilon of [`SplatMode::Spheres`] as a multiple of each sphere's
+    /// radius. Default 1.5, Adams et al.'s `epsilon = 1.5 h_i` (§4); 0 degenerates to the
+    /// nearest sphere alone (no blending, seams between spheres).
+    pub sphere_depth_offset: f32,
     /// The most pixel fragments (the sum over splats of the pixels of each one's screen
     /// rectangle, counted before rasterising) a render may cost; more is refused with
     /// [`SplatError::TooCostly`]. Default 10^9, about a minute of the CPU reference on two
@@ -105,6 +116,7 @@ impl Default for SplatParams {
             sharpness: 2.0,
             background: [0.08, 0.09, 0.11, 1.0],
             mode: SplatMode::Ewa,
+            sphere_depth_offset: 1.5,
             max_fragments: 1_000_000_000,
         }
     }
@@ -125,6 +137,11 @@ impl SplatParams {
         check(
             "depth_offset",
             self.depth_offset >= 0.0 && self.depth_offset.is_finite(),
+            "must be finite and >= 0",
+        )?;
+        check(
+            "sphere_depth_offset",
+            self.sphere_depth_offset >= 0.0 && self.sphere_depth_offset.is_finite(),
             "must be finite and >= 0",
         )?;
         check(
@@ -180,6 +197,13 @@ impl Surfel {
         }
     }
 
+    /// A sphere of particle splatting ([`SplatMode::Spheres`]): centre and radius; the normal
+    /// (+z) only keeps it drawable, the renderer takes each fragment's normal from the sphere.
+    #[must_use]
+    pub fn sphere(position: Vec3, radius: f32, colour: [f32; 4]) -> Self {
+        Self::disk(position, Vec3::Z, radius, colour)
+    }
+
     /// An elliptical disk with semi-axes `major` along `tangent` and `minor` across it.
     #[must_use]
     pub fn ellipse(
@@ -231,6 +255,22 @@ pub fn surfels_from(
         .zip(normals)
         .zip(radii)
         .map(|((&p, &n), &r)| Surfel::disk(p, n, r, colour))
+        .collect()
+}
+
+/// Spheres of particle splatting ([`SplatMode::Spheres`]) at `positions`, radius `radii[i]`
+/// (or `radius` for all when `radii` is empty), all of one colour.
+#[must_use]
+pub fn spheres_from(
+    positions: &[Vec3],
+    radii: &[f32],
+    radius: f32,
+    colour: [f32; 4],
+) -> Vec<Surfel> {
+    positions
+        .iter()
+        .enumerate()
+        .map(|(i, &p)| Surfel::sphere(p, radii.get(i).copied().unwrap_or(radius), colour))
         .collect()
 }
 
@@ -438,7 +478,8 @@ pub fn frame(s: &Surfel, v: &View) -> Option<Frame> {
     let vv = (v.view * big_v.extend(0.0)).xyz();
     let nv = (v.view * n.extend(0.0)).xyz();
     let towards = if v.orthographic { Vec3::NEG_Z } else { c };
-    if nv.dot(towards) >= 0.0 {
+    let round = v.mode != SplatMode::Ewa;
+    if v.mode != SplatMode::Spheres && nv.dot(towards) >= 0.0 {
         return None;
     }
     let eps = v.depth_offset * s.radius;
@@ -447,12 +488,25 @@ pub fn frame(s: &Surfel, v: &View) -> Option<Frame> {
     let mut hi = vp;
     let centre_px = v.pixels_of(c);
     let screen;
-    if v.sprites {
+    let mut axis_u = uv / uv.dot(uv);
+    if round {
         if centre_px.z <= 0.0 {
             return None;
         }
-        let r_px = s.radius * v.proj.y_axis.y * 0.5 * vp.y / centre_px.z;
-        screen = Vec4::new(centre_px.x, centre_px.y, r_px, 0.0);
+        // the projected radius h' by perspective scaling (Adams et al. §3.1); a sphere covers
+        // at least the low-pass radius, so that a minified one does not fall between pixel
+        // centres (Botsch et al.'s reason for the filter, which Adams et al. leave to future
+        // work, §6)
+        let mut r_px = s.radius * v.proj.y_axis.y * 0.5 * vp.y / centre_px.z;
+        // sprites have no depth offset: the nearest wins
+        let mut offset = 0.0;
+        if v.mode == SplatMode::Spheres {
+            r_px = r_px.max(v.low_pass);
+            // a sphere's frame keeps its world radius in axis_u.x
+            axis_u = Vec3::new(s.radius, 0.0, 0.0);
+            offset = eps;
+        }
+        screen = Vec4::new(centre_px.x, centre_px.y, r_px, offset);
         lo = lo.max(centre_px.xy() - Vec2::splat(r_px + 1.0));
         hi = hi.min(centre_px.xy() + Vec2::splat(r_px + 1.0));
     } else {
@@ -488,7 +542,7 @@ pub fn frame(s: &Surfel, v: &View) -> Option<Frame> {
     Some(Frame {
         rect: Vec4::new(lo.x, lo.y, hi.x, hi.y),
         centre: c,
-        axis_u: uv / uv.dot(uv),
+        axis_u,
         axis_v: vv / vv.dot(vv),
         normal_view: nv,
         screen,
@@ -506,6 +560,11 @@ pub struct Fragment {
     pub ndc: f32,
     /// Depth-buffer value pushed back by epsilon (pass 1).
     pub ndc_offset: f32,
+    /// The sphere's normal at the fragment, in view space ([`SplatMode::Spheres`]; zero for
+    /// disks, whose normal is the surfel's).
+    pub sphere_normal: Vec3,
+    /// The depth offset epsilon of the surfel (world units).
+    pub epsilon: f32,
 }
 
 /// How far (in surfel radii) beyond the depths its disk spans a pixel's depth may lie on the
@@ -523,7 +582,16 @@ pub fn fragment(pixel: Vec2, f: &Frame, v: &View) -> Option<Fragment> {
     let (o, d) = v.ray(pixel);
     let mut depth = -f.centre.z;
     let r2;
-    if v.sprites {
+    let mut sphere_normal = Vec3::ZERO;
+    if v.mode == SplatMode::Spheres {
+        // eq. 5: z_i(x') = z_i - sqrt(h^2 - |x - x_i|^2), |x - x_i| = r h on the square through
+        // the centre; the normal of the same point, (e, sqrt(1 - r^2)) with the screen's y down
+        let e = (pixel - f.screen.xy()) / f.screen.z;
+        r2 = e.dot(e);
+        let height = (1.0 - r2).max(0.0).sqrt();
+        depth = -f.centre.z - f.axis_u.x * height;
+        sphere_normal = Vec3::new(e.x, -e.y, height);
+    } else if v.mode == SplatMode::Sprites {
         let e = (pixel - f.screen.xy()) / f.screen.z;
         r2 = e.dot(e);
     } else {
@@ -565,22 +633,44 @@ pub fn fragment(pixel: Vec2, f: &Frame, v: &View) -> Option<Fragment> {
     if !(0.0..=1.0).contains(&ndc) {
         return None;
     }
-    let ndc_offset = v.ndc_depth(p + d.normalize() * f.screen.w).min(1.0);
+    // the disks' offset runs along the ray; the spheres' along the view axis, so that the
+    // shifted buffer holds z_eps = min z_i + epsilon in view depth as eq. 7 reads it
+    let pushed = if v.mode == SplatMode::Spheres {
+        o + d * (depth + f.screen.w)
+    } else {
+        p + d.normalize() * f.screen.w
+    };
+    let ndc_offset = v.ndc_depth(pushed).min(1.0);
     Some(Fragment {
         r2,
         depth,
         ndc,
         ndc_offset,
+        sphere_normal,
+        epsilon: f.screen.w,
     })
 }
 
-/// The Gaussian weight of a fragment (`splat_weight` in the WGSL).
+/// The weight of a fragment in pass 2 (`splat_weight` in the WGSL), `buffer` the pass-1
+/// depth-buffer value at its pixel: EWA's Gaussian; 1 for sprites (the nearest alone passes);
+/// for spheres Adams et al.'s `W1 W2` (eqs. 6, 7), `W1 = 1 - r` to the projected rim and
+/// `W2 = (z_eps - z) / epsilon` to the shifted depth, in view depth. With epsilon 0 only the
+/// nearest sphere passes the depth test, and `W2` (0 / 0 there) is taken as 1.
 #[must_use]
-pub fn weight(r2: f32, v: &View) -> f32 {
-    if v.sprites {
-        1.0
-    } else {
-        (-v.sharpness * r2).exp()
+pub fn weight(f: &Fragment, buffer: f32, v: &View) -> f32 {
+    match v.mode {
+        SplatMode::Ewa => (-v.sharpness * f.r2).exp(),
+        SplatMode::Sprites => 1.0,
+        SplatMode::Spheres => {
+            let w1 = 1.0 - f.r2.sqrt();
+            let eps = f.epsilon;
+            let w2 = if eps > 0.0 {
+                ((v.linear_depth(buffer) - f.depth) / eps).clamp(0.0, 1.0)
+            } else {
+                1.0
+            };
+            w1 * w2
+        }
     }
 }
 
