@@ -39,6 +39,7 @@ pub mod particles;
 pub mod pipeline;
 pub mod preview;
 pub mod quality;
+pub mod raycast;
 pub mod refine;
 pub mod scenes;
 pub mod sequence;
@@ -92,6 +93,9 @@ pub enum Error {
     /// Surfel rendering.
     #[error(transparent)]
     Splat(#[from] splat::SplatError),
+    /// Ray casting to the iso-surface (the reference renderer).
+    #[error(transparent)]
+    RayCast(#[from] raycast::RayCastError),
     /// Optics: caustics, refraction and reflection.
     #[error(transparent)]
     Optics(#[from] optics::OpticsError),

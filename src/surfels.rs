@@ -179,6 +179,34 @@ impl<'a> ExactDensity<'a> {
         (sum, grad)
     }
 
+    /// Calls `visit(j, x - x_j, r_j)` for every point `j` whose own radius `r_j` reaches `x`
+    /// (the points the density at `x` sums).
+    pub fn for_each_reaching(&self, x: Vec3, mut visit: impl FnMut(usize, Vec3, f32)) {
+        let p = &self.points;
+        for g in &self.groups {
+            g.grid.for_each_within(x, g.reach, |slot| {
+                let j = g.members[slot as usize] as usize;
+                let d = x - p.positions[j];
+                let r = p.radius(j);
+                if d.length_squared() < r * r {
+                    visit(j, d, r);
+                }
+            });
+        }
+    }
+
+    /// The points the densities are summed over.
+    #[must_use]
+    pub fn points(&self) -> &Points<'a> {
+        &self.points
+    }
+
+    /// The density function.
+    #[must_use]
+    pub fn kernel(&self) -> Kernel {
+        self.kernel
+    }
+
     /// Density at `x`: the sum of the kernels of the points whose radius reaches it.
     #[must_use]
     pub fn value(&self, x: Vec3) -> f32 {

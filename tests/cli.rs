@@ -1044,6 +1044,36 @@ fn render_draws_particle_spheres_with_the_particle_splat_renderer() {
         png, expected.image,
         "the PNG is not the library's particle splatting"
     );
+    // the ray caster runs on the CPU: its report says so, and --gpu is refused with the way out
+    let report = json_of(&render_ddb(
+        d,
+        &[
+            "--renderer",
+            "ray-cast",
+            "--json",
+            "--out",
+            d.join("rays.png").to_str().unwrap(),
+        ],
+    ));
+    assert_eq!(report["renderer"], "ray-cast", "{report}");
+    assert_eq!(report["backend"], "cpu reference", "{report}");
+    assert!(report["covered_pixels"].as_u64().unwrap() > 200, "{report}");
+    let e = stderr_of(
+        &bin()
+            .args([
+                "render",
+                "--renderer",
+                "ray-cast",
+                "--gpu",
+                "--out",
+                "x.png",
+                "--input",
+            ])
+            .arg(d.join("ddb.vtk"))
+            .output()
+            .unwrap(),
+    );
+    assert!(e.contains("no GPU twin") && e.contains("drop --gpu"), "{e}");
     // sprites are a mode of the EWA renderer
     let e = stderr_of(&render_ddb(
         d,

@@ -50,10 +50,11 @@ pub struct RenderArgs {
     /// refined (the refined points as surfels).
     #[arg(long, value_enum, default_value = "chain")]
     pub source: SourceChoice,
-    /// How the surface is drawn: ewa (EWA surface splatting of the source's surfels) or
+    /// How the surface is drawn: ewa (EWA surface splatting of the source's surfels),
     /// particle-splat (Adams et al. 2006: the source's points as spheres of their kernel
-    /// radius, blended within 1.5 radii of the nearest; no density grid), in the shaded splats
-    /// and in the finished frame alike.
+    /// radius, blended within 1.5 radii of the nearest; no density grid) or ray-cast (Xiao et
+    /// al.: rays cast to the iso-surface of the source's points, PCA-blended normals; the
+    /// reference surface, CPU only), in the shaded splats and in the finished frame alike.
     #[arg(long, value_enum, default_value = "ewa")]
     pub renderer: RendererChoice,
     /// Density grid points along the longest axis (default: spacing a third of the smallest
@@ -236,6 +237,7 @@ pub enum SourceChoice {
 pub enum RendererChoice {
     Ewa,
     ParticleSplat,
+    RayCast,
 }
 
 impl From<RendererChoice> for Renderer {
@@ -243,6 +245,7 @@ impl From<RendererChoice> for Renderer {
         match c {
             RendererChoice::Ewa => Self::Ewa,
             RendererChoice::ParticleSplat => Self::ParticleSplat,
+            RendererChoice::RayCast => Self::RayCast,
         }
     }
 }
@@ -288,6 +291,22 @@ pub fn render_with(
     })
 }
 
+/// Whether the renderer runs on the CPU only (ray casting has no GPU twin yet): then the default
+/// is the CPU whatever adapter there is, and `--gpu` is refused.
+fn cpu_only(args: &RenderArgs) -> Result<bool, Error> {
+    if !matches!(args.renderer, RendererChoice::RayCast) {
+        return Ok(false);
+    }
+    if args.gpu {
+        return Err(Error::InvalidArgument {
+            argument: "--gpu",
+            reason: "--renderer ray-cast has no GPU twin yet; drop --gpu (it runs on the CPU)"
+                .into(),
+        });
+    }
+    Ok(true)
+}
+
 /// A camera framing the surfels (or the unit box when none is drawable).
 pub fn framing(surfels: &[Surfel]) -> Camera {
     let (lo, hi) = splat::bounds(surfels).unwrap_or((Vec3::ZERO, Vec3::ONE));
@@ -319,6 +338,7 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
         match p.renderer {
             Renderer::Ewa => p.splat.depth_offset = d,
             Renderer::ParticleSplat => p.splat.sphere_depth_offset = d,
+            Renderer::RayCast => {}
         }
     }
     if let Some(l) = args.low_pass {
@@ -565,9 +585,24 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     let camera = args
         .camera
         .map_or_else(|| framing(surfels), |c| turned_camera(c, args.up));
-    let ctx = choose_gpu(args.cpu, args.gpu)?;
+    let ctx = choose_gpu(args.cpu || cpu_only(args)?, args.gpu)?;
     let t = Instant::now();
-    let render = render_with(ctx.as_ref(), surfels, &camera, &splat_params, args.size)?;
+    let render = if pipeline.params().renderer == Renderer::RayCast {
+        let (positions, radii) = pipeline::sphere_points(surfels);
+        let caster = pipeline.caster(&positions, &radii)?;
+        let (w, h) = args.size;
+        fluid_surfels::raycast::render_cpu(
+            &caster,
+            &camera,
+            &Light::default(),
+            &splat_params,
+            w,
+            h,
+        )?
+        .render
+    } else {
+        render_with(ctx.as_ref(), surfels, &camera, &splat_params, args.size)?
+    };
     let render_ms = ms(t);
     let covered: Vec<bool> = render.colour.iter().map(|c| c[3] > 0.0).collect();
     let holes =
@@ -624,10 +659,13 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
             println!("  warning: {w}");
         }
         println!(
-            "  {}x{} {:?} on the {}: {:.1} ms, {} pixels covered, holes {:.3} % of the silhouette ({:.3} % enclosed)",
+            "  {}x{} {} on the {}: {:.1} ms, {} pixels covered, holes {:.3} % of the silhouette ({:.3} % enclosed)",
             report.width,
             report.height,
-            report.mode,
+            match report.renderer {
+                "ewa" => format!("{:?}", report.mode),
+                other => other.to_string(),
+            },
             report.backend,
             render_ms,
             report.covered_pixels,
@@ -643,7 +681,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
 fn drawn_as(args: &RenderArgs) -> &'static str {
     match args.renderer {
         RendererChoice::Ewa => "surfels",
-        RendererChoice::ParticleSplat => "spheres",
+        RendererChoice::ParticleSplat | RendererChoice::RayCast => "spheres",
     }
 }
 
@@ -780,7 +818,7 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
     let [w, h] = params.scene.optics.image_size;
     let mut pipeline = Pipeline::new(params.clone())?;
     super::warn_at_once(&mut pipeline);
-    let mut gpu = match choose_gpu(args.cpu, args.gpu)? {
+    let mut gpu = match choose_gpu(args.cpu || cpu_only(args)?, args.gpu)? {
         Some(ctx) => {
             let g = GpuPipeline::new(
                 &ctx.device,

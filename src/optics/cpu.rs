@@ -174,11 +174,31 @@ pub fn deposit(map: &mut [[f32; 4]], width: u32, height: u32, p: [Vec2; 3], valu
     }
 }
 
+/// What draws the water for the optics' views (the light's screen and the camera): the
+/// per-pixel buffers of a [`Render`], `(sum w normal, sum w depth)` with their weight, which the
+/// optics read as the water's normal and depth. Surfels are drawn by EWA splatting (or particle
+/// spheres, by the view's mode); [`crate::raycast::Caster`] casts rays to the iso-surface.
+pub trait WaterSurface: Sync {
+    /// The water as seen in `view`.
+    fn render(&self, view: &View) -> Result<Render, OpticsError>;
+}
+
+impl WaterSurface for &[Surfel] {
+    fn render(&self, view: &View) -> Result<Render, OpticsError> {
+        Ok(render_view_cpu(self, view)?)
+    }
+}
+
 /// The caustics of the surfels under the stage's light (§5.1), CPU reference.
 pub fn caustics_cpu(stage: &Stage, surfels: &[Surfel]) -> Result<Caustics, OpticsError> {
+    caustics_of(stage, &surfels)
+}
+
+/// [`caustics_cpu`] of any water surface.
+pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, OpticsError> {
     let screen = stage.views.screen;
     let map = stage.views.map;
-    let water = render_view_cpu(surfels, &screen)?;
+    let water = water.render(&screen)?;
     let ior = stage.scene.water.ior;
     let sigma = stage.scene.water.extinction;
     let eps = 1e-5 * stage.size;
@@ -549,6 +569,16 @@ pub fn frame_cpu(
     caustics: &Caustics,
     size: (u32, u32),
 ) -> Result<FrameImage, OpticsError> {
+    frame_of(stage, &surfels, caustics, size)
+}
+
+/// [`frame_cpu`] of any water surface.
+pub fn frame_of(
+    stage: &Stage,
+    water: &dyn WaterSurface,
+    caustics: &Caustics,
+    size: (u32, u32),
+) -> Result<FrameImage, OpticsError> {
     let view = View::new(
         &stage.camera,
         &Light::default(),
@@ -556,7 +586,7 @@ pub fn frame_cpu(
         size.0,
         size.1,
     )?;
-    let water = render_view_cpu(surfels, &view)?;
+    let water = water.render(&view)?;
     let linear: Vec<[f32; 4]> = (0..(size.0 * size.1) as usize)
         .into_par_iter()
         .map(|i| {

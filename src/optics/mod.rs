@@ -59,7 +59,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::splat::{Camera, SplatError, SplatParams, Surfel, View};
 
-pub use cpu::{Caustics, FrameImage, caustics_cpu, frame_cpu, receiver_irradiance};
+pub use cpu::{
+    Caustics, FrameImage, WaterSurface, caustics_cpu, caustics_of, frame_cpu, frame_of,
+    receiver_irradiance,
+};
 pub use receiver::{Receiver, ReceiverGeometry, ReceiverKind};
 
 /// Errors of the optics stage.

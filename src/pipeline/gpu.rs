@@ -67,6 +67,14 @@ impl GpuPipeline {
     ) -> Result<Self, Error> {
         let _ = queue;
         check_size(size)?;
+        if params.renderer == super::Renderer::RayCast {
+            return Err(Error::InvalidArgument {
+                argument: "renderer",
+                reason: "ray-cast has no GPU twin yet: render it with the CPU `Pipeline` \
+                         (or choose ewa or particle-splat)"
+                    .into(),
+            });
+        }
         let mut params = params.clone();
         params.scene.optics.image_size = [size.0, size.1];
         let cpu = Pipeline::new(params)?;

@@ -99,11 +99,16 @@ pub enum Renderer {
     /// points with their kernel radii; `particles`, every particle with the support radius;
     /// `refined`, the refined points with their kernel radii.
     ParticleSplat,
+    /// Ray casting to the iso-surface of the source's points (Xiao et al., [`crate::raycast`]):
+    /// the same points and radii as `ParticleSplat`, the density of the grid's kernel, the
+    /// iso-value and normals of `[raycast]`. The reference surface; CPU only for now
+    /// ([`GpuPipeline`] refuses it).
+    RayCast,
 }
 
 impl Renderer {
     /// Every renderer, in the order of the documentation.
-    pub const ALL: [Self; 2] = [Self::Ewa, Self::ParticleSplat];
+    pub const ALL: [Self; 3] = [Self::Ewa, Self::ParticleSplat, Self::RayCast];
 
     /// The name used in files and on the command line.
     #[must_use]
@@ -111,6 +116,7 @@ impl Renderer {
         match self {
             Self::Ewa => "ewa",
             Self::ParticleSplat => "particle-splat",
+            Self::RayCast => "ray-cast",
         }
     }
 }
@@ -173,8 +179,10 @@ pub struct PipelineParams {
     pub refine: RefineParams,
     /// Where the rendered surfels come from.
     pub source: SurfelSource,
-    /// How they are drawn (EWA surfels or particle spheres).
+    /// How they are drawn (EWA surfels, particle spheres or rays cast to the iso-surface).
     pub renderer: Renderer,
+    /// The ray caster of [`Renderer::RayCast`].
+    pub raycast: crate::raycast::RayCastParams,
     /// Stage 3: the density grid.
     pub grid: GridParams,
     /// Stage 3: surfels on the iso-surface.
@@ -197,6 +205,7 @@ impl Default for PipelineParams {
             refine: RefineParams::default(),
             source: SurfelSource::default(),
             renderer: Renderer::default(),
+            raycast: crate::raycast::RayCastParams::default(),
             grid: GridParams::default(),
             surfels: SurfelParams::default(),
             splat: SplatParams::default(),
@@ -207,7 +216,8 @@ impl Default for PipelineParams {
 }
 
 /// The keys of a TOML file that belong to the pipeline; every other key is the optics scene's.
-const PIPELINE_KEYS: [&str; 9] = [
+const PIPELINE_KEYS: [&str; 10] = [
+    "raycast",
     "support_radius",
     "surface",
     "refine",
@@ -220,7 +230,8 @@ const PIPELINE_KEYS: [&str; 9] = [
 ];
 
 impl PipelineParams {
-    /// Reads a TOML file: the pipeline's tables (`support_radius`, `source`, `renderer`, `[surface]`,
+    /// Reads a TOML file: the pipeline's tables (`support_radius`, `source`, `renderer`,
+    /// `[raycast]`, `[surface]`,
     /// `[refine]`, `[grid]`, `[surfels]`, `[splat]`, `keep_views`) beside the scene's
     /// (`[camera]`, `[light]`, `[receiver]`, `[water]`, `[environment]`, `[optics]`), so a scene
     /// file of `render --config` is a pipeline file too. Unknown keys are refused; relative paths
@@ -591,7 +602,7 @@ impl Pipeline {
         }
         // stage 3: density grid and iso-surface surfels
         let colour = splat::WATER;
-        if self.params.renderer == Renderer::ParticleSplat {
+        if self.params.renderer != Renderer::Ewa {
             let (positions, radii) = match self.params.source {
                 SurfelSource::Chain => chain_points(
                     particles,
@@ -731,14 +742,23 @@ impl Pipeline {
     fn render(&mut self, frame: &mut Frame, through: Through) -> Result<(), Error> {
         let surfels = &frame.render_surfels;
         let [w, h] = self.params.scene.optics.image_size;
+        let points = (self.params.renderer == Renderer::RayCast).then(|| sphere_points(surfels));
+        let caster = match &points {
+            Some((p, r)) => Some(self.caster(p, r)?),
+            None => None,
+        };
+        let water: &dyn optics::WaterSurface = match &caster {
+            Some(c) => c,
+            None => &surfels.as_slice(),
+        };
         if through == Through::Frame {
             let scene = self.fitted_scene(surfels)?;
             let t = Instant::now();
             let stage = Stage::new(&scene, surfels)?;
-            let caustics = optics::caustics_cpu(&stage, surfels)?;
+            let caustics = optics::caustics_of(&stage, water)?;
             frame.timings.caustics_ms = ms(t);
             let t = Instant::now();
-            let f = optics::frame_cpu(&stage, surfels, &caustics, (w, h))?;
+            let f = optics::frame_of(&stage, water, &caustics, (w, h))?;
             frame.timings.image_ms = ms(t);
             frame.camera = Some(stage.camera);
             frame.finished = Some(Finished {
@@ -757,16 +777,49 @@ impl Pipeline {
             return Ok(());
         }
         let t = Instant::now();
-        frame.splats = Some(splat::render_cpu(
-            surfels,
-            &camera,
-            &Light::default(),
-            &self.splat_params(),
-            w,
-            h,
-        )?);
+        frame.splats = Some(match &caster {
+            Some(c) => {
+                crate::raycast::render_cpu(
+                    c,
+                    &camera,
+                    &Light::default(),
+                    &self.splat_params(),
+                    w,
+                    h,
+                )?
+                .render
+            }
+            None => splat::render_cpu(
+                surfels,
+                &camera,
+                &Light::default(),
+                &self.splat_params(),
+                w,
+                h,
+            )?,
+        });
         frame.timings.splats_ms = ms(t);
         Ok(())
+    }
+
+    /// The ray caster of [`Renderer::RayCast`] over points and their radii (from
+    /// [`sphere_points`]): the grid's kernel, `[raycast]`, the support radius as the reference
+    /// radius (the largest radius before one is known).
+    pub fn caster<'a>(
+        &self,
+        positions: &'a [Vec3],
+        radii: &'a [f32],
+    ) -> Result<crate::raycast::Caster<'a>, Error> {
+        let reference = match self.radius {
+            Some(h) => h,
+            None => radii.iter().copied().fold(0.0, f32::max),
+        };
+        let points = Points::with_radii(positions, radii, reference.max(f32::MIN_POSITIVE));
+        Ok(crate::raycast::Caster::new(
+            points,
+            self.params.grid.kernel,
+            &self.params.raycast,
+        )?)
     }
 
     /// The parameters of the shaded splats: `[splat]`, with the mode of the renderer
@@ -955,6 +1008,15 @@ pub fn chain_points<'a>(
     positions.extend_from_slice(&refined.positions);
     radii.extend_from_slice(&refined.kernel_radii);
     (positions, radii)
+}
+
+/// The centres and radii of spheres (or surfels): the points a ray caster casts through.
+#[must_use]
+pub fn sphere_points(spheres: &[Surfel]) -> (Vec<Vec3>, Vec<f32>) {
+    spheres
+        .iter()
+        .map(|s| (Vec3::from(s.position), s.radius))
+        .unzip()
 }
 
 /// What [`iso_surfels`] returns.

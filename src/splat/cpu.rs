@@ -12,7 +12,7 @@ use super::{
 };
 
 /// Converts a shaded pixel to 8 bits as an `Rgba8Unorm` store does (round to nearest).
-fn to_unorm8(c: Vec4) -> [u8; 4] {
+pub(crate) fn to_unorm8(c: Vec4) -> [u8; 4] {
     c.to_array()
         .map(|x| (x.clamp(0.0, 1.0) * 255.0).round() as u8)
 }

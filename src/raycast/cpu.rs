@@ -1,0 +1,234 @@
+//! The CPU reference of ray casting: exact sphere intervals per ray, a march with bisection
+//! through them, normals at the hits, the bilateral filter, shading. Parallel over pixels; every
+//! pixel's result depends on nothing but its own ray, so the image does not depend on the thread
+//! count.
+
+use glam::{Vec2, Vec3, Vec4};
+use image::RgbaImage;
+use rayon::prelude::*;
+
+use super::{Caster, RayCast, RayCastError, bilateral, surface_normal};
+use crate::splat::{Camera, Light, Render, SplatParams, View};
+
+/// One pixel's ray: where it enters the first sphere, the water's thickness along it, the hit
+/// (view depth, unfiltered normal) and the density samples it took.
+struct PixelRay {
+    entry: f32,
+    thickness: f32,
+    hit: Option<(f32, Vec3)>,
+    samples: u64,
+}
+
+/// Side of the square screen tiles the spheres are binned into.
+const TILE: usize = 16;
+
+/// Ray casting of the caster's points from `camera` at `width` x `height`; `splat` gives the
+/// background (and the cost limits), `light` the shading.
+pub fn render_cpu(
+    caster: &Caster<'_>,
+    camera: &Camera,
+    light: &Light,
+    splat: &SplatParams,
+    width: u32,
+    height: u32,
+) -> Result<RayCast, RayCastError> {
+    let v = View::new(camera, light, splat, width, height)?;
+    render_view_cpu(caster, &v)
+}
+
+/// The half-open pixel rectangle (columns, rows) that holds the projection of the sphere at `c`
+/// of radius `r`: the bounding box of its bounding cube's projected corners (perspective maps
+/// convex sets to convex sets). The whole screen when the cube reaches behind the eye; `None`
+/// when it lies wholly behind it or off screen.
+fn sphere_rect(v: &View, c: Vec3, r: f32) -> Option<[usize; 4]> {
+    let (w, h) = (v.width as f32, v.height as f32);
+    let mut lo = Vec2::splat(f32::INFINITY);
+    let mut hi = Vec2::splat(f32::NEG_INFINITY);
+    let mut behind = 0;
+    for k in 0..8 {
+        let s = Vec3::new(
+            if k & 1 == 0 { -r } else { r },
+            if k & 2 == 0 { -r } else { r },
+            if k & 4 == 0 { -r } else { r },
+        );
+        let q = v.project(c + s);
+        // NaN counts as behind
+        if q.z.is_nan() || q.z <= 0.0 {
+            behind += 1;
+            continue;
+        }
+        lo = lo.min(q.truncate());
+        hi = hi.max(q.truncate());
+    }
+    if behind == 8 {
+        return None;
+    }
+    if behind > 0 {
+        lo = Vec2::ZERO;
+        hi = Vec2::new(w, h);
+    }
+    let (x0, x1) = crate::splat::pixel_span(lo.x, hi.x, v.width as usize);
+    let (y0, y1) = crate::splat::pixel_span(lo.y, hi.y, v.height as usize);
+    (x0 < x1 && y0 < y1).then_some([x0, x1, y0, y1])
+}
+
+/// One pixel's ray: the depth intervals of the spheres it crosses (merged, in order) and the
+/// water thickness their chords stand for ([`VOLUME_SHARE`]).
+fn intervals_of(
+    caster: &Caster<'_>,
+    members: &[u32],
+    o: Vec3,
+    d: Vec3,
+    out: &mut Vec<(f32, f32)>,
+) -> f32 {
+    let points = caster.density().points();
+    let a = d.length_squared();
+    let mut chords = 0.0;
+    out.clear();
+    for &j in members {
+        let j = j as usize;
+        let r = points.radius(j);
+        let oc = o - points.positions[j];
+        let b = oc.dot(d);
+        let disc = b * b - a * (oc.length_squared() - r * r);
+        if disc.is_nan() || disc <= 0.0 {
+            continue;
+        }
+        let root = disc.sqrt();
+        let t0 = ((-b - root) / a).max(0.0);
+        let t1 = (-b + root) / a;
+        if t1 > t0 {
+            chords += t1 - t0;
+            out.push((t0, t1));
+        }
+    }
+    out.sort_by(|p, q| p.0.total_cmp(&q.0));
+    let mut merged = 0;
+    for k in 0..out.len() {
+        if merged > 0 && out[k].0 <= out[merged - 1].1 {
+            out[merged - 1].1 = out[merged - 1].1.max(out[k].1);
+        } else {
+            out[merged] = out[k];
+            merged += 1;
+        }
+    }
+    out.truncate(merged);
+    chords * a.sqrt() * VOLUME_SHARE
+}
+
+/// The thickness of water one sphere's chord stands for: the spheres of neighbouring points
+/// overlap, each point's own volume being about `(r / 2)^3` (its radius is twice the spacing)
+/// of its sphere's `4/3 pi r^3`, so the summed chords are scaled by `3 / (32 pi)` to estimate the
+/// water's depth along the ray (a slab of n layers gives about n spacings).
+const VOLUME_SHARE: f32 = 3.0 / (32.0 * std::f32::consts::PI);
+
+/// [`render_cpu`] for a prepared view (perspective or orthographic, such as a light's screen).
+/// Refused before casting, like the splats, when the spheres' screen rectangles add up to more
+/// pixels than the view's limit or the buffers would not fit in memory.
+pub fn render_view_cpu(caster: &Caster<'_>, v: &View) -> Result<RayCast, RayCastError> {
+    let (w, h) = (v.width as usize, v.height as usize);
+    let points = caster.density().points();
+    let params = &caster.params;
+    // 1. the spheres binned into screen tiles
+    let rects: Vec<Option<[usize; 4]>> = (0..points.len())
+        .into_par_iter()
+        .map(|j| sphere_rect(v, points.positions[j], points.radius(j)))
+        .collect();
+    let fragments: u128 = rects
+        .iter()
+        .flatten()
+        .map(|r| ((r[1] - r[0]) * (r[3] - r[2])) as u128)
+        .sum();
+    crate::splat::check_cost(points.len(), fragments, v)?;
+    let (tw, th) = (w.div_ceil(TILE), h.div_ceil(TILE));
+    let mut tiles: Vec<Vec<u32>> = vec![Vec::new(); tw * th];
+    for (j, r) in rects.iter().enumerate() {
+        if let Some([x0, x1, y0, y1]) = *r {
+            for ty in y0 / TILE..=(y1 - 1) / TILE {
+                for tx in x0 / TILE..=(x1 - 1) / TILE {
+                    tiles[ty * tw + tx].push(j as u32);
+                }
+            }
+        }
+    }
+    // 2. per pixel: the sphere intervals, the first crossing, the normal there
+    let dt_world = params.step * points.min_radius();
+    let per_pixel: Vec<PixelRay> = (0..w * h)
+        .into_par_iter()
+        .map_init(Vec::new, |intervals, i| {
+            let (x, y) = (i % w, i / w);
+            let (o, d) = v.world_ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
+            let thickness =
+                intervals_of(caster, &tiles[(y / TILE) * tw + x / TILE], o, d, intervals);
+            let entry = intervals.first().map_or(f32::INFINITY, |s| s.0);
+            let mut samples = 0;
+            let dt = dt_world / d.length();
+            let hit = caster
+                .first_crossing(o, d, intervals, dt, &mut samples)
+                .and_then(|t| surface_normal(caster, o + t * d).map(|n| (t, n)));
+            PixelRay {
+                entry,
+                thickness,
+                hit,
+                samples,
+            }
+        })
+        .collect();
+    // 3. the bilateral filter of the normal map
+    let normals: Vec<Option<Vec3>> = per_pixel.iter().map(|p| p.hit.map(|h| h.1)).collect();
+    let depths: Vec<f32> = per_pixel
+        .iter()
+        .map(|p| p.hit.map_or(0.0, |h| h.0))
+        .collect();
+    let filtered = bilateral(
+        &normals,
+        &depths,
+        w,
+        h,
+        params.bilateral_radius_px,
+        params.bilateral_sigma_px,
+        params.bilateral_sigma_depth * points.h,
+    );
+    // 4. the buffers and the shading
+    let base = Vec3::from_slice(&crate::splat::WATER[..3]);
+    let absorption = Vec3::from(params.absorption) / points.h;
+    let mut colour = vec![[0.0f32; 4]; w * h];
+    let mut normal_depth = vec![[0.0f32; 4]; w * h];
+    for (i, p) in per_pixel.iter().enumerate() {
+        if let (Some((t, _)), Some(n)) = (p.hit, filtered[i]) {
+            let tint = base * (-absorption * p.thickness).exp();
+            colour[i] = tint.extend(1.0).to_array();
+            normal_depth[i] = n.extend(t).to_array();
+        }
+    }
+    let mut image = RgbaImage::new(v.width, v.height);
+    image
+        .as_mut()
+        .par_chunks_mut(4 * w)
+        .enumerate()
+        .for_each(|(y, row)| {
+            for x in 0..w {
+                let i = y * w + x;
+                let pixel = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+                let c = crate::splat::shade(
+                    pixel,
+                    Vec4::from(colour[i]),
+                    Vec4::from(normal_depth[i]),
+                    v,
+                );
+                row[4 * x..4 * x + 4].copy_from_slice(&crate::splat::cpu::to_unorm8(c));
+            }
+        });
+    Ok(RayCast {
+        render: Render {
+            width: v.width,
+            height: v.height,
+            image,
+            colour,
+            normal_depth,
+        },
+        thickness: per_pixel.iter().map(|p| p.thickness).collect(),
+        entry: per_pixel.iter().map(|p| p.entry).collect(),
+        samples: per_pixel.iter().map(|p| p.samples).sum(),
+    })
+}
