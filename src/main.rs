@@ -38,9 +38,14 @@ enum Command {
     /// Density grid and iso-surface surfels (Iwasaki et al., §4) of a file, a frame sequence or
     /// a built-in scene.
     Surfels(cli::surfels::SurfelsArgs),
-    /// EWA surfel splatting (Botsch et al. 2005) to a PNG: particles through the pipeline to
-    /// surfels, or a file of surfels as they are.
+    /// The surface to a PNG: particles through the pipeline, drawn by EWA surfel splatting
+    /// (Botsch et al. 2005; default), particle splatting (Adams et al. 2006) or ray casting
+    /// (Xiao et al.), or a file of surfels as they are; with --optics the finished frame.
     Render(cli::render::RenderArgs),
+    /// One frame drawn by every renderer from every surfel source, side by side on a labelled
+    /// contact sheet, each with its time and its depth, normal and coverage errors against the
+    /// ray-cast reference (the particles' exact iso-surface).
+    Compare(cli::compare::CompareArgs),
     /// What a particle file holds: format, count, attributes and their ranges, bounds, spacing.
     Info(InfoArgs),
     /// Benchmarks.
@@ -129,6 +134,7 @@ fn main() -> ExitCode {
         Some(Command::Refine(args)) => cli::refine::refine_command(&args),
         Some(Command::Surfels(args)) => cli::surfels::surfels_command(&args),
         Some(Command::Render(args)) => cli::render::render_command(&args),
+        Some(Command::Compare(args)) => cli::compare::compare_command(&args),
         Some(Command::Bench(BenchCommand::Detect(args))) => cli::bench::bench_detect(&args),
         Some(Command::Bench(BenchCommand::Io(args))) => cli::bench::bench_io(&args),
         Some(Command::Bench(BenchCommand::Refine(args))) => cli::bench::bench_refine(&args),

@@ -344,9 +344,89 @@ pub fn save_rgba_png(img: &image::RgbaImage, path: &Path) -> Result<(), PreviewE
     save_png(&image::buffer::ConvertBuffer::convert(img), path)
 }
 
+/// Writes `text` into `image` at pixel `(x, y)` (its top left) in the 8x8 bitmap font of
+/// `font8x8`, each font pixel `scale` pixels wide, on a dark band so it reads on any picture.
+/// Characters the font lacks are drawn as `?`; what falls outside the image is clipped.
+pub fn label(image: &mut RgbImage, x: u32, y: u32, text: &str, scale: u32) {
+    use font8x8::UnicodeFonts;
+    let scale = scale.max(1);
+    let cell = 8 * scale;
+    let width = cell * text.chars().count() as u32 + 2 * scale;
+    for py in y..(y + cell + 2 * scale).min(image.height()) {
+        for px in x..(x + width).min(image.width()) {
+            let p = image.get_pixel_mut(px, py);
+            for c in &mut p.0 {
+                *c /= 4;
+            }
+        }
+    }
+    for (k, ch) in text.chars().enumerate() {
+        let glyph = font8x8::BASIC_FONTS
+            .get(ch)
+            .or_else(|| font8x8::BASIC_FONTS.get('?'))
+            .unwrap_or([0; 8]);
+        for (row, bits) in glyph.iter().enumerate() {
+            for col in 0..8 {
+                if bits & (1 << col) == 0 {
+                    continue;
+                }
+                for dy in 0..scale {
+                    for dx in 0..scale {
+                        let px = x + scale + k as u32 * cell + col * scale + dx;
+                        let py = y + scale + row as u32 * scale + dy;
+                        if px < image.width() && py < image.height() {
+                            image.put_pixel(px, py, image::Rgb([255, 255, 255]));
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Pictures of one size laid out in rows of `columns` (the last row padded with black).
+///
+/// # Panics
+/// When the pictures differ in size.
+#[must_use]
+pub fn grid(images: &[RgbImage], columns: usize) -> RgbImage {
+    let Some(first) = images.first() else {
+        return RgbImage::new(1, 1);
+    };
+    let (w, h) = first.dimensions();
+    let columns = columns.clamp(1, images.len());
+    let rows = images.len().div_ceil(columns);
+    let mut out = RgbImage::new(w * columns as u32, h * rows as u32);
+    for (k, img) in images.iter().enumerate() {
+        assert_eq!(img.dimensions(), (w, h), "pictures of different sizes");
+        let (cx, cy) = ((k % columns) as u32 * w, (k / columns) as u32 * h);
+        image::imageops::replace(&mut out, img, i64::from(cx), i64::from(cy));
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn labels_draw_white_glyphs_on_a_darkened_band_and_clip() {
+        let mut img = RgbImage::from_pixel(40, 12, image::Rgb([200, 200, 200]));
+        label(&mut img, 0, 0, "I-", 1);
+        // inside the band every pixel is either a glyph's white or the background darkened
+        let white = img.pixels().filter(|p| p.0 == [255; 3]).count();
+        let dark = img.pixels().filter(|p| p.0 == [50; 3]).count();
+        assert!(white > 6, "{white} glyph pixels");
+        assert_eq!(
+            white + dark,
+            18 * 10,
+            "the band is 2 glyphs + 2 px wide, 10 px high"
+        );
+        // text running off the image is clipped, not a panic
+        label(&mut img, 30, 8, "far too long for the picture", 2);
+        let sheet = grid(&[img.clone(), img.clone(), img], 2);
+        assert_eq!(sheet.dimensions(), (80, 24));
+    }
 
     #[test]
     fn a_point_in_front_of_the_camera_is_drawn_at_the_centre() {

@@ -277,6 +277,81 @@ pub fn mean_abs_diff(a: &RgbaImage, b: &RgbaImage) -> f64 {
     sum as f64 / (255.0 * n.max(1) as f64)
 }
 
+/// How far a render's surface lies from a reference render of the same view ([`against`]):
+/// depth and normal errors over the pixels both cover, and where they cover differently.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct SurfaceDifference {
+    /// Pixels both cover.
+    pub both: usize,
+    /// Pixels only the render covers.
+    pub only_render: usize,
+    /// Pixels only the reference covers.
+    pub only_reference: usize,
+    /// `(only_render + only_reference) / reference's covered pixels`.
+    pub coverage_difference: f64,
+    /// Mean and 95th percentile of the distance along the pixel's ray between the two surfaces,
+    /// in units of `unit` (world units divided by it; a particle spacing, say).
+    pub depth_mean: f64,
+    pub depth_p95: f64,
+    /// Mean and 95th percentile of the angle between the two normals, in degrees.
+    pub normal_mean_degrees: f64,
+    pub normal_p95_degrees: f64,
+}
+
+/// Compares `render` with `reference`, both drawn in `view` (their buffers' depths are view
+/// depths along the pixel's ray, as every renderer here writes them): depth differences are
+/// measured along the world ray and divided by `unit`.
+///
+/// # Panics
+/// When the two renders or the view differ in size.
+#[must_use]
+pub fn against(
+    render: &crate::splat::Render,
+    reference: &crate::splat::Render,
+    view: &crate::splat::View,
+    unit: f32,
+) -> SurfaceDifference {
+    assert_eq!(
+        (render.width, render.height),
+        (reference.width, reference.height),
+        "renders of different sizes"
+    );
+    assert_eq!((view.width, view.height), (render.width, render.height));
+    let w = render.width as usize;
+    let (mut depths, mut angles) = (Vec::new(), Vec::new());
+    let mut d = SurfaceDifference::default();
+    for i in 0..render.colour.len() {
+        match (render.depth(i), reference.depth(i)) {
+            (Some(a), Some(b)) => {
+                let pixel = glam::Vec2::new((i % w) as f32 + 0.5, (i / w) as f32 + 0.5);
+                let length = view.world_ray(pixel).1.length();
+                depths.push(f64::from((a - b).abs() * length / unit));
+                if let (Some(n), Some(m)) = (render.normal(i), reference.normal(i)) {
+                    angles.push(f64::from(n.dot(m).clamp(-1.0, 1.0).acos().to_degrees()));
+                }
+            }
+            (Some(_), None) => d.only_render += 1,
+            (None, Some(_)) => d.only_reference += 1,
+            (None, None) => {}
+        }
+    }
+    d.both = depths.len();
+    d.coverage_difference =
+        (d.only_render + d.only_reference) as f64 / (d.both + d.only_reference).max(1) as f64;
+    let stats = |v: &mut Vec<f64>| {
+        if v.is_empty() {
+            return (0.0, 0.0);
+        }
+        v.sort_by(f64::total_cmp);
+        let mean = v.iter().sum::<f64>() / v.len() as f64;
+        let p95 = v[((v.len() - 1) as f64 * 0.95).round() as usize];
+        (mean, p95)
+    };
+    (d.depth_mean, d.depth_p95) = stats(&mut depths);
+    (d.normal_mean_degrees, d.normal_p95_degrees) = stats(&mut angles);
+    d
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -288,6 +363,48 @@ mod tests {
                 (x - c.0).powi(2) + (y - c.1).powi(2) <= r * r
             })
             .collect()
+    }
+
+    #[test]
+    fn against_measures_depth_along_the_ray_normals_and_coverage() {
+        use crate::splat::{Camera, Light, Render, SplatParams, View};
+        let (w, h) = (8u32, 6u32);
+        let view = View::new(
+            &Camera::default(),
+            &Light::default(),
+            &SplatParams::default(),
+            w,
+            h,
+        )
+        .unwrap();
+        let n = (w * h) as usize;
+        // the reference: every pixel at depth 2 facing +z; the render: depth 2.5, normal tilted
+        // 90 degrees on half the pixels, and two pixels missing
+        let reference = Render {
+            width: w,
+            height: h,
+            image: image::RgbaImage::new(w, h),
+            colour: vec![[0.0, 0.0, 0.0, 1.0]; n],
+            normal_depth: vec![[0.0, 0.0, 1.0, 2.0]; n],
+        };
+        let mut render = reference.clone();
+        for i in 0..n {
+            render.normal_depth[i][3] = 2.5;
+            if i % 2 == 0 {
+                render.normal_depth[i] = [1.0, 0.0, 0.0, 2.5];
+            }
+        }
+        render.colour[1] = [0.0; 4];
+        render.colour[3] = [0.0; 4];
+        let d = against(&render, &reference, &view, 0.5);
+        assert_eq!((d.both, d.only_render, d.only_reference), (n - 2, 0, 2));
+        assert!((d.coverage_difference - 2.0 / n as f64).abs() < 1e-12);
+        // 0.5 of view depth is at least 0.5 of distance along each ray, 1 unit of 0.5
+        assert!(d.depth_mean >= 1.0 && d.depth_mean < 1.2, "{d:?}");
+        // the covered pixels: 24 tilted (even indices), 22 untilted
+        let mean = 90.0 * 24.0 / 46.0;
+        assert!((d.normal_mean_degrees - mean).abs() < 1e-3, "{d:?}");
+        assert!((d.normal_p95_degrees - 90.0).abs() < 1e-3, "{d:?}");
     }
 
     #[test]

@@ -1088,6 +1088,86 @@ fn render_draws_particle_spheres_with_the_particle_splat_renderer() {
     assert!(e.contains("cannot be used with"), "{e}");
 }
 
+/// `compare` on the column scene at a small size: a 3x3 contact sheet, and a JSON report with
+/// every renderer and source against the ray-cast reference (which the ray-cast method of the
+/// same points meets exactly in depth and coverage: only its normals are filtered).
+#[test]
+fn compare_reports_every_method_against_the_reference() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("sheet.png");
+    let run = |extra: &[&str]| {
+        bin()
+            .args(["compare", "--scene", "column", "--size", "64x48", "--out"])
+            .arg(&out)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let report = json_of(&run(&["--json"]));
+    let methods = report["methods"].as_array().unwrap();
+    let names: Vec<String> = methods
+        .iter()
+        .map(|m| {
+            format!(
+                "{}/{}",
+                m["renderer"].as_str().unwrap(),
+                m["source"].as_str().unwrap()
+            )
+        })
+        .collect();
+    for renderer in ["ewa", "particle-splat", "ray-cast"] {
+        for source in ["chain", "particles"] {
+            assert!(names.contains(&format!("{renderer}/{source}")), "{names:?}");
+        }
+    }
+    assert_eq!(methods.len(), 8, "{names:?}");
+    for m in methods {
+        let d = &m["against_reference"];
+        for key in [
+            "depth_mean",
+            "depth_p95",
+            "normal_mean_degrees",
+            "normal_p95_degrees",
+            "coverage_difference",
+        ] {
+            assert!(d[key].as_f64().is_some_and(f64::is_finite), "{key} of {m}");
+        }
+        assert!(
+            m["ms"].as_f64().unwrap() > 0.0 && m["covered_pixels"].as_u64().unwrap() > 0,
+            "{m}"
+        );
+    }
+    let same = methods
+        .iter()
+        .find(|m| m["renderer"] == "ray-cast" && m["source"] == "particles")
+        .unwrap();
+    assert_eq!(
+        same["against_reference"]["depth_mean"].as_f64(),
+        Some(0.0),
+        "{same}"
+    );
+    assert_eq!(
+        same["against_reference"]["coverage_difference"].as_f64(),
+        Some(0.0),
+        "{same}"
+    );
+    let sheet = image::open(&out).unwrap();
+    assert_eq!((sheet.width(), sheet.height()), (3 * 64, 3 * 48));
+    // the sheet is not replaced without --force, and a bad size is refused by the parser
+    let e = stderr_of(&run(&[]));
+    assert!(e.contains("--force"), "{e}");
+    let e = stderr_of(
+        &bin()
+            .args([
+                "compare", "--scene", "column", "--size", "0x10", "--force", "--out",
+            ])
+            .arg(&out)
+            .output()
+            .unwrap(),
+    );
+    assert!(e.contains("between 1 and"), "{e}");
+}
+
 #[test]
 fn render_background_is_flat_and_holes_are_reported() {
     let dir = ddb_dir();

@@ -652,8 +652,20 @@ pub struct BenchSplatArgs {
     /// Image size, WIDTHxHEIGHT (default: 1920x1080, the goal's case).
     #[arg(long, default_value = "1920x1080", value_parser = super::render::parse_size)]
     pub size: (u32, u32),
+    /// What the surfels are drawn as: ewa (EWA splats), sprites, or spheres (particle
+    /// splatting, Adams et al. 2006: each surfel's centre and radius as a sphere).
+    #[arg(long, value_enum, default_value = "ewa")]
+    pub mode: ModeChoice,
     #[command(flatten)]
     pub run: GpuBenchRun,
+}
+
+/// `bench splat --mode`.
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum ModeChoice {
+    Ewa,
+    Sprites,
+    Spheres,
 }
 
 #[derive(Serialize)]
@@ -673,6 +685,7 @@ struct SplatGpuReport {
 
 #[derive(Serialize)]
 struct SplatBenchReport {
+    mode: fluid_surfels::splat::SplatMode,
     surfels: usize,
     width: u32,
     height: u32,
@@ -685,18 +698,22 @@ struct SplatBenchReport {
 }
 
 pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
+    use fluid_surfels::splat::SplatMode;
     use fluid_surfels::splat::gpu::{SplatRenderer, render_timed};
     use fluid_surfels::splat::{self, Light, SplatParams, View};
     let (width, height) = args.size;
     let surfels = fluid_surfels::scenes::surfel_sphere(args.surfels);
     let camera = fluid_surfels::scenes::surfel_sphere_camera();
-    let view = View::new(
-        &camera,
-        &Light::default(),
-        &SplatParams::default(),
-        width,
-        height,
-    )?;
+    let mode = match args.mode {
+        ModeChoice::Ewa => SplatMode::Ewa,
+        ModeChoice::Sprites => SplatMode::Sprites,
+        ModeChoice::Spheres => SplatMode::Spheres,
+    };
+    let params = SplatParams {
+        mode,
+        ..SplatParams::default()
+    };
+    let view = View::new(&camera, &Light::default(), &params, width, height)?;
     let cpu = if args.run.no_cpu {
         None
     } else {
@@ -749,6 +766,7 @@ pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
     let covered = cpu.as_ref().map(|(_, r)| r.covered_pixels()).unwrap_or(0);
     let cpu_ms = cpu.as_ref().map(|c| c.0);
     let report = SplatBenchReport {
+        mode,
         surfels: surfels.len(),
         width,
         height,
@@ -766,8 +784,8 @@ pub fn bench_splat(args: &BenchSplatArgs) -> Result<(), Error> {
         super::print_json(&report);
     } else {
         println!(
-            "bench splat: {} surfels on a sphere, {width}x{height}, {} pixels covered, {} threads",
-            report.surfels, report.covered_pixels, report.threads
+            "bench splat: {} surfels on a sphere drawn as {:?}, {width}x{height}, {} pixels covered, {} threads",
+            report.surfels, report.mode, report.covered_pixels, report.threads
         );
         if let (Some(c), Some(r)) = (report.cpu_ms, report.cpu_splats_per_second) {
             println!(

@@ -1,6 +1,7 @@
 //! The command line's subcommands and what they share.
 
 pub mod bench;
+pub mod compare;
 pub mod detect;
 pub mod info;
 
