@@ -5,10 +5,12 @@
 //! cargo run --release --example viewer                          # the column scene
 //! cargo run --release --example viewer -- --input 'sim/frame_{}.vtk'
 //! cargo run --release --example viewer -- --headless --frames 10 --out out/viewer
+//! cargo run --release --example viewer -- --renderer particle-splat   # Adams et al. 2006
 //! ```
 //!
 //! Keys: Space pause/play, Right (or N) one frame on, S next surfel source (chain, particles,
-//! refined), R finished frame / shaded splats, Escape quit. Drag with the left mouse button to
+//! refined), P next renderer (EWA surfels, particle splatting), R finished frame / shaded
+//! splats, Escape quit. Drag with the left mouse button to
 //! orbit, scroll to zoom. With `--headless --frames N --out DIR` there is no window: the first N
 //! frames are written as PNGs (finished frames, or shaded splats with `--splats`), so tests can run
 //! it without a display. Needs a GPU or Mesa's lavapipe.
@@ -17,7 +19,9 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use fluid_surfels::gpu::{GpuContext, REQUIRED_FEATURES};
-use fluid_surfels::pipeline::{Frame, GpuPipeline, PipelineParams, SurfelSource, Through};
+use fluid_surfels::pipeline::{
+    Frame, GpuPipeline, PipelineParams, Renderer, SurfelSource, Through,
+};
 use fluid_surfels::scenes::{ColumnParams, ColumnSim, column_pool};
 use fluid_surfels::sequence::FramePattern;
 use fluid_surfels::splat::Camera;
@@ -38,6 +42,7 @@ struct Args {
     out: PathBuf,
     splats: bool,
     size: (u32, u32),
+    renderer: Renderer,
 }
 
 fn args() -> std::result::Result<Args, String> {
@@ -48,6 +53,7 @@ fn args() -> std::result::Result<Args, String> {
         out: PathBuf::from("out/viewer"),
         splats: false,
         size: (640, 480),
+        renderer: Renderer::Ewa,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -58,6 +64,13 @@ fn args() -> std::result::Result<Args, String> {
             "--frames" => a.frames = value()?.parse().map_err(|e| format!("--frames: {e}"))?,
             "--out" => a.out = PathBuf::from(value()?),
             "--splats" => a.splats = true,
+            "--renderer" => {
+                let v = value()?;
+                a.renderer = RENDERERS
+                    .into_iter()
+                    .find(|r| r.as_str() == v)
+                    .ok_or(format!("--renderer {v}: expected ewa or particle-splat"))?;
+            }
             "--size" => {
                 let v = value()?;
                 let (w, h) = v
@@ -180,6 +193,9 @@ impl Orbit {
 
 const SOURCES: [SurfelSource; 3] = SurfelSource::ALL;
 
+/// The renderers with a GPU twin (ray casting has none yet).
+const RENDERERS: [Renderer; 2] = [Renderer::Ewa, Renderer::ParticleSplat];
+
 /// The device, the pipeline and what the window shows.
 struct Viewer {
     device: wgpu::Device,
@@ -278,6 +294,14 @@ impl Viewer {
         Ok(())
     }
 
+    fn next_renderer(&mut self) -> Result<()> {
+        let now = self.gpu.cpu().params().renderer;
+        let k = RENDERERS.iter().position(|&r| r == now).unwrap_or(0);
+        let next = RENDERERS[(k + 1) % RENDERERS.len()];
+        self.gpu.cpu_mut().set_renderer(next);
+        self.update()
+    }
+
     fn next_source(&mut self) -> Result<()> {
         self.source_index = (self.source_index + 1) % SOURCES.len();
         self.gpu.cpu_mut().set_source(SOURCES[self.source_index]);
@@ -305,6 +329,7 @@ fn headless(args: &Args) -> Result<()> {
         source,
         args.splats,
     )?;
+    viewer.gpu.cpu_mut().set_renderer(args.renderer);
     for f in 0..args.frames {
         viewer.update()?;
         let texture = fluid_surfels::gpu::texture_2d(
@@ -403,6 +428,7 @@ impl Windowed {
         surface.configure(&device, &config);
         let source = Source::new(self.args.input.as_deref())?;
         let mut viewer = Viewer::new(device, queue, format, (w, h), source, self.args.splats)?;
+        viewer.gpu.cpu_mut().set_renderer(self.args.renderer);
         viewer.update()?;
         self.state = Some((window, surface, config, viewer));
         Ok(())
@@ -477,6 +503,7 @@ impl ApplicationHandler for Windowed {
                             Ok(())
                         }
                         "s" | "S" => viewer.next_source(),
+                        "p" | "P" => viewer.next_renderer(),
                         "r" | "R" => {
                             viewer.show_splats = !viewer.show_splats;
                             Ok(())

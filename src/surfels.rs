@@ -195,6 +195,12 @@ impl<'a> ExactDensity<'a> {
         }
     }
 
+    /// The groups of similar radii the points are indexed in: each group's reach (its largest
+    /// radius) and its points (indices into [`Self::points`]).
+    pub fn groups(&self) -> impl Iterator<Item = (f32, &[u32])> {
+        self.groups.iter().map(|g| (g.reach, g.members.as_slice()))
+    }
+
     /// The points the densities are summed over.
     #[must_use]
     pub fn points(&self) -> &Points<'a> {

@@ -1044,7 +1044,8 @@ fn render_draws_particle_spheres_with_the_particle_splat_renderer() {
         png, expected.image,
         "the PNG is not the library's particle splatting"
     );
-    // the ray caster runs on the CPU: its report says so, and --gpu is refused with the way out
+    // the ray caster's report names it; its finished frame runs on the CPU, and --gpu is refused
+    // there with the way out
     let report = json_of(&render_ddb(
         d,
         &[
@@ -1064,16 +1065,54 @@ fn render_draws_particle_spheres_with_the_particle_splat_renderer() {
                 "render",
                 "--renderer",
                 "ray-cast",
+                "--optics",
                 "--gpu",
-                "--out",
-                "x.png",
                 "--input",
             ])
             .arg(d.join("ddb.vtk"))
+            .arg("--out")
+            .arg(d.join("refused.png"))
             .output()
             .unwrap(),
     );
     assert!(e.contains("no GPU twin") && e.contains("drop --gpu"), "{e}");
+    // the shaded image has its GPU twin: --gpu runs it there, the same picture
+    if fluid_surfels::gpu::context_or_skip("render --renderer ray-cast --gpu")
+        .unwrap()
+        .is_some()
+    {
+        let report = json_of(
+            &bin()
+                .args(["render", "--renderer", "ray-cast", "--gpu", "--json"])
+                .args(["--size", "64x48", "--source", "particles", "--input"])
+                .arg(d.join("ddb.vtk"))
+                .arg("--out")
+                .arg(d.join("rays-gpu.png"))
+                .output()
+                .unwrap(),
+        );
+        assert!(
+            report["backend"].as_str().unwrap().starts_with("gpu"),
+            "{report}"
+        );
+        let cpu = json_of(
+            &bin()
+                .args(["render", "--renderer", "ray-cast", "--cpu", "--json"])
+                .args(["--size", "64x48", "--source", "particles", "--input"])
+                .arg(d.join("ddb.vtk"))
+                .arg("--out")
+                .arg(d.join("rays-cpu.png"))
+                .output()
+                .unwrap(),
+        );
+        let (a, b) = (
+            image::open(d.join("rays-gpu.png")).unwrap().to_rgba8(),
+            image::open(d.join("rays-cpu.png")).unwrap().to_rgba8(),
+        );
+        let psnr = fluid_surfels::splat::psnr(&a, &b);
+        assert!(psnr >= 40.0, "GPU against CPU ray casting: {psnr:.1} dB");
+        assert_eq!(report["covered_pixels"], cpu["covered_pixels"]);
+    }
     // sprites are a mode of the EWA renderer
     let e = stderr_of(&render_ddb(
         d,

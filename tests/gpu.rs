@@ -80,6 +80,34 @@ fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
             fields!(RawGeometry; view_proj, view, eye),
         ),
         (
+            "raycast.wgsl",
+            fluid_surfels::raycast::gpu::SHADER,
+            "Params",
+            std::mem::size_of::<fluid_surfels::raycast::gpu::RawCastParams>(),
+            fields!(fluid_surfels::raycast::gpu::RawCastParams; inv_view, screen, a, b, c, d, e, g),
+        ),
+        (
+            "raycast.wgsl",
+            fluid_surfels::raycast::gpu::SHADER,
+            "Grid",
+            std::mem::size_of::<fluid_surfels::raycast::gpu::RawGrid>(),
+            fields!(fluid_surfels::raycast::gpu::RawGrid; g, dims, at),
+        ),
+        (
+            "raycast.wgsl",
+            fluid_surfels::raycast::gpu::SHADER,
+            "Grids",
+            std::mem::size_of::<fluid_surfels::raycast::gpu::RawGrids>(),
+            fields!(fluid_surfels::raycast::gpu::RawGrids; grid),
+        ),
+        (
+            "raycast.wgsl",
+            fluid_surfels::raycast::gpu::SHADER,
+            "Band",
+            std::mem::size_of::<fluid_surfels::raycast::gpu::RawBand>(),
+            fields!(fluid_surfels::raycast::gpu::RawBand; y0, rows, budget),
+        ),
+        (
             "present.wgsl",
             pipeline::gpu::PRESENT_SHADER,
             "Present",
@@ -485,6 +513,19 @@ fn gpu_pipeline_with_particle_splatting_equals_the_cpu_pipeline() {
     }
     assert!(db >= 35.0, "finished frame: {db:.1} dB");
     assert!(splats_db >= 40.0, "shaded splats: {splats_db:.1} dB");
+    // ray casting has no GPU twin: refused with the way out, at construction and when switched to
+    gpu.cpu_mut().set_renderer(pipeline::Renderer::RayCast);
+    let e = gpu
+        .render_frame_image(&ctx, &frame)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("no GPU twin"), "{e}");
+    params.renderer = pipeline::Renderer::RayCast;
+    let e = GpuPipeline::new(&ctx.device, &ctx.queue, format, size, &params)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(e.contains("CPU `Pipeline`"), "{e}");
 }
 
 /// In a sequence `GpuPipeline` reuses its GPU resources (nothing created after the first frame:

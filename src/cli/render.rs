@@ -54,7 +54,8 @@ pub struct RenderArgs {
     /// particle-splat (Adams et al. 2006: the source's points as spheres of their kernel
     /// radius, blended within 1.5 radii of the nearest; no density grid) or ray-cast (Xiao et
     /// al.: rays cast to the iso-surface of the source's points, PCA-blended normals; the
-    /// reference surface, CPU only), in the shaded splats and in the finished frame alike.
+    /// reference surface; its finished frame on the CPU only), in the shaded splats and in the
+    /// finished frame alike.
     #[arg(long, value_enum, default_value = "ewa")]
     pub renderer: RendererChoice,
     /// Density grid points along the longest axis (default: spacing a third of the smallest
@@ -291,16 +292,18 @@ pub fn render_with(
     })
 }
 
-/// Whether the renderer runs on the CPU only (ray casting has no GPU twin yet): then the default
-/// is the CPU whatever adapter there is, and `--gpu` is refused.
-fn cpu_only(args: &RenderArgs) -> Result<bool, Error> {
+/// Whether the finished frame (`--optics`) runs on the CPU only: with ray casting, whose GPU twin
+/// (`raycast::gpu`) draws the shaded image but not yet the light's and the camera's views of
+/// the GPU optics. Then the default is the CPU whatever adapter there is, and `--gpu` is refused.
+fn optics_cpu_only(args: &RenderArgs) -> Result<bool, Error> {
     if !matches!(args.renderer, RendererChoice::RayCast) {
         return Ok(false);
     }
     if args.gpu {
         return Err(Error::InvalidArgument {
             argument: "--gpu",
-            reason: "--renderer ray-cast has no GPU twin yet; drop --gpu (it runs on the CPU)"
+            reason: "--renderer ray-cast has no GPU twin in the finished frame yet (the shaded \
+                     image has one); drop --gpu (it runs on the CPU)"
                 .into(),
         });
     }
@@ -585,21 +588,31 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     let camera = args
         .camera
         .map_or_else(|| framing(surfels), |c| turned_camera(c, args.up));
-    let ctx = choose_gpu(args.cpu || cpu_only(args)?, args.gpu)?;
+    let ctx = choose_gpu(args.cpu, args.gpu)?;
     let t = Instant::now();
     let render = if pipeline.params().renderer == Renderer::RayCast {
         let (positions, radii) = pipeline::sphere_points(surfels);
         let caster = pipeline.caster(&positions, &radii)?;
         let (w, h) = args.size;
-        fluid_surfels::raycast::render_cpu(
-            &caster,
-            &camera,
-            &Light::default(),
-            &splat_params,
-            w,
-            h,
-        )?
-        .render
+        let light = Light::default();
+        match ctx.as_ref() {
+            Some(ctx) => {
+                fluid_surfels::raycast::gpu::render_gpu(
+                    ctx,
+                    &caster,
+                    &camera,
+                    &light,
+                    &splat_params,
+                    w,
+                    h,
+                )?
+                .render
+            }
+            None => {
+                fluid_surfels::raycast::render_cpu(&caster, &camera, &light, &splat_params, w, h)?
+                    .render
+            }
+        }
     } else {
         render_with(ctx.as_ref(), surfels, &camera, &splat_params, args.size)?
     };
@@ -818,7 +831,7 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
     let [w, h] = params.scene.optics.image_size;
     let mut pipeline = Pipeline::new(params.clone())?;
     super::warn_at_once(&mut pipeline);
-    let mut gpu = match choose_gpu(args.cpu || cpu_only(args)?, args.gpu)? {
+    let mut gpu = match choose_gpu(args.cpu || optics_cpu_only(args)?, args.gpu)? {
         Some(ctx) => {
             let g = GpuPipeline::new(
                 &ctx.device,

@@ -67,14 +67,7 @@ impl GpuPipeline {
     ) -> Result<Self, Error> {
         let _ = queue;
         check_size(size)?;
-        if params.renderer == super::Renderer::RayCast {
-            return Err(Error::InvalidArgument {
-                argument: "renderer",
-                reason: "ray-cast has no GPU twin yet: render it with the CPU `Pipeline` \
-                         (or choose ewa or particle-splat)"
-                    .into(),
-            });
-        }
+        no_gpu_twin(params.renderer)?;
         let mut params = params.clone();
         params.scene.optics.image_size = [size.0, size.1];
         let cpu = Pipeline::new(params)?;
@@ -222,6 +215,7 @@ impl GpuPipeline {
         encoder: &mut wgpu::CommandEncoder,
         frame: &Frame,
     ) -> Result<(), Error> {
+        no_gpu_twin(self.cpu.params().renderer)?;
         let surfels = &frame.render_surfels;
         let scene = self.cpu.fitted_scene(surfels)?;
         let stage = Stage::new(&scene, surfels)?;
@@ -287,6 +281,7 @@ impl GpuPipeline {
         frame: &Frame,
         target: &wgpu::TextureView,
     ) -> Result<(), Error> {
+        no_gpu_twin(self.cpu.params().renderer)?;
         let camera = self.cpu.splat_camera(&frame.render_surfels);
         let (w, h) = self.size;
         let view = View::new(&camera, &Light::default(), &self.cpu.splat_params(), w, h)?;
@@ -369,6 +364,19 @@ fn check_size((w, h): (u32, u32)) -> Result<(), Error> {
                 "{w}x{h}: each side must lie in 1..={}",
                 crate::splat::MAX_SIZE
             ),
+        });
+    }
+    Ok(())
+}
+
+/// Refuses the renderers without a GPU twin (ray casting, for now).
+fn no_gpu_twin(renderer: super::Renderer) -> Result<(), Error> {
+    if renderer == super::Renderer::RayCast {
+        return Err(Error::InvalidArgument {
+            argument: "renderer",
+            reason: "ray-cast has no GPU twin yet: render it with the CPU `Pipeline` \
+                     (or choose ewa or particle-splat)"
+                .into(),
         });
     }
     Ok(())

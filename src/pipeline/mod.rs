@@ -512,6 +512,11 @@ impl Pipeline {
         self.params.source = source;
     }
 
+    /// Draws with `renderer` from the next frame on.
+    pub fn set_renderer(&mut self, renderer: Renderer) {
+        self.params.renderer = renderer;
+    }
+
     /// Forgets what the sequence kept (hysteresis, estimated radius, camera and pool): the next
     /// frame starts a new sequence.
     pub fn reset(&mut self) {

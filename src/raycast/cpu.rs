@@ -20,7 +20,7 @@ struct PixelRay {
 }
 
 /// Side of the square screen tiles the spheres are binned into.
-const TILE: usize = 16;
+pub(crate) const TILE: usize = 16;
 
 /// Ray casting of the caster's points from `camera` at `width` x `height`; `splat` gives the
 /// background (and the cost limits), `light` the shading.
@@ -130,27 +130,7 @@ pub fn render_view_cpu(caster: &Caster<'_>, v: &View) -> Result<RayCast, RayCast
     let points = caster.density().points();
     let params = &caster.params;
     // 1. the spheres binned into screen tiles
-    let rects: Vec<Option<[usize; 4]>> = (0..points.len())
-        .into_par_iter()
-        .map(|j| sphere_rect(v, points.positions[j], points.radius(j)))
-        .collect();
-    let fragments: u128 = rects
-        .iter()
-        .flatten()
-        .map(|r| ((r[1] - r[0]) * (r[3] - r[2])) as u128)
-        .sum();
-    crate::splat::check_cost(points.len(), fragments, v)?;
-    let (tw, th) = (w.div_ceil(TILE), h.div_ceil(TILE));
-    let mut tiles: Vec<Vec<u32>> = vec![Vec::new(); tw * th];
-    for (j, r) in rects.iter().enumerate() {
-        if let Some([x0, x1, y0, y1]) = *r {
-            for ty in y0 / TILE..=(y1 - 1) / TILE {
-                for tx in x0 / TILE..=(x1 - 1) / TILE {
-                    tiles[ty * tw + tx].push(j as u32);
-                }
-            }
-        }
-    }
+    let (tw, tiles) = bin_spheres(caster, v)?;
     // 2. per pixel: the sphere intervals, the first crossing, the normal there
     let dt_world = params.step * points.min_radius();
     let per_pixel: Vec<PixelRay> = (0..w * h)
@@ -189,16 +169,76 @@ pub fn render_view_cpu(caster: &Caster<'_>, v: &View) -> Result<RayCast, RayCast
         params.bilateral_sigma_px,
         params.bilateral_sigma_depth * points.h,
     );
-    // 4. the buffers and the shading
+    let hits: Vec<Option<(f32, Vec3)>> = per_pixel
+        .iter()
+        .zip(&filtered)
+        .map(|(p, n)| p.hit.and_then(|(t, _)| n.map(|n| (t, n))))
+        .collect();
+    Ok(finish(
+        caster,
+        v,
+        &hits,
+        per_pixel.iter().map(|p| p.thickness).collect(),
+        per_pixel.iter().map(|p| p.entry).collect(),
+        per_pixel.iter().map(|p| p.samples).sum(),
+    ))
+}
+
+/// The spheres binned into the screen's 16x16 tiles: tiles along x and each tile's spheres, in
+/// order. Refused, like the splats, when the spheres' rectangles add up to more pixels than the
+/// view's limit or the buffers would not fit in memory.
+pub(crate) fn bin_spheres(
+    caster: &Caster<'_>,
+    v: &View,
+) -> Result<(usize, Vec<Vec<u32>>), RayCastError> {
+    let (w, h) = (v.width as usize, v.height as usize);
+    let points = caster.density().points();
+    let rects: Vec<Option<[usize; 4]>> = (0..points.len())
+        .into_par_iter()
+        .map(|j| sphere_rect(v, points.positions[j], points.radius(j)))
+        .collect();
+    let fragments: u128 = rects
+        .iter()
+        .flatten()
+        .map(|r| ((r[1] - r[0]) * (r[3] - r[2])) as u128)
+        .sum();
+    crate::splat::check_cost(points.len(), fragments, v)?;
+    let (tw, th) = (w.div_ceil(TILE), h.div_ceil(TILE));
+    let mut tiles: Vec<Vec<u32>> = vec![Vec::new(); tw * th];
+    for (j, r) in rects.iter().enumerate() {
+        if let Some([x0, x1, y0, y1]) = *r {
+            for ty in y0 / TILE..=(y1 - 1) / TILE {
+                for tx in x0 / TILE..=(x1 - 1) / TILE {
+                    tiles[ty * tw + tx].push(j as u32);
+                }
+            }
+        }
+    }
+    Ok((tw, tiles))
+}
+
+/// The result from each pixel's hit (view depth and filtered normal), thickness and entry: the
+/// buffers (`(tinted colour, 1)`, `(normal, depth)`) and the shaded image (`splat::shade`).
+pub(crate) fn finish(
+    caster: &Caster<'_>,
+    v: &View,
+    hits: &[Option<(f32, Vec3)>],
+    thickness: Vec<f32>,
+    entry: Vec<f32>,
+    samples: u64,
+) -> RayCast {
+    let w = v.width as usize;
+    let n = hits.len();
+    let points = caster.density().points();
     let base = Vec3::from_slice(&crate::splat::WATER[..3]);
-    let absorption = Vec3::from(params.absorption) / points.h;
-    let mut colour = vec![[0.0f32; 4]; w * h];
-    let mut normal_depth = vec![[0.0f32; 4]; w * h];
-    for (i, p) in per_pixel.iter().enumerate() {
-        if let (Some((t, _)), Some(n)) = (p.hit, filtered[i]) {
-            let tint = base * (-absorption * p.thickness).exp();
+    let absorption = Vec3::from(caster.params.absorption) / points.h;
+    let mut colour = vec![[0.0f32; 4]; n];
+    let mut normal_depth = vec![[0.0f32; 4]; n];
+    for (i, hit) in hits.iter().enumerate() {
+        if let Some((t, normal)) = *hit {
+            let tint = base * (-absorption * thickness[i]).exp();
             colour[i] = tint.extend(1.0).to_array();
-            normal_depth[i] = n.extend(t).to_array();
+            normal_depth[i] = normal.extend(t).to_array();
         }
     }
     let mut image = RgbaImage::new(v.width, v.height);
@@ -219,7 +259,7 @@ pub fn render_view_cpu(caster: &Caster<'_>, v: &View) -> Result<RayCast, RayCast
                 row[4 * x..4 * x + 4].copy_from_slice(&crate::splat::cpu::to_unorm8(c));
             }
         });
-    Ok(RayCast {
+    RayCast {
         render: Render {
             width: v.width,
             height: v.height,
@@ -227,8 +267,8 @@ pub fn render_view_cpu(caster: &Caster<'_>, v: &View) -> Result<RayCast, RayCast
             colour,
             normal_depth,
         },
-        thickness: per_pixel.iter().map(|p| p.thickness).collect(),
-        entry: per_pixel.iter().map(|p| p.entry).collect(),
-        samples: per_pixel.iter().map(|p| p.samples).sum(),
-    })
+        thickness,
+        entry,
+        samples,
+    }
 }

@@ -30,6 +30,7 @@ use crate::splat::{Render, SplatError};
 use crate::surfels::{ExactDensity, SurfelError};
 
 pub mod cpu;
+pub mod gpu;
 
 pub use cpu::{render_cpu, render_view_cpu};
 
@@ -360,8 +361,11 @@ impl<'a> Caster<'a> {
     }
 
     /// The first crossing of the iso-value along `o + t d` inside the sorted, merged intervals
-    /// of `t` where the density can be non-zero, marched with steps `dt` and refined by the
-    /// bisection steps; the density evaluations are added to `samples`.
+    /// of `t` where the density can be non-zero: samples at `t_k = t_0 + k dt` from the first
+    /// interval's start `t_0` (one step grid for the whole ray, so that the GPU twin, which
+    /// marches from the first entry to the last exit, takes the same samples; those in the gaps
+    /// between intervals are zero and skipped here), the first bracket `[t_(k-1), t_k]` that
+    /// crosses refined by the bisection steps. The density evaluations are added to `samples`.
     pub fn first_crossing(
         &self,
         o: Vec3,
@@ -374,16 +378,25 @@ impl<'a> Caster<'a> {
             *samples += 1;
             self.density.value(o + t * d) >= self.iso
         };
-        for &(t0, t1) in intervals {
-            if inside(t0, samples) {
-                return Some(t0);
+        let t0 = intervals.first()?.0;
+        if inside(t0, samples) {
+            return Some(t0);
+        }
+        let mut k = 1u32;
+        for &(a, b) in intervals {
+            // skip the gap: the first sample at or after the interval's start
+            let first = ((a - t0) / dt).ceil();
+            if first.is_finite() && first > k as f32 {
+                k = first as u32;
             }
-            let mut t = t0;
-            while t < t1 {
-                let next = (t + dt).min(t1);
-                if inside(next, samples) {
-                    // bisection between the last sample below and the first above
-                    let (mut below, mut above) = (t, next);
+            loop {
+                let t = t0 + k as f32 * dt;
+                if t > b {
+                    break;
+                }
+                if inside(t, samples) {
+                    // bisection between the sample before (below) and this one (above)
+                    let (mut below, mut above) = (t0 + (k - 1) as f32 * dt, t);
                     for _ in 0..self.params.bisection_steps {
                         let mid = 0.5 * (below + above);
                         if inside(mid, samples) {
@@ -394,7 +407,7 @@ impl<'a> Caster<'a> {
                     }
                     return Some(0.5 * (below + above));
                 }
-                t = next;
+                k += 1;
             }
         }
         None

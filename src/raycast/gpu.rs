@@ -1,0 +1,528 @@
+//! Ray casting on the GPU: `shaders/raycast.wgsl` (compute passes: the cast and the normals as a
+//! resumable state machine run until every pixel is done, band of rows by band of rows, then the
+//! bilateral filter) over the points, their screen tiles and two uniform grids in storage
+//! buffers; the shading after the read-back is the CPU's (`splat::shade`). The CPU reference
+//! ([`super::cpu`]) is the specification; tests compare the two.
+
+use glam::Vec3;
+use wgpu::util::DeviceExt;
+
+use super::cpu::{bin_spheres, finish};
+use super::{Caster, RayCast, RayNormals};
+use crate::density::{Kernel, Points};
+use crate::gpu::{GpuContext, GpuError};
+use crate::splat::{Camera, Light, SplatParams, View};
+
+/// The WGSL source of the passes.
+pub const SHADER: &str = include_str!("../../shaders/raycast.wgsl");
+
+/// Most cells all grids together may have (32 MiB of starts); a wider spread of points gets
+/// coarser cells (still correct: a query visits the 27 cells about it, each at least one reach
+/// wide).
+const MAX_CELLS: u64 = 1 << 23;
+
+/// Most grids: 32 radius groups (the density's, [`crate::surfels::ExactDensity::groups`], merged
+/// in pairs while there are more) and the PCA grid (`MAX_GRIDS` in the WGSL).
+pub const MAX_GRIDS: usize = 33;
+
+/// One grid (`Grid` in the WGSL): origin and cell; cells along x, y, z and the offset of their
+/// starts in the cells buffer; the offset of their items.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RawGrid {
+    pub g: [f32; 4],
+    pub dims: [u32; 4],
+    pub at: [u32; 4],
+}
+
+/// Every grid (`Grids` in the WGSL).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RawGrids {
+    pub grid: [RawGrid; MAX_GRIDS],
+}
+
+/// The uniforms of the passes (`Params` in the WGSL, 128 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RawCastParams {
+    pub inv_view: [[f32; 4]; 4],
+    pub screen: [f32; 4],
+    pub a: [u32; 4],
+    pub b: [f32; 4],
+    pub c: [u32; 4],
+    pub d: [f32; 4],
+    pub e: [f32; 4],
+    pub g: [u32; 4],
+}
+
+const _: () = assert!(std::mem::size_of::<RawCastParams>() == 176);
+
+/// The band of rows one run of `cs_step` works on (`Band` in the WGSL).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RawBand {
+    pub y0: u32,
+    pub rows: u32,
+    pub budget: u32,
+    pub _pad: u32,
+}
+
+/// Bytes of a pixel's `State` in the WGSL (five `vec4`s).
+const STATE_BYTES: u64 = 80;
+
+/// Most pixels of one band: their states take 20 MiB.
+const BAND_PIXELS: u32 = 1 << 18;
+
+/// Loop iterations of one dispatch of `cs_step`, the same for every pixel: well under the
+/// 65,535 that llvmpipe allows all loops of an invocation together (see the WGSL's header),
+/// with room for the Jacobi sweeps of the pixels that finish their PCA normal.
+const BUDGET: u32 = 16_384;
+
+/// Points sorted into cubic cells (compressed rows: `starts[c]..starts[c + 1]` index `items`).
+struct CsrGrid {
+    origin: Vec3,
+    cell: f32,
+    dims: [u32; 3],
+    starts: Vec<u32>,
+    items: Vec<u32>,
+}
+
+/// The dimensions of a grid of cells `cell` wide over `lo..=hi`.
+fn grid_dims(lo: Vec3, hi: Vec3, cell: f32) -> [u64; 3] {
+    let n = ((hi - lo) / cell).floor() + Vec3::ONE;
+    [n.x as u64, n.y as u64, n.z as u64]
+}
+
+/// The bounds of some points.
+fn bounds_of(points: &Points<'_>, members: &[u32]) -> (Vec3, Vec3) {
+    members
+        .iter()
+        .map(|&j| points.positions[j as usize])
+        .fold(None, |b: Option<(Vec3, Vec3)>, p| {
+            Some(b.map_or((p, p), |(a, c)| (a.min(p), c.max(p))))
+        })
+        .unwrap_or((Vec3::ZERO, Vec3::ZERO))
+}
+
+/// The points `members` in cells `cell` wide over their bounds `lo..`, the cell of a point (and
+/// of a query, in the WGSL) `floor((p - lo) / cell)` clamped to the grid; items are point
+/// indices.
+fn csr_grid(points: &Points<'_>, members: &[u32], lo: Vec3, cell: f32, dims: [u64; 3]) -> CsrGrid {
+    let dims = dims.map(|d| d as u32);
+    let cell_of = |p: Vec3| {
+        let c = ((p - lo) / cell).floor();
+        let at = |k: usize, v: f32| (v.max(0.0) as u32).min(dims[k] - 1);
+        at(0, c.x) + dims[0] * (at(1, c.y) + dims[1] * at(2, c.z))
+    };
+    let total = dims.iter().map(|&d| d as usize).product::<usize>();
+    let cells: Vec<u32> = members
+        .iter()
+        .map(|&j| cell_of(points.positions[j as usize]))
+        .collect();
+    let mut starts = vec![0u32; total + 1];
+    for &c in &cells {
+        starts[c as usize + 1] += 1;
+    }
+    for k in 0..total {
+        starts[k + 1] += starts[k];
+    }
+    let mut fill = starts.clone();
+    let mut items = vec![0u32; cells.len()];
+    for (&j, &c) in members.iter().zip(&cells) {
+        items[fill[c as usize] as usize] = j;
+        fill[c as usize] += 1;
+    }
+    CsrGrid {
+        origin: lo,
+        cell,
+        dims,
+        starts,
+        items,
+    }
+}
+
+/// The grids of the density's radius groups (merged in pairs down to `MAX_GRIDS - 1`) and,
+/// last, the PCA grid of reach `pca_reach` over all points; cells grow by a common factor until
+/// all grids together have at most [`MAX_CELLS`].
+fn grids_of(caster: &Caster<'_>, pca_reach: f32) -> Vec<CsrGrid> {
+    let points = caster.density().points();
+    let mut groups: Vec<(f32, Vec<u32>)> = caster
+        .density()
+        .groups()
+        .map(|(reach, members)| (reach, members.to_vec()))
+        .collect();
+    while groups.len() > MAX_GRIDS - 1 {
+        groups = groups
+            .chunks(2)
+            .map(|pair| {
+                let reach = pair.iter().map(|g| g.0).fold(0.0, f32::max);
+                (
+                    reach,
+                    pair.iter().flat_map(|g| g.1.iter().copied()).collect(),
+                )
+            })
+            .collect();
+    }
+    groups.push((pca_reach, (0..points.len() as u32).collect()));
+    let bounds: Vec<(Vec3, Vec3)> = groups.iter().map(|g| bounds_of(points, &g.1)).collect();
+    let mut scale = 1.0f32;
+    let cells = |scale: f32| -> Vec<(f32, [u64; 3])> {
+        groups
+            .iter()
+            .zip(&bounds)
+            .map(|((reach, _), &(lo, hi))| {
+                let cell = (reach * scale).max(f32::MIN_POSITIVE);
+                (cell, grid_dims(lo, hi, cell))
+            })
+            .collect()
+    };
+    let mut sizes = cells(scale);
+    while sizes
+        .iter()
+        .map(|(_, d)| d.iter().product::<u64>())
+        .sum::<u64>()
+        > MAX_CELLS
+    {
+        scale *= 1.26;
+        sizes = cells(scale);
+    }
+    groups
+        .iter()
+        .zip(&bounds)
+        .zip(sizes)
+        .map(|(((_, members), &(lo, _)), (cell, dims))| csr_grid(points, members, lo, cell, dims))
+        .collect()
+}
+
+impl CsrGrid {
+    /// Most points any query visits: the 27 cells about it, at most 27 of the fullest cell.
+    fn most_visited(&self) -> u64 {
+        let fullest = self
+            .starts
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .max()
+            .unwrap_or(0);
+        27 * u64::from(fullest)
+    }
+}
+
+/// Ray casting of the caster's points on the GPU, as [`super::render_cpu`].
+pub fn render_gpu(
+    ctx: &GpuContext,
+    caster: &Caster<'_>,
+    camera: &Camera,
+    light: &Light,
+    splat: &SplatParams,
+    width: u32,
+    height: u32,
+) -> Result<RayCast, crate::Error> {
+    let v = View::new(camera, light, splat, width, height)?;
+    render_view_gpu(ctx, caster, &v)
+}
+
+/// [`render_gpu`] for a prepared view.
+pub fn render_view_gpu(
+    ctx: &GpuContext,
+    caster: &Caster<'_>,
+    v: &View,
+) -> Result<RayCast, crate::Error> {
+    let device = &ctx.device;
+    let (w, h) = (v.width as usize, v.height as usize);
+    let points = caster.density().points();
+    let params = &caster.params;
+    let (tw, tiles) = bin_spheres(caster, v)?;
+    let mut tile_start = Vec::with_capacity(tiles.len() + 1);
+    let mut tile_items = Vec::new();
+    tile_start.push(0u32);
+    for t in &tiles {
+        tile_items.extend_from_slice(t);
+        tile_start.push(tile_items.len() as u32);
+    }
+    let point_data: Vec<[f32; 4]> = (0..points.len())
+        .map(|j| points.positions[j].extend(points.radius(j)).to_array())
+        .collect();
+    let reach = points.max_radius();
+    let pca_reach = params.pca_radius * reach;
+    let grids = grids_of(caster, pca_reach);
+    // every grid's starts, then every grid's items, in one buffer
+    let mut cells: Vec<u32> = Vec::new();
+    let mut raw_grids = RawGrids {
+        grid: [RawGrid::default(); MAX_GRIDS],
+    };
+    for (g, raw) in grids.iter().zip(&mut raw_grids.grid) {
+        raw.g = g.origin.extend(g.cell).to_array();
+        raw.dims = [g.dims[0], g.dims[1], g.dims[2], cells.len() as u32];
+        cells.extend_from_slice(&g.starts);
+    }
+    for (g, raw) in grids.iter().zip(&mut raw_grids.grid) {
+        raw.at = [cells.len() as u32, 0, 0, 0];
+        cells.extend_from_slice(&g.items);
+    }
+    let (_, inv_view, _) = v.matrices();
+    let half = v.half_extent();
+    let raw = RawCastParams {
+        inv_view: inv_view.to_cols_array_2d(),
+        screen: [v.width as f32, v.height as f32, half.x, half.y],
+        a: [u32::from(v.is_orthographic()), tw as u32, v.width, v.height],
+        b: [
+            caster.iso(),
+            params.step * points.min_radius(),
+            points.h,
+            params.pca_radius,
+        ],
+        c: [
+            params.bisection_steps,
+            match params.normals {
+                RayNormals::Blended => 0,
+                RayNormals::Gradient => 1,
+                RayNormals::Pca => 2,
+            },
+            match caster.density().kernel() {
+                Kernel::Wyvill => 0,
+                Kernel::CubicSpline => 1,
+            },
+            params.bilateral_radius_px,
+        ],
+        d: [
+            params.blend_d,
+            params.blend_k,
+            params.blend_max,
+            params.bilateral_sigma_px,
+        ],
+        e: [
+            params.bilateral_sigma_depth * points.h,
+            reach,
+            pca_reach,
+            0.0,
+        ],
+        g: [grids.len() as u32 - 1, grids.len() as u32 - 1, 0, 0],
+    };
+    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    // storage bindings may not be empty: one unused element each at least
+    let storage = |label, bytes: &[u8]| {
+        let mut contents = bytes.to_vec();
+        contents.resize(contents.len().max(16), 0);
+        device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: &contents,
+            usage: wgpu::BufferUsages::STORAGE,
+        })
+    };
+    let uniforms = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some("raycast params"),
+        contents: bytemuck::bytes_of(&raw),
+        usage: wgpu::BufferUsages::UNIFORM,
+    });
+    let grid_uniforms = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some("raycast grids"),
+        contents: bytemuck::bytes_of(&raw_grids),
+        usage: wgpu::BufferUsages::UNIFORM,
+    });
+    let inputs = [
+        storage("raycast points", bytemuck::cast_slice(&point_data)),
+        storage("raycast tile starts", bytemuck::cast_slice(&tile_start)),
+        storage("raycast tile items", bytemuck::cast_slice(&tile_items)),
+        storage("raycast cells", bytemuck::cast_slice(&cells)),
+    ];
+    let output = |label| {
+        device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: (16 * w * h) as u64,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        })
+    };
+    let (hits, extra, filtered) = (
+        output("raycast hits"),
+        output("raycast entries"),
+        output("raycast filtered"),
+    );
+    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some("raycast"),
+        source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+    });
+    let pipeline = |entry| {
+        device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(entry),
+            layout: None,
+            module: &module,
+            entry_point: Some(entry),
+            compilation_options: Default::default(),
+            cache: None,
+        })
+    };
+    let bind = |pipeline: &wgpu::ComputePipeline, buffers: &[(u32, &wgpu::Buffer)]| {
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
+            .iter()
+            .map(|&(binding, b)| wgpu::BindGroupEntry {
+                binding,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("raycast"),
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        })
+    };
+    let (init, step, filter) = (
+        pipeline("cs_init"),
+        pipeline("cs_step"),
+        pipeline("cs_filter"),
+    );
+    let band_rows = (BAND_PIXELS / v.width.max(1)).max(16) / 16 * 16;
+    let state = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("raycast state"),
+        size: STATE_BYTES
+            * u64::from(v.width)
+            * u64::from(band_rows.min(v.height.next_multiple_of(16))),
+        usage: wgpu::BufferUsages::STORAGE,
+        mapped_at_creation: false,
+    });
+    let unfinished = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("raycast unfinished"),
+        size: 4,
+        usage: wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_SRC
+            | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    // An upper bound on the iterations any pixel needs (its tile's spheres, then every sample of
+    // the march from entry to exit, the bisections, the gradient and the PCA sums, each sum one
+    // iteration per row and per point), so that a fault can never loop the host forever.
+    let most_in_tile = tiles.iter().map(|t| t.len() as u64).max().unwrap_or(0);
+    let (lo, hi) = (0..points.len()).fold(
+        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+        |(lo, hi), j| {
+            let r = Vec3::splat(points.radius(j));
+            (
+                lo.min(points.positions[j] - r),
+                hi.max(points.positions[j] + r),
+            )
+        },
+    );
+    let span = if points.is_empty() {
+        0.0
+    } else {
+        (hi - lo).length()
+    };
+    let march = (f64::from(span) / f64::from(raw.b[1])).ceil() as u64 + 4;
+    let (pca_grid, density_grids) = grids.split_last().expect("the PCA grid is last");
+    // a sum's iterations: each grid's 9 rows, its points, one to finish
+    let per_sum = density_grids
+        .iter()
+        .map(|g| g.most_visited() + 9)
+        .sum::<u64>()
+        + 2;
+    let most = most_in_tile
+        + 2
+        + (march + u64::from(params.bisection_steps) + 1) * per_sum
+        + pca_grid.most_visited()
+        + 11;
+    let most_runs = most.div_ceil(u64::from(BUDGET)) + 2;
+    let group_x = v.width.div_ceil(8);
+    let mut y0 = 0;
+    while y0 < v.height {
+        let rows = band_rows.min(v.height - y0);
+        let band = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("raycast band"),
+            contents: bytemuck::bytes_of(&RawBand {
+                y0,
+                rows,
+                budget: BUDGET,
+                _pad: 0,
+            }),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        let bound = [
+            (0, &uniforms),
+            (1, &inputs[0]),
+            (2, &inputs[1]),
+            (3, &inputs[2]),
+            (4, &inputs[3]),
+            (6, &hits),
+            (7, &extra),
+            (9, &state),
+            (10, &band),
+        ];
+        let only = |keep: &[u32]| -> Vec<(u32, &wgpu::Buffer)> {
+            bound
+                .iter()
+                .filter(|(b, _)| keep.contains(b))
+                .copied()
+                .collect()
+        };
+        let init_group = bind(&init, &only(&[0, 2, 6, 7, 9, 10]));
+        // cs_step reads the tile's items only (cs_init found their range)
+        let mut all = only(&[0, 1, 3, 4, 6, 7, 9, 10]);
+        all.extend([(11, &unfinished), (12, &grid_uniforms)]);
+        let step_group = bind(&step, &all);
+        let groups = (group_x, rows.div_ceil(8));
+        let mut encoder = device.create_command_encoder(&Default::default());
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&init);
+            pass.set_bind_group(0, &init_group, &[]);
+            pass.dispatch_workgroups(groups.0, groups.1, 1);
+        }
+        // runs of cs_step until no pixel of the band is left, a few between read-backs
+        let (mut runs, mut batch) = (0u64, 1u64);
+        loop {
+            for _ in 0..batch {
+                encoder.clear_buffer(&unfinished, 0, None);
+                let mut pass = encoder.begin_compute_pass(&Default::default());
+                pass.set_pipeline(&step);
+                pass.set_bind_group(0, &step_group, &[]);
+                pass.dispatch_workgroups(groups.0, groups.1, 1);
+            }
+            runs += batch;
+            ctx.queue.submit([encoder.finish()]);
+            encoder = device.create_command_encoder(&Default::default());
+            let left: Vec<u32> = crate::gpu::read_buffer(ctx, &unfinished)?;
+            if left[0] == 0 {
+                break;
+            }
+            if runs >= most_runs {
+                return Err(GpuError::Readback(format!(
+                    "the ray caster left {} pixels unfinished after {runs} runs (at most \
+                     {most_runs} are needed)",
+                    left[0]
+                ))
+                .into());
+            }
+            batch = (batch * 2).min(8);
+        }
+        y0 += rows;
+    }
+    let filter_group = bind(&filter, &[(0, &uniforms), (6, &hits), (8, &filtered)]);
+    let mut encoder = device.create_command_encoder(&Default::default());
+    {
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        pass.set_pipeline(&filter);
+        pass.set_bind_group(0, &filter_group, &[]);
+        pass.dispatch_workgroups(group_x, v.height.div_ceil(8), 1);
+    }
+    ctx.queue.submit([encoder.finish()]);
+    let filtered: Vec<[f32; 4]> = crate::gpu::read_buffer(ctx, &filtered)?;
+    let extra: Vec<[f32; 4]> = crate::gpu::read_buffer(ctx, &extra)?;
+    if let Some(e) = pollster::block_on(scope.pop()) {
+        return Err(GpuError::Validation(e.to_string()).into());
+    }
+    let hits: Vec<Option<(f32, Vec3)>> = filtered
+        .iter()
+        .map(|f| (f[3] >= 0.0).then(|| (f[3], Vec3::new(f[0], f[1], f[2]))))
+        .collect();
+    Ok(finish(
+        caster,
+        v,
+        &hits,
+        extra.iter().map(|e| e[1]).collect(),
+        extra
+            .iter()
+            .map(|e| if e[0] < 0.0 { f32::INFINITY } else { e[0] })
+            .collect(),
+        extra.iter().map(|e| e[2] as u64).sum(),
+    ))
+}
