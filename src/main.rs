@@ -75,6 +75,10 @@ enum BenchCommand {
     /// The whole chain on the CPU (`Pipeline`: detection to the finished frame with optics) on a
     /// frame of the column scene, per stage.
     Pipeline(cli::bench::BenchPipelineArgs),
+    /// Each renderer (EWA splatting, particle splatting, ray casting) on one frame at one size,
+    /// the draw alone on the CPU and on the GPU (any adapter), from the same surfels and camera;
+    /// `--particles N` resamples the body to about N particles first.
+    Renderers(cli::bench::BenchRenderersArgs),
 }
 
 /// Mesa's software Vulkan driver (lavapipe) prints "XDG_RUNTIME_DIR is invalid" on stderr when
@@ -142,6 +146,7 @@ fn main() -> ExitCode {
         Some(Command::Bench(BenchCommand::Optics(args))) => cli::bench::bench_optics(&args),
         Some(Command::Bench(BenchCommand::Splat(args))) => cli::bench::bench_splat(&args),
         Some(Command::Bench(BenchCommand::Pipeline(args))) => cli::bench::bench_pipeline(&args),
+        Some(Command::Bench(BenchCommand::Renderers(args))) => cli::bench::bench_renderers(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -838,6 +838,45 @@ fn bench_optics_reports_json() {
     );
 }
 
+/// `bench renderers` times every renderer on the CPU and, where there is an adapter, on the
+/// GPU, with the two images in agreement; `--particles` resamples the body first.
+#[test]
+fn bench_renderers_times_every_renderer_on_both_backends() {
+    let gpu = fluid_surfels::gpu::context_or_skip("bench renderers on the GPU")
+        .unwrap()
+        .is_some();
+    let mut cmd = bin();
+    cmd.args(["bench", "renderers", "--size", "48x48", "--repeat", "1"])
+        .args([
+            "--input",
+            &data("double_dam_break_frame_26_4732_particles.vtk"),
+        ])
+        .args(["--particles", "8000", "--json"]);
+    if !gpu {
+        cmd.arg("--no-gpu");
+    }
+    let v = json_of(&cmd.output().unwrap());
+    let n = v["particles"].as_u64().unwrap();
+    assert!((7000..=9000).contains(&n), "{v}");
+    let rows = v["renderers"].as_array().unwrap();
+    let names: Vec<&str> = rows
+        .iter()
+        .map(|r| r["renderer"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["ewa", "particle-splat", "ray-cast"]);
+    for r in rows {
+        assert!(r["cpu_ms"].as_f64().unwrap() > 0.0, "{r}");
+        assert!(r["covered_pixels"].as_u64().unwrap() > 100, "{r}");
+        if gpu {
+            assert!(r["gpu_ms"].as_f64().unwrap() > 0.0, "{r}");
+            let psnr = r["psnr_gpu_against_cpu_db"]
+                .as_f64()
+                .unwrap_or(f64::INFINITY);
+            assert!(psnr >= 40.0, "{r}");
+        }
+    }
+}
+
 #[test]
 fn bench_pipeline_reports_every_stage() {
     let v = json_of(
@@ -1081,33 +1120,26 @@ fn render_draws_particle_spheres_with_the_particle_splat_renderer() {
         .unwrap()
         .is_some()
     {
-        let report = json_of(
-            &bin()
-                .args(["render", "--renderer", "ray-cast", "--gpu", "--json"])
-                .args(["--size", "64x48", "--source", "particles", "--input"])
-                .arg(d.join("ddb.vtk"))
-                .arg("--out")
-                .arg(d.join("rays-gpu.png"))
-                .output()
-                .unwrap(),
-        );
+        let cast = |backend: &str| {
+            json_of(
+                &bin()
+                    .args(["render", "--renderer", "ray-cast", "--json", backend])
+                    .args(["--size", "64x48", "--source", "particles", "--input"])
+                    .arg(d.join("ddb.vtk"))
+                    .arg("--out")
+                    .arg(d.join(format!("rays{backend}.png")))
+                    .output()
+                    .unwrap(),
+            )
+        };
+        let (report, cpu) = (cast("--gpu"), cast("--cpu"));
         assert!(
             report["backend"].as_str().unwrap().starts_with("gpu"),
             "{report}"
         );
-        let cpu = json_of(
-            &bin()
-                .args(["render", "--renderer", "ray-cast", "--cpu", "--json"])
-                .args(["--size", "64x48", "--source", "particles", "--input"])
-                .arg(d.join("ddb.vtk"))
-                .arg("--out")
-                .arg(d.join("rays-cpu.png"))
-                .output()
-                .unwrap(),
-        );
         let (a, b) = (
-            image::open(d.join("rays-gpu.png")).unwrap().to_rgba8(),
-            image::open(d.join("rays-cpu.png")).unwrap().to_rgba8(),
+            image::open(d.join("rays--gpu.png")).unwrap().to_rgba8(),
+            image::open(d.join("rays--cpu.png")).unwrap().to_rgba8(),
         );
         let psnr = fluid_surfels::splat::psnr(&a, &b);
         assert!(psnr >= 40.0, "GPU against CPU ray casting: {psnr:.1} dB");

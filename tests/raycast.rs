@@ -462,6 +462,18 @@ fn the_pipeline_casts_rays_for_the_splats_and_the_optics() {
     assert!(f.caustics.total_flux().length() > 0.0);
 }
 
+/// The caster's image from `camera` at SIZE x SIZE on the CPU and on the GPU.
+fn cast_both(
+    ctx: &fluid_surfels::gpu::GpuContext,
+    caster: &Caster<'_>,
+    camera: &Camera,
+) -> (raycast::RayCast, raycast::RayCast) {
+    let (light, splat) = (Light::default(), SplatParams::default());
+    let cpu = raycast::render_cpu(caster, camera, &light, &splat, SIZE, SIZE).unwrap();
+    let gpu = raycast::gpu::render_gpu(ctx, caster, camera, &light, &splat, SIZE, SIZE).unwrap();
+    (cpu, gpu)
+}
+
 /// The GPU twin casts the same rays as the CPU reference: PSNR >= 40 dB on a particle sphere
 /// and on the column scene's splash frame, every normal mode, with the same covered pixels
 /// (but for a few grazing rays).
@@ -501,26 +513,7 @@ fn gpu_and_cpu_ray_casts_agree() {
             };
             let caster =
                 Caster::new(Points::uniform(positions, *h), Kernel::Wyvill, &params).unwrap();
-            let light = Light::default();
-            let cpu = raycast::render_cpu(
-                &caster,
-                &camera,
-                &light,
-                &SplatParams::default(),
-                SIZE,
-                SIZE,
-            )
-            .unwrap();
-            let gpu = raycast::gpu::render_gpu(
-                &ctx,
-                &caster,
-                &camera,
-                &light,
-                &SplatParams::default(),
-                SIZE,
-                SIZE,
-            )
-            .unwrap();
+            let (cpu, gpu) = cast_both(&ctx, &caster, &camera);
             gpu.render.validate().unwrap();
             let psnr = fluid_surfels::splat::psnr(&cpu.render.image, &gpu.render.image);
             let (c, g) = (cpu.render.covered_pixels(), gpu.render.covered_pixels());
@@ -556,27 +549,7 @@ fn gpu_and_cpu_ray_casts_agree_on_the_chains_points() {
     let (positions, radii) = pipeline::sphere_points(&frame.render_surfels);
     let caster = p.caster(&positions, &radii).unwrap();
     let (lo, hi) = fluid_surfels::splat::bounds(&frame.render_surfels).unwrap();
-    let camera = Camera::framing(lo, hi);
-    let light = Light::default();
-    let cpu = raycast::render_cpu(
-        &caster,
-        &camera,
-        &light,
-        &SplatParams::default(),
-        SIZE,
-        SIZE,
-    )
-    .unwrap();
-    let gpu = raycast::gpu::render_gpu(
-        &ctx,
-        &caster,
-        &camera,
-        &light,
-        &SplatParams::default(),
-        SIZE,
-        SIZE,
-    )
-    .unwrap();
+    let (cpu, gpu) = cast_both(&ctx, &caster, &Camera::framing(lo, hi));
     let (c, g) = (cpu.render.covered_pixels(), gpu.render.covered_pixels());
     let psnr = fluid_surfels::splat::psnr(&cpu.render.image, &gpu.render.image);
     println!("chain points: covered CPU {c} GPU {g}, PSNR {psnr:.1} dB");

@@ -1070,3 +1070,241 @@ pub fn bench_pipeline(args: &BenchPipelineArgs) -> Result<(), Error> {
     }
     Ok(())
 }
+
+/// Arguments of `bench renderers`.
+#[derive(clap::Args)]
+pub struct BenchRenderersArgs {
+    /// Particle file (default: the column scene's splash frame).
+    #[arg(long)]
+    pub input: Option<PathBuf>,
+    /// Format of --input (default: from its extension).
+    #[arg(long, value_parser = super::format_parser())]
+    pub format: Option<Format>,
+    /// Resample the particles to about this many first: the same body on a finer lattice
+    /// (`scenes::resample`; e.g. 100000 on ../shared/data's double dam break frame).
+    #[arg(long)]
+    pub particles: Option<usize>,
+    /// Support radius (default: the scene's, or twice the spacing estimated from the file),
+    /// before any resampling.
+    #[arg(long)]
+    pub radius: Option<f32>,
+    /// Image size, WIDTHxHEIGHT.
+    #[arg(long, default_value = "1024x1024", value_parser = super::render::parse_size)]
+    pub size: (u32, u32),
+    /// Where the drawn surfels or points come from (as `render --source`).
+    #[arg(long, value_enum, default_value = "chain")]
+    pub source: super::render::SourceChoice,
+    /// The renderers to time, comma-separated.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "ewa,particle-splat,ray-cast"
+    )]
+    pub renderers: Vec<super::render::RendererChoice>,
+    /// Timed runs of each renderer on each backend (the median is reported), after one untimed.
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
+    /// CPU only. Otherwise any adapter runs, a software one too (a bench measures what it is
+    /// asked; `render` takes a software adapter only with --gpu).
+    #[arg(long)]
+    pub no_gpu: bool,
+    /// Print one JSON object instead of the table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// One renderer's figures in `bench renderers`.
+#[derive(Serialize)]
+struct RendererBench {
+    renderer: &'static str,
+    /// Surfels (EWA) or spheres (particle splatting, ray casting) drawn.
+    drawn: usize,
+    /// The frame up to what is drawn (detection, upsampling, grid, surfels), once, on the CPU.
+    prepare_ms: f64,
+    cpu_ms: f64,
+    gpu_ms: Option<f64>,
+    /// GPU time over CPU time, measured in the same run.
+    gpu_over_cpu: Option<f64>,
+    covered_pixels: usize,
+    gpu_covered_pixels: Option<usize>,
+    /// PSNR of the GPU image against the CPU's; null when identical.
+    psnr_gpu_against_cpu_db: Option<f64>,
+}
+
+#[derive(Serialize)]
+struct RenderersBenchReport {
+    source: String,
+    particles: usize,
+    support_radius: f32,
+    surfel_source: &'static str,
+    width: u32,
+    height: u32,
+    threads: usize,
+    repeat: usize,
+    adapter: Option<String>,
+    renderers: Vec<RendererBench>,
+}
+
+/// The median of `repeat` timed runs of `run` after one untimed one, and that first result.
+fn median_of<T>(
+    repeat: usize,
+    mut run: impl FnMut() -> Result<T, Error>,
+) -> Result<(f64, T), Error> {
+    let first = run()?;
+    let mut times = Vec::new();
+    for _ in 0..repeat.max(1) {
+        let t = Instant::now();
+        run()?;
+        times.push(ms(t));
+    }
+    times.sort_by(f64::total_cmp);
+    Ok((times[times.len() / 2], first))
+}
+
+/// Each renderer on one frame at one size, on the CPU and on the GPU: the draw alone, from the
+/// same surfels or points and the same camera on both.
+pub fn bench_renderers(args: &BenchRenderersArgs) -> Result<(), Error> {
+    use fluid_surfels::pipeline::{self, Pipeline, PipelineParams, Renderer, Through};
+    use fluid_surfels::splat::{self, Light};
+    let (mut source, positions, mut radius) = super::positions_of(
+        args.input.as_deref(),
+        args.input.is_none().then_some(super::SceneName::Column),
+        args.format,
+        None,
+        args.radius,
+    )?;
+    let mut positions = positions;
+    if let Some(n) = args.particles {
+        let (fine, h) = scenes::resample(&positions, radius, n)?;
+        source = format!("{source}, resampled from {} particles", positions.len());
+        positions = fine;
+        radius = h;
+    }
+    let set = fluid_surfels::ParticleSet::from_positions(positions);
+    set.validate()?;
+    let ctx = if args.no_gpu {
+        None
+    } else {
+        match fluid_surfels::gpu::GpuContext::headless() {
+            Ok(ctx) => Some(ctx),
+            Err(e) => {
+                if !args.json {
+                    println!("  (no GPU: {e})");
+                }
+                None
+            }
+        }
+    };
+    let (w, h) = args.size;
+    let light = Light::default();
+    let mut rows = Vec::new();
+    let bar = super::progress(args.renderers.len() as u64, "renderers");
+    for &choice in &args.renderers {
+        let renderer = Renderer::from(choice);
+        let mut pipeline = Pipeline::new(PipelineParams {
+            support_radius: Some(radius),
+            renderer,
+            source: args.source.into(),
+            ..Default::default()
+        })?;
+        let t = Instant::now();
+        let frame = pipeline.frame_through(&set, Through::Surfels)?;
+        let prepare_ms = ms(t);
+        let surfels = &frame.render_surfels;
+        let camera = super::render::framing(surfels);
+        let params = pipeline.splat_params();
+        let (points, radii) = pipeline::sphere_points(surfels);
+        let caster = (renderer == Renderer::RayCast)
+            .then(|| pipeline.caster(&points, &radii))
+            .transpose()?;
+        let (cpu_ms, cpu) = median_of(args.repeat, || {
+            Ok(if let Some(caster) = &caster {
+                fluid_surfels::raycast::render_cpu(caster, &camera, &light, &params, w, h)?.render
+            } else {
+                splat::render_cpu(surfels, &camera, &light, &params, w, h)?
+            })
+        })?;
+        let gpu = match &ctx {
+            Some(ctx) => Some(median_of(args.repeat, || {
+                Ok(if let Some(caster) = &caster {
+                    fluid_surfels::raycast::gpu::render_gpu(
+                        ctx, caster, &camera, &light, &params, w, h,
+                    )?
+                    .render
+                } else {
+                    splat::gpu::render_gpu(ctx, surfels, &camera, &light, &params, w, h)?
+                })
+            })?),
+            None => None,
+        };
+        rows.push(RendererBench {
+            renderer: renderer.as_str(),
+            drawn: surfels.len(),
+            prepare_ms,
+            cpu_ms,
+            gpu_ms: gpu.as_ref().map(|g| g.0),
+            gpu_over_cpu: gpu.as_ref().map(|g| g.0 / cpu_ms),
+            covered_pixels: cpu.covered_pixels(),
+            gpu_covered_pixels: gpu.as_ref().map(|g| g.1.covered_pixels()),
+            psnr_gpu_against_cpu_db: gpu
+                .as_ref()
+                .map(|g| splat::psnr(&cpu.image, &g.1.image))
+                .filter(|p| p.is_finite()),
+        });
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let report = RenderersBenchReport {
+        source,
+        particles: set.len(),
+        support_radius: radius,
+        surfel_source: fluid_surfels::pipeline::SurfelSource::from(args.source).as_str(),
+        width: w,
+        height: h,
+        threads: rayon::current_num_threads(),
+        repeat: args.repeat.max(1),
+        adapter: ctx.as_ref().map(|c| {
+            c.adapter
+                .as_ref()
+                .map(|a| a.name.clone())
+                .unwrap_or_default()
+        }),
+        renderers: rows,
+    };
+    if args.json {
+        super::print_json(&report);
+        return Ok(());
+    }
+    println!(
+        "bench renderers: {} ({} particles, support radius {:.4}), source {}, {w}x{h}, {} threads, median of {}",
+        report.source,
+        report.particles,
+        report.support_radius,
+        report.surfel_source,
+        report.threads,
+        report.repeat
+    );
+    if let Some(a) = &report.adapter {
+        println!("  GPU: {a}");
+    }
+    println!("  renderer         drawn   prepare ms    CPU ms     GPU ms  GPU/CPU  covered  PSNR");
+    for r in &report.renderers {
+        println!(
+            "  {:<14} {:>7} {:>12.1} {:>9.1} {:>10} {:>8} {:>8} {}",
+            r.renderer,
+            r.drawn,
+            r.prepare_ms,
+            r.cpu_ms,
+            r.gpu_ms.map_or("-".into(), |g| format!("{g:.1}")),
+            r.gpu_over_cpu.map_or("-".into(), |g| format!("{g:.2}x")),
+            r.covered_pixels,
+            match (r.gpu_ms, r.psnr_gpu_against_cpu_db) {
+                (None, _) => "-".into(),
+                (Some(_), None) => "identical".into(),
+                (Some(_), Some(p)) => format!("{p:.1} dB"),
+            }
+        );
+    }
+    Ok(())
+}

@@ -3,8 +3,7 @@
 //! pixel's result depends on nothing but its own ray, so the image does not depend on the thread
 //! count.
 
-use glam::{Vec2, Vec3, Vec4};
-use image::RgbaImage;
+use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 
 use super::{Caster, RayCast, RayCastError, bilateral, surface_normal};
@@ -227,7 +226,6 @@ pub(crate) fn finish(
     entry: Vec<f32>,
     samples: u64,
 ) -> RayCast {
-    let w = v.width as usize;
     let n = hits.len();
     let points = caster.density().points();
     let base = Vec3::from_slice(&crate::splat::WATER[..3]);
@@ -241,24 +239,7 @@ pub(crate) fn finish(
             normal_depth[i] = normal.extend(t).to_array();
         }
     }
-    let mut image = RgbaImage::new(v.width, v.height);
-    image
-        .as_mut()
-        .par_chunks_mut(4 * w)
-        .enumerate()
-        .for_each(|(y, row)| {
-            for x in 0..w {
-                let i = y * w + x;
-                let pixel = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
-                let c = crate::splat::shade(
-                    pixel,
-                    Vec4::from(colour[i]),
-                    Vec4::from(normal_depth[i]),
-                    v,
-                );
-                row[4 * x..4 * x + 4].copy_from_slice(&crate::splat::cpu::to_unorm8(c));
-            }
-        });
+    let image = crate::splat::cpu::shade_image(&colour, &normal_depth, v);
     RayCast {
         render: Render {
             width: v.width,

@@ -147,6 +147,21 @@ pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Result<Render, SplatErro
             }
         });
     // pass 3: normalisation and shading
+    let image = shade_image(&colour, &normal_depth, v);
+    Ok(Render {
+        width: v.width,
+        height: v.height,
+        image,
+        colour,
+        normal_depth,
+    })
+}
+
+/// Pass 3 of the splats (and the shading of every renderer that fills the same buffers): each
+/// pixel's accumulated colour and normal-depth normalised and shaded ([`shade`]), in parallel
+/// over rows.
+pub fn shade_image(colour: &[[f32; 4]], normal_depth: &[[f32; 4]], v: &View) -> RgbaImage {
+    let w = v.width as usize;
     let mut image = RgbaImage::new(v.width, v.height);
     image
         .as_mut()
@@ -160,11 +175,5 @@ pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Result<Render, SplatErro
                 row[4 * x..4 * x + 4].copy_from_slice(&to_unorm8(c));
             }
         });
-    Ok(Render {
-        width: v.width,
-        height: v.height,
-        image,
-        colour,
-        normal_depth,
-    })
+    image
 }
