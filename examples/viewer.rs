@@ -6,10 +6,11 @@
 //! cargo run --release --example viewer -- --input 'sim/frame_{}.vtk'
 //! cargo run --release --example viewer -- --headless --frames 10 --out out/viewer
 //! cargo run --release --example viewer -- --renderer particle-splat   # Adams et al. 2006
+//! cargo run --release --example viewer -- --renderer ray-cast         # Xiao et al. (slow on lavapipe)
 //! ```
 //!
 //! Keys: Space pause/play, Right (or N) one frame on, S next surfel source (chain, particles,
-//! refined), P next renderer (EWA surfels, particle splatting), R finished frame / shaded
+//! refined), P next renderer (EWA surfels, particle splatting, ray casting), R finished frame / shaded
 //! splats, Escape quit. Drag with the left mouse button to
 //! orbit, scroll to zoom. With `--headless --frames N --out DIR` there is no window: the first N
 //! frames are written as PNGs (finished frames, or shaded splats with `--splats`), so tests can run
@@ -69,7 +70,9 @@ fn args() -> std::result::Result<Args, String> {
                 a.renderer = RENDERERS
                     .into_iter()
                     .find(|r| r.as_str() == v)
-                    .ok_or(format!("--renderer {v}: expected ewa or particle-splat"))?;
+                    .ok_or(format!(
+                        "--renderer {v}: expected ewa, particle-splat or ray-cast"
+                    ))?;
             }
             "--size" => {
                 let v = value()?;
@@ -193,8 +196,8 @@ impl Orbit {
 
 const SOURCES: [SurfelSource; 3] = SurfelSource::ALL;
 
-/// The renderers with a GPU twin (ray casting has none yet).
-const RENDERERS: [Renderer; 2] = [Renderer::Ewa, Renderer::ParticleSplat];
+/// The renderers, in the order P steps through them.
+const RENDERERS: [Renderer; 3] = [Renderer::Ewa, Renderer::ParticleSplat, Renderer::RayCast];
 
 /// The device, the pipeline and what the window shows.
 struct Viewer {

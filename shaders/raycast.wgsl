@@ -8,7 +8,8 @@
 //    grid per group of similar radii, cells one group radius wide, as `ExactDensity`'s), the
 //    first crossing refined by bisection; the normal there is the density gradient blended with
 //    the PCA normal of the neighbours (one more grid, one PCA reach wide).
-// 2. cs_filter: the bilateral filter of the normal map.
+// 2. cs_filter: the bilateral filter of the normal map, into the output textures with the
+//    water's tint.
 // The shading is the splats' (`splat::shade`, on the CPU after the read-back).
 //
 // Why cs_step is a resumable state machine: llvmpipe (lavapipe) ends every loop of an invocation
@@ -40,6 +41,9 @@ struct Params {
     e: vec4<f32>,
     // grids of the density's radius groups (0..n), the PCA grid's index (n)
     g: vec4<u32>,
+    // the water's colour before the tint (rgb); its absorption per world length (rgb)
+    base: vec4<f32>,
+    absorb: vec4<f32>,
 }
 
 // A uniform grid of points: origin, cell; cells along x, y, z and where their starts are in
@@ -71,8 +75,6 @@ struct Grids {
 @group(0) @binding(6) var<storage, read_write> hits: array<vec4<f32>>;
 // per pixel: entry depth (or -1), thickness, density samples
 @group(0) @binding(7) var<storage, read_write> extra: array<vec4<f32>>;
-// per pixel: filtered normal and hit depth
-@group(0) @binding(8) var<storage, read_write> filtered: array<vec4<f32>>;
 
 // One pixel's progress between dispatches of cs_step.
 struct State {
@@ -93,13 +95,23 @@ struct Band {
     y0: u32,
     rows: u32,
     budget: u32,
-    _pad: u32,
+    groups_x: u32,
+    groups_y: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 @group(0) @binding(9) var<storage, read_write> state: array<State>;
 @group(0) @binding(10) var<uniform> band: Band;
 // pixels of the band not done after this dispatch
 @group(0) @binding(11) var<storage, read_write> unfinished: atomic<u32>;
+// the workgroups of the next run of cs_step (an indirect dispatch)
+@group(0) @binding(13) var<storage, read_write> next_run: array<u32, 3>;
+// what the filter leaves for the shading and the optics: (tint, 1) and (normal, view depth) per
+// covered pixel, zero elsewhere (the splats' accumulation targets hold the same)
+@group(0) @binding(14) var colour_out: texture_storage_2d<rgba32float, write>;
+@group(0) @binding(15) var normal_depth_out: texture_storage_2d<rgba32float, write>;
 
 // mirror: TILE in src/raycast/cpu.rs
 const TILE: u32 = 16u;
@@ -343,6 +355,20 @@ fn cs_init(@builtin(global_invocation_id) id: vec3<u32>) {
     state[id.y * p.a.z + id.x] = st;
     hits[i] = vec4<f32>(0.0, 0.0, 0.0, -1.0);
     extra[i] = vec4<f32>(-1.0, 0.0, 0.0, 0.0);
+    // the first run of cs_step runs
+    atomicStore(&unfinished, 1u);
+}
+
+// Before each run of cs_step: the whole band while a pixel of it is left after the last run
+// (`unfinished`, which cs_step counts again), else nothing; the runs after the last pixel is
+// done cost one empty dispatch each.
+@compute @workgroup_size(1)
+fn cs_args() {
+    let left = atomicLoad(&unfinished);
+    atomicStore(&unfinished, 0u);
+    next_run[0] = select(0u, band.groups_x, left > 0u);
+    next_run[1] = band.groups_y;
+    next_run[2] = 1u;
 }
 
 // Where the sample of a phase lies along the ray: march step k, the bisection's middle, the hit.
@@ -555,13 +581,18 @@ fn cs_filter(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     let i = id.y * width + id.x;
     let h0 = hits[i];
+    let at = vec2<i32>(id.xy);
     if (h0.w < 0.0) {
-        filtered[i] = h0;
+        textureStore(colour_out, at, vec4<f32>(0.0));
+        textureStore(normal_depth_out, at, vec4<f32>(0.0));
         return;
     }
+    // `finish`: the tint of the water's thickness along the ray
+    let tint = p.base.xyz * exp(-p.absorb.xyz * extra[i].y);
+    textureStore(colour_out, at, vec4<f32>(tint, 1.0));
     let r = i32(p.c.w);
     if (r == 0) {
-        filtered[i] = h0;
+        textureStore(normal_depth_out, at, h0);
         return;
     }
     let ks = -0.5 / (p.d.w * p.d.w);
@@ -582,5 +613,5 @@ fn cs_filter(@builtin(global_invocation_id) id: vec3<u32>) {
         }
     }
     let l = length(sum);
-    filtered[i] = vec4<f32>(select(h0.xyz, sum / l, l > 0.0), h0.w);
+    textureStore(normal_depth_out, at, vec4<f32>(select(h0.xyz, sum / l, l > 0.0), h0.w));
 }

@@ -54,8 +54,7 @@ pub struct RenderArgs {
     /// particle-splat (Adams et al. 2006: the source's points as spheres of their kernel
     /// radius, blended within 1.5 radii of the nearest; no density grid) or ray-cast (Xiao et
     /// al.: rays cast to the iso-surface of the source's points, PCA-blended normals; the
-    /// reference surface; its finished frame on the CPU only), in the shaded splats and in the
-    /// finished frame alike.
+    /// reference surface), in the shaded splats and in the finished frame alike.
     #[arg(long, value_enum, default_value = "ewa")]
     pub renderer: RendererChoice,
     /// Density grid points along the longest axis (default: spacing a third of the smallest
@@ -290,24 +289,6 @@ pub fn render_with(
         Some(ctx) => splat::gpu::render_gpu(ctx, surfels, camera, &light, params, width, height)?,
         None => splat::render_cpu(surfels, camera, &light, params, width, height)?,
     })
-}
-
-/// Whether the finished frame (`--optics`) runs on the CPU only: with ray casting, whose GPU twin
-/// (`raycast::gpu`) draws the shaded image but not yet the light's and the camera's views of
-/// the GPU optics. Then the default is the CPU whatever adapter there is, and `--gpu` is refused.
-fn optics_cpu_only(args: &RenderArgs) -> Result<bool, Error> {
-    if !matches!(args.renderer, RendererChoice::RayCast) {
-        return Ok(false);
-    }
-    if args.gpu {
-        return Err(Error::InvalidArgument {
-            argument: "--gpu",
-            reason: "--renderer ray-cast has no GPU twin in the finished frame yet (the shaded \
-                     image has one); drop --gpu (it runs on the CPU)"
-                .into(),
-        });
-    }
-    Ok(true)
 }
 
 /// A camera framing the surfels (or the unit box when none is drawable).
@@ -831,7 +812,7 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
     let [w, h] = params.scene.optics.image_size;
     let mut pipeline = Pipeline::new(params.clone())?;
     super::warn_at_once(&mut pipeline);
-    let mut gpu = match choose_gpu(args.cpu || optics_cpu_only(args)?, args.gpu)? {
+    let mut gpu = match choose_gpu(args.cpu, args.gpu)? {
         Some(ctx) => {
             let g = GpuPipeline::new(
                 &ctx.device,

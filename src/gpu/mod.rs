@@ -37,6 +37,9 @@ pub enum GpuError {
     /// The optics stage's inputs.
     #[error(transparent)]
     Optics(#[from] crate::optics::OpticsError),
+    /// The ray caster's inputs.
+    #[error(transparent)]
+    RayCast(#[from] crate::raycast::RayCastError),
 }
 
 /// What adapter runs the GPU stages.

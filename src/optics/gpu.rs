@@ -17,6 +17,8 @@ use wgpu::util::DeviceExt;
 
 use crate::gpu::{self, GpuContext, GpuError, entry, texture_2d, texture_descriptor};
 use crate::optics::{EnvironmentKind, LightKind, OpticsError, Stage, encode};
+use crate::raycast::Caster;
+use crate::raycast::gpu::GpuCaster;
 use crate::splat::gpu::{SplatRenderer, SurfelBuffer};
 use crate::splat::{Light, Surfel, View};
 
@@ -286,6 +288,20 @@ impl OpticsGpu {
         surfels: &[Surfel],
         size: Option<(u32, u32)>,
     ) -> Result<PreparedOptics, GpuError> {
+        self.prepare_water(device, queue, stage, GpuWater::Surfels(surfels), size)
+    }
+
+    /// [`Self::prepare`] with the water drawn from `water`: splatted surfels, or rays cast to
+    /// the iso-surface of a caster's points (the light's view and the camera's, each cast on
+    /// the GPU into the textures the optics read).
+    pub fn prepare_water(
+        &self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        stage: &Stage,
+        water: GpuWater<'_>,
+        size: Option<(u32, u32)>,
+    ) -> Result<PreparedOptics, GpuError> {
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let limit = device.limits().max_texture_dimension_2d;
         let screen = stage.views.screen;
@@ -311,16 +327,6 @@ impl OpticsGpu {
             fw,
             fh,
         )?;
-        let mut surfel_buffer = SplatRenderer::upload(device, &[]);
-        surfel_buffer.write(device, queue, surfels);
-        let surfels = surfel_buffer;
-        let light_splat = SplatRenderer::new(
-            device,
-            wgpu::TextureFormat::Rgba8Unorm,
-            screen.width,
-            screen.height,
-        )?;
-        let camera_splat = SplatRenderer::new(device, wgpu::TextureFormat::Rgba8Unorm, fw, fh)?;
         let texture = |label, w, h, format, usage| texture_2d(device, label, (w, h), format, usage);
         let attach = wgpu::TextureUsages::RENDER_ATTACHMENT;
         let sampled = wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC;
@@ -359,6 +365,32 @@ impl OpticsGpu {
             attach,
         );
         let camera_image = texture("camera splat image", fw, fh, rgba8, attach);
+        let water = match water {
+            GpuWater::Surfels(surfels) => {
+                let mut buffer = SplatRenderer::upload(device, &[]);
+                buffer.write(device, queue, surfels);
+                Water::Splats {
+                    surfels: buffer,
+                    light: SplatRenderer::new(
+                        device,
+                        wgpu::TextureFormat::Rgba8Unorm,
+                        screen.width,
+                        screen.height,
+                    )?,
+                    camera: SplatRenderer::new(device, wgpu::TextureFormat::Rgba8Unorm, fw, fh)?,
+                }
+            }
+            GpuWater::Cast(caster) => {
+                let mut light = GpuCaster::new(device, screen.width, screen.height)?;
+                light.prepare(device, caster, &screen)?;
+                let mut cast = GpuCaster::new(device, fw, fh)?;
+                cast.prepare(device, caster, &camera)?;
+                Water::Cast {
+                    light,
+                    camera: cast,
+                }
+            }
+        };
         // the environment image (or one texel)
         let none = [[0.0f32; 4]];
         let (ew, eh, env_pixels): (u32, u32, &[[f32; 4]]) = match &stage.scene.environment.pixels {
@@ -408,8 +440,10 @@ impl OpticsGpu {
             contents: bytemuck::bytes_of(&raw_optics(stage, &camera)),
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
         });
-        let (screen_colour, screen_normal) = light_splat.accumulation();
-        let (camera_colour, camera_normal) = camera_splat.accumulation();
+        let ((screen_colour, screen_normal), (camera_colour, camera_normal)) = match &water {
+            Water::Splats { light, camera, .. } => (light.accumulation(), camera.accumulation()),
+            Water::Cast { light, camera } => (light.accumulation(), camera.accumulation()),
+        };
         let view = |t: &wgpu::Texture| t.create_view(&Default::default());
         let views = [
             view(&map_geometry.position),
@@ -459,9 +493,7 @@ impl OpticsGpu {
             map,
             camera,
             frame_size: size,
-            surfels,
-            light_splat,
-            camera_splat,
+            water,
             light_image: view(&light_image),
             camera_image: view(&camera_image),
             map_geometry,
@@ -487,15 +519,37 @@ struct GeometryTarget {
     bind: wgpu::BindGroup,
 }
 
+/// What the GPU optics draw the water from.
+#[derive(Clone, Copy)]
+pub enum GpuWater<'a> {
+    /// Surfels splatted as the stage's splat parameters say (EWA, sprites or spheres).
+    Surfels(&'a [Surfel]),
+    /// Rays cast to the iso-surface of the caster's points ([`crate::raycast`]).
+    Cast(&'a Caster<'a>),
+}
+
+/// The water's passes: the light's and the camera's. One per prepared stage, so the size of
+/// its variants does not matter.
+#[allow(clippy::large_enum_variant)]
+enum Water {
+    Splats {
+        surfels: SurfelBuffer,
+        light: SplatRenderer,
+        camera: SplatRenderer,
+    },
+    Cast {
+        light: GpuCaster,
+        camera: GpuCaster,
+    },
+}
+
 /// The GPU resources of one stage, ready to record.
 pub struct PreparedOptics {
     screen: View,
     map: View,
     camera: View,
     frame_size: Option<(u32, u32)>,
-    surfels: SurfelBuffer,
-    light_splat: SplatRenderer,
-    camera_splat: SplatRenderer,
+    water: Water,
     light_image: wgpu::TextureView,
     camera_image: wgpu::TextureView,
     map_geometry: GeometryTarget,
@@ -567,6 +621,18 @@ impl PreparedOptics {
         stage: &Stage,
         surfels: &[Surfel],
     ) -> Result<bool, GpuError> {
+        self.update_water(device, queue, stage, GpuWater::Surfels(surfels))
+    }
+
+    /// [`Self::update`] with the water drawn from `water`; `false` too when it is drawn another
+    /// way than the prepared stage's.
+    pub fn update_water(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        stage: &Stage,
+        water: GpuWater<'_>,
+    ) -> Result<bool, GpuError> {
         let (screen, map) = (stage.views.screen, stage.views.map);
         let Some((fw, fh)) = self.frame_size else {
             return Ok(false);
@@ -576,6 +642,11 @@ impl PreparedOptics {
             || (map.width, map.height) != (self.map.width, self.map.height)
             || receiver.len() as u32 != self.receiver_count
             || environment_key(stage) != self.environment_key
+            || matches!(
+                (&self.water, water),
+                (Water::Splats { .. }, GpuWater::Cast(_))
+                    | (Water::Cast { .. }, GpuWater::Surfels(_))
+            )
         {
             return Ok(false);
         }
@@ -602,7 +673,27 @@ impl PreparedOptics {
             bytemuck::bytes_of(&RawGeometry::of(&camera)),
         );
         queue.write_buffer(&self.receiver_vertices, 0, bytemuck::cast_slice(&receiver));
-        self.surfels.write(device, queue, surfels);
+        match (&mut self.water, water) {
+            (
+                Water::Splats {
+                    surfels: buffer, ..
+                },
+                GpuWater::Surfels(surfels),
+            ) => {
+                buffer.write(device, queue, surfels);
+            }
+            (
+                Water::Cast {
+                    light,
+                    camera: cast,
+                },
+                GpuWater::Cast(caster),
+            ) => {
+                light.prepare(device, caster, &screen)?;
+                cast.prepare(device, caster, &camera)?;
+            }
+            _ => unreachable!("checked above"),
+        }
         self.screen = screen;
         self.map = map;
         self.camera = camera;
@@ -666,13 +757,12 @@ impl PreparedOptics {
         optics: &OpticsGpu,
         encoder: &mut wgpu::CommandEncoder,
     ) -> Result<(), GpuError> {
-        self.light_splat.encode_queued(
-            queue,
-            encoder,
-            &self.light_image,
-            &self.surfels,
-            &self.screen,
-        )?;
+        match &self.water {
+            Water::Splats { surfels, light, .. } => {
+                light.encode_queued(queue, encoder, &self.light_image, surfels, &self.screen)?;
+            }
+            Water::Cast { light, .. } => light.encode(encoder)?,
+        }
         self.draw_geometry(optics, encoder, &self.map_geometry);
         encoder.clear_buffer(&self.flux, 0, None);
         let screen = (self.screen.width, self.screen.height);
@@ -694,13 +784,14 @@ impl PreparedOptics {
         let Some(size) = self.frame_size else {
             return Ok(());
         };
-        self.camera_splat.encode_queued(
-            queue,
-            encoder,
-            &self.camera_image,
-            &self.surfels,
-            &self.camera,
-        )?;
+        match &self.water {
+            Water::Splats {
+                surfels, camera, ..
+            } => {
+                camera.encode_queued(queue, encoder, &self.camera_image, surfels, &self.camera)?;
+            }
+            Water::Cast { camera, .. } => camera.encode(encoder)?,
+        }
         self.draw_geometry(optics, encoder, &self.camera_geometry);
         self.dispatch(encoder, &optics.frame, size);
         Ok(())

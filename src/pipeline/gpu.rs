@@ -15,7 +15,8 @@
 use super::{Frame, Pipeline, PipelineParams, Through};
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::optics::Stage;
-use crate::optics::gpu::{OpticsGpu, PreparedOptics};
+use crate::optics::gpu::{GpuWater, OpticsGpu, PreparedOptics};
+use crate::raycast::gpu::GpuCaster;
 use crate::splat::gpu::{SplatRenderer, SurfelBuffer};
 use crate::view::{Light, View};
 use crate::{Error, ParticleView};
@@ -53,6 +54,8 @@ pub struct GpuPipeline {
     /// The shaded splats' renderer (for the caller's format and size) and surfel buffer.
     splats: SplatRenderer,
     splat_surfels: SurfelBuffer,
+    /// The ray caster of the shaded image (with [`super::Renderer::RayCast`]), made on first use.
+    caster: Option<GpuCaster>,
 }
 
 impl GpuPipeline {
@@ -67,7 +70,6 @@ impl GpuPipeline {
     ) -> Result<Self, Error> {
         let _ = queue;
         check_size(size)?;
-        no_gpu_twin(params.renderer)?;
         let mut params = params.clone();
         params.scene.optics.image_size = [size.0, size.1];
         let cpu = Pipeline::new(params)?;
@@ -137,6 +139,7 @@ impl GpuPipeline {
         Ok(Self {
             splats,
             splat_surfels,
+            caster: None,
             cpu,
             optics,
             format,
@@ -215,23 +218,32 @@ impl GpuPipeline {
         encoder: &mut wgpu::CommandEncoder,
         frame: &Frame,
     ) -> Result<(), Error> {
-        no_gpu_twin(self.cpu.params().renderer)?;
         let surfels = &frame.render_surfels;
         let scene = self.cpu.fitted_scene(surfels)?;
         let stage = Stage::new(&scene, surfels)?;
+        // ray casting casts the light's and the camera's views through the surfels' points
+        let (positions, radii);
+        let caster;
+        let water = if self.cpu.params().renderer == super::Renderer::RayCast {
+            (positions, radii) = super::sphere_points(surfels);
+            caster = self.cpu.caster(&positions, &radii)?;
+            GpuWater::Cast(&caster)
+        } else {
+            GpuWater::Surfels(surfels)
+        };
         // the steady state: last frame's targets fit (the views are kept), only uniforms,
         // receiver and surfels are written
         let reused = match &mut self.prepared {
             Some((prepared, _)) if prepared.image_buffer().map(|(_, s)| s) == Some(self.size) => {
-                prepared.update(device, queue, &stage, surfels)?
+                prepared.update_water(device, queue, &stage, water)?
             }
             _ => false,
         };
         self.reused = reused;
         if !reused {
-            let prepared = self
-                .optics
-                .prepare(device, queue, &stage, surfels, Some(self.size))?;
+            let prepared =
+                self.optics
+                    .prepare_water(device, queue, &stage, water, Some(self.size))?;
             let (image, _) = prepared
                 .image_buffer()
                 .expect("prepared with an image size");
@@ -272,7 +284,9 @@ impl GpuPipeline {
     /// a view of a texture of the pipeline's format and size: the other picture `GpuPipeline`
     /// draws, the GPU twin of [`super::Through::Splats`]. Seen from the sequence's kept camera
     /// (or the scene's, or one framing the surfels, as the CPU pipeline does). Creates nothing in
-    /// the steady state: the surfels go into a growing buffer through the queue.
+    /// the steady state: the surfels go into a growing buffer through the queue. With
+    /// [`super::Renderer::RayCast`] the rays are cast (`raycast::gpu::GpuCaster`, whose inputs
+    /// are uploaded anew each frame) and shaded by the splats' shading pass.
     pub fn encode_splats(
         &mut self,
         device: &wgpu::Device,
@@ -281,10 +295,29 @@ impl GpuPipeline {
         frame: &Frame,
         target: &wgpu::TextureView,
     ) -> Result<(), Error> {
-        no_gpu_twin(self.cpu.params().renderer)?;
         let camera = self.cpu.splat_camera(&frame.render_surfels);
         let (w, h) = self.size;
         let view = View::new(&camera, &Light::default(), &self.cpu.splat_params(), w, h)?;
+        if self.cpu.params().renderer == super::Renderer::RayCast {
+            // cast into the caster's textures, shaded by the splats' shading pass
+            let (positions, radii) = super::sphere_points(&frame.render_surfels);
+            let caster = self.cpu.caster(&positions, &radii)?;
+            let cast = match &mut self.caster {
+                Some(c) if c.size() == self.size => c,
+                slot => slot.insert(GpuCaster::new(device, w, h)?),
+            };
+            cast.prepare(device, &caster, &view)?;
+            cast.encode(encoder)?;
+            self.splats.encode_shading_of(
+                device,
+                queue,
+                encoder,
+                target,
+                cast.accumulation(),
+                &view,
+            )?;
+            return Ok(());
+        }
         self.splat_surfels
             .write(device, queue, &frame.render_surfels);
         self.splats
@@ -364,19 +397,6 @@ fn check_size((w, h): (u32, u32)) -> Result<(), Error> {
                 "{w}x{h}: each side must lie in 1..={}",
                 crate::splat::MAX_SIZE
             ),
-        });
-    }
-    Ok(())
-}
-
-/// Refuses the renderers without a GPU twin (ray casting, for now).
-fn no_gpu_twin(renderer: super::Renderer) -> Result<(), Error> {
-    if renderer == super::Renderer::RayCast {
-        return Err(Error::InvalidArgument {
-            argument: "renderer",
-            reason: "ray-cast has no GPU twin yet: render it with the CPU `Pipeline` \
-                     (or choose ewa or particle-splat)"
-                .into(),
         });
     }
     Ok(())

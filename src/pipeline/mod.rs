@@ -101,8 +101,8 @@ pub enum Renderer {
     ParticleSplat,
     /// Ray casting to the iso-surface of the source's points (Xiao et al., [`crate::raycast`]):
     /// the same points and radii as `ParticleSplat`, the density of the grid's kernel, the
-    /// iso-value and normals of `[raycast]`. The reference surface; CPU only for now
-    /// ([`GpuPipeline`] refuses it).
+    /// iso-value and normals of `[raycast]`. The reference surface; on the GPU in
+    /// [`GpuPipeline`] too (`raycast::gpu`).
     RayCast,
 }
 

@@ -7,11 +7,11 @@
 use glam::Vec3;
 use wgpu::util::DeviceExt;
 
-use super::cpu::{bin_spheres, finish};
+use super::cpu::bin_spheres;
 use super::{Caster, RayCast, RayNormals};
 use crate::density::{Kernel, Points};
 use crate::gpu::{GpuContext, GpuError};
-use crate::splat::{Camera, Light, SplatParams, View};
+use crate::splat::{Camera, Light, Render, SplatParams, View};
 
 /// The WGSL source of the passes.
 pub const SHADER: &str = include_str!("../../shaders/raycast.wgsl");
@@ -42,7 +42,7 @@ pub struct RawGrids {
     pub grid: [RawGrid; MAX_GRIDS],
 }
 
-/// The uniforms of the passes (`Params` in the WGSL, 128 bytes).
+/// The uniforms of the passes (`Params` in the WGSL, 208 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct RawCastParams {
@@ -54,18 +54,26 @@ pub struct RawCastParams {
     pub d: [f32; 4],
     pub e: [f32; 4],
     pub g: [u32; 4],
+    /// the water's colour before the tint (rgb) and its absorption per world length (rgb)
+    pub base: [f32; 4],
+    pub absorb: [f32; 4],
 }
 
-const _: () = assert!(std::mem::size_of::<RawCastParams>() == 176);
+const _: () = assert!(std::mem::size_of::<RawCastParams>() == 208);
 
-/// The band of rows one run of `cs_step` works on (`Band` in the WGSL).
+/// The band of rows one run of `cs_step` works on (`Band` in the WGSL): its first row and rows,
+/// the loop iterations of a run, its workgroups.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct RawBand {
     pub y0: u32,
     pub rows: u32,
     pub budget: u32,
-    pub _pad: u32,
+    pub groups_x: u32,
+    pub groups_y: u32,
+    pub _pad0: u32,
+    pub _pad1: u32,
+    pub _pad2: u32,
 }
 
 /// Bytes of a pixel's `State` in the WGSL (five `vec4`s).
@@ -208,6 +216,472 @@ impl CsrGrid {
     }
 }
 
+/// One frame's inputs on the device: what the bind groups hold, and the runs to record.
+struct Frame {
+    view: View,
+    bands: Vec<Band>,
+    filter: wgpu::BindGroup,
+    /// Runs of `cs_step` recorded per band: enough for the slowest pixel (an upper bound on the
+    /// iterations any pixel needs over [`BUDGET`]); the runs after the last pixel is done
+    /// dispatch no workgroups (`cs_args`).
+    runs: u64,
+    _buffers: Vec<wgpu::Buffer>,
+}
+
+struct Band {
+    init: wgpu::BindGroup,
+    args: wgpu::BindGroup,
+    step: wgpu::BindGroup,
+    groups: (u32, u32),
+}
+
+/// The ray caster's passes on one device at one size, recorded into the caller's encoder: the
+/// cast and the normals (`cs_init`, then `cs_args` and an indirect `cs_step` per run, band by
+/// band), then the bilateral filter, which writes the water's colour and its normal and depth
+/// into two `Rgba32Float` textures, one sample per covered pixel, as the splats' accumulation
+/// targets hold them ([`Self::accumulation`]; the GPU optics read them so).
+pub struct GpuCaster {
+    width: u32,
+    height: u32,
+    init: wgpu::ComputePipeline,
+    args: wgpu::ComputePipeline,
+    step: wgpu::ComputePipeline,
+    filter: wgpu::ComputePipeline,
+    state: wgpu::Buffer,
+    unfinished: wgpu::Buffer,
+    indirect: wgpu::Buffer,
+    hits: wgpu::Buffer,
+    extra: wgpu::Buffer,
+    colour: wgpu::Texture,
+    normal_depth: wgpu::Texture,
+    views: (wgpu::TextureView, wgpu::TextureView),
+    frame: Option<Frame>,
+}
+
+impl GpuCaster {
+    /// The passes and the per-pixel buffers for `width` x `height`.
+    pub fn new(device: &wgpu::Device, width: u32, height: u32) -> Result<Self, GpuError> {
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("raycast"),
+            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+        });
+        let pipeline = |entry| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        let buffer = |label, size: u64, usage| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: size.max(16),
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        let pixels = u64::from(width) * u64::from(height);
+        let band_rows = band_rows(width);
+        let storage = wgpu::BufferUsages::STORAGE;
+        let read = storage | wgpu::BufferUsages::COPY_SRC;
+        let texture = |label| {
+            crate::gpu::texture_2d(
+                device,
+                label,
+                (width.max(1), height.max(1)),
+                wgpu::TextureFormat::Rgba32Float,
+                wgpu::TextureUsages::STORAGE_BINDING
+                    | wgpu::TextureUsages::TEXTURE_BINDING
+                    | wgpu::TextureUsages::COPY_SRC,
+            )
+        };
+        let (colour, normal_depth) = (
+            texture("raycast colour"),
+            texture("raycast normal and depth"),
+        );
+        let views = (
+            colour.create_view(&Default::default()),
+            normal_depth.create_view(&Default::default()),
+        );
+        let caster = Self {
+            width,
+            height,
+            init: pipeline("cs_init"),
+            args: pipeline("cs_args"),
+            step: pipeline("cs_step"),
+            filter: pipeline("cs_filter"),
+            state: buffer(
+                "raycast state",
+                STATE_BYTES
+                    * u64::from(width)
+                    * u64::from(band_rows.min(height.next_multiple_of(16))),
+                storage,
+            ),
+            unfinished: buffer("raycast unfinished", 4, read),
+            indirect: buffer("raycast runs", 12, storage | wgpu::BufferUsages::INDIRECT),
+            hits: buffer("raycast hits", 16 * pixels, storage),
+            extra: buffer("raycast entries", 16 * pixels, read),
+            colour,
+            normal_depth,
+            views,
+            frame: None,
+        };
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Validation(e.to_string()));
+        }
+        Ok(caster)
+    }
+
+    /// The size the passes were made for.
+    #[must_use]
+    pub fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+
+    /// The colour (`(tint, 1)`) and normal-depth (`(normal, view depth)`) textures the filter
+    /// writes, zero where no ray hits: what [`crate::splat::gpu::SplatRenderer::accumulation`]
+    /// holds for the splats.
+    #[must_use]
+    pub fn accumulation(&self) -> (&wgpu::TextureView, &wgpu::TextureView) {
+        (&self.views.0, &self.views.1)
+    }
+
+    /// Uploads the caster's points, their screen tiles in `view` and the grids, for the next
+    /// [`Self::encode`]. `view` must have this caster's size.
+    pub fn prepare(
+        &mut self,
+        device: &wgpu::Device,
+        caster: &Caster<'_>,
+        view: &View,
+    ) -> Result<(), GpuError> {
+        if (view.width, view.height) != (self.width, self.height) {
+            return Err(GpuError::Validation(format!(
+                "a {}x{} view for a ray caster made for {}x{}",
+                view.width, view.height, self.width, self.height
+            )));
+        }
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let frame = self.upload(device, caster, view)?;
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Validation(e.to_string()));
+        }
+        self.frame = Some(frame);
+        Ok(())
+    }
+
+    fn upload(
+        &self,
+        device: &wgpu::Device,
+        caster: &Caster<'_>,
+        v: &View,
+    ) -> Result<Frame, GpuError> {
+        let points = caster.density().points();
+        let params = &caster.params;
+        let (tw, tiles) = bin_spheres(caster, v)?;
+        let mut tile_start = Vec::with_capacity(tiles.len() + 1);
+        let mut tile_items = Vec::new();
+        tile_start.push(0u32);
+        for t in &tiles {
+            tile_items.extend_from_slice(t);
+            tile_start.push(tile_items.len() as u32);
+        }
+        let point_data: Vec<[f32; 4]> = (0..points.len())
+            .map(|j| points.positions[j].extend(points.radius(j)).to_array())
+            .collect();
+        let reach = points.max_radius();
+        let pca_reach = params.pca_radius * reach;
+        let grids = grids_of(caster, pca_reach);
+        // every grid's starts, then every grid's items, in one buffer
+        let mut cells: Vec<u32> = Vec::new();
+        let mut raw_grids = RawGrids {
+            grid: [RawGrid::default(); MAX_GRIDS],
+        };
+        for (g, raw) in grids.iter().zip(&mut raw_grids.grid) {
+            raw.g = g.origin.extend(g.cell).to_array();
+            raw.dims = [g.dims[0], g.dims[1], g.dims[2], cells.len() as u32];
+            cells.extend_from_slice(&g.starts);
+        }
+        for (g, raw) in grids.iter().zip(&mut raw_grids.grid) {
+            raw.at = [cells.len() as u32, 0, 0, 0];
+            cells.extend_from_slice(&g.items);
+        }
+        let (_, inv_view, _) = v.matrices();
+        let half = v.half_extent();
+        let absorb = Vec3::from(params.absorption) / points.h;
+        let raw = RawCastParams {
+            inv_view: inv_view.to_cols_array_2d(),
+            screen: [v.width as f32, v.height as f32, half.x, half.y],
+            a: [u32::from(v.is_orthographic()), tw as u32, v.width, v.height],
+            b: [
+                caster.iso(),
+                params.step * points.min_radius(),
+                points.h,
+                params.pca_radius,
+            ],
+            c: [
+                params.bisection_steps,
+                match params.normals {
+                    RayNormals::Blended => 0,
+                    RayNormals::Gradient => 1,
+                    RayNormals::Pca => 2,
+                },
+                match caster.density().kernel() {
+                    Kernel::Wyvill => 0,
+                    Kernel::CubicSpline => 1,
+                },
+                params.bilateral_radius_px,
+            ],
+            d: [
+                params.blend_d,
+                params.blend_k,
+                params.blend_max,
+                params.bilateral_sigma_px,
+            ],
+            e: [
+                params.bilateral_sigma_depth * points.h,
+                reach,
+                pca_reach,
+                0.0,
+            ],
+            g: [grids.len() as u32 - 1, grids.len() as u32 - 1, 0, 0],
+            base: crate::splat::WATER,
+            absorb: absorb.extend(0.0).to_array(),
+        };
+        // storage bindings may not be empty: one unused element each at least
+        let storage = |label, bytes: &[u8]| {
+            let mut contents = bytes.to_vec();
+            contents.resize(contents.len().max(16), 0);
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: &contents,
+                usage: wgpu::BufferUsages::STORAGE,
+            })
+        };
+        let uniform = |label, bytes: &[u8]| {
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytes,
+                usage: wgpu::BufferUsages::UNIFORM,
+            })
+        };
+        let uniforms = uniform("raycast params", bytemuck::bytes_of(&raw));
+        let grid_uniforms = uniform("raycast grids", bytemuck::bytes_of(&raw_grids));
+        let inputs = [
+            storage("raycast points", bytemuck::cast_slice(&point_data)),
+            storage("raycast tile starts", bytemuck::cast_slice(&tile_start)),
+            storage("raycast tile items", bytemuck::cast_slice(&tile_items)),
+            storage("raycast cells", bytemuck::cast_slice(&cells)),
+        ];
+        // An upper bound on the iterations any pixel needs (its tile's spheres, then every
+        // sample of the march from entry to exit, the bisections, the gradient and the PCA
+        // sums, each sum one iteration per row and per point).
+        let most_in_tile = tiles.iter().map(|t| t.len() as u64).max().unwrap_or(0);
+        let (lo, hi) = (0..points.len()).fold(
+            (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+            |(lo, hi), j| {
+                let r = Vec3::splat(points.radius(j));
+                (
+                    lo.min(points.positions[j] - r),
+                    hi.max(points.positions[j] + r),
+                )
+            },
+        );
+        let span = if points.is_empty() {
+            0.0
+        } else {
+            (hi - lo).length()
+        };
+        let march = (f64::from(span) / f64::from(raw.b[1])).ceil() as u64 + 4;
+        let (pca_grid, density_grids) = grids.split_last().expect("the PCA grid is last");
+        let per_sum = density_grids
+            .iter()
+            .map(|g| g.most_visited() + 9)
+            .sum::<u64>()
+            + 2;
+        let most = most_in_tile
+            + 2
+            + (march + u64::from(params.bisection_steps) + 1) * per_sum
+            + pca_grid.most_visited()
+            + 11;
+        let runs = most.div_ceil(u64::from(BUDGET)) + 1;
+        let bind = |pipeline: &wgpu::ComputePipeline,
+                    entries: &[(u32, wgpu::BindingResource<'_>)]| {
+            let entries: Vec<wgpu::BindGroupEntry<'_>> = entries
+                .iter()
+                .map(|(binding, resource)| wgpu::BindGroupEntry {
+                    binding: *binding,
+                    resource: resource.clone(),
+                })
+                .collect();
+            device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("raycast"),
+                layout: &pipeline.get_bind_group_layout(0),
+                entries: &entries,
+            })
+        };
+        let band_rows = band_rows(v.width);
+        let group_x = v.width.div_ceil(8);
+        let mut bands = Vec::new();
+        let mut buffers = Vec::new();
+        let mut y0 = 0;
+        while y0 < v.height {
+            let rows = band_rows.min(v.height - y0);
+            let groups = (group_x, rows.div_ceil(8));
+            let band = uniform(
+                "raycast band",
+                bytemuck::bytes_of(&RawBand {
+                    y0,
+                    rows,
+                    budget: BUDGET,
+                    groups_x: groups.0,
+                    groups_y: groups.1,
+                    _pad0: 0,
+                    _pad1: 0,
+                    _pad2: 0,
+                }),
+            );
+
+            bands.push(Band {
+                init: bind(
+                    &self.init,
+                    &[
+                        (0, whole(&uniforms)),
+                        (2, whole(&inputs[1])),
+                        (6, whole(&self.hits)),
+                        (7, whole(&self.extra)),
+                        (9, whole(&self.state)),
+                        (10, whole(&band)),
+                        (11, whole(&self.unfinished)),
+                    ],
+                ),
+                args: bind(
+                    &self.args,
+                    &[
+                        (10, whole(&band)),
+                        (11, whole(&self.unfinished)),
+                        (13, whole(&self.indirect)),
+                    ],
+                ),
+                step: bind(
+                    &self.step,
+                    &[
+                        (0, whole(&uniforms)),
+                        (1, whole(&inputs[0])),
+                        (3, whole(&inputs[2])),
+                        (4, whole(&inputs[3])),
+                        (6, whole(&self.hits)),
+                        (7, whole(&self.extra)),
+                        (9, whole(&self.state)),
+                        (10, whole(&band)),
+                        (11, whole(&self.unfinished)),
+                        (12, whole(&grid_uniforms)),
+                    ],
+                ),
+                groups,
+            });
+            buffers.push(band);
+            y0 += rows;
+        }
+        let filter = bind(
+            &self.filter,
+            &[
+                (0, uniforms.as_entire_binding()),
+                (6, self.hits.as_entire_binding()),
+                (7, self.extra.as_entire_binding()),
+                (14, wgpu::BindingResource::TextureView(&self.views.0)),
+                (15, wgpu::BindingResource::TextureView(&self.views.1)),
+            ],
+        );
+        buffers.extend(inputs);
+        buffers.extend([uniforms, grid_uniforms]);
+        Ok(Frame {
+            view: *v,
+            bands,
+            filter,
+            runs,
+            _buffers: buffers,
+        })
+    }
+
+    /// Records the cast of the prepared frame into `encoder`: the colour and normal-depth
+    /// textures hold it once the encoder has run.
+    pub fn encode(&self, encoder: &mut wgpu::CommandEncoder) -> Result<(), GpuError> {
+        let frame = self
+            .frame
+            .as_ref()
+            .ok_or_else(|| GpuError::Validation("the ray caster has no prepared frame".into()))?;
+        for band in &frame.bands {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("raycast"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.init);
+            pass.set_bind_group(0, &band.init, &[]);
+            pass.dispatch_workgroups(band.groups.0, band.groups.1, 1);
+            for _ in 0..frame.runs {
+                pass.set_pipeline(&self.args);
+                pass.set_bind_group(0, &band.args, &[]);
+                pass.dispatch_workgroups(1, 1, 1);
+                pass.set_pipeline(&self.step);
+                pass.set_bind_group(0, &band.step, &[]);
+                pass.dispatch_workgroups_indirect(&self.indirect, 0);
+            }
+        }
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        pass.set_pipeline(&self.filter);
+        pass.set_bind_group(0, &frame.filter, &[]);
+        pass.dispatch_workgroups(self.width.div_ceil(8), self.height.div_ceil(8), 1);
+        Ok(())
+    }
+
+    /// Reads the cast back after its encoder ran: the shaded image (the CPU's shading), the
+    /// thickness, entries and the density samples taken.
+    pub fn read(&self, ctx: &GpuContext) -> Result<RayCast, GpuError> {
+        let frame = self
+            .frame
+            .as_ref()
+            .ok_or_else(|| GpuError::Validation("the ray caster has no prepared frame".into()))?;
+        let texels = |t: &wgpu::Texture| -> Result<Vec<[f32; 4]>, GpuError> {
+            let bytes = crate::gpu::read_texture(ctx, t, 16)?;
+            Ok(bytemuck::pod_collect_to_vec(&bytes))
+        };
+        let colour = texels(&self.colour)?;
+        let normal_depth = texels(&self.normal_depth)?;
+        let extra: Vec<[f32; 4]> = crate::gpu::read_buffer(ctx, &self.extra)?;
+        let image = crate::splat::cpu::shade_image(&colour, &normal_depth, &frame.view);
+        Ok(RayCast {
+            render: Render {
+                width: self.width,
+                height: self.height,
+                image,
+                colour,
+                normal_depth,
+            },
+            thickness: extra.iter().map(|e| e[1]).collect(),
+            entry: extra
+                .iter()
+                .map(|e| if e[0] < 0.0 { f32::INFINITY } else { e[0] })
+                .collect(),
+            samples: extra.iter().map(|e| e[2] as u64).sum(),
+        })
+    }
+}
+
+/// The whole of a buffer as a binding.
+fn whole(buffer: &wgpu::Buffer) -> wgpu::BindingResource<'_> {
+    buffer.as_entire_binding()
+}
+
+/// Rows of a band for images `width` wide: a multiple of 16 (whole tiles), at most
+/// [`BAND_PIXELS`] pixels when the width allows.
+fn band_rows(width: u32) -> u32 {
+    (BAND_PIXELS / width.max(1)).max(16) / 16 * 16
+}
+
 /// Ray casting of the caster's points on the GPU, as [`super::render_cpu`].
 pub fn render_gpu(
     ctx: &GpuContext,
@@ -228,301 +702,14 @@ pub fn render_view_gpu(
     caster: &Caster<'_>,
     v: &View,
 ) -> Result<RayCast, crate::Error> {
-    let device = &ctx.device;
-    let (w, h) = (v.width as usize, v.height as usize);
-    let points = caster.density().points();
-    let params = &caster.params;
-    let (tw, tiles) = bin_spheres(caster, v)?;
-    let mut tile_start = Vec::with_capacity(tiles.len() + 1);
-    let mut tile_items = Vec::new();
-    tile_start.push(0u32);
-    for t in &tiles {
-        tile_items.extend_from_slice(t);
-        tile_start.push(tile_items.len() as u32);
-    }
-    let point_data: Vec<[f32; 4]> = (0..points.len())
-        .map(|j| points.positions[j].extend(points.radius(j)).to_array())
-        .collect();
-    let reach = points.max_radius();
-    let pca_reach = params.pca_radius * reach;
-    let grids = grids_of(caster, pca_reach);
-    // every grid's starts, then every grid's items, in one buffer
-    let mut cells: Vec<u32> = Vec::new();
-    let mut raw_grids = RawGrids {
-        grid: [RawGrid::default(); MAX_GRIDS],
-    };
-    for (g, raw) in grids.iter().zip(&mut raw_grids.grid) {
-        raw.g = g.origin.extend(g.cell).to_array();
-        raw.dims = [g.dims[0], g.dims[1], g.dims[2], cells.len() as u32];
-        cells.extend_from_slice(&g.starts);
-    }
-    for (g, raw) in grids.iter().zip(&mut raw_grids.grid) {
-        raw.at = [cells.len() as u32, 0, 0, 0];
-        cells.extend_from_slice(&g.items);
-    }
-    let (_, inv_view, _) = v.matrices();
-    let half = v.half_extent();
-    let raw = RawCastParams {
-        inv_view: inv_view.to_cols_array_2d(),
-        screen: [v.width as f32, v.height as f32, half.x, half.y],
-        a: [u32::from(v.is_orthographic()), tw as u32, v.width, v.height],
-        b: [
-            caster.iso(),
-            params.step * points.min_radius(),
-            points.h,
-            params.pca_radius,
-        ],
-        c: [
-            params.bisection_steps,
-            match params.normals {
-                RayNormals::Blended => 0,
-                RayNormals::Gradient => 1,
-                RayNormals::Pca => 2,
-            },
-            match caster.density().kernel() {
-                Kernel::Wyvill => 0,
-                Kernel::CubicSpline => 1,
-            },
-            params.bilateral_radius_px,
-        ],
-        d: [
-            params.blend_d,
-            params.blend_k,
-            params.blend_max,
-            params.bilateral_sigma_px,
-        ],
-        e: [
-            params.bilateral_sigma_depth * points.h,
-            reach,
-            pca_reach,
-            0.0,
-        ],
-        g: [grids.len() as u32 - 1, grids.len() as u32 - 1, 0, 0],
-    };
-    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-    // storage bindings may not be empty: one unused element each at least
-    let storage = |label, bytes: &[u8]| {
-        let mut contents = bytes.to_vec();
-        contents.resize(contents.len().max(16), 0);
-        device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(label),
-            contents: &contents,
-            usage: wgpu::BufferUsages::STORAGE,
-        })
-    };
-    let uniforms = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-        label: Some("raycast params"),
-        contents: bytemuck::bytes_of(&raw),
-        usage: wgpu::BufferUsages::UNIFORM,
-    });
-    let grid_uniforms = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-        label: Some("raycast grids"),
-        contents: bytemuck::bytes_of(&raw_grids),
-        usage: wgpu::BufferUsages::UNIFORM,
-    });
-    let inputs = [
-        storage("raycast points", bytemuck::cast_slice(&point_data)),
-        storage("raycast tile starts", bytemuck::cast_slice(&tile_start)),
-        storage("raycast tile items", bytemuck::cast_slice(&tile_items)),
-        storage("raycast cells", bytemuck::cast_slice(&cells)),
-    ];
-    let output = |label| {
-        device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size: (16 * w * h) as u64,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        })
-    };
-    let (hits, extra, filtered) = (
-        output("raycast hits"),
-        output("raycast entries"),
-        output("raycast filtered"),
-    );
-    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-        label: Some("raycast"),
-        source: wgpu::ShaderSource::Wgsl(SHADER.into()),
-    });
-    let pipeline = |entry| {
-        device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some(entry),
-            layout: None,
-            module: &module,
-            entry_point: Some(entry),
-            compilation_options: Default::default(),
-            cache: None,
-        })
-    };
-    let bind = |pipeline: &wgpu::ComputePipeline, buffers: &[(u32, &wgpu::Buffer)]| {
-        let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
-            .iter()
-            .map(|&(binding, b)| wgpu::BindGroupEntry {
-                binding,
-                resource: b.as_entire_binding(),
-            })
-            .collect();
-        device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("raycast"),
-            layout: &pipeline.get_bind_group_layout(0),
-            entries: &entries,
-        })
-    };
-    let (init, step, filter) = (
-        pipeline("cs_init"),
-        pipeline("cs_step"),
-        pipeline("cs_filter"),
-    );
-    let band_rows = (BAND_PIXELS / v.width.max(1)).max(16) / 16 * 16;
-    let state = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("raycast state"),
-        size: STATE_BYTES
-            * u64::from(v.width)
-            * u64::from(band_rows.min(v.height.next_multiple_of(16))),
-        usage: wgpu::BufferUsages::STORAGE,
-        mapped_at_creation: false,
-    });
-    let unfinished = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("raycast unfinished"),
-        size: 4,
-        usage: wgpu::BufferUsages::STORAGE
-            | wgpu::BufferUsages::COPY_SRC
-            | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
-    // An upper bound on the iterations any pixel needs (its tile's spheres, then every sample of
-    // the march from entry to exit, the bisections, the gradient and the PCA sums, each sum one
-    // iteration per row and per point), so that a fault can never loop the host forever.
-    let most_in_tile = tiles.iter().map(|t| t.len() as u64).max().unwrap_or(0);
-    let (lo, hi) = (0..points.len()).fold(
-        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
-        |(lo, hi), j| {
-            let r = Vec3::splat(points.radius(j));
-            (
-                lo.min(points.positions[j] - r),
-                hi.max(points.positions[j] + r),
-            )
-        },
-    );
-    let span = if points.is_empty() {
-        0.0
-    } else {
-        (hi - lo).length()
-    };
-    let march = (f64::from(span) / f64::from(raw.b[1])).ceil() as u64 + 4;
-    let (pca_grid, density_grids) = grids.split_last().expect("the PCA grid is last");
-    // a sum's iterations: each grid's 9 rows, its points, one to finish
-    let per_sum = density_grids
-        .iter()
-        .map(|g| g.most_visited() + 9)
-        .sum::<u64>()
-        + 2;
-    let most = most_in_tile
-        + 2
-        + (march + u64::from(params.bisection_steps) + 1) * per_sum
-        + pca_grid.most_visited()
-        + 11;
-    let most_runs = most.div_ceil(u64::from(BUDGET)) + 2;
-    let group_x = v.width.div_ceil(8);
-    let mut y0 = 0;
-    while y0 < v.height {
-        let rows = band_rows.min(v.height - y0);
-        let band = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("raycast band"),
-            contents: bytemuck::bytes_of(&RawBand {
-                y0,
-                rows,
-                budget: BUDGET,
-                _pad: 0,
-            }),
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
-        let bound = [
-            (0, &uniforms),
-            (1, &inputs[0]),
-            (2, &inputs[1]),
-            (3, &inputs[2]),
-            (4, &inputs[3]),
-            (6, &hits),
-            (7, &extra),
-            (9, &state),
-            (10, &band),
-        ];
-        let only = |keep: &[u32]| -> Vec<(u32, &wgpu::Buffer)> {
-            bound
-                .iter()
-                .filter(|(b, _)| keep.contains(b))
-                .copied()
-                .collect()
-        };
-        let init_group = bind(&init, &only(&[0, 2, 6, 7, 9, 10]));
-        // cs_step reads the tile's items only (cs_init found their range)
-        let mut all = only(&[0, 1, 3, 4, 6, 7, 9, 10]);
-        all.extend([(11, &unfinished), (12, &grid_uniforms)]);
-        let step_group = bind(&step, &all);
-        let groups = (group_x, rows.div_ceil(8));
-        let mut encoder = device.create_command_encoder(&Default::default());
-        {
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&init);
-            pass.set_bind_group(0, &init_group, &[]);
-            pass.dispatch_workgroups(groups.0, groups.1, 1);
-        }
-        // runs of cs_step until no pixel of the band is left, a few between read-backs
-        let (mut runs, mut batch) = (0u64, 1u64);
-        loop {
-            for _ in 0..batch {
-                encoder.clear_buffer(&unfinished, 0, None);
-                let mut pass = encoder.begin_compute_pass(&Default::default());
-                pass.set_pipeline(&step);
-                pass.set_bind_group(0, &step_group, &[]);
-                pass.dispatch_workgroups(groups.0, groups.1, 1);
-            }
-            runs += batch;
-            ctx.queue.submit([encoder.finish()]);
-            encoder = device.create_command_encoder(&Default::default());
-            let left: Vec<u32> = crate::gpu::read_buffer(ctx, &unfinished)?;
-            if left[0] == 0 {
-                break;
-            }
-            if runs >= most_runs {
-                return Err(GpuError::Readback(format!(
-                    "the ray caster left {} pixels unfinished after {runs} runs (at most \
-                     {most_runs} are needed)",
-                    left[0]
-                ))
-                .into());
-            }
-            batch = (batch * 2).min(8);
-        }
-        y0 += rows;
-    }
-    let filter_group = bind(&filter, &[(0, &uniforms), (6, &hits), (8, &filtered)]);
-    let mut encoder = device.create_command_encoder(&Default::default());
-    {
-        let mut pass = encoder.begin_compute_pass(&Default::default());
-        pass.set_pipeline(&filter);
-        pass.set_bind_group(0, &filter_group, &[]);
-        pass.dispatch_workgroups(group_x, v.height.div_ceil(8), 1);
-    }
+    let mut gpu = GpuCaster::new(&ctx.device, v.width, v.height)?;
+    gpu.prepare(&ctx.device, caster, v)?;
+    let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    gpu.encode(&mut encoder)?;
     ctx.queue.submit([encoder.finish()]);
-    let filtered: Vec<[f32; 4]> = crate::gpu::read_buffer(ctx, &filtered)?;
-    let extra: Vec<[f32; 4]> = crate::gpu::read_buffer(ctx, &extra)?;
     if let Some(e) = pollster::block_on(scope.pop()) {
         return Err(GpuError::Validation(e.to_string()).into());
     }
-    let hits: Vec<Option<(f32, Vec3)>> = filtered
-        .iter()
-        .map(|f| (f[3] >= 0.0).then(|| (f[3], Vec3::new(f[0], f[1], f[2]))))
-        .collect();
-    Ok(finish(
-        caster,
-        v,
-        &hits,
-        extra.iter().map(|e| e[1]).collect(),
-        extra
-            .iter()
-            .map(|e| if e[0] < 0.0 { f32::INFINITY } else { e[0] })
-            .collect(),
-        extra.iter().map(|e| e[2] as u64).sum(),
-    ))
+    Ok(gpu.read(ctx)?)
 }

@@ -442,6 +442,35 @@ impl SplatRenderer {
         self.encode_shading(encoder, target, &bound.shade);
     }
 
+    /// Records the shading pass alone over accumulation textures made elsewhere (`colour` and
+    /// `normal` as [`Self::accumulation`] holds them, `Rgba32Float` of this renderer's size:
+    /// the ray caster's, [`crate::raycast::gpu::GpuCaster::accumulation`]) into `target`, with
+    /// the renderer's own uniform buffer written through the queue.
+    pub fn encode_shading_of(
+        &self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        target: &wgpu::TextureView,
+        (colour, normal): (&wgpu::TextureView, &wgpu::TextureView),
+        view: &View,
+    ) -> Result<(), GpuError> {
+        self.check_view(view)?;
+        queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&view.to_raw()));
+        let entry = |binding, resource| wgpu::BindGroupEntry { binding, resource };
+        let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("splat shading of given accumulations"),
+            layout: &self.shade_layout,
+            entries: &[
+                entry(0, self.uniforms.as_entire_binding()),
+                entry(1, wgpu::BindingResource::TextureView(colour)),
+                entry(2, wgpu::BindingResource::TextureView(normal)),
+            ],
+        });
+        self.encode_shading(encoder, target, &bind);
+        Ok(())
+    }
+
     /// [`Self::encode`] with the renderer's own uniform buffer, written through the queue: no
     /// buffer or bind group is created. The write takes effect at the next submit, so a renderer
     /// records one view per submission this way (use [`Self::encode`] for several).
