@@ -33,6 +33,7 @@ pub mod gpu;
 pub mod io;
 pub mod kernels;
 pub mod linalg;
+pub mod lnm;
 pub mod neighbours;
 pub mod optics;
 pub mod particles;
@@ -96,6 +97,9 @@ pub enum Error {
     /// Ray casting to the iso-surface (the reference renderer).
     #[error(transparent)]
     RayCast(#[from] raycast::RayCastError),
+    /// The narrow band of the Layered Neighborhood Method.
+    #[error(transparent)]
+    Lnm(#[from] lnm::LnmError),
     /// Optics: caustics, refraction and reflection.
     #[error(transparent)]
     Optics(#[from] optics::OpticsError),

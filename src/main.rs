@@ -79,6 +79,9 @@ enum BenchCommand {
     /// the draw alone on the CPU and on the GPU (any adapter), from the same surfels and camera;
     /// `--particles N` resamples the body to about N particles first.
     Renderers(cli::bench::BenchRenderersArgs),
+    /// The narrow band of the Layered Neighborhood Method (Oliveira et al., Algorithm 1) on a
+    /// block of particles, on all threads and on one.
+    Lnm(cli::bench::BenchLnmArgs),
 }
 
 /// Mesa's software Vulkan driver (lavapipe) prints "XDG_RUNTIME_DIR is invalid" on stderr when
@@ -147,6 +150,7 @@ fn main() -> ExitCode {
         Some(Command::Bench(BenchCommand::Splat(args))) => cli::bench::bench_splat(&args),
         Some(Command::Bench(BenchCommand::Pipeline(args))) => cli::bench::bench_pipeline(&args),
         Some(Command::Bench(BenchCommand::Renderers(args))) => cli::bench::bench_renderers(&args),
+        Some(Command::Bench(BenchCommand::Lnm(args))) => cli::bench::bench_lnm(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -877,6 +877,33 @@ fn bench_renderers_times_every_renderer_on_both_backends() {
     }
 }
 
+/// `bench lnm` reports the band of a block and the one-thread reference of the same run.
+#[test]
+fn bench_lnm_reports_the_band_and_the_reference() {
+    let v = json_of(
+        &bin()
+            .args([
+                "bench",
+                "lnm",
+                "--particles",
+                "20000",
+                "--repeat",
+                "1",
+                "--json",
+            ])
+            .output()
+            .unwrap(),
+    );
+    let (n, band) = (
+        v["particles"].as_u64().unwrap(),
+        v["band"].as_u64().unwrap(),
+    );
+    assert!(n >= 19_000 && band > 0 && band < n, "{v}");
+    assert!(v["median_ms"].as_f64().unwrap() > 0.0, "{v}");
+    assert!(v["one_thread_ms"].as_f64().unwrap() > 0.0, "{v}");
+    assert!(v["layer_1_voxels"].as_u64().unwrap() > 0, "{v}");
+}
+
 #[test]
 fn bench_pipeline_reports_every_stage() {
     let v = json_of(

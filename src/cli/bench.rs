@@ -1102,7 +1102,8 @@ pub struct BenchRenderersArgs {
         default_value = "ewa,particle-splat,ray-cast"
     )]
     pub renderers: Vec<super::render::RendererChoice>,
-    /// Timed runs of each renderer on each backend (the median is reported), after one untimed.
+    /// Timed runs of each renderer on each backend (the median is reported), after one untimed
+    /// run when more than one.
     #[arg(long, default_value_t = 3)]
     pub repeat: usize,
     /// CPU only. Otherwise any adapter runs, a software one too (a bench measures what it is
@@ -1146,14 +1147,22 @@ struct RenderersBenchReport {
     renderers: Vec<RendererBench>,
 }
 
-/// The median of `repeat` timed runs of `run` after one untimed one, and that first result.
+/// The median of `repeat` timed runs of `run` (after one untimed one when `repeat` > 1, so a
+/// single long run is not paid twice), and the first result.
 fn median_of<T>(
     repeat: usize,
     mut run: impl FnMut() -> Result<T, Error>,
 ) -> Result<(f64, T), Error> {
-    let first = run()?;
     let mut times = Vec::new();
-    for _ in 0..repeat.max(1) {
+    let first = if repeat > 1 {
+        run()?
+    } else {
+        let t = Instant::now();
+        let r = run()?;
+        times.push(ms(t));
+        r
+    };
+    while times.len() < repeat.max(1) {
         let t = Instant::now();
         run()?;
         times.push(ms(t));
@@ -1304,6 +1313,91 @@ pub fn bench_renderers(args: &BenchRenderersArgs) -> Result<(), Error> {
                 (Some(_), None) => "identical".into(),
                 (Some(_), Some(p)) => format!("{p:.1} dB"),
             }
+        );
+    }
+    Ok(())
+}
+
+/// Arguments of `bench lnm`.
+#[derive(clap::Args)]
+pub struct BenchLnmArgs {
+    /// Particles (a jittered block, support radius two spacings).
+    #[arg(long, default_value_t = 1_000_000)]
+    pub particles: usize,
+    /// Timed runs (the median is reported), after one untimed.
+    #[arg(long, default_value_t = 5)]
+    pub repeat: usize,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct LnmBenchReport {
+    particles: usize,
+    band: usize,
+    band_share: f64,
+    voxels: usize,
+    layer_1_voxels: usize,
+    layer_2_voxels: usize,
+    threads: usize,
+    median_ms: f64,
+    /// The same on one thread, in the same run.
+    one_thread_ms: f64,
+    speedup_over_one_thread: f64,
+}
+
+/// The narrow band of the Layered Neighborhood Method (`lnm::narrow_band`) on a block, on all
+/// threads and on one.
+pub fn bench_lnm(args: &BenchLnmArgs) -> Result<(), Error> {
+    use fluid_surfels::lnm::{LnmParams, narrow_band};
+    let block = scenes::BlockParams::with_particles(args.particles);
+    let h = 2.0 * block.spacing;
+    let scene = scenes::block(&block)?;
+    let p = &scene.particles.positions;
+    let params = LnmParams::default();
+    let (median_ms, band) = median_of(args.repeat, || Ok(narrow_band(p, h, &params)?))?;
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .map_err(|e| Error::InvalidArgument {
+            argument: "threads",
+            reason: e.to_string(),
+        })?;
+    let (one_thread_ms, _) =
+        one.install(|| median_of(args.repeat, || Ok(narrow_band(p, h, &params)?)))?;
+    let layer = |l: u8| band.voxels.iter().filter(|v| v.label == l).count();
+    let report = LnmBenchReport {
+        particles: p.len(),
+        band: band.len(),
+        band_share: band.len() as f64 / p.len().max(1) as f64,
+        voxels: band.voxels.len(),
+        layer_1_voxels: layer(1),
+        layer_2_voxels: layer(2),
+        threads: rayon::current_num_threads(),
+        median_ms,
+        one_thread_ms,
+        speedup_over_one_thread: one_thread_ms / median_ms,
+    };
+    if args.json {
+        super::print_json(&report);
+    } else {
+        println!(
+            "bench lnm: {} particles in a block, {} voxels (layer 1 {}, layer 2 {}), band {} ({:.1} %)",
+            report.particles,
+            report.voxels,
+            report.layer_1_voxels,
+            report.layer_2_voxels,
+            report.band,
+            100.0 * report.band_share
+        );
+        println!(
+            "  {:.1} ms on {} threads, {:.1} ms on one ({:.2}x), median of {}",
+            report.median_ms,
+            report.threads,
+            report.one_thread_ms,
+            report.speedup_over_one_thread,
+            args.repeat.max(1)
         );
     }
     Ok(())

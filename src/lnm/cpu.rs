@@ -1,0 +1,183 @@
+//! The narrow band on the CPU (rayon): sort the particles by voxel, label the full voxels.
+
+use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use super::{BandVoxel, LnmError, LnmParams, NarrowBand};
+
+/// Bits of a voxel coordinate in a key (three of them in a `u64`).
+const BITS: u32 = 21;
+/// Most voxels along an axis.
+const MAX_AXIS: u64 = 1 << BITS;
+
+fn key([x, y, z]: [u32; 3]) -> u64 {
+    u64::from(x) | (u64::from(y) << BITS) | (u64::from(z) << (2 * BITS))
+}
+
+fn coord(k: u64) -> [u32; 3] {
+    let m = MAX_AXIS - 1;
+    [
+        (k & m) as u32,
+        ((k >> BITS) & m) as u32,
+        ((k >> (2 * BITS)) & m) as u32,
+    ]
+}
+
+/// A hasher for voxel keys: a multiplicative mix (Fibonacci hashing) of the one `u64`.
+#[derive(Default)]
+struct KeyHasher(u64);
+
+impl Hasher for KeyHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(u64::from(b) ^ self.0.rotate_left(8));
+        }
+    }
+
+    fn write_u64(&mut self, k: u64) {
+        let h = (k ^ self.0).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        self.0 = h ^ (h >> 29);
+    }
+}
+
+type VoxelTable = HashMap<u64, u32, BuildHasherDefault<KeyHasher>>;
+
+/// The 26 offsets of the 1-ring.
+fn ring() -> impl Iterator<Item = [i64; 3]> {
+    (0..27)
+        .filter(|&k| k != 13)
+        .map(|k| [k % 3 - 1, (k / 3) % 3 - 1, k / 9 - 1])
+}
+
+/// The narrow band of `positions` with kernel support `support_radius` (Algorithm 1).
+pub fn narrow_band(
+    positions: &[Vec3],
+    support_radius: f32,
+    params: &LnmParams,
+) -> Result<NarrowBand, LnmError> {
+    params.validate()?;
+    if !(support_radius.is_finite() && support_radius > 0.0) {
+        return Err(LnmError::InvalidParameter {
+            name: "support_radius",
+            reason: "must be finite and > 0".into(),
+        });
+    }
+    if let Some(index) = positions.par_iter().position_any(|p| !p.is_finite()) {
+        return Err(LnmError::NonFinite { index });
+    }
+    let edge = params.voxel_in_radii * support_radius;
+    let (lo, hi) = match params.domain {
+        Some([lo, hi]) => (Vec3::from(lo), Vec3::from(hi)),
+        None if positions.is_empty() => (Vec3::ZERO, Vec3::ZERO),
+        None => positions
+            .par_iter()
+            .fold(
+                || (Vec3::INFINITY, Vec3::NEG_INFINITY),
+                |(a, b), &p| (a.min(p), b.max(p)),
+            )
+            .reduce(
+                || (Vec3::INFINITY, Vec3::NEG_INFINITY),
+                |(a, b), (c, d)| (a.min(c), b.max(d)),
+            ),
+    };
+    let span = ((hi - lo) / edge).floor();
+    let voxels = [span.x, span.y, span.z].map(|v| v as u64 + 1);
+    if voxels.iter().any(|&v| v >= MAX_AXIS) || !span.is_finite() {
+        return Err(LnmError::TooManyVoxels {
+            voxels,
+            edge,
+            max: MAX_AXIS - 1,
+        });
+    }
+    let dims = voxels.map(|v| v as u32);
+    // a particle's voxel (clamped into the domain)
+    let voxel_of = |p: Vec3| -> u64 {
+        let c = ((p - lo) / edge).floor();
+        let at = |v: f32, n: u32| (v.max(0.0) as u32).min(n - 1);
+        key([at(c.x, dims[0]), at(c.y, dims[1]), at(c.z, dims[2])])
+    };
+    let keys: Vec<u64> = positions.par_iter().map(|&p| voxel_of(p)).collect();
+    let mut order: Vec<u32> = (0..positions.len() as u32).collect();
+    order.par_sort_unstable_by_key(|&i| (keys[i as usize], i));
+    // runs of one voxel: (key, start in `order`, count)
+    let mut runs: Vec<(u64, u32, u32)> = Vec::new();
+    for (s, &i) in order.iter().enumerate() {
+        let k = keys[i as usize];
+        match runs.last_mut() {
+            Some(r) if r.0 == k => r.2 += 1,
+            _ => runs.push((k, s as u32, 1)),
+        }
+    }
+    let mut table = VoxelTable::with_capacity_and_hasher(runs.len(), Default::default());
+    for (v, r) in runs.iter().enumerate() {
+        table.insert(r.0, v as u32);
+    }
+    let neighbour = |c: [u32; 3], d: [i64; 3]| -> Option<Option<u32>> {
+        // None: outside the domain; Some(None): empty; Some(Some(v)): full voxel v
+        let n: [i64; 3] = std::array::from_fn(|a| i64::from(c[a]) + d[a]);
+        if (0..3).any(|a| n[a] < 0 || n[a] >= i64::from(dims[a])) {
+            return None;
+        }
+        Some(table.get(&key(n.map(|v| v as u32))).copied())
+    };
+    // layer 1: on the border, or an empty voxel in the 1-ring
+    let first: Vec<bool> = runs
+        .par_iter()
+        .map(|r| {
+            let c = coord(r.0);
+            (0..3).any(|a| c[a] == 0 || c[a] + 1 == dims[a])
+                || ring().any(|d| neighbour(c, d) == Some(None))
+        })
+        .collect();
+    // layer 2: a layer-1 neighbour with at most n_min particles
+    let labels: Vec<u8> = runs
+        .par_iter()
+        .zip(&first)
+        .map(|(r, &one)| {
+            if one {
+                return 1;
+            }
+            let c = coord(r.0);
+            let thin = ring().any(|d| {
+                neighbour(c, d)
+                    .flatten()
+                    .is_some_and(|v| first[v as usize] && runs[v as usize].2 <= params.n_min)
+            });
+            if thin { 2 } else { 0 }
+        })
+        .collect();
+    let voxels_out: Vec<BandVoxel> = runs
+        .par_iter()
+        .zip(&labels)
+        .map(|(&(k, start, count), &label)| {
+            let members = &order[start as usize..(start + count) as usize];
+            let sum: Vec3 = members.iter().map(|&i| positions[i as usize]).sum();
+            BandVoxel {
+                coord: coord(k),
+                count,
+                centroid: sum / count as f32,
+                label,
+            }
+        })
+        .collect();
+    let mut particle_labels = vec![0u8; positions.len()];
+    for (&(_, start, count), &label) in runs.iter().zip(&labels) {
+        for &i in &order[start as usize..(start + count) as usize] {
+            particle_labels[i as usize] = label;
+        }
+    }
+    Ok(NarrowBand {
+        origin: lo,
+        edge,
+        dims,
+        voxels: voxels_out,
+        labels: particle_labels,
+    })
+}

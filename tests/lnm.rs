@@ -1,0 +1,211 @@
+//! The narrow band of the Layered Neighborhood Method on analytic shapes: every particle near
+//! the true surface is in it, it holds at most two voxel layers, and bad input is refused.
+
+use std::collections::HashSet;
+
+use fluid_surfels::lnm::{LnmError, LnmParams, NarrowBand, narrow_band};
+use fluid_surfels::scenes::{self, BlockParams, SphereParams};
+use glam::Vec3;
+
+/// Every band voxel has an empty voxel or the outside of the domain within two voxels
+/// (Chebyshev distance): the band is at most two voxel layers thick.
+fn at_most_two_layers(band: &NarrowBand) {
+    let full: HashSet<[u32; 3]> = band.voxels.iter().map(|v| v.coord).collect();
+    for v in band.voxels.iter().filter(|v| v.label != 0) {
+        let near_surface = (-2i64..=2).any(|dz| {
+            (-2i64..=2).any(|dy| {
+                (-2i64..=2).any(|dx| {
+                    let n = [dx, dy, dz];
+                    let c: [i64; 3] = std::array::from_fn(|a| i64::from(v.coord[a]) + n[a]);
+                    (0..3).any(|a| c[a] < 0 || c[a] >= i64::from(band.dims[a]))
+                        || !full.contains(&c.map(|x| x as u32))
+                })
+            })
+        });
+        assert!(
+            near_surface,
+            "band voxel {:?} is deeper than two layers",
+            v.coord
+        );
+    }
+}
+
+/// Recall against the analytic surface: the particles within one spacing of it, and how many
+/// of them the band holds; also the band's share of all particles.
+fn check_recall(name: &str, positions: &[Vec3], depth: impl Fn(Vec3) -> f32, spacing: f32) {
+    let h = 2.0 * spacing;
+    let band = narrow_band(positions, h, &LnmParams::default()).unwrap();
+    let near: Vec<usize> = (0..positions.len())
+        .filter(|&i| depth(positions[i]) < spacing)
+        .collect();
+    let missed = near.iter().filter(|&&i| !band.contains(i)).count();
+    println!(
+        "{name}: {} particles, {} within one spacing of the surface, band {} ({:.1} %), missed {missed}; {} voxels",
+        positions.len(),
+        near.len(),
+        band.len(),
+        100.0 * band.len() as f64 / positions.len() as f64,
+        band.voxels.len()
+    );
+    assert!(!near.is_empty());
+    assert_eq!(missed, 0, "{name}: recall below 100 %");
+    assert!(band.len() < positions.len(), "{name}: no interior left out");
+    at_most_two_layers(&band);
+    // the counts and centroids add up to the particles
+    let total: u32 = band.voxels.iter().map(|v| v.count).sum();
+    assert_eq!(total as usize, positions.len());
+    let sum: Vec3 = band
+        .voxels
+        .iter()
+        .map(|v| v.centroid * v.count as f32)
+        .sum();
+    let direct: Vec3 = positions.iter().copied().sum();
+    // f32 sums in another order: relative to the sum of the magnitudes
+    let scale: f32 = positions.iter().map(|p| p.abs().max_element()).sum();
+    assert!(
+        (sum - direct).abs().max_element() < 1e-5 * scale,
+        "{name}: centroids {sum} against {direct}"
+    );
+}
+
+#[test]
+fn the_band_holds_every_particle_near_a_block_a_sphere_and_a_holed_slab() {
+    let block = scenes::block(&BlockParams::default()).unwrap();
+    let shape = block.shape.unwrap();
+    check_recall(
+        "block",
+        &block.particles.positions,
+        |p| shape.depth(p),
+        BlockParams::default().spacing,
+    );
+    let sphere = scenes::sphere(&SphereParams::default()).unwrap();
+    let shape = sphere.shape.unwrap();
+    let spacing = fluid_surfels::neighbours::estimate_spacing(&sphere.particles.positions).unwrap();
+    check_recall(
+        "sphere",
+        &sphere.particles.positions,
+        |p| shape.depth(p),
+        spacing,
+    );
+    // a slab 40 x 16 x 40 spacings with a round hole of radius 6 spacings through it
+    let s = 0.05;
+    let (side, thick, hole) = (40, 16, 6.0 * s);
+    let centre = Vec3::new(side as f32 * s / 2.0, 0.0, side as f32 * s / 2.0);
+    let radial = |p: Vec3| Vec3::new(p.x - centre.x, 0.0, p.z - centre.z).length();
+    let mut slab = Vec::new();
+    for z in 0..side {
+        for y in 0..thick {
+            for x in 0..side {
+                let p = (Vec3::new(x as f32, y as f32, z as f32) + 0.5) * s;
+                if radial(p) >= hole {
+                    slab.push(p);
+                }
+            }
+        }
+    }
+    let (lo, hi) = (
+        Vec3::ZERO,
+        Vec3::new(side as f32, thick as f32, side as f32) * s,
+    );
+    check_recall(
+        "holed slab",
+        &slab,
+        |p| (p - lo).min(hi - p).min_element().min(radial(p) - hole),
+        s,
+    );
+}
+
+/// Layer 2 is the paper's deficiency rule: with `n_min = 0` there is none, and a thin layer-1
+/// voxel pulls its inner neighbours in; the result does not depend on the thread count.
+#[test]
+fn layer_two_follows_the_deficiency_rule_and_threads_do_not_matter() {
+    let block = scenes::block(&BlockParams {
+        counts: [24, 24, 24],
+        jitter: 0.3,
+        ..BlockParams::default()
+    })
+    .unwrap();
+    let p = &block.particles.positions;
+    let h = 0.1;
+    let band = narrow_band(p, h, &LnmParams::default()).unwrap();
+    let none = narrow_band(
+        p,
+        h,
+        &LnmParams {
+            n_min: 0,
+            ..LnmParams::default()
+        },
+    )
+    .unwrap();
+    assert!(none.voxels.iter().all(|v| v.label != 2));
+    let second = band.voxels.iter().filter(|v| v.label == 2).count();
+    println!(
+        "jittered block: {} voxels, layer 1 {}, layer 2 {second} (n_min 8), band {} of {} particles",
+        band.voxels.len(),
+        band.voxels.iter().filter(|v| v.label == 1).count(),
+        band.len(),
+        p.len()
+    );
+    assert!(second > 0, "a jittered block has thin voxels on its faces");
+    for v in band.voxels.iter().filter(|v| v.label == 2) {
+        let thin = band.voxels.iter().any(|u| {
+            u.label == 1 && u.count <= 8 && (0..3).all(|a| u.coord[a].abs_diff(v.coord[a]) <= 1)
+        });
+        assert!(
+            thin,
+            "layer-2 voxel {:?} has no thin layer-1 neighbour",
+            v.coord
+        );
+    }
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| narrow_band(p, h, &LnmParams::default()).unwrap());
+    assert_eq!(one, band);
+    // reordering the particles changes no voxel and moves the labels with the particles
+    let reversed: Vec<Vec3> = p.iter().rev().copied().collect();
+    let r = narrow_band(&reversed, h, &LnmParams::default()).unwrap();
+    assert_eq!(
+        r.voxels
+            .iter()
+            .map(|v| (v.coord, v.count, v.label))
+            .collect::<Vec<_>>(),
+        band.voxels
+            .iter()
+            .map(|v| (v.coord, v.count, v.label))
+            .collect::<Vec<_>>()
+    );
+    assert!((0..p.len()).all(|i| r.labels[p.len() - 1 - i] == band.labels[i]));
+}
+
+#[test]
+fn bad_input_is_refused_and_nothing_is_empty() {
+    let p = [Vec3::ZERO, Vec3::ONE];
+    let d = LnmParams::default();
+    assert!(matches!(
+        narrow_band(&[Vec3::ZERO, Vec3::NAN], 0.1, &d),
+        Err(LnmError::NonFinite { index: 1 })
+    ));
+    assert!(narrow_band(&p, 0.0, &d).is_err());
+    assert!(narrow_band(&p, f32::NAN, &d).is_err());
+    let bad = LnmParams {
+        voxel_in_radii: -1.0,
+        ..d
+    };
+    assert!(narrow_band(&p, 0.1, &bad).is_err());
+    // a splash far away: too many voxels along an axis for the keys, refused (not allocated)
+    assert!(matches!(
+        narrow_band(&[Vec3::ZERO, Vec3::new(1e6, 0.0, 0.0)], 0.1, &d),
+        Err(LnmError::TooManyVoxels { .. })
+    ));
+    // but a wide spread that fits costs its particles, not its box
+    let far = narrow_band(&[Vec3::ZERO, Vec3::new(1e4, 1e4, 1e4)], 0.1, &d).unwrap();
+    assert_eq!(far.voxels.len(), 2);
+    assert_eq!(far.len(), 2);
+    let empty = narrow_band(&[], 0.1, &d).unwrap();
+    assert!(empty.is_empty() && empty.voxels.is_empty());
+    // a single particle is its own surface
+    let one = narrow_band(&[Vec3::ONE], 0.1, &d).unwrap();
+    assert_eq!(one.labels, [1]);
+}
