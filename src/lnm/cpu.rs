@@ -103,13 +103,17 @@ pub fn narrow_band(
         let at = |v: f32, n: u32| (v.max(0.0) as u32).min(n - 1);
         key([at(c.x, dims[0]), at(c.y, dims[1]), at(c.z, dims[2])])
     };
-    let keys: Vec<u64> = positions.par_iter().map(|&p| voxel_of(p)).collect();
-    let mut order: Vec<u32> = (0..positions.len() as u32).collect();
-    order.par_sort_unstable_by_key(|&i| (keys[i as usize], i));
+    // (key, index) pairs sorted together: no lookup of a key through its index while sorting
+    let mut pairs: Vec<(u64, u32)> = positions
+        .par_iter()
+        .enumerate()
+        .map(|(i, &p)| (voxel_of(p), i as u32))
+        .collect();
+    pairs.par_sort_unstable();
+    let order: Vec<u32> = pairs.par_iter().map(|&(_, i)| i).collect();
     // runs of one voxel: (key, start in `order`, count)
     let mut runs: Vec<(u64, u32, u32)> = Vec::new();
-    for (s, &i) in order.iter().enumerate() {
-        let k = keys[i as usize];
+    for (s, &(k, _)) in pairs.iter().enumerate() {
         match runs.last_mut() {
             Some(r) if r.0 == k => r.2 += 1,
             _ => runs.push((k, s as u32, 1)),
