@@ -642,11 +642,6 @@ impl PreparedOptics {
             || (map.width, map.height) != (self.map.width, self.map.height)
             || receiver.len() as u32 != self.receiver_count
             || environment_key(stage) != self.environment_key
-            || matches!(
-                (&self.water, water),
-                (Water::Splats { .. }, GpuWater::Cast(_))
-                    | (Water::Cast { .. }, GpuWater::Surfels(_))
-            )
         {
             return Ok(false);
         }
@@ -657,22 +652,6 @@ impl PreparedOptics {
             fw,
             fh,
         )?;
-        queue.write_buffer(
-            &self.uniforms,
-            0,
-            bytemuck::bytes_of(&raw_optics(stage, &camera)),
-        );
-        queue.write_buffer(
-            &self.map_geometry.uniforms,
-            0,
-            bytemuck::bytes_of(&RawGeometry::of(&map)),
-        );
-        queue.write_buffer(
-            &self.camera_geometry.uniforms,
-            0,
-            bytemuck::bytes_of(&RawGeometry::of(&camera)),
-        );
-        queue.write_buffer(&self.receiver_vertices, 0, bytemuck::cast_slice(&receiver));
         match (&mut self.water, water) {
             (
                 Water::Splats {
@@ -692,8 +671,25 @@ impl PreparedOptics {
                 light.prepare(device, caster, &screen)?;
                 cast.prepare(device, caster, &camera)?;
             }
-            _ => unreachable!("checked above"),
+            // drawn another way than prepared: new targets (nothing written yet)
+            _ => return Ok(false),
         }
+        queue.write_buffer(
+            &self.uniforms,
+            0,
+            bytemuck::bytes_of(&raw_optics(stage, &camera)),
+        );
+        queue.write_buffer(
+            &self.map_geometry.uniforms,
+            0,
+            bytemuck::bytes_of(&RawGeometry::of(&map)),
+        );
+        queue.write_buffer(
+            &self.camera_geometry.uniforms,
+            0,
+            bytemuck::bytes_of(&RawGeometry::of(&camera)),
+        );
+        queue.write_buffer(&self.receiver_vertices, 0, bytemuck::cast_slice(&receiver));
         self.screen = screen;
         self.map = map;
         self.camera = camera;
