@@ -45,6 +45,7 @@ pub mod refine;
 pub mod scenes;
 pub mod sequence;
 pub mod splat;
+pub mod ssfr;
 pub mod surface;
 pub mod surfels;
 pub mod view;
@@ -100,6 +101,9 @@ pub enum Error {
     /// The narrow band of the Layered Neighborhood Method.
     #[error(transparent)]
     Lnm(#[from] lnm::LnmError),
+    /// The screen-space renderer.
+    #[error(transparent)]
+    Ssfr(#[from] ssfr::SsfrError),
     /// Optics: caustics, refraction and reflection.
     #[error(transparent)]
     Optics(#[from] optics::OpticsError),

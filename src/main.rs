@@ -39,8 +39,9 @@ enum Command {
     /// a built-in scene.
     Surfels(cli::surfels::SurfelsArgs),
     /// The surface to a PNG: particles through the pipeline, drawn by EWA surfel splatting
-    /// (Botsch et al. 2005; default), particle splatting (Adams et al. 2006) or ray casting
-    /// (Xiao et al.), or a file of surfels as they are; with --optics the finished frame.
+    /// (Botsch et al. 2005; default), particle splatting (Adams et al. 2006), ray casting
+    /// (Xiao et al.) or narrow-band screen-space rendering (Oliveira and Paiva), or a file of
+    /// surfels as they are; with --optics the finished frame.
     Render(cli::render::RenderArgs),
     /// One frame drawn by every renderer from every surfel source, side by side on a labelled
     /// contact sheet, each with its time and its depth, normal and coverage errors against the
@@ -82,6 +83,10 @@ enum BenchCommand {
     /// The narrow band of the Layered Neighborhood Method (Oliveira et al., Algorithm 1) on a
     /// block of particles, on all threads and on one.
     Lnm(cli::bench::BenchLnmArgs),
+    /// The screen-space renderer (Oliveira and Paiva) on one frame's particles at full HD on the
+    /// CPU: each depth filter with and without the narrow band, per pass, the band's share and
+    /// the memory it saves.
+    Ssfr(cli::bench::BenchSsfrArgs),
 }
 
 /// Mesa's software Vulkan driver (lavapipe) prints "XDG_RUNTIME_DIR is invalid" on stderr when
@@ -151,6 +156,7 @@ fn main() -> ExitCode {
         Some(Command::Bench(BenchCommand::Pipeline(args))) => cli::bench::bench_pipeline(&args),
         Some(Command::Bench(BenchCommand::Renderers(args))) => cli::bench::bench_renderers(&args),
         Some(Command::Bench(BenchCommand::Lnm(args))) => cli::bench::bench_lnm(&args),
+        Some(Command::Bench(BenchCommand::Ssfr(args))) => cli::bench::bench_ssfr(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -1882,3 +1882,116 @@ fn render_warns_of_an_absurd_radius_before_the_work() {
     assert!(warning < error, "{stderr}");
     assert!(stderr.contains("too large"), "{stderr}");
 }
+
+/// `render --renderer ssfr`: every `--filter` draws the library's screen-space image of the
+/// particles from the report's camera, `--no-narrow-band` draws every particle, the finished
+/// frame runs through it, and `--gpu` is refused with what to do (there is no GPU path yet).
+#[test]
+fn render_draws_the_screen_space_surface_with_each_filter() {
+    use fluid_surfels::ssfr::{DepthFilter, ScreenSpace, SsfrParams};
+    let dir = ddb_dir();
+    let d = dir.path();
+    let set = ddb_set();
+    let h = 2.0 * fluid_surfels::neighbours::estimate_spacing(&set.positions).unwrap();
+    let radii = vec![h; set.len()];
+    for filter in DepthFilter::ALL {
+        for band in [true, false] {
+            let out = d.join(format!("ssfr-{filter}-{band}.png"));
+            let mut args = vec![
+                "--renderer",
+                "ssfr",
+                "--filter",
+                filter.as_str(),
+                "--json",
+                "--out",
+                out.to_str().unwrap(),
+            ];
+            if !band {
+                args.push("--no-narrow-band");
+            }
+            let report = json_of(&render_ddb(d, &args));
+            assert_eq!(report["renderer"], "ssfr", "{report}");
+            assert_eq!(report["backend"], "cpu reference", "{report}");
+            let camera: fluid_surfels::splat::Camera =
+                serde_json::from_value(report["camera"].clone()).unwrap();
+            let params = SsfrParams {
+                filter,
+                narrow_band: band,
+                ..Default::default()
+            };
+            let v = fluid_surfels::splat::View::new(
+                &camera,
+                &fluid_surfels::splat::Light::default(),
+                &fluid_surfels::splat::SplatParams::default(),
+                64,
+                48,
+            )
+            .unwrap();
+            let expected = ScreenSpace::new(&set.positions, &radii, h, &params)
+                .unwrap()
+                .render_view(&v)
+                .unwrap();
+            assert!(expected.render.covered_pixels() > 200);
+            let png = image::open(&out).unwrap().to_rgba8();
+            assert_eq!(png, expected.render.image, "{filter}, band {band}");
+        }
+    }
+    let finished = render_ddb(
+        d,
+        &[
+            "--renderer",
+            "ssfr",
+            "--optics",
+            "--out",
+            d.join("ssfr-frame.png").to_str().unwrap(),
+        ],
+    );
+    succeeded(&finished);
+    let e = stderr_of(
+        &bin()
+            .args([
+                "render",
+                "--renderer",
+                "ssfr",
+                "--gpu",
+                "--out",
+                "x.png",
+                "--input",
+            ])
+            .arg(d.join("ddb.vtk"))
+            .output()
+            .unwrap(),
+    );
+    assert!(e.contains("no GPU path yet"), "{e}");
+}
+
+/// `bench ssfr` at a small size: each filter with and without the narrow band, the band's
+/// share, and the band's image against every particle's.
+#[test]
+fn bench_ssfr_times_each_filter_with_and_without_the_band() {
+    let v = json_of(
+        &bin()
+            .args(["bench", "ssfr", "--size", "96x64", "--repeat", "1"])
+            .args(["--filters", "plane,curvature-flow", "--json", "--input"])
+            .arg(data("dam_break_frame_23_24389_particles.bgeo"))
+            .output()
+            .unwrap(),
+    );
+    let rows = v["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 4, "{v}");
+    let particles = v["particles"].as_u64().unwrap();
+    assert_eq!(particles, 24_389);
+    let band = v["band"].as_u64().unwrap();
+    assert!(band > 0 && band < particles, "{v}");
+    assert!(v["memory_saved"].as_f64().unwrap() > 0.0, "{v}");
+    for r in rows {
+        assert!(r["median_ms"].as_f64().unwrap() > 0.0, "{r}");
+        assert!(r["covered_pixels"].as_u64().unwrap() > 100, "{r}");
+        if r["narrow_band"].as_bool().unwrap() {
+            assert_eq!(r["drawn"].as_u64().unwrap(), band, "{r}");
+            assert!(r["psnr_against_all_db"].as_f64().unwrap() >= 35.0, "{r}");
+        } else {
+            assert_eq!(r["drawn"].as_u64().unwrap(), particles, "{r}");
+        }
+    }
+}

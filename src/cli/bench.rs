@@ -1227,14 +1227,22 @@ pub fn bench_renderers(args: &BenchRenderersArgs) -> Result<(), Error> {
         let caster = (renderer == Renderer::RayCast)
             .then(|| pipeline.caster(&points, &radii))
             .transpose()?;
+        let screen = (renderer == Renderer::Ssfr)
+            .then(|| pipeline.screen_space(&points, &radii))
+            .transpose()?;
         let (cpu_ms, cpu) = median_of(args.repeat, || {
-            Ok(if let Some(caster) = &caster {
+            Ok(if let Some(screen) = &screen {
+                let v = splat::View::new(&camera, &light, &params, w, h)?;
+                screen.render_view(&v)?.render
+            } else if let Some(caster) = &caster {
                 fluid_surfels::raycast::render_cpu(caster, &camera, &light, &params, w, h)?.render
             } else {
                 splat::render_cpu(surfels, &camera, &light, &params, w, h)?
             })
         })?;
         let gpu = match &ctx {
+            // the screen-space renderer has no GPU path yet
+            Some(_) if screen.is_some() => None,
             Some(ctx) => Some(median_of(args.repeat, || {
                 Ok(if let Some(caster) = &caster {
                     fluid_surfels::raycast::gpu::render_gpu(
@@ -1398,6 +1406,209 @@ pub fn bench_lnm(args: &BenchLnmArgs) -> Result<(), Error> {
             report.one_thread_ms,
             report.speedup_over_one_thread,
             args.repeat.max(1)
+        );
+    }
+    Ok(())
+}
+
+/// Arguments of `bench ssfr`.
+#[derive(clap::Args)]
+pub struct BenchSsfrArgs {
+    /// Particle file (default: the column scene's splash frame).
+    #[arg(long)]
+    pub input: Option<PathBuf>,
+    /// Format of --input (default: from its extension).
+    #[arg(long, value_parser = super::format_parser())]
+    pub format: Option<Format>,
+    /// Resample the particles to about this many first (`scenes::resample`).
+    #[arg(long)]
+    pub particles: Option<usize>,
+    /// Support radius (default: the scene's, or twice the spacing estimated from the file),
+    /// before any resampling.
+    #[arg(long)]
+    pub radius: Option<f32>,
+    /// Image size, WIDTHxHEIGHT (default full HD, the paper's).
+    #[arg(long, default_value = "1920x1080", value_parser = super::render::parse_size)]
+    pub size: (u32, u32),
+    /// The depth filters to time, comma-separated.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "narrow-range,bilateral,plane,curvature-flow"
+    )]
+    pub filters: Vec<super::render::FilterChoice>,
+    /// Timed runs of each (the median is reported), after one untimed run when more than one.
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
+    /// Print one JSON object instead of the table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// One filter with or without the narrow band in `bench ssfr`.
+#[derive(Serialize)]
+struct SsfrBench {
+    filter: &'static str,
+    narrow_band: bool,
+    /// Particles drawn in the depth pass.
+    drawn: usize,
+    /// Gaussians of the thickness (voxels with the band, particles without).
+    thickness_sources: usize,
+    /// The narrow band and the thickness sources, once per frame (not in `median_ms`).
+    prepare_ms: f64,
+    median_ms: f64,
+    /// The passes of the median run's first result: depth, filter, thickness, shading.
+    passes: fluid_surfels::ssfr::cpu::SsfrTimings,
+    /// Bytes of what the passes read: 16 a drawn sphere, 20 a thickness source.
+    input_bytes: usize,
+    covered_pixels: usize,
+    /// PSNR against the same filter without the narrow band (on the band's rows).
+    psnr_against_all_db: Option<f64>,
+}
+
+#[derive(Serialize)]
+struct SsfrBenchReport {
+    source: String,
+    particles: usize,
+    support_radius: f32,
+    width: u32,
+    height: u32,
+    threads: usize,
+    repeat: usize,
+    band: usize,
+    band_share: f64,
+    voxels: usize,
+    /// `1 - band input bytes / all input bytes` (the paper's Table 2 "mem", as we define it:
+    /// the spheres drawn and the thickness sources the passes read).
+    memory_saved: f64,
+    rows: Vec<SsfrBench>,
+}
+
+/// The screen-space renderer on one frame (the raw particles, as the paper draws them) at one
+/// size on the CPU: each filter with and without the narrow band, per pass.
+pub fn bench_ssfr(args: &BenchSsfrArgs) -> Result<(), Error> {
+    use fluid_surfels::splat::{self, Light, SplatParams, View};
+    use fluid_surfels::ssfr::{ScreenSpace, SsfrParams};
+    let (mut source, mut positions, mut radius) = super::positions_of(
+        args.input.as_deref(),
+        args.input.is_none().then_some(super::SceneName::Column),
+        args.format,
+        None,
+        args.radius,
+    )?;
+    if let Some(n) = args.particles {
+        let (fine, h) = scenes::resample(&positions, radius, n)?;
+        source = format!("{source}, resampled from {} particles", positions.len());
+        positions = fine;
+        radius = h;
+    }
+    let set = fluid_surfels::ParticleSet::from_positions(positions);
+    set.validate()?;
+    let p = &set.positions;
+    let radii = vec![radius; p.len()];
+    let spheres = splat::spheres_from(p, &[], radius, splat::WATER);
+    let camera = super::render::framing(&spheres);
+    let (w, h) = args.size;
+    let view = View::new(&camera, &Light::default(), &SplatParams::default(), w, h)?;
+    let mut rows = Vec::new();
+    let (mut band, mut voxels) = (p.len(), 0);
+    let bar = super::progress(2 * args.filters.len() as u64, "filters");
+    for &choice in &args.filters {
+        let mut all_image = None;
+        for narrow_band in [false, true] {
+            let params = SsfrParams {
+                filter: choice.into(),
+                narrow_band,
+                ..Default::default()
+            };
+            let t = Instant::now();
+            let screen = ScreenSpace::new(p, &radii, radius, &params)?;
+            let prepare_ms = ms(t);
+            if let Some(b) = screen.band() {
+                band = b.len();
+                voxels = b.voxels.len();
+            }
+            let (median_ms, r) = median_of(args.repeat, || Ok(screen.render_view(&view)?))?;
+            let psnr = match (&all_image, narrow_band) {
+                (Some(a), true) => Some(splat::psnr(a, &r.render.image)),
+                _ => None,
+            };
+            rows.push(SsfrBench {
+                filter: params.filter.as_str(),
+                narrow_band,
+                drawn: screen.drawn(),
+                thickness_sources: screen.sources().len(),
+                prepare_ms,
+                median_ms,
+                passes: r.timings,
+                input_bytes: 16 * screen.drawn() + 20 * screen.sources().len(),
+                covered_pixels: r.render.covered_pixels(),
+                psnr_against_all_db: psnr,
+            });
+            if !narrow_band {
+                all_image = Some(r.render.image);
+            }
+            bar.inc(1);
+        }
+    }
+    bar.finish_and_clear();
+    let bytes = |nb: bool| {
+        rows.iter()
+            .find(|r| r.narrow_band == nb)
+            .map_or(0, |r| r.input_bytes)
+    };
+    let report = SsfrBenchReport {
+        source,
+        particles: p.len(),
+        support_radius: radius,
+        width: w,
+        height: h,
+        threads: rayon::current_num_threads(),
+        repeat: args.repeat.max(1),
+        band,
+        band_share: band as f64 / p.len().max(1) as f64,
+        voxels,
+        memory_saved: 1.0 - bytes(true) as f64 / bytes(false).max(1) as f64,
+        rows,
+    };
+    if args.json {
+        super::print_json(&report);
+        return Ok(());
+    }
+    println!(
+        "bench ssfr: {} ({} particles, support radius {:.4}), {w}x{h}, {} threads, median of {}",
+        report.source, report.particles, report.support_radius, report.threads, report.repeat
+    );
+    println!(
+        "  narrow band: {} particles ({:.1} %), {} voxels; the passes read {:.0} % less",
+        report.band,
+        100.0 * report.band_share,
+        report.voxels,
+        100.0 * report.memory_saved
+    );
+    println!(
+        "  filter          band   drawn  prepare ms   frame ms   depth  filter  thickness  shading  covered  PSNR vs all"
+    );
+    for r in &report.rows {
+        println!(
+            "  {:<15} {:>4} {:>7} {:>11.1} {:>10.1} {:>7.1} {:>7.1} {:>10.1} {:>8.1} {:>8} {}",
+            r.filter,
+            if r.narrow_band { "yes" } else { "no" },
+            r.drawn,
+            r.prepare_ms,
+            r.median_ms,
+            r.passes.depth_ms,
+            r.passes.filter_ms,
+            r.passes.thickness_ms,
+            r.passes.shading_ms,
+            r.covered_pixels,
+            r.psnr_against_all_db
+                .map_or("-".into(), |p| if p.is_finite() {
+                    format!("{p:.1} dB")
+                } else {
+                    "identical".into()
+                })
         );
     }
     Ok(())

@@ -15,6 +15,7 @@ use fluid_surfels::pipeline::{
 use fluid_surfels::scenes::{self, ColumnParams, ColumnSim, SceneName};
 use fluid_surfels::sequence::{FramePattern, FrameRange};
 use fluid_surfels::splat::{self, Camera, Light, Render, SplatMode, SplatParams, Surfel};
+use fluid_surfels::ssfr::DepthFilter;
 use fluid_surfels::view::UpAxis;
 use glam::Vec3;
 use serde::Serialize;
@@ -52,11 +53,22 @@ pub struct RenderArgs {
     pub source: SourceChoice,
     /// How the surface is drawn: ewa (EWA surface splatting of the source's surfels),
     /// particle-splat (Adams et al. 2006: the source's points as spheres of their kernel
-    /// radius, blended within 1.5 radii of the nearest; no density grid) or ray-cast (Xiao et
+    /// radius, blended within 1.5 radii of the nearest; no density grid), ray-cast (Xiao et
     /// al.: rays cast to the iso-surface of the source's points, PCA-blended normals; the
-    /// reference surface), in the shaded splats and in the finished frame alike.
+    /// reference surface), or ssfr (Oliveira and Paiva: narrow-band screen-space fluid
+    /// rendering, the source's points as spheres in a depth buffer, filtered; CPU only), in the
+    /// shaded splats and in the finished frame alike.
     #[arg(long, value_enum, default_value = "ewa")]
     pub renderer: RendererChoice,
+    /// The depth filter of --renderer ssfr: narrow-range (Truong and Yuksel 2018), bilateral
+    /// (Green 2010), plane (plane fitting, Imai et al. 2016), curvature-flow (van der Laan et
+    /// al. 2009) or none; 7x7, 4 iterations (30 for curvature flow).
+    #[arg(long, value_enum, default_value = "narrow-range")]
+    pub filter: FilterChoice,
+    /// With --renderer ssfr: draw every point's depth and take the thickness from every point
+    /// (eq. 1), instead of the narrow band's particles and voxels (eq. 3).
+    #[arg(long)]
+    pub no_narrow_band: bool,
     /// Density grid points along the longest axis (default: spacing a third of the smallest
     /// kernel radius in use, within the grid's memory budget).
     #[arg(long)]
@@ -238,6 +250,7 @@ pub enum RendererChoice {
     Ewa,
     ParticleSplat,
     RayCast,
+    Ssfr,
 }
 
 impl From<RendererChoice> for Renderer {
@@ -246,6 +259,29 @@ impl From<RendererChoice> for Renderer {
             RendererChoice::Ewa => Self::Ewa,
             RendererChoice::ParticleSplat => Self::ParticleSplat,
             RendererChoice::RayCast => Self::RayCast,
+            RendererChoice::Ssfr => Self::Ssfr,
+        }
+    }
+}
+
+/// `--filter` on the command line.
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum FilterChoice {
+    NarrowRange,
+    Bilateral,
+    Plane,
+    CurvatureFlow,
+    None,
+}
+
+impl From<FilterChoice> for DepthFilter {
+    fn from(c: FilterChoice) -> Self {
+        match c {
+            FilterChoice::NarrowRange => Self::NarrowRange,
+            FilterChoice::Bilateral => Self::Bilateral,
+            FilterChoice::Plane => Self::Plane,
+            FilterChoice::CurvatureFlow => Self::CurvatureFlow,
+            FilterChoice::None => Self::None,
         }
     }
 }
@@ -274,6 +310,21 @@ pub fn choose_gpu(cpu: bool, gpu: bool) -> Result<Option<GpuContext>, Error> {
         Err(e) if gpu => Err(e.into()),
         Err(_) => Ok(None),
     }
+}
+
+/// [`choose_gpu`] for the renderer of `args`: the screen-space renderer has no GPU twin yet, so
+/// it runs on the CPU unless `--gpu` asks, which is refused with a typed error.
+fn choose_gpu_for(args: &RenderArgs) -> Result<Option<GpuContext>, Error> {
+    if matches!(args.renderer, RendererChoice::Ssfr) {
+        if args.gpu {
+            return Err(fluid_surfels::gpu::GpuError::NotOnGpu {
+                what: "the screen-space renderer (--renderer ssfr)",
+            }
+            .into());
+        }
+        return Ok(None);
+    }
+    choose_gpu(args.cpu, args.gpu)
 }
 
 /// Renders on the GPU when a context is given, else with the CPU reference.
@@ -312,6 +363,10 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
     }
     p.source = args.source.into();
     p.renderer = args.renderer.into();
+    p.ssfr.filter = args.filter.into();
+    if args.no_narrow_band {
+        p.ssfr.narrow_band = false;
+    }
     if let Some(r) = args.resolution {
         p.grid.resolution = Some(Resolution::LongestAxis(r));
     }
@@ -322,7 +377,7 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
         match p.renderer {
             Renderer::Ewa => p.splat.depth_offset = d,
             Renderer::ParticleSplat => p.splat.sphere_depth_offset = d,
-            Renderer::RayCast => {}
+            Renderer::RayCast | Renderer::Ssfr => {}
         }
     }
     if let Some(l) = args.low_pass {
@@ -569,9 +624,20 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     let camera = args
         .camera
         .map_or_else(|| framing(surfels), |c| turned_camera(c, args.up));
-    let ctx = choose_gpu(args.cpu, args.gpu)?;
+    let ctx = choose_gpu_for(args)?;
     let t = Instant::now();
-    let render = if pipeline.params().renderer == Renderer::RayCast {
+    let render = if pipeline.params().renderer == Renderer::Ssfr {
+        let (positions, radii) = pipeline::sphere_points(surfels);
+        let screen = pipeline.screen_space(&positions, &radii)?;
+        let view = splat::View::new(
+            &camera,
+            &Light::default(),
+            &splat_params,
+            args.size.0,
+            args.size.1,
+        )?;
+        screen.render_view(&view)?.render
+    } else if pipeline.params().renderer == Renderer::RayCast {
         let (positions, radii) = pipeline::sphere_points(surfels);
         let caster = pipeline.caster(&positions, &radii)?;
         let (w, h) = args.size;
@@ -675,7 +741,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
 fn drawn_as(args: &RenderArgs) -> &'static str {
     match args.renderer {
         RendererChoice::Ewa => "surfels",
-        RendererChoice::ParticleSplat | RendererChoice::RayCast => "spheres",
+        RendererChoice::ParticleSplat | RendererChoice::RayCast | RendererChoice::Ssfr => "spheres",
     }
 }
 
@@ -812,7 +878,7 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
     let [w, h] = params.scene.optics.image_size;
     let mut pipeline = Pipeline::new(params.clone())?;
     super::warn_at_once(&mut pipeline);
-    let mut gpu = match choose_gpu(args.cpu, args.gpu)? {
+    let mut gpu = match choose_gpu_for(args)? {
         Some(ctx) => {
             let g = GpuPipeline::new(
                 &ctx.device,

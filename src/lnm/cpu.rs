@@ -172,9 +172,11 @@ pub fn narrow_band(
         })
         .collect();
     let mut particle_labels = vec![0u8; positions.len()];
-    for (&(_, start, count), &label) in runs.iter().zip(&labels) {
+    let mut particle_voxels = vec![0u32; positions.len()];
+    for (v, (&(_, start, count), &label)) in runs.iter().zip(&labels).enumerate() {
         for &i in &order[start as usize..(start + count) as usize] {
             particle_labels[i as usize] = label;
+            particle_voxels[i as usize] = v as u32;
         }
     }
     Ok(NarrowBand {
@@ -183,5 +185,6 @@ pub fn narrow_band(
         dims,
         voxels: voxels_out,
         labels: particle_labels,
+        voxel_of: particle_voxels,
     })
 }

@@ -114,6 +114,8 @@ pub struct NarrowBand {
     pub voxels: Vec<BandVoxel>,
     /// Per particle: its voxel's label.
     pub labels: Vec<u8>,
+    /// Per particle: the index of its voxel in `voxels`.
+    pub voxel_of: Vec<u32>,
 }
 
 impl NarrowBand {

@@ -73,6 +73,7 @@ impl GpuPipeline {
         let mut params = params.clone();
         params.scene.optics.image_size = [size.0, size.1];
         let cpu = Pipeline::new(params)?;
+        refuse_cpu_only(&cpu)?;
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let optics = OpticsGpu::new(device)?;
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -218,6 +219,7 @@ impl GpuPipeline {
         encoder: &mut wgpu::CommandEncoder,
         frame: &Frame,
     ) -> Result<(), Error> {
+        refuse_cpu_only(&self.cpu)?;
         let surfels = &frame.render_surfels;
         let scene = self.cpu.fitted_scene(surfels)?;
         let stage = Stage::new(&scene, surfels)?;
@@ -295,6 +297,7 @@ impl GpuPipeline {
         frame: &Frame,
         target: &wgpu::TextureView,
     ) -> Result<(), Error> {
+        refuse_cpu_only(&self.cpu)?;
         let camera = self.cpu.splat_camera(&frame.render_surfels);
         let (w, h) = self.size;
         let view = View::new(&camera, &Light::default(), &self.cpu.splat_params(), w, h)?;
@@ -398,6 +401,18 @@ fn check_size((w, h): (u32, u32)) -> Result<(), Error> {
                 crate::splat::MAX_SIZE
             ),
         });
+    }
+    Ok(())
+}
+
+/// The renderers without a GPU path ([`super::Renderer::Ssfr`]) are refused with a typed error
+/// (also after [`Pipeline::set_renderer`] through [`GpuPipeline::cpu_mut`]).
+fn refuse_cpu_only(cpu: &Pipeline) -> Result<(), Error> {
+    if cpu.params().renderer == super::Renderer::Ssfr {
+        return Err(crate::gpu::GpuError::NotOnGpu {
+            what: "the screen-space renderer (ssfr)",
+        }
+        .into());
     }
     Ok(())
 }

@@ -104,11 +104,16 @@ pub enum Renderer {
     /// iso-value and normals of `[raycast]`. The reference surface; on the GPU in
     /// [`GpuPipeline`] too (`raycast::gpu`).
     RayCast,
+    /// Narrow-band screen-space fluid rendering (Oliveira and Paiva, [`crate::ssfr`]): the same
+    /// points and radii as `ParticleSplat` drawn as spheres into a depth buffer (only the
+    /// narrow band's, by default), the depth filtered (`[ssfr] filter`), the thickness from the
+    /// band's voxels; CPU only so far ([`GpuPipeline`] refuses it).
+    Ssfr,
 }
 
 impl Renderer {
     /// Every renderer, in the order of the documentation.
-    pub const ALL: [Self; 3] = [Self::Ewa, Self::ParticleSplat, Self::RayCast];
+    pub const ALL: [Self; 4] = [Self::Ewa, Self::ParticleSplat, Self::RayCast, Self::Ssfr];
 
     /// The name used in files and on the command line.
     #[must_use]
@@ -117,6 +122,7 @@ impl Renderer {
             Self::Ewa => "ewa",
             Self::ParticleSplat => "particle-splat",
             Self::RayCast => "ray-cast",
+            Self::Ssfr => "ssfr",
         }
     }
 }
@@ -183,6 +189,8 @@ pub struct PipelineParams {
     pub renderer: Renderer,
     /// The ray caster of [`Renderer::RayCast`].
     pub raycast: crate::raycast::RayCastParams,
+    /// The screen-space renderer of [`Renderer::Ssfr`] (filter, narrow band, scales).
+    pub ssfr: crate::ssfr::SsfrParams,
     /// Stage 3: the density grid.
     pub grid: GridParams,
     /// Stage 3: surfels on the iso-surface.
@@ -206,6 +214,7 @@ impl Default for PipelineParams {
             source: SurfelSource::default(),
             renderer: Renderer::default(),
             raycast: crate::raycast::RayCastParams::default(),
+            ssfr: crate::ssfr::SsfrParams::default(),
             grid: GridParams::default(),
             surfels: SurfelParams::default(),
             splat: SplatParams::default(),
@@ -216,8 +225,9 @@ impl Default for PipelineParams {
 }
 
 /// The keys of a TOML file that belong to the pipeline; every other key is the optics scene's.
-const PIPELINE_KEYS: [&str; 10] = [
+const PIPELINE_KEYS: [&str; 11] = [
     "raycast",
+    "ssfr",
     "support_radius",
     "surface",
     "refine",
@@ -747,14 +757,22 @@ impl Pipeline {
     fn render(&mut self, frame: &mut Frame, through: Through) -> Result<(), Error> {
         let surfels = &frame.render_surfels;
         let [w, h] = self.params.scene.optics.image_size;
-        let points = (self.params.renderer == Renderer::RayCast).then(|| sphere_points(surfels));
+        let points = matches!(self.params.renderer, Renderer::RayCast | Renderer::Ssfr)
+            .then(|| sphere_points(surfels));
         let caster = match &points {
-            Some((p, r)) => Some(self.caster(p, r)?),
-            None => None,
+            Some((p, r)) if self.params.renderer == Renderer::RayCast => Some(self.caster(p, r)?),
+            _ => None,
         };
-        let water: &dyn optics::WaterSurface = match &caster {
-            Some(c) => c,
-            None => &surfels.as_slice(),
+        let screen = match &points {
+            Some((p, r)) if self.params.renderer == Renderer::Ssfr => {
+                Some(self.screen_space(p, r)?)
+            }
+            _ => None,
+        };
+        let water: &dyn optics::WaterSurface = match (&caster, &screen) {
+            (Some(c), _) => c,
+            (_, Some(s)) => s,
+            _ => &surfels.as_slice(),
         };
         if through == Through::Frame {
             let scene = self.fitted_scene(surfels)?;
@@ -782,8 +800,12 @@ impl Pipeline {
             return Ok(());
         }
         let t = Instant::now();
-        frame.splats = Some(match &caster {
-            Some(c) => {
+        frame.splats = Some(match (&caster, &screen) {
+            (_, Some(s)) => {
+                let v = splat::View::new(&camera, &Light::default(), &self.splat_params(), w, h)?;
+                s.render_view(&v)?.render
+            }
+            (Some(c), _) => {
                 crate::raycast::render_cpu(
                     c,
                     &camera,
@@ -794,7 +816,7 @@ impl Pipeline {
                 )?
                 .render
             }
-            None => splat::render_cpu(
+            (None, None) => splat::render_cpu(
                 surfels,
                 &camera,
                 &Light::default(),
@@ -824,6 +846,26 @@ impl Pipeline {
             points,
             self.params.grid.kernel,
             &self.params.raycast,
+        )?)
+    }
+
+    /// The screen-space renderer of [`Renderer::Ssfr`] over points and their radii (from
+    /// [`sphere_points`]): `[ssfr]`, the support radius as the reference radius (the largest
+    /// radius before one is known). Computes the narrow band once for every view.
+    pub fn screen_space<'a>(
+        &self,
+        positions: &'a [Vec3],
+        radii: &'a [f32],
+    ) -> Result<crate::ssfr::ScreenSpace<'a>, Error> {
+        let reference = match self.radius {
+            Some(h) => h,
+            None => radii.iter().copied().fold(0.0, f32::max),
+        };
+        Ok(crate::ssfr::ScreenSpace::new(
+            positions,
+            radii,
+            reference.max(f32::MIN_POSITIVE),
+            &self.params.ssfr,
         )?)
     }
 

@@ -190,18 +190,35 @@ pub(crate) fn bin_spheres(
     caster: &Caster<'_>,
     v: &View,
 ) -> Result<(usize, Vec<Vec<u32>>), RayCastError> {
-    let (w, h) = (v.width as usize, v.height as usize);
     let points = caster.density().points();
-    let rects: Vec<Option<[usize; 4]>> = (0..points.len())
+    Ok(bin(v, points.len(), |j| {
+        (points.positions[j], points.radius(j))
+    })?)
+}
+
+/// The `n` spheres (centre and radius of sphere `j`) binned into the screen's 16x16 tiles: tiles
+/// along x and each tile's spheres, in index order (so that any per-tile loop is deterministic).
+/// Refused when their rectangles add up to more pixels than the view's limit or the buffers
+/// would not fit in memory.
+pub(crate) fn bin(
+    v: &View,
+    n: usize,
+    sphere: impl Fn(usize) -> (Vec3, f32) + Sync,
+) -> Result<(usize, Vec<Vec<u32>>), crate::splat::SplatError> {
+    let (w, h) = (v.width as usize, v.height as usize);
+    let rects: Vec<Option<[usize; 4]>> = (0..n)
         .into_par_iter()
-        .map(|j| sphere_rect(v, points.positions[j], points.radius(j)))
+        .map(|j| {
+            let (c, r) = sphere(j);
+            sphere_rect(v, c, r)
+        })
         .collect();
     let fragments: u128 = rects
         .iter()
         .flatten()
         .map(|r| ((r[1] - r[0]) * (r[3] - r[2])) as u128)
         .sum();
-    crate::splat::check_cost(points.len(), fragments, v)?;
+    crate::splat::check_cost(n, fragments, v)?;
     let (tw, th) = (w.div_ceil(TILE), h.div_ceil(TILE));
     let mut tiles: Vec<Vec<u32>> = vec![Vec::new(); tw * th];
     for (j, r) in rects.iter().enumerate() {
