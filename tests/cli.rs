@@ -1995,3 +1995,67 @@ fn bench_ssfr_times_each_filter_with_and_without_the_band() {
         }
     }
 }
+
+/// `detect --method lnm` on the dam break: the written surface is the narrow band (every
+/// band particle, each with a unit normal), the report holds its agreement with the
+/// centre-of-mass classes of the same frame (every centre-of-mass surface particle in the band
+/// here), and a sequence reports the agreement per frame.
+#[test]
+fn detect_with_the_lnm_method_writes_the_band_and_its_agreement() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = data("dam_break_frame_23_24389_particles.bgeo");
+    let out = dir.path().join("band.ply");
+    let v = json_of(
+        &bin()
+            .args([
+                "detect", "--method", "lnm", "--json", "--input", &input, "--out",
+            ])
+            .arg(&out)
+            .output()
+            .unwrap(),
+    );
+    let a = &v["lnm"]["agreement"];
+    let band = a["band"].as_u64().unwrap();
+    assert!(band > 10_000 && band < 24_389, "{v}");
+    assert_eq!(a["detected_only"], 0, "{v}");
+    assert_eq!(a["recall"].as_f64().unwrap(), 1.0, "{v}");
+    let counts = &v["counts"];
+    assert_eq!(
+        counts["surface"].as_u64().unwrap() + counts["isolated"].as_u64().unwrap(),
+        band,
+        "{v}"
+    );
+    let written = fluid_surfels::io::read_particles(&out, None).unwrap();
+    let isolated = counts["isolated"].as_u64().unwrap() as usize;
+    assert_eq!(written.len() + isolated, band as usize);
+    for n in written.normals.as_ref().unwrap() {
+        assert!((n.length() - 1.0).abs() < 1e-4, "{n}");
+    }
+    // without it: no lnm entry
+    let v = json_of(
+        &bin()
+            .args(["detect", "--json", "--input", &input])
+            .output()
+            .unwrap(),
+    );
+    assert!(v.get("lnm").is_none(), "{v}");
+    // a sequence of two copies
+    for f in 0..2 {
+        std::fs::copy(&input, dir.path().join(format!("f{f}.bgeo"))).unwrap();
+    }
+    let pattern = dir.path().join("f{}.bgeo");
+    let v = json_of(
+        &bin()
+            .args([
+                "detect", "--method", "lnm", "--json", "--frames", "0..=1", "--input",
+            ])
+            .arg(&pattern)
+            .output()
+            .unwrap(),
+    );
+    let frames = v["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 2, "{v}");
+    for f in frames {
+        assert_eq!(f["lnm"]["band"].as_u64().unwrap(), band, "{f}");
+    }
+}

@@ -209,3 +209,75 @@ fn bad_input_is_refused_and_nothing_is_empty() {
     let one = narrow_band(&[Vec3::ONE], 0.1, &d).unwrap();
     assert_eq!(one.labels, [1]);
 }
+
+/// As a detection (`detect --method lnm`): on a particle sphere the band holds every surface
+/// particle of the centre-of-mass detection near the surface (the agreement printed), and the
+/// voxel-ring normals point outwards (within 30 degrees of the radial direction on >= 95 % of
+/// the band's outer shell).
+#[test]
+fn the_band_holds_the_centre_of_mass_surface_and_its_normals_point_out() {
+    use fluid_surfels::lnm::agreement;
+    use fluid_surfels::neighbours::{Backend, Neighbourhoods};
+    use fluid_surfels::surface::{SurfaceDetector, SurfaceParams};
+    let scene = scenes::sphere(&SphereParams {
+        radius_in_spacings: 10.0,
+        ..Default::default()
+    })
+    .unwrap();
+    let p = &scene.particles.positions;
+    let h = scene.support_radius;
+    let nb = Neighbourhoods::build(p, h, Backend::CellGrid).unwrap();
+    let com = SurfaceDetector::new(SurfaceParams::default())
+        .unwrap()
+        .detect(&scene.particles, &nb)
+        .unwrap();
+    let band = narrow_band(p, h, &LnmParams::default()).unwrap();
+    let a = agreement(&band, &com.classes);
+    println!("sphere of 10 spacings: {a:?}");
+    assert_eq!(a.particles, p.len());
+    assert!(a.detected > 500, "{a:?}");
+    // the centre-of-mass detection also flags two particles at the sphere's centre (its
+    // innermost lattice shell is lopsided): every detected particle within two spacings of the
+    // true surface is in the band, and the band misses only those deep ones
+    let centre = p.iter().copied().sum::<Vec3>() / p.len() as f32;
+    let depth = |x: Vec3| 10.0 * 0.05 - (x - centre).length();
+    let detected = |i: usize| com.classes[i] != fluid_surfels::surface::ParticleClass::Interior;
+    let near = (0..p.len()).filter(|&i| detected(i) && depth(p[i]) < 0.1);
+    assert!(near.clone().all(|i| band.contains(i)));
+    let deep = (0..p.len())
+        .filter(|&i| detected(i) && depth(p[i]) >= 0.1)
+        .count();
+    assert!(a.detected_only <= deep, "{a:?}, {deep} deep");
+    assert!(a.recall > 0.99, "{a:?}");
+    assert_eq!(a.both + a.band_only, a.band);
+    let normals = band.ring_normals(p);
+    let outer = p
+        .iter()
+        .map(|&x| (x - centre).length())
+        .fold(0.0f32, f32::max);
+    let shell: Vec<usize> = (0..p.len())
+        .filter(|&i| (p[i] - centre).length() > outer - 0.06)
+        .collect();
+    assert!(shell.iter().all(|&i| band.contains(i)));
+    let good = shell
+        .iter()
+        .filter(|&&i| normals[i].dot((p[i] - centre).normalize()) > 30f32.to_radians().cos())
+        .count();
+    println!(
+        "ring normals within 30 degrees of radial: {good} of {}",
+        shell.len()
+    );
+    assert!(
+        good as f64 >= 0.95 * shell.len() as f64,
+        "{good} of {}",
+        shell.len()
+    );
+    // off the band: zero; on it: unit
+    for (i, n) in normals.iter().enumerate() {
+        if band.contains(i) {
+            assert!((n.length() - 1.0).abs() < 1e-4);
+        } else {
+            assert_eq!(*n, Vec3::ZERO);
+        }
+    }
+}

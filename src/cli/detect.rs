@@ -30,6 +30,77 @@ pub struct DetectArgs {
     /// Low threshold, as a fraction of the radius (default 0.09).
     #[arg(long)]
     pub low: Option<f32>,
+    /// The detection: centre-of-mass (Solenthaler et al. 2007 §3.1, thresholds and hysteresis,
+    /// the chain's) or lnm (the narrow band of the Layered Neighborhood Method, Oliveira and
+    /// Paiva Algorithm 1: voxel layers, no neighbour search, normals from the voxels; its
+    /// agreement with the centre-of-mass classes is reported).
+    #[arg(long, value_enum, default_value = "centre-of-mass")]
+    pub method: MethodChoice,
+}
+
+/// `--method` on the command line.
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum MethodChoice {
+    CentreOfMass,
+    Lnm,
+}
+
+/// What `--method lnm` adds to the report.
+#[derive(Serialize)]
+struct LnmReport {
+    /// The narrow band against the centre-of-mass classes of the same frame.
+    agreement: fluid_surfels::lnm::Agreement,
+    voxels: usize,
+    /// The band (Algorithm 1).
+    band_ms: f64,
+    /// Its normals from the voxels (`NarrowBand::ring_normals`).
+    normals_ms: f64,
+    /// The centre-of-mass detection with its neighbour search, in the same run.
+    centre_of_mass_ms: f64,
+}
+
+/// The narrow band of `particles` as a [`Surface`]: band particles are surface (isolated where
+/// the centre-of-mass detection found no neighbour), the rest interior; normals from the
+/// voxels. With its agreement with `com` (which took `com_ms`) and its time.
+fn lnm_surface(
+    particles: &ParticleSet,
+    radius: f32,
+    com: &Surface,
+    com_ms: f64,
+) -> Result<(Surface, LnmReport), Error> {
+    use fluid_surfels::lnm::{LnmParams, agreement, narrow_band};
+    use fluid_surfels::surface::ParticleClass;
+    let t = Instant::now();
+    let band = narrow_band(&particles.positions, radius, &LnmParams::default())?;
+    let band_ms = ms(t);
+    let t = Instant::now();
+    let normals = band.ring_normals(&particles.positions);
+    let normals_ms = ms(t);
+    let classes = band
+        .labels
+        .iter()
+        .zip(&com.classes)
+        .map(|(&l, &c)| match (l, c) {
+            (0, _) => ParticleClass::Interior,
+            (_, ParticleClass::Isolated) => ParticleClass::Isolated,
+            _ => ParticleClass::Surface,
+        })
+        .collect();
+    let report = LnmReport {
+        agreement: agreement(&band, &com.classes),
+        voxels: band.voxels.len(),
+        band_ms,
+        normals_ms,
+        centre_of_mass_ms: com_ms,
+    };
+    let surface = Surface {
+        classes,
+        offsets: com.offsets.clone(),
+        normals,
+        flips: 0,
+        timings: Default::default(),
+    };
+    Ok((surface, report))
 }
 
 /// Normal estimation choices on the command line.
@@ -59,6 +130,9 @@ struct DetectReport {
     mean_neighbours: f32,
     /// Warnings about the support radius (neighbour counts far outside the usual range).
     warnings: Vec<String>,
+    /// `--method lnm`: the band's agreement with the centre-of-mass classes and its time.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    lnm: Option<LnmReport>,
     timings_ms: DetectTimings,
     outputs: Vec<String>,
 }
@@ -202,6 +276,13 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
     };
     timings.classify = surface.timings.classify_ms;
     timings.normals = surface.timings.normals_ms;
+    let (surface, lnm) = if args.method == MethodChoice::Lnm {
+        let com_ms = timings.neighbours + timings.classify + timings.normals;
+        let (s, r) = lnm_surface(&particles, radius, &surface, com_ms)?;
+        (s, Some(r))
+    } else {
+        (surface, None)
+    };
     let t = Instant::now();
     let outputs = write_outputs(
         &particles,
@@ -230,6 +311,7 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
         warnings: fluid_surfels::pipeline::neighbour_count_warning(radius, mean_neighbours)
             .into_iter()
             .collect(),
+        lnm,
         timings_ms: timings,
         outputs,
     };
@@ -249,6 +331,22 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
             "  surface {}, interior {}, isolated {} (mean {:.1} neighbours)",
             c.surface, c.interior, c.isolated, report.mean_neighbours
         );
+        if let Some(l) = &report.lnm {
+            let a = &l.agreement;
+            println!(
+                "  lnm narrow band: {} particles in {} voxels, {:.1} ms, normals {:.1} ms (centre of mass with its neighbour search {:.1} ms); \
+                 holds {:.2} % of the {} centre-of-mass surface particles, {} more, same side for {:.1} % of all",
+                a.band,
+                l.voxels,
+                l.band_ms,
+                l.normals_ms,
+                l.centre_of_mass_ms,
+                100.0 * a.recall,
+                a.detected,
+                a.band_only,
+                100.0 * a.agreement
+            );
+        }
         for w in &report.warnings {
             println!("  warning: {w}");
         }
@@ -303,6 +401,9 @@ struct FrameReport {
     particles: usize,
     counts: surface::ClassCounts,
     flips: usize,
+    /// `--method lnm`: the band's agreement with the centre-of-mass classes.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    lnm: Option<fluid_surfels::lnm::Agreement>,
     ms: f64,
 }
 
@@ -337,6 +438,12 @@ fn detect_sequence(
             let surface = pipeline
                 .frame_through(&particles, Through::Surface)?
                 .surface;
+            let (surface, lnm) = if args.method == MethodChoice::Lnm {
+                let (s, r) = lnm_surface(&particles, radius, &surface, 0.0)?;
+                (s, Some(r.agreement))
+            } else {
+                (surface, None)
+            };
             write_outputs(
                 &particles,
                 &surface,
@@ -354,6 +461,7 @@ fn detect_sequence(
                 particles: particles.len(),
                 counts: surface.counts(),
                 flips: surface.flips,
+                lnm,
                 ms: ms(t),
             })
         },
