@@ -1885,7 +1885,8 @@ fn render_warns_of_an_absurd_radius_before_the_work() {
 
 /// `render --renderer ssfr`: every `--filter` draws the library's screen-space image of the
 /// particles from the report's camera, `--no-narrow-band` draws every particle, the finished
-/// frame runs through it, and `--gpu` is refused with what to do (there is no GPU path yet).
+/// frame runs through it (on the CPU: `--gpu --optics` is refused with what to do), and `--gpu`
+/// draws the CPU's picture.
 #[test]
 fn render_draws_the_screen_space_surface_with_each_filter() {
     use fluid_surfels::ssfr::{DepthFilter, ScreenSpace, SsfrParams};
@@ -1949,20 +1950,39 @@ fn render_draws_the_screen_space_surface_with_each_filter() {
     succeeded(&finished);
     let e = stderr_of(
         &bin()
-            .args([
-                "render",
-                "--renderer",
-                "ssfr",
-                "--gpu",
-                "--out",
-                "x.png",
-                "--input",
-            ])
+            .args(["render", "--renderer", "ssfr", "--gpu", "--optics", "--out"])
+            .arg(d.join("refused.png"))
+            .arg("--input")
             .arg(d.join("ddb.vtk"))
             .output()
             .unwrap(),
     );
     assert!(e.contains("no GPU path yet"), "{e}");
+    // the shaded splats on the GPU: the CPU's picture
+    if fluid_surfels::gpu::context_or_skip("render --renderer ssfr --gpu")
+        .unwrap()
+        .is_some()
+    {
+        let draw = |backend: &str| {
+            let out = d.join(format!("ssfr{backend}.png"));
+            let report = json_of(
+                &bin()
+                    .args(["render", "--renderer", "ssfr", "--json", backend])
+                    .args(["--size", "64x48", "--source", "particles", "--input"])
+                    .arg(d.join("ddb.vtk"))
+                    .arg("--out")
+                    .arg(&out)
+                    .output()
+                    .unwrap(),
+            );
+            (report, image::open(&out).unwrap().to_rgba8())
+        };
+        let ((gpu, a), (cpu, b)) = (draw("--gpu"), draw("--cpu"));
+        assert!(gpu["backend"].as_str().unwrap().starts_with("gpu"), "{gpu}");
+        assert_eq!(cpu["backend"], "cpu reference", "{cpu}");
+        let psnr = fluid_surfels::splat::psnr(&a, &b);
+        assert!(psnr >= 40.0, "GPU against CPU screen space {psnr:.1} dB");
+    }
 }
 
 /// `bench ssfr` at a small size: each filter with and without the narrow band, the band's

@@ -108,6 +108,13 @@ fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
             fields!(fluid_surfels::raycast::gpu::RawBand; y0, rows, budget, groups_x, groups_y),
         ),
         (
+            "ssfr.wgsl",
+            fluid_surfels::ssfr::gpu::SHADER,
+            "Params",
+            std::mem::size_of::<fluid_surfels::ssfr::gpu::RawSsfrParams>(),
+            fields!(fluid_surfels::ssfr::gpu::RawSsfrParams; inv_view, screen, a, b, c, base, absorb),
+        ),
+        (
             "present.wgsl",
             pipeline::gpu::PRESENT_SHADER,
             "Present",

@@ -1240,10 +1240,16 @@ pub fn bench_renderers(args: &BenchRenderersArgs) -> Result<(), Error> {
                 splat::render_cpu(surfels, &camera, &light, &params, w, h)?
             })
         })?;
-        let gpu = match &ctx {
-            // the screen-space renderer has no GPU path yet
-            Some(_) if screen.is_some() => None,
-            Some(ctx) => Some(median_of(args.repeat, || {
+        let gpu_ssfr = match (&ctx, &screen) {
+            (Some(ctx), Some(_)) => Some(fluid_surfels::ssfr::gpu::GpuSsfr::new(&ctx.device)?),
+            _ => None,
+        };
+        let gpu = match (&ctx, &screen, &gpu_ssfr) {
+            (Some(ctx), Some(screen), Some(g)) => Some(median_of(args.repeat, || {
+                let v = splat::View::new(&camera, &light, &params, w, h)?;
+                Ok(g.render(ctx, screen, &v)?.render)
+            })?),
+            (Some(ctx), _, _) => Some(median_of(args.repeat, || {
                 Ok(if let Some(caster) = &caster {
                     fluid_surfels::raycast::gpu::render_gpu(
                         ctx, caster, &camera, &light, &params, w, h,
@@ -1253,7 +1259,7 @@ pub fn bench_renderers(args: &BenchRenderersArgs) -> Result<(), Error> {
                     splat::gpu::render_gpu(ctx, surfels, &camera, &light, &params, w, h)?
                 })
             })?),
-            None => None,
+            _ => None,
         };
         rows.push(RendererBench {
             renderer: renderer.as_str(),
@@ -1441,6 +1447,9 @@ pub struct BenchSsfrArgs {
     /// Timed runs of each (the median is reported), after one untimed run when more than one.
     #[arg(long, default_value_t = 3)]
     pub repeat: usize,
+    /// CPU only. Otherwise any adapter runs the GPU twin too, a software one included.
+    #[arg(long)]
+    pub no_gpu: bool,
     /// Print one JSON object instead of the table.
     #[arg(long)]
     pub json: bool,
@@ -1465,6 +1474,12 @@ struct SsfrBench {
     covered_pixels: usize,
     /// PSNR against the same filter without the narrow band (on the band's rows).
     psnr_against_all_db: Option<f64>,
+    /// The GPU twin (`ssfr::gpu`), the whole run with its read-back, when an adapter exists.
+    gpu_ms: Option<f64>,
+    /// GPU time over CPU time, measured in the same run.
+    gpu_over_cpu: Option<f64>,
+    /// The GPU's image against the CPU's.
+    psnr_gpu_against_cpu_db: Option<f64>,
 }
 
 #[derive(Serialize)]
@@ -1476,6 +1491,7 @@ struct SsfrBenchReport {
     height: u32,
     threads: usize,
     repeat: usize,
+    adapter: Option<String>,
     band: usize,
     band_share: f64,
     voxels: usize,
@@ -1511,6 +1527,23 @@ pub fn bench_ssfr(args: &BenchSsfrArgs) -> Result<(), Error> {
     let camera = super::render::framing(&spheres);
     let (w, h) = args.size;
     let view = View::new(&camera, &Light::default(), &SplatParams::default(), w, h)?;
+    let ctx = if args.no_gpu {
+        None
+    } else {
+        match fluid_surfels::gpu::GpuContext::headless() {
+            Ok(ctx) => Some(ctx),
+            Err(e) => {
+                if !args.json {
+                    println!("  (no GPU: {e})");
+                }
+                None
+            }
+        }
+    };
+    let gpu = match &ctx {
+        Some(c) => Some(fluid_surfels::ssfr::gpu::GpuSsfr::new(&c.device)?),
+        None => None,
+    };
     let mut rows = Vec::new();
     let (mut band, mut voxels) = (p.len(), 0);
     let bar = super::progress(2 * args.filters.len() as u64, "filters");
@@ -1530,6 +1563,12 @@ pub fn bench_ssfr(args: &BenchSsfrArgs) -> Result<(), Error> {
                 voxels = b.voxels.len();
             }
             let (median_ms, r) = median_of(args.repeat, || Ok(screen.render_view(&view)?))?;
+            let on_gpu = match (&ctx, &gpu) {
+                (Some(ctx), Some(g)) => {
+                    Some(median_of(args.repeat, || g.render(ctx, &screen, &view))?)
+                }
+                _ => None,
+            };
             let psnr = match (&all_image, narrow_band) {
                 (Some(a), true) => Some(splat::psnr(a, &r.render.image)),
                 _ => None,
@@ -1545,6 +1584,11 @@ pub fn bench_ssfr(args: &BenchSsfrArgs) -> Result<(), Error> {
                 input_bytes: 16 * screen.drawn() + 20 * screen.sources().len(),
                 covered_pixels: r.render.covered_pixels(),
                 psnr_against_all_db: psnr,
+                gpu_ms: on_gpu.as_ref().map(|g| g.0),
+                gpu_over_cpu: on_gpu.as_ref().map(|g| g.0 / median_ms),
+                psnr_gpu_against_cpu_db: on_gpu
+                    .as_ref()
+                    .map(|g| splat::psnr(&r.render.image, &g.1.render.image)),
             });
             if !narrow_band {
                 all_image = Some(r.render.image);
@@ -1566,6 +1610,12 @@ pub fn bench_ssfr(args: &BenchSsfrArgs) -> Result<(), Error> {
         height: h,
         threads: rayon::current_num_threads(),
         repeat: args.repeat.max(1),
+        adapter: ctx.as_ref().map(|c| {
+            c.adapter
+                .as_ref()
+                .map(|a| a.name.clone())
+                .unwrap_or_default()
+        }),
         band,
         band_share: band as f64 / p.len().max(1) as f64,
         voxels,
@@ -1587,12 +1637,20 @@ pub fn bench_ssfr(args: &BenchSsfrArgs) -> Result<(), Error> {
         report.voxels,
         100.0 * report.memory_saved
     );
+    if let Some(a) = &report.adapter {
+        println!("  GPU: {a}");
+    }
+    let db = |p: Option<f64>| match p {
+        None => "-".to_owned(),
+        Some(p) if p.is_finite() => format!("{p:.1} dB"),
+        Some(_) => "identical".to_owned(),
+    };
     println!(
-        "  filter          band   drawn  prepare ms   frame ms   depth  filter  thickness  shading  covered  PSNR vs all"
+        "  filter          band   drawn  prepare ms   frame ms   depth  filter  thickness  shading  covered  PSNR vs all   GPU ms  GPU/CPU  GPU PSNR"
     );
     for r in &report.rows {
         println!(
-            "  {:<15} {:>4} {:>7} {:>11.1} {:>10.1} {:>7.1} {:>7.1} {:>10.1} {:>8.1} {:>8} {}",
+            "  {:<15} {:>4} {:>7} {:>11.1} {:>10.1} {:>7.1} {:>7.1} {:>10.1} {:>8.1} {:>8} {:>11} {:>8} {:>8} {}",
             r.filter,
             if r.narrow_band { "yes" } else { "no" },
             r.drawn,
@@ -1603,12 +1661,10 @@ pub fn bench_ssfr(args: &BenchSsfrArgs) -> Result<(), Error> {
             r.passes.thickness_ms,
             r.passes.shading_ms,
             r.covered_pixels,
-            r.psnr_against_all_db
-                .map_or("-".into(), |p| if p.is_finite() {
-                    format!("{p:.1} dB")
-                } else {
-                    "identical".into()
-                })
+            db(r.psnr_against_all_db),
+            r.gpu_ms.map_or("-".into(), |g| format!("{g:.1}")),
+            r.gpu_over_cpu.map_or("-".into(), |g| format!("{g:.2}x")),
+            db(r.psnr_gpu_against_cpu_db),
         );
     }
     Ok(())

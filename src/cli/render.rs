@@ -56,8 +56,8 @@ pub struct RenderArgs {
     /// radius, blended within 1.5 radii of the nearest; no density grid), ray-cast (Xiao et
     /// al.: rays cast to the iso-surface of the source's points, PCA-blended normals; the
     /// reference surface), or ssfr (Oliveira and Paiva: narrow-band screen-space fluid
-    /// rendering, the source's points as spheres in a depth buffer, filtered; CPU only), in the
-    /// shaded splats and in the finished frame alike.
+    /// rendering, the source's points as spheres in a depth buffer, filtered; its finished frame
+    /// on the CPU only), in the shaded splats and in the finished frame alike.
     #[arg(long, value_enum, default_value = "ewa")]
     pub renderer: RendererChoice,
     /// The depth filter of --renderer ssfr: narrow-range (Truong and Yuksel 2018), bilateral
@@ -312,13 +312,14 @@ pub fn choose_gpu(cpu: bool, gpu: bool) -> Result<Option<GpuContext>, Error> {
     }
 }
 
-/// [`choose_gpu`] for the renderer of `args`: the screen-space renderer has no GPU twin yet, so
-/// it runs on the CPU unless `--gpu` asks, which is refused with a typed error.
+/// [`choose_gpu`] for the renderer of `args`: the screen-space renderer's passes run on the GPU
+/// (`ssfr::gpu`), but not yet in the GPU pipeline's optics, so its finished frame runs on the
+/// CPU unless `--gpu` asks, which is refused with a typed error.
 fn choose_gpu_for(args: &RenderArgs) -> Result<Option<GpuContext>, Error> {
-    if matches!(args.renderer, RendererChoice::Ssfr) {
+    if matches!(args.renderer, RendererChoice::Ssfr) && finished_frame_asked(args) {
         if args.gpu {
             return Err(fluid_surfels::gpu::GpuError::NotOnGpu {
-                what: "the screen-space renderer (--renderer ssfr)",
+                what: "the finished frame of the screen-space renderer (--renderer ssfr --optics)",
             }
             .into());
         }
@@ -588,6 +589,14 @@ fn backend_name(ctx: Option<&GpuContext>) -> String {
     }
 }
 
+/// Whether `args` ask for the finished frame (the optics), not the shaded splats.
+fn finished_frame_asked(args: &RenderArgs) -> bool {
+    args.optics
+        || args.config.is_some()
+        || args.frames.is_some()
+        || args.caustics_resolution.is_some()
+}
+
 pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     if args.skip_existing && args.frames.is_none() {
         return Err(Error::InvalidArgument {
@@ -595,11 +604,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
             reason: "is for sequences (--frames); for one file, --force replaces it".into(),
         });
     }
-    if args.optics
-        || args.config.is_some()
-        || args.frames.is_some()
-        || args.caustics_resolution.is_some()
-    {
+    if finished_frame_asked(args) {
         return render_optics(args);
     }
     let input = args.input.as_deref().or(args.surfels.as_deref());
@@ -636,7 +641,10 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
             args.size.0,
             args.size.1,
         )?;
-        screen.render_view(&view)?.render
+        match ctx.as_ref() {
+            Some(ctx) => fluid_surfels::ssfr::gpu::render_view_gpu(ctx, &screen, &view)?.render,
+            None => screen.render_view(&view)?.render,
+        }
     } else if pipeline.params().renderer == Renderer::RayCast {
         let (positions, radii) = pipeline::sphere_points(surfels);
         let caster = pipeline.caster(&positions, &radii)?;

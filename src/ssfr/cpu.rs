@@ -170,6 +170,19 @@ impl<'a> ScreenSpace<'a> {
         &self.params
     }
 
+    /// Sphere `k` of the depth pass: centre and world radius.
+    #[must_use]
+    pub fn sphere_of(&self, k: usize) -> (Vec3, f32) {
+        let j = self.drawn[k] as usize;
+        (self.positions[j], self.params.sphere_radius * self.radii[j])
+    }
+
+    /// The reference support radius.
+    #[must_use]
+    pub fn reference_radius(&self) -> f32 {
+        self.h
+    }
+
     /// World radius of the spheres of the reference radius: the filters' depth scale.
     #[must_use]
     pub fn sphere(&self) -> f32 {
@@ -235,28 +248,32 @@ impl<'a> ScreenSpace<'a> {
     /// Pass 1: the nearest sphere's depth per pixel (exact ray-sphere intersections).
     fn depth(&self, v: &View) -> Result<Vec<f32>, SsfrError> {
         let (w, hgt) = (v.width as usize, v.height as usize);
-        let s = self.params.sphere_radius;
-        let sphere = |k: usize| {
-            let j = self.drawn[k] as usize;
-            (self.positions[j], s * self.radii[j])
-        };
+        let sphere = |k: usize| self.sphere_of(k);
         let (tw, tiles) = bin(v, self.drawn.len(), sphere)?;
         Ok((0..w * hgt)
             .into_par_iter()
             .map(|i| {
                 let (x, y) = (i % w, i / w);
                 let (o, d) = v.world_ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
-                let a = d.length_squared();
+                // the ray's unit direction: `t` along it is `t / |d|` in view depth
+                let len = d.length();
+                let dn = d / len;
                 let mut best = f32::INFINITY;
                 for &k in &tiles[(y / TILE) * tw + x / TILE] {
                     let (c, r) = sphere(k as usize);
+                    // the stable form (Haines et al., "Precision improvements for ray/sphere
+                    // intersection", Ray Tracing Gems ch. 7): the squared distance of the
+                    // centre from the ray from its offset vector, not as the difference of two
+                    // large squares, which loses 10 bits at 40 radii and left the GPU twin's
+                    // depths 1e-4 apart
                     let oc = o - c;
-                    let b = oc.dot(d);
-                    let disc = b * b - a * (oc.length_squared() - r * r);
-                    if disc < 0.0 {
+                    let l = oc.dot(dn);
+                    let q = oc - l * dn;
+                    let h2 = r * r - q.length_squared();
+                    if h2 < 0.0 {
                         continue;
                     }
-                    let t = (-b - disc.sqrt()) / a;
+                    let t = (-l - h2.sqrt()) / len;
                     if t > 0.0 && t < best {
                         best = t;
                     }
@@ -296,13 +313,12 @@ pub fn depth_image(v: &View, depth: Vec<f32>) -> DepthImage {
     }
 }
 
-/// Thickness (eqs. 1 and 3): per pixel, the sum of the sources' Gaussians, each scaled by its
-/// volume over its area `2 pi sigma^2` (world units at the source's depth), cut at 3 sigma.
-pub fn thickness_image(v: &View, sources: &[ThicknessSource]) -> Result<Vec<f32>, SsfrError> {
-    let (w, h) = (v.width as usize, v.height as usize);
+/// The sources as the thickness pass reads them: projected centre (pixels), `-1 / (2 sigma_px^2)`
+/// and amplitude `volume / (2 pi sigma^2)`; `None` behind the view.
+#[must_use]
+pub fn project_sources(v: &View, sources: &[ThicknessSource]) -> Vec<Option<(Vec2, f32, f32)>> {
     let pixel = depth_image(v, Vec::new());
-    // projected centre, -1 / (2 sigma_px^2), amplitude; None behind the view
-    let projected: Vec<Option<(Vec2, f32, f32)>> = sources
+    sources
         .par_iter()
         .map(|s| {
             let q = v.project(s.centre);
@@ -313,7 +329,14 @@ pub fn thickness_image(v: &View, sources: &[ThicknessSource]) -> Result<Vec<f32>
             let amplitude = s.volume / (std::f32::consts::TAU * s.sigma * s.sigma);
             Some((q.truncate(), -0.5 / (sigma_px * sigma_px), amplitude))
         })
-        .collect();
+        .collect()
+}
+
+/// Thickness (eqs. 1 and 3): per pixel, the sum of the sources' Gaussians, each scaled by its
+/// volume over its area `2 pi sigma^2` (world units at the source's depth), cut at 3 sigma.
+pub fn thickness_image(v: &View, sources: &[ThicknessSource]) -> Result<Vec<f32>, SsfrError> {
+    let (w, h) = (v.width as usize, v.height as usize);
+    let projected = project_sources(v, sources);
     let (tw, tiles) = bin(v, sources.len(), |k| {
         (sources[k].centre, 3.0 * sources[k].sigma)
     })?;

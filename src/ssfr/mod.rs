@@ -31,6 +31,7 @@ use crate::lnm::{LnmError, LnmParams};
 use crate::splat::SplatError;
 
 pub mod cpu;
+pub mod gpu;
 
 pub use cpu::{ScreenSpace, render_cpu};
 
@@ -49,6 +50,11 @@ pub enum SsfrError {
     /// The view (camera, light, size) or the cost limits.
     #[error(transparent)]
     Splat(#[from] SplatError),
+    /// A screen tile holds more spheres or thickness Gaussians than a GPU pass loops over.
+    #[error(
+        "a 16x16 screen tile holds {items} spheres or thickness Gaussians, more than the GPU passes loop over ({limit}); draw a larger image or use the CPU path"
+    )]
+    TooDense { items: usize, limit: usize },
 }
 
 /// The depth filter (§5: "narrow-range filter \[TY18\], bilateral filter \[Gre10\], plane fitting
