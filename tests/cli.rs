@@ -1169,7 +1169,7 @@ fn render_draws_particle_spheres_with_the_particle_splat_renderer() {
     assert!(e.contains("cannot be used with"), "{e}");
 }
 
-/// `compare` on the column scene at a small size: a 3x3 contact sheet, and a JSON report with
+/// `compare` on the column scene at a small size: a 4x3 contact sheet, and a JSON report with
 /// every renderer and source against the ray-cast reference (which the ray-cast method of the
 /// same points meets exactly in depth and coverage: only its normals are filtered).
 #[test]
@@ -1196,12 +1196,12 @@ fn compare_reports_every_method_against_the_reference() {
             )
         })
         .collect();
-    for renderer in ["ewa", "particle-splat", "ray-cast"] {
+    for renderer in ["ewa", "particle-splat", "ray-cast", "ssfr"] {
         for source in ["chain", "particles"] {
             assert!(names.contains(&format!("{renderer}/{source}")), "{names:?}");
         }
     }
-    assert_eq!(methods.len(), 8, "{names:?}");
+    assert_eq!(methods.len(), 11, "{names:?}");
     for m in methods {
         let d = &m["against_reference"];
         for key in [
@@ -1233,7 +1233,7 @@ fn compare_reports_every_method_against_the_reference() {
         "{same}"
     );
     let sheet = image::open(&out).unwrap();
-    assert_eq!((sheet.width(), sheet.height()), (3 * 64, 3 * 48));
+    assert_eq!((sheet.width(), sheet.height()), (4 * 64, 3 * 48));
     // the sheet is not replaced without --force, and a bad size is refused by the parser
     let e = stderr_of(&run(&[]));
     assert!(e.contains("--force"), "{e}");

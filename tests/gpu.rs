@@ -108,6 +108,13 @@ fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
             fields!(fluid_surfels::raycast::gpu::RawBand; y0, rows, budget, groups_x, groups_y),
         ),
         (
+            "lnm.wgsl",
+            fluid_surfels::lnm::gpu::SHADER,
+            "Params",
+            std::mem::size_of::<fluid_surfels::lnm::gpu::RawLnmParams>(),
+            fields!(fluid_surfels::lnm::gpu::RawLnmParams; lo, dims, misc),
+        ),
+        (
             "ssfr.wgsl",
             fluid_surfels::ssfr::gpu::SHADER,
             "Params",

@@ -281,3 +281,91 @@ fn the_band_holds_the_centre_of_mass_surface_and_its_normals_point_out() {
         }
     }
 }
+
+/// The GPU twin (`lnm::gpu`, a dense voxel grid) equals the CPU's sparse band exactly in every
+/// voxel's coordinates, count and label and in every particle's label and voxel, with centroids
+/// within 1e-4 voxel edges (fixed-point sums), on a block, a jittered sphere, the two real files
+/// and no particles; a domain too large for the dense grid is refused with a typed error.
+#[test]
+fn the_gpu_band_equals_the_cpu_band() {
+    use fluid_surfels::lnm::gpu::narrow_band_gpu;
+    let Some(ctx) =
+        fluid_surfels::gpu::context_or_skip("the_gpu_band_equals_the_cpu_band").unwrap()
+    else {
+        return;
+    };
+    let read = |name: &str| {
+        fluid_surfels::io::read_particles(
+            &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("tests/data")
+                .join(name),
+            None,
+        )
+        .unwrap()
+        .positions
+    };
+    let block = scenes::block(&BlockParams::default()).unwrap();
+    let sphere = scenes::sphere(&SphereParams::default()).unwrap();
+    let cases: Vec<(&str, Vec<Vec3>, f32)> = vec![
+        (
+            "block",
+            block.particles.positions.clone(),
+            block.support_radius,
+        ),
+        (
+            "sphere",
+            sphere.particles.positions.clone(),
+            sphere.support_radius,
+        ),
+        (
+            "double dam break",
+            read("double_dam_break_frame_26_4732_particles.vtk"),
+            0.14,
+        ),
+        (
+            "dam break",
+            read("dam_break_frame_23_24389_particles.bgeo"),
+            0.095,
+        ),
+        ("nothing", Vec::new(), 0.1),
+    ];
+    for (name, p, h) in cases {
+        let params = LnmParams::default();
+        let cpu = narrow_band(&p, h, &params).unwrap();
+        let t = std::time::Instant::now();
+        let gpu = narrow_band_gpu(&ctx, &p, h, &params).unwrap();
+        println!(
+            "{name}: {} particles, {} voxels, band {}; GPU {:.1} ms",
+            p.len(),
+            cpu.voxels.len(),
+            cpu.len(),
+            t.elapsed().as_secs_f64() * 1e3
+        );
+        assert_eq!(
+            (gpu.origin, gpu.edge, gpu.dims),
+            (cpu.origin, cpu.edge, cpu.dims)
+        );
+        assert_eq!(gpu.labels, cpu.labels, "{name}");
+        assert_eq!(gpu.voxel_of, cpu.voxel_of, "{name}");
+        assert_eq!(gpu.voxels.len(), cpu.voxels.len(), "{name}");
+        for (g, c) in gpu.voxels.iter().zip(&cpu.voxels) {
+            assert_eq!(
+                (g.coord, g.count, g.label),
+                (c.coord, c.count, c.label),
+                "{name}"
+            );
+            assert!(
+                g.centroid.distance(c.centroid) < 1e-4 * cpu.edge,
+                "{name}: {} against {}",
+                g.centroid,
+                c.centroid
+            );
+        }
+    }
+    // 2^12 voxels along each axis: far more than the dense grid's limit
+    let far = vec![Vec3::ZERO, Vec3::splat(4096.0 * 0.1)];
+    assert!(matches!(
+        narrow_band_gpu(&ctx, &far, 0.1, &LnmParams::default()),
+        Err(fluid_surfels::Error::Lnm(LnmError::DenseTooLarge { .. }))
+    ));
+}

@@ -1341,6 +1341,10 @@ pub struct BenchLnmArgs {
     /// Timed runs (the median is reported), after one untimed.
     #[arg(long, default_value_t = 5)]
     pub repeat: usize,
+    /// CPU only. Otherwise any adapter runs the GPU twin too (`lnm::gpu`, a dense grid), a
+    /// software one included.
+    #[arg(long)]
+    pub no_gpu: bool,
     /// Print one JSON object instead of text.
     #[arg(long)]
     pub json: bool,
@@ -1359,6 +1363,11 @@ struct LnmBenchReport {
     /// The same on one thread, in the same run.
     one_thread_ms: f64,
     speedup_over_one_thread: f64,
+    /// The GPU twin with its upload and read-back, and its adapter.
+    gpu_ms: Option<f64>,
+    adapter: Option<String>,
+    /// Whether its labels and voxels equal the CPU's.
+    gpu_equals_cpu: Option<bool>,
 }
 
 /// The narrow band of the Layered Neighborhood Method (`lnm::narrow_band`) on a block, on all
@@ -1380,6 +1389,17 @@ pub fn bench_lnm(args: &BenchLnmArgs) -> Result<(), Error> {
         })?;
     let (one_thread_ms, _) =
         one.install(|| median_of(args.repeat, || Ok(narrow_band(p, h, &params)?)))?;
+    let ctx = if args.no_gpu {
+        None
+    } else {
+        fluid_surfels::gpu::GpuContext::headless().ok()
+    };
+    let gpu = match &ctx {
+        Some(ctx) => Some(median_of(args.repeat, || {
+            fluid_surfels::lnm::gpu::narrow_band_gpu(ctx, p, h, &params)
+        })?),
+        None => None,
+    };
     let layer = |l: u8| band.voxels.iter().filter(|v| v.label == l).count();
     let report = LnmBenchReport {
         particles: p.len(),
@@ -1392,6 +1412,13 @@ pub fn bench_lnm(args: &BenchLnmArgs) -> Result<(), Error> {
         median_ms,
         one_thread_ms,
         speedup_over_one_thread: one_thread_ms / median_ms,
+        gpu_ms: gpu.as_ref().map(|g| g.0),
+        adapter: ctx
+            .as_ref()
+            .and_then(|c| c.adapter.as_ref().map(|a| a.name.clone())),
+        gpu_equals_cpu: gpu
+            .as_ref()
+            .map(|g| g.1.labels == band.labels && g.1.voxel_of == band.voxel_of),
     };
     if args.json {
         super::print_json(&report);
@@ -1413,6 +1440,17 @@ pub fn bench_lnm(args: &BenchLnmArgs) -> Result<(), Error> {
             report.speedup_over_one_thread,
             args.repeat.max(1)
         );
+        if let (Some(g), Some(a)) = (report.gpu_ms, &report.adapter) {
+            println!(
+                "  GPU ({a}): {g:.1} ms with upload and read-back, {:.2}x the CPU; labels {}",
+                g / report.median_ms,
+                if report.gpu_equals_cpu == Some(true) {
+                    "equal to the CPU's"
+                } else {
+                    "DIFFER from the CPU's"
+                }
+            );
+        }
     }
     Ok(())
 }

@@ -55,7 +55,7 @@ pub struct CompareArgs {
 }
 
 /// The methods of the sheet, after the reference: every renderer with every surfel source.
-const METHODS: [(Renderer, SurfelSource); 8] = [
+const METHODS: [(Renderer, SurfelSource); 11] = [
     (Renderer::Ewa, SurfelSource::Chain),
     (Renderer::Ewa, SurfelSource::Particles),
     (Renderer::Ewa, SurfelSource::Refined),
@@ -64,6 +64,9 @@ const METHODS: [(Renderer, SurfelSource); 8] = [
     (Renderer::ParticleSplat, SurfelSource::Refined),
     (Renderer::RayCast, SurfelSource::Chain),
     (Renderer::RayCast, SurfelSource::Particles),
+    (Renderer::Ssfr, SurfelSource::Chain),
+    (Renderer::Ssfr, SurfelSource::Particles),
+    (Renderer::Ssfr, SurfelSource::Refined),
 ];
 
 /// One method's figures.
@@ -212,7 +215,7 @@ pub fn compare_command(args: &CompareArgs) -> Result<(), Error> {
         bar.inc(1);
     }
     bar.finish_and_clear();
-    preview::save_png(&preview::grid(&panels, 3), &args.out)?;
+    preview::save_png(&preview::grid(&panels, 4), &args.out)?;
     let report = CompareReport {
         source,
         particles: set.len(),

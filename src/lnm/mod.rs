@@ -20,6 +20,7 @@ use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 pub mod cpu;
+pub mod gpu;
 
 pub use cpu::narrow_band;
 
@@ -41,6 +42,11 @@ pub enum LnmError {
         edge: f32,
         max: u64,
     },
+    /// The GPU path's dense voxel grid would be too large.
+    #[error(
+        "the GPU narrow band's dense grid would hold {voxels} voxels, more than {max}; use the CPU path (sparse) or larger voxels"
+    )]
+    DenseTooLarge { voxels: u64, max: u64 },
 }
 
 /// Parameters of the narrow band.

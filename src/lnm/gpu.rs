@@ -1,0 +1,228 @@
+//! The narrow band on the GPU: `shaders/lnm.wgsl` over a dense voxel grid of the domain (the
+//! paper's layout; the CPU path's sparse keys have no cheap GPU twin), three compute passes
+//! (count, first layer, second layer) and a read-back that keeps the full voxels in the CPU's
+//! order. Labels, counts and each particle's voxel equal the CPU's exactly (both find a voxel as
+//! `floor((p - lo) * (1 / edge))`, correctly rounded in both); centroids are summed in fixed
+//! point (integer atomics, so the order of the sum does not matter), within 2^-16 voxel edges
+//! of the CPU's.
+
+use glam::Vec3;
+use wgpu::util::DeviceExt;
+
+use super::cpu::domain;
+use super::{BandVoxel, LnmError, LnmParams, NarrowBand};
+use crate::gpu::{GpuContext, GpuError};
+
+/// The WGSL source of the passes.
+pub const SHADER: &str = include_str!("../../shaders/lnm.wgsl");
+
+/// The uniforms (`Params` in the WGSL, 48 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RawLnmParams {
+    /// the domain's minimum corner, 1 / voxel edge
+    pub lo: [f32; 4],
+    /// voxels along x, y, z; particles
+    pub dims: [u32; 4],
+    /// n_min, fixed-point scale of the offsets, -, -
+    pub misc: [u32; 4],
+}
+
+const _: () = assert!(std::mem::size_of::<RawLnmParams>() == 48);
+
+/// Most voxels of the dense grid (128 MiB of counts and labels, 384 MiB of sums).
+pub const MAX_DENSE_VOXELS: u64 = 1 << 25;
+
+/// Fixed-point scale of a particle's offset in its voxel (`[0, 1)` voxel edges).
+const SCALE: u32 = 1 << 16;
+
+/// A voxel with more particles than this could overflow its `i32` sums; its centroid is
+/// summed on the host instead.
+const MAX_FIXED_COUNT: u32 = (i32::MAX as u32) / SCALE;
+
+/// Workgroups of 64 for `n` invocations: `(x, y)` with `x <= 65535` (the WGSL's index is
+/// `x + y * 65535 * 64`).
+fn groups(n: u64) -> (u32, u32) {
+    let g = n.div_ceil(64);
+    if g <= 65_535 {
+        (g as u32, 1)
+    } else {
+        (65_535, g.div_ceil(65_535) as u32)
+    }
+}
+
+/// [`super::narrow_band`] on the GPU of `ctx`.
+pub fn narrow_band_gpu(
+    ctx: &GpuContext,
+    positions: &[Vec3],
+    support_radius: f32,
+    params: &LnmParams,
+) -> Result<NarrowBand, crate::Error> {
+    let (lo, edge, dims) = domain(positions, support_radius, params)?;
+    let total = dims.iter().map(|&d| u64::from(d)).product::<u64>();
+    if total > MAX_DENSE_VOXELS {
+        return Err(LnmError::DenseTooLarge {
+            voxels: total,
+            max: MAX_DENSE_VOXELS,
+        }
+        .into());
+    }
+    let n = positions.len();
+    let device = &ctx.device;
+    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let uniforms = RawLnmParams {
+        lo: lo.extend(1.0 / edge).to_array(),
+        dims: [dims[0], dims[1], dims[2], n as u32],
+        misc: [params.n_min, SCALE, 0, 0],
+    };
+    let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some("lnm params"),
+        contents: bytemuck::bytes_of(&uniforms),
+        usage: wgpu::BufferUsages::UNIFORM,
+    });
+    let padded: Vec<[f32; 4]> = positions.iter().map(|p| p.extend(0.0).to_array()).collect();
+    let points = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some("lnm positions"),
+        contents: if padded.is_empty() {
+            &[0u8; 16]
+        } else {
+            bytemuck::cast_slice(&padded)
+        },
+        usage: wgpu::BufferUsages::STORAGE,
+    });
+    let zeroed = |label, bytes: u64| {
+        // created zeroed (wgpu clears new buffers)
+        device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: bytes.max(16),
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        })
+    };
+    let counts = zeroed("lnm counts", 4 * total);
+    let sums = zeroed("lnm sums", 12 * total);
+    let voxel_of = zeroed("lnm voxel of", 4 * n as u64);
+    let labels = zeroed("lnm labels", 4 * total);
+    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some("lnm"),
+        source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+    });
+    let pipeline = |entry| {
+        device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(entry),
+            layout: None,
+            module: &module,
+            entry_point: Some(entry),
+            compilation_options: Default::default(),
+            cache: None,
+        })
+    };
+    let (count, first, second) = (
+        pipeline("cs_count"),
+        pipeline("cs_first"),
+        pipeline("cs_second"),
+    );
+    let group = |p: &wgpu::ComputePipeline, entries: &[(u32, &wgpu::Buffer)]| {
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = entries
+            .iter()
+            .map(|&(binding, b)| wgpu::BindGroupEntry {
+                binding,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &p.get_bind_group_layout(0),
+            entries: &entries,
+        })
+    };
+    let count_group = group(
+        &count,
+        &[
+            (0, &uniform),
+            (1, &points),
+            (2, &counts),
+            (3, &sums),
+            (4, &voxel_of),
+        ],
+    );
+    let first_group = group(&first, &[(0, &uniform), (2, &counts), (5, &labels)]);
+    let second_group = group(&second, &[(0, &uniform), (2, &counts), (5, &labels)]);
+    let mut encoder = device.create_command_encoder(&Default::default());
+    {
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        if n > 0 {
+            let (gx, gy) = groups(n as u64);
+            pass.set_pipeline(&count);
+            pass.set_bind_group(0, &count_group, &[]);
+            pass.dispatch_workgroups(gx, gy, 1);
+        }
+        let (gx, gy) = groups(total);
+        pass.set_pipeline(&first);
+        pass.set_bind_group(0, &first_group, &[]);
+        pass.dispatch_workgroups(gx, gy, 1);
+        pass.set_pipeline(&second);
+        pass.set_bind_group(0, &second_group, &[]);
+        pass.dispatch_workgroups(gx, gy, 1);
+    }
+    ctx.queue.submit([encoder.finish()]);
+    if let Some(e) = pollster::block_on(scope.pop()) {
+        return Err(GpuError::Validation(e.to_string()).into());
+    }
+    let counts: Vec<u32> = crate::gpu::read_buffer(ctx, &counts)?;
+    let sums: Vec<i32> = crate::gpu::read_buffer(ctx, &sums)?;
+    let labels: Vec<u32> = crate::gpu::read_buffer(ctx, &labels)?;
+    let dense_of: Vec<u32> = crate::gpu::read_buffer(ctx, &voxel_of)?;
+    // the full voxels in dense order: x fastest, so in the CPU's key order (z, then y, then x)
+    let mut compact = vec![u32::MAX; total as usize];
+    let mut voxels = Vec::new();
+    let plane = u64::from(dims[0]) * u64::from(dims[1]);
+    for v in 0..total as usize {
+        let c = counts[v];
+        if c == 0 {
+            continue;
+        }
+        let coord = [
+            (v as u64 % u64::from(dims[0])) as u32,
+            ((v as u64 / u64::from(dims[0])) % u64::from(dims[1])) as u32,
+            (v as u64 / plane) as u32,
+        ];
+        let corner = Vec3::from(coord.map(|x| x as f32));
+        let offset = Vec3::new(
+            sums[3 * v] as f32,
+            sums[3 * v + 1] as f32,
+            sums[3 * v + 2] as f32,
+        ) / (c as f32 * SCALE as f32);
+        compact[v] = voxels.len() as u32;
+        voxels.push(BandVoxel {
+            coord,
+            count: c,
+            centroid: lo + (corner + offset) * edge,
+            label: labels[v] as u8,
+        });
+    }
+    let voxel_of: Vec<u32> = dense_of[..n].iter().map(|&d| compact[d as usize]).collect();
+    // a voxel whose fixed-point sums could have overflowed: its centroid from the positions
+    if voxels.iter().any(|v| v.count > MAX_FIXED_COUNT) {
+        let mut sum = vec![Vec3::ZERO; voxels.len()];
+        for (i, &v) in voxel_of.iter().enumerate() {
+            if voxels[v as usize].count > MAX_FIXED_COUNT {
+                sum[v as usize] += positions[i];
+            }
+        }
+        for (v, s) in voxels.iter_mut().zip(sum) {
+            if v.count > MAX_FIXED_COUNT {
+                v.centroid = s / v.count as f32;
+            }
+        }
+    }
+    let particle_labels = voxel_of.iter().map(|&v| voxels[v as usize].label).collect();
+    Ok(NarrowBand {
+        origin: lo,
+        edge,
+        dims,
+        voxels,
+        labels: particle_labels,
+        voxel_of,
+    })
+}
