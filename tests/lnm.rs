@@ -369,3 +369,84 @@ fn the_gpu_band_equals_the_cpu_band() {
         Err(fluid_surfels::Error::Lnm(LnmError::DenseTooLarge { .. }))
     ));
 }
+
+/// The dense layout (a counting sort over an array of the domain) and the sparse one (sorted
+/// keys, hashed neighbours) give the same band bit for bit, on every shape and real file here,
+/// on one thread and on two; the automatic choice keeps a far-flung splash sparse.
+#[test]
+fn dense_and_sparse_layouts_give_the_same_band() {
+    use fluid_surfels::lnm::{Layout, cpu::auto_layout, narrow_band_in};
+    let read = |name: &str| {
+        fluid_surfels::io::read_particles(
+            &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("tests/data")
+                .join(name),
+            None,
+        )
+        .unwrap()
+        .positions
+    };
+    let block = scenes::block(&BlockParams {
+        jitter: 0.3,
+        ..Default::default()
+    })
+    .unwrap();
+    let sphere = scenes::sphere(&SphereParams::default()).unwrap();
+    let mut splash = block.particles.positions.clone();
+    splash.push(Vec3::splat(1000.0));
+    let cases: Vec<(&str, Vec<Vec3>, f32)> = vec![
+        (
+            "jittered block",
+            block.particles.positions.clone(),
+            block.support_radius,
+        ),
+        (
+            "sphere",
+            sphere.particles.positions.clone(),
+            sphere.support_radius,
+        ),
+        (
+            "double dam break",
+            read("double_dam_break_frame_26_4732_particles.vtk"),
+            0.14,
+        ),
+        (
+            "dam break",
+            read("dam_break_frame_23_24389_particles.bgeo"),
+            0.095,
+        ),
+        ("block and a far drop", splash, block.support_radius),
+        ("nothing", Vec::new(), 0.1),
+    ];
+    let pool = |n| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .unwrap()
+    };
+    for (name, p, h) in cases {
+        let params = LnmParams {
+            n_min: 8,
+            ..Default::default()
+        };
+        let sparse = narrow_band_in(&p, h, &params, Layout::Sparse).unwrap();
+        for threads in [1, 2] {
+            let dense = pool(threads)
+                .install(|| narrow_band_in(&p, h, &params, Layout::Dense))
+                .unwrap();
+            assert_eq!(dense, sparse, "{name}, {threads} threads");
+        }
+        let total = sparse.dims.iter().map(|&d| u64::from(d)).product::<u64>();
+        let auto = auto_layout(total, p.len());
+        println!(
+            "{name}: {} voxels in a domain of {total}: {auto:?}",
+            sparse.voxels.len()
+        );
+        if name == "block and a far drop" {
+            assert_eq!(auto, Layout::Sparse);
+        } else if !p.is_empty() {
+            assert_eq!(auto, Layout::Dense, "{name}");
+        }
+        assert_eq!(narrow_band(&p, h, &params).unwrap(), sparse, "{name}");
+    }
+}

@@ -1360,9 +1360,14 @@ struct LnmBenchReport {
     layer_2_voxels: usize,
     threads: usize,
     median_ms: f64,
+    /// The layout the automatic choice took (dense or sparse).
+    layout: &'static str,
     /// The same on one thread, in the same run.
     one_thread_ms: f64,
     speedup_over_one_thread: f64,
+    /// The sparse layout (sorted keys, hashed neighbours) on all threads, in the same run: the
+    /// reference the dense one is measured against (the same band, bit for bit).
+    sparse_ms: f64,
     /// The GPU twin with its upload and read-back, and its adapter.
     gpu_ms: Option<f64>,
     adapter: Option<String>,
@@ -1389,6 +1394,27 @@ pub fn bench_lnm(args: &BenchLnmArgs) -> Result<(), Error> {
         })?;
     let (one_thread_ms, _) =
         one.install(|| median_of(args.repeat, || Ok(narrow_band(p, h, &params)?)))?;
+    let (sparse_ms, sparse) = median_of(args.repeat, || {
+        Ok(fluid_surfels::lnm::narrow_band_in(
+            p,
+            h,
+            &params,
+            fluid_surfels::lnm::Layout::Sparse,
+        )?)
+    })?;
+    if sparse != band {
+        return Err(Error::InvalidArgument {
+            argument: "bench lnm",
+            reason:
+                "the dense and sparse layouts gave different bands (a defect: please report it)"
+                    .into(),
+        });
+    }
+    let total = band.dims.iter().map(|&d| u64::from(d)).product::<u64>();
+    let layout = match fluid_surfels::lnm::cpu::auto_layout(total, p.len()) {
+        fluid_surfels::lnm::Layout::Dense => "dense",
+        _ => "sparse",
+    };
     let ctx = if args.no_gpu {
         None
     } else {
@@ -1410,8 +1436,10 @@ pub fn bench_lnm(args: &BenchLnmArgs) -> Result<(), Error> {
         layer_2_voxels: layer(2),
         threads: rayon::current_num_threads(),
         median_ms,
+        layout,
         one_thread_ms,
         speedup_over_one_thread: one_thread_ms / median_ms,
+        sparse_ms,
         gpu_ms: gpu.as_ref().map(|g| g.0),
         adapter: ctx
             .as_ref()
@@ -1433,11 +1461,14 @@ pub fn bench_lnm(args: &BenchLnmArgs) -> Result<(), Error> {
             100.0 * report.band_share
         );
         println!(
-            "  {:.1} ms on {} threads, {:.1} ms on one ({:.2}x), median of {}",
+            "  {:.1} ms on {} threads ({} voxels), {:.1} ms on one ({:.2}x); sparse layout {:.1} ms ({:.2}x the dense), median of {}",
             report.median_ms,
             report.threads,
+            report.layout,
             report.one_thread_ms,
             report.speedup_over_one_thread,
+            report.sparse_ms,
+            report.sparse_ms / report.median_ms,
             args.repeat.max(1)
         );
         if let (Some(g), Some(a)) = (report.gpu_ms, &report.adapter) {

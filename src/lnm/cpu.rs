@@ -106,7 +106,18 @@ pub fn narrow_band(
     support_radius: f32,
     params: &LnmParams,
 ) -> Result<NarrowBand, LnmError> {
-    let (lo, edge, dims) = domain(positions, support_radius, params)?;
+    narrow_band_in(positions, support_radius, params, Layout::Auto)
+}
+
+/// The band over sparse voxel keys: the particles sorted by voxel, the full voxels looked up by
+/// hash.
+fn sparse_band(
+    positions: &[Vec3],
+    lo: Vec3,
+    edge: f32,
+    dims: [u32; 3],
+    params: &LnmParams,
+) -> NarrowBand {
     // a particle's voxel (clamped into the domain)
     // times the inverse edge, not divided by the edge: a product is correctly rounded in WGSL
     // too (a quotient only within 2.5 ulp), so the GPU twin finds the same voxels
@@ -170,9 +181,24 @@ pub fn narrow_band(
             if thin { 2 } else { 0 }
         })
         .collect();
+    finish(positions, lo, edge, dims, &runs, &order, &labels)
+}
+
+/// The band from the full voxels (`(key, start, count)` in key order, their particles at
+/// `order[start..start + count]` in index order) and their labels: centroids, and every
+/// particle's label and voxel.
+fn finish(
+    positions: &[Vec3],
+    lo: Vec3,
+    edge: f32,
+    dims: [u32; 3],
+    runs: &[(u64, u32, u32)],
+    order: &[u32],
+    labels: &[u8],
+) -> NarrowBand {
     let voxels_out: Vec<BandVoxel> = runs
         .par_iter()
-        .zip(&labels)
+        .zip(labels)
         .map(|(&(k, start, count), &label)| {
             let members = &order[start as usize..(start + count) as usize];
             let sum: Vec3 = members.iter().map(|&i| positions[i as usize]).sum();
@@ -186,18 +212,162 @@ pub fn narrow_band(
         .collect();
     let mut particle_labels = vec![0u8; positions.len()];
     let mut particle_voxels = vec![0u32; positions.len()];
-    for (v, (&(_, start, count), &label)) in runs.iter().zip(&labels).enumerate() {
+    for (v, (&(_, start, count), &label)) in runs.iter().zip(labels).enumerate() {
         for &i in &order[start as usize..(start + count) as usize] {
             particle_labels[i as usize] = label;
             particle_voxels[i as usize] = v as u32;
         }
     }
-    Ok(NarrowBand {
+    NarrowBand {
         origin: lo,
         edge,
         dims,
         voxels: voxels_out,
         labels: particle_labels,
         voxel_of: particle_voxels,
-    })
+    }
+}
+
+/// How the full voxels are found: a dense array over the domain, or sorted sparse keys. Both
+/// give the same band, bit for bit (the same voxels in the same order, each centroid summed over
+/// its particles in index order).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Layout {
+    /// Dense when the domain holds at most [`DENSE_PER_PARTICLE`] voxels a particle (and at most
+    /// [`MAX_DENSE`]), sparse otherwise: a compact body is counted in place, a far-flung splash
+    /// costs only its voxels.
+    #[default]
+    Auto,
+    Dense,
+    Sparse,
+}
+
+/// The most voxels a particle the automatic layout allows for the dense array.
+pub const DENSE_PER_PARTICLE: u64 = 4;
+/// The most voxels of a dense array (64 MiB of counts).
+pub const MAX_DENSE: u64 = 1 << 24;
+
+/// The layout [`Layout::Auto`] takes for a domain of `voxels` voxels and `particles` particles.
+#[must_use]
+pub fn auto_layout(voxels: u64, particles: usize) -> Layout {
+    if voxels <= MAX_DENSE && voxels <= DENSE_PER_PARTICLE * (particles as u64).max(1024) {
+        Layout::Dense
+    } else {
+        Layout::Sparse
+    }
+}
+
+/// [`narrow_band`] with the voxels found the `layout` way (a dense array asked for a domain of
+/// more than [`MAX_DENSE`] voxels is sparse).
+pub fn narrow_band_in(
+    positions: &[Vec3],
+    support_radius: f32,
+    params: &LnmParams,
+    layout: Layout,
+) -> Result<NarrowBand, LnmError> {
+    let (lo, edge, dims) = domain(positions, support_radius, params)?;
+    let total = dims.iter().map(|&d| u64::from(d)).product::<u64>();
+    let dense = match layout {
+        Layout::Dense => total <= MAX_DENSE,
+        Layout::Sparse => false,
+        Layout::Auto => auto_layout(total, positions.len()) == Layout::Dense,
+    };
+    if dense {
+        Ok(dense_band(positions, lo, edge, dims, params))
+    } else {
+        Ok(sparse_band(positions, lo, edge, dims, params))
+    }
+}
+
+/// The band over a dense array of the domain's voxels: counts by a counting sort (sequential,
+/// so each voxel's particles stay in index order), labels in parallel over the full voxels.
+fn dense_band(
+    positions: &[Vec3],
+    lo: Vec3,
+    edge: f32,
+    dims: [u32; 3],
+    params: &LnmParams,
+) -> NarrowBand {
+    let inv = 1.0 / edge;
+    let (nx, ny, nz) = (dims[0] as usize, dims[1] as usize, dims[2] as usize);
+    let total = nx * ny * nz;
+    let at = |v: f32, n: u32| (v.max(0.0) as u32).min(n - 1) as usize;
+    let dense_of: Vec<u32> = positions
+        .par_iter()
+        .map(|&p| {
+            let c = ((p - lo) * inv).floor();
+            (at(c.x, dims[0]) + nx * (at(c.y, dims[1]) + ny * at(c.z, dims[2]))) as u32
+        })
+        .collect();
+    let mut counts = vec![0u32; total];
+    for &v in &dense_of {
+        counts[v as usize] += 1;
+    }
+    // the full voxels in dense order (the sparse keys' order) and each one's start
+    let mut compact = vec![u32::MAX; total];
+    let mut runs: Vec<(u32, u32, u32)> = Vec::new(); // (dense index, start, count)
+    let mut start = 0u32;
+    for (v, &c) in counts.iter().enumerate() {
+        if c > 0 {
+            compact[v] = runs.len() as u32;
+            runs.push((v as u32, start, c));
+            start += c;
+        }
+    }
+    let mut fill: Vec<u32> = runs.iter().map(|r| r.1).collect();
+    let mut order = vec![0u32; positions.len()];
+    for (i, &v) in dense_of.iter().enumerate() {
+        let k = compact[v as usize] as usize;
+        order[fill[k] as usize] = i as u32;
+        fill[k] += 1;
+    }
+    let coord_of = |v: u32| {
+        let v = v as usize;
+        [
+            (v % nx) as u32,
+            ((v / nx) % ny) as u32,
+            (v / (nx * ny)) as u32,
+        ]
+    };
+    let count_at = |c: [u32; 3], d: [i64; 3]| -> Option<u32> {
+        // None outside the domain
+        let n: [i64; 3] = std::array::from_fn(|a| i64::from(c[a]) + d[a]);
+        if (0..3).any(|a| n[a] < 0 || n[a] >= i64::from(dims[a])) {
+            return None;
+        }
+        Some(counts[n[0] as usize + nx * (n[1] as usize + ny * n[2] as usize)])
+    };
+    let first: Vec<bool> = runs
+        .par_iter()
+        .map(|r| {
+            let c = coord_of(r.0);
+            (0..3).any(|a| c[a] == 0 || c[a] + 1 == dims[a])
+                || ring().any(|d| count_at(c, d) == Some(0))
+        })
+        .collect();
+    let labels: Vec<u8> = runs
+        .par_iter()
+        .zip(&first)
+        .map(|(r, &one)| {
+            if one {
+                return 1;
+            }
+            let c = coord_of(r.0);
+            let thin = ring().any(|d| {
+                let n: [i64; 3] = std::array::from_fn(|a| i64::from(c[a]) + d[a]);
+                if (0..3).any(|a| n[a] < 0 || n[a] >= i64::from(dims[a])) {
+                    return false;
+                }
+                let w = n[0] as usize + nx * (n[1] as usize + ny * n[2] as usize);
+                let k = compact[w];
+                k != u32::MAX && first[k as usize] && counts[w] <= params.n_min
+            });
+            if thin { 2 } else { 0 }
+        })
+        .collect();
+    let runs: Vec<(u64, u32, u32)> = runs
+        .into_iter()
+        .map(|(v, s, c)| (key(coord_of(v)), s, c))
+        .collect();
+    finish(positions, lo, edge, dims, &runs, &order, &labels)
 }

@@ -10,11 +10,13 @@
 //! `n_min = 2^dim = 8` particles (a thin layer-1 voxel may leave holes; its inner neighbours
 //! fill them). The band is the particles of layers 1 and 2.
 //!
-//! Only full voxels are stored (sorted by key, looked up by hash), so a far-flung splash costs
-//! what its particles cost and not the volume of its bounding box (the paper's dense grid is
-//! its own future-work note). The CPU path ([`cpu`]) is parallel over voxels; every voxel's
-//! label depends on nothing but its neighbours' counts, so the result does not depend on the
-//! thread count.
+//! A compact body is counted in a dense array of the domain's voxels; a spread-out one stores
+//! only its full voxels (sorted by key, looked up by hash), so a far-flung splash costs what its
+//! particles cost and not the volume of its bounding box (the paper's dense grid is its own
+//! future-work note); [`Layout`] says which, and both give the same band bit for bit. The CPU
+//! path ([`cpu`]) is parallel over voxels; every voxel's label depends on nothing but its
+//! neighbours' counts, so the result does not depend on the thread count. The GPU twin
+//! ([`gpu`]) is dense.
 
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
@@ -22,7 +24,7 @@ use serde::{Deserialize, Serialize};
 pub mod cpu;
 pub mod gpu;
 
-pub use cpu::narrow_band;
+pub use cpu::{Layout, narrow_band, narrow_band_in};
 
 /// Errors of the narrow band.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
