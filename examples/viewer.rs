@@ -7,10 +7,11 @@
 //! cargo run --release --example viewer -- --headless --frames 10 --out out/viewer
 //! cargo run --release --example viewer -- --renderer particle-splat   # Adams et al. 2006
 //! cargo run --release --example viewer -- --renderer ray-cast         # Xiao et al. (slow on lavapipe)
+//! cargo run --release --example viewer -- --renderer ssfr             # Oliveira and Paiva, screen space
 //! ```
 //!
 //! Keys: Space pause/play, Right (or N) one frame on, S next surfel source (chain, particles,
-//! refined), P next renderer (EWA surfels, particle splatting, ray casting), R finished frame / shaded
+//! refined), P next renderer (EWA surfels, particle splatting, ray casting, screen space), R finished frame / shaded
 //! splats, Escape quit. Drag with the left mouse button to
 //! orbit, scroll to zoom. With `--headless --frames N --out DIR` there is no window: the first N
 //! frames are written as PNGs (finished frames, or shaded splats with `--splats`), so tests can run
@@ -71,7 +72,7 @@ fn args() -> std::result::Result<Args, String> {
                     .into_iter()
                     .find(|r| r.as_str() == v)
                     .ok_or(format!(
-                        "--renderer {v}: expected ewa, particle-splat or ray-cast"
+                        "--renderer {v}: expected ewa, particle-splat, ray-cast or ssfr"
                     ))?;
             }
             "--size" => {
@@ -197,7 +198,12 @@ impl Orbit {
 const SOURCES: [SurfelSource; 3] = SurfelSource::ALL;
 
 /// The renderers, in the order P steps through them.
-const RENDERERS: [Renderer; 3] = [Renderer::Ewa, Renderer::ParticleSplat, Renderer::RayCast];
+const RENDERERS: [Renderer; 4] = [
+    Renderer::Ewa,
+    Renderer::ParticleSplat,
+    Renderer::RayCast,
+    Renderer::Ssfr,
+];
 
 /// The device, the pipeline and what the window shows.
 struct Viewer {

@@ -10,7 +10,7 @@
 //                       the host, as the CPU projects them)
 //   cs_thickness_filter the thickness's bilateral filter
 //   cs_shade            normals from the filtered depth, the Beer-Lambert tint: the
-//                       (tint, 1) and (normal, depth) buffers the CPU shading reads
+//                       (tint, 1) and (normal, depth) textures the shading and the optics read
 //
 // No fluid is depth >= NONE (the CPU's infinity). Every loop is bounded by the window or by a
 // tile's list; llvmpipe ends an invocation's loops after 65,535 iterations in total, so a tile
@@ -42,8 +42,8 @@ struct Params {
 @group(0) @binding(5) var<storage, read> src: array<f32>;
 @group(0) @binding(6) var<storage, read_write> dst: array<f32>;
 @group(0) @binding(7) var<storage, read> thickness: array<f32>;
-@group(0) @binding(8) var<storage, read_write> colour: array<vec4<f32>>;
-@group(0) @binding(9) var<storage, read_write> normal_depth: array<vec4<f32>>;
+@group(0) @binding(8) var colour: texture_storage_2d<rgba32float, write>;
+@group(0) @binding(9) var normal_depth: texture_storage_2d<rgba32float, write>;
 
 fn width() -> u32 {
     return u32(params.screen.x);
@@ -415,9 +415,10 @@ fn cs_shade(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     let i = id.y * width() + id.x;
     let z0 = src[i];
+    let texel = vec2<i32>(i32(id.x), i32(id.y));
     if !covered(z0) {
-        colour[i] = vec4<f32>(0.0);
-        normal_depth[i] = vec4<f32>(0.0);
+        textureStore(colour, texel, vec4<f32>(0.0));
+        textureStore(normal_depth, texel, vec4<f32>(0.0));
         return;
     }
     let ray = world_ray(vec2<f32>(f32(id.x) + 0.5, f32(id.y) + 0.5));
@@ -437,6 +438,6 @@ fn cs_shade(@builtin(global_invocation_id) id: vec3<u32>) {
         n = -n;
     }
     let tint = params.base.xyz * exp(-params.absorb.xyz * thickness[i]);
-    colour[i] = vec4<f32>(tint, 1.0);
-    normal_depth[i] = vec4<f32>(n, z0);
+    textureStore(colour, texel, vec4<f32>(tint, 1.0));
+    textureStore(normal_depth, texel, vec4<f32>(n, z0));
 }

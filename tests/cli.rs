@@ -1885,8 +1885,7 @@ fn render_warns_of_an_absurd_radius_before_the_work() {
 
 /// `render --renderer ssfr`: every `--filter` draws the library's screen-space image of the
 /// particles from the report's camera, `--no-narrow-band` draws every particle, the finished
-/// frame runs through it (on the CPU: `--gpu --optics` is refused with what to do), and `--gpu`
-/// draws the CPU's picture.
+/// frame runs through it, and `--gpu` draws the CPU's pictures (shaded and finished).
 #[test]
 fn render_draws_the_screen_space_surface_with_each_filter() {
     use fluid_surfels::ssfr::{DepthFilter, ScreenSpace, SsfrParams};
@@ -1948,16 +1947,6 @@ fn render_draws_the_screen_space_surface_with_each_filter() {
         ],
     );
     succeeded(&finished);
-    let e = stderr_of(
-        &bin()
-            .args(["render", "--renderer", "ssfr", "--gpu", "--optics", "--out"])
-            .arg(d.join("refused.png"))
-            .arg("--input")
-            .arg(d.join("ddb.vtk"))
-            .output()
-            .unwrap(),
-    );
-    assert!(e.contains("no GPU path yet"), "{e}");
     // the shaded splats on the GPU: the CPU's picture
     if fluid_surfels::gpu::context_or_skip("render --renderer ssfr --gpu")
         .unwrap()
@@ -1982,6 +1971,26 @@ fn render_draws_the_screen_space_surface_with_each_filter() {
         assert_eq!(cpu["backend"], "cpu reference", "{cpu}");
         let psnr = fluid_surfels::splat::psnr(&a, &b);
         assert!(psnr >= 40.0, "GPU against CPU screen space {psnr:.1} dB");
+        // and the finished frame through GpuPipeline
+        let frame = |backend: &str| {
+            let out = d.join(format!("ssfr-frame{backend}.png"));
+            succeeded(
+                &bin()
+                    .args(["render", "--renderer", "ssfr", "--optics", backend])
+                    .args(["--size", "64x48", "--source", "particles", "--input"])
+                    .arg(d.join("ddb.vtk"))
+                    .arg("--out")
+                    .arg(&out)
+                    .output()
+                    .unwrap(),
+            );
+            image::open(&out).unwrap().to_rgba8()
+        };
+        let psnr = fluid_surfels::splat::psnr(&frame("--gpu"), &frame("--cpu"));
+        assert!(
+            psnr >= 35.0,
+            "GPU against CPU screen-space frame {psnr:.1} dB"
+        );
     }
 }
 

@@ -485,6 +485,7 @@ fn gpu_pipeline_with_the_peer_renderers_equals_the_cpu_pipeline() {
     for renderer in [
         pipeline::Renderer::ParticleSplat,
         pipeline::Renderer::RayCast,
+        pipeline::Renderer::Ssfr,
     ] {
         let (mut sim, mut params) = column_setup(size);
         params.renderer = renderer;
@@ -505,6 +506,12 @@ fn gpu_pipeline_with_the_peer_renderers_equals_the_cpu_pipeline() {
         assert!(frame.grid.is_none(), "{renderer:?} needs no grid");
         let mut gpu = GpuPipeline::new(&ctx.device, &ctx.queue, format, size, &params).unwrap();
         let image = gpu.render_frame_image(&ctx, &frame).unwrap();
+        if renderer == pipeline::Renderer::Ssfr {
+            // the steady state: the second frame rewrites the screen-space inputs in place
+            let again = gpu.render_frame_image(&ctx, &frame).unwrap();
+            assert!(gpu.reused_resources(), "{renderer:?}: resources not reused");
+            assert_eq!(again, image, "{renderer:?}: the reused frame differs");
+        }
         let cpu_image = &frame.finished.as_ref().unwrap().image;
         let db = splat::psnr(cpu_image, &image);
         let cpu_splats = cpu

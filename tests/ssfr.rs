@@ -408,7 +408,7 @@ fn gpu_passes_match_the_cpu_reference_for_every_filter() {
         128,
     )
     .unwrap();
-    let gpu = fluid_surfels::ssfr::gpu::GpuSsfr::new(&ctx.device).unwrap();
+    let mut gpu = fluid_surfels::ssfr::gpu::GpuSsfr::new(&ctx.device).unwrap();
     for (name, v) in [("perspective", &perspective), ("orthographic", &ortho)] {
         for filter in DepthFilter::ALL {
             for narrow_band in [true, false] {

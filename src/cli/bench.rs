@@ -1240,11 +1240,11 @@ pub fn bench_renderers(args: &BenchRenderersArgs) -> Result<(), Error> {
                 splat::render_cpu(surfels, &camera, &light, &params, w, h)?
             })
         })?;
-        let gpu_ssfr = match (&ctx, &screen) {
+        let mut gpu_ssfr = match (&ctx, &screen) {
             (Some(ctx), Some(_)) => Some(fluid_surfels::ssfr::gpu::GpuSsfr::new(&ctx.device)?),
             _ => None,
         };
-        let gpu = match (&ctx, &screen, &gpu_ssfr) {
+        let gpu = match (&ctx, &screen, &mut gpu_ssfr) {
             (Some(ctx), Some(screen), Some(g)) => Some(median_of(args.repeat, || {
                 let v = splat::View::new(&camera, &light, &params, w, h)?;
                 Ok(g.render(ctx, screen, &v)?.render)
@@ -1609,7 +1609,7 @@ pub fn bench_ssfr(args: &BenchSsfrArgs) -> Result<(), Error> {
             }
         }
     };
-    let gpu = match &ctx {
+    let mut gpu = match &ctx {
         Some(c) => Some(fluid_surfels::ssfr::gpu::GpuSsfr::new(&c.device)?),
         None => None,
     };
@@ -1632,7 +1632,7 @@ pub fn bench_ssfr(args: &BenchSsfrArgs) -> Result<(), Error> {
                 voxels = b.voxels.len();
             }
             let (median_ms, r) = median_of(args.repeat, || Ok(screen.render_view(&view)?))?;
-            let on_gpu = match (&ctx, &gpu) {
+            let on_gpu = match (&ctx, &mut gpu) {
                 (Some(ctx), Some(g)) => {
                     Some(median_of(args.repeat, || g.render(ctx, &screen, &view))?)
                 }

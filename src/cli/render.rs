@@ -56,8 +56,8 @@ pub struct RenderArgs {
     /// radius, blended within 1.5 radii of the nearest; no density grid), ray-cast (Xiao et
     /// al.: rays cast to the iso-surface of the source's points, PCA-blended normals; the
     /// reference surface), or ssfr (Oliveira and Paiva: narrow-band screen-space fluid
-    /// rendering, the source's points as spheres in a depth buffer, filtered; its finished frame
-    /// on the CPU only), in the shaded splats and in the finished frame alike.
+    /// rendering, the source's points as spheres in a depth buffer, filtered), in the shaded
+    /// splats and in the finished frame alike.
     #[arg(long, value_enum, default_value = "ewa")]
     pub renderer: RendererChoice,
     /// The depth filter of --renderer ssfr: narrow-range (Truong and Yuksel 2018), bilateral
@@ -310,22 +310,6 @@ pub fn choose_gpu(cpu: bool, gpu: bool) -> Result<Option<GpuContext>, Error> {
         Err(e) if gpu => Err(e.into()),
         Err(_) => Ok(None),
     }
-}
-
-/// [`choose_gpu`] for the renderer of `args`: the screen-space renderer's passes run on the GPU
-/// (`ssfr::gpu`), but not yet in the GPU pipeline's optics, so its finished frame runs on the
-/// CPU unless `--gpu` asks, which is refused with a typed error.
-fn choose_gpu_for(args: &RenderArgs) -> Result<Option<GpuContext>, Error> {
-    if matches!(args.renderer, RendererChoice::Ssfr) && finished_frame_asked(args) {
-        if args.gpu {
-            return Err(fluid_surfels::gpu::GpuError::NotOnGpu {
-                what: "the finished frame of the screen-space renderer (--renderer ssfr --optics)",
-            }
-            .into());
-        }
-        return Ok(None);
-    }
-    choose_gpu(args.cpu, args.gpu)
 }
 
 /// Renders on the GPU when a context is given, else with the CPU reference.
@@ -629,7 +613,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     let camera = args
         .camera
         .map_or_else(|| framing(surfels), |c| turned_camera(c, args.up));
-    let ctx = choose_gpu_for(args)?;
+    let ctx = choose_gpu(args.cpu, args.gpu)?;
     let t = Instant::now();
     let render = if pipeline.params().renderer == Renderer::Ssfr {
         let (positions, radii) = pipeline::sphere_points(surfels);
@@ -886,7 +870,7 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
     let [w, h] = params.scene.optics.image_size;
     let mut pipeline = Pipeline::new(params.clone())?;
     super::warn_at_once(&mut pipeline);
-    let mut gpu = match choose_gpu_for(args)? {
+    let mut gpu = match choose_gpu(args.cpu, args.gpu)? {
         Some(ctx) => {
             let g = GpuPipeline::new(
                 &ctx.device,

@@ -40,9 +40,9 @@ pub enum GpuError {
     /// The ray caster's inputs.
     #[error(transparent)]
     RayCast(#[from] crate::raycast::RayCastError),
-    /// What was asked has no GPU path yet.
-    #[error("{what} has no GPU path yet; run it on the CPU (without --gpu)")]
-    NotOnGpu { what: &'static str },
+    /// The screen-space renderer's inputs.
+    #[error(transparent)]
+    Ssfr(#[from] crate::ssfr::SsfrError),
 }
 
 /// What adapter runs the GPU stages.

@@ -390,6 +390,16 @@ impl OpticsGpu {
                     camera: cast,
                 }
             }
+            GpuWater::Screen(screen_space) => {
+                let mut light = crate::ssfr::gpu::GpuSsfr::new(device)?;
+                light.prepare(device, screen_space, &screen)?;
+                let mut view = crate::ssfr::gpu::GpuSsfr::new(device)?;
+                view.prepare(device, screen_space, &camera)?;
+                Water::Screen {
+                    light,
+                    camera: view,
+                }
+            }
         };
         // the environment image (or one texel)
         let none = [[0.0f32; 4]];
@@ -443,6 +453,7 @@ impl OpticsGpu {
         let ((screen_colour, screen_normal), (camera_colour, camera_normal)) = match &water {
             Water::Splats { light, camera, .. } => (light.accumulation(), camera.accumulation()),
             Water::Cast { light, camera } => (light.accumulation(), camera.accumulation()),
+            Water::Screen { light, camera } => (light.accumulation()?, camera.accumulation()?),
         };
         let view = |t: &wgpu::Texture| t.create_view(&Default::default());
         let views = [
@@ -526,6 +537,8 @@ pub enum GpuWater<'a> {
     Surfels(&'a [Surfel]),
     /// Rays cast to the iso-surface of the caster's points ([`crate::raycast`]).
     Cast(&'a Caster<'a>),
+    /// The screen-space passes of the points ([`crate::ssfr`]).
+    Screen(&'a crate::ssfr::ScreenSpace<'a>),
 }
 
 /// The water's passes: the light's and the camera's. One per prepared stage, so the size of
@@ -540,6 +553,10 @@ enum Water {
     Cast {
         light: GpuCaster,
         camera: GpuCaster,
+    },
+    Screen {
+        light: crate::ssfr::gpu::GpuSsfr,
+        camera: crate::ssfr::gpu::GpuSsfr,
     },
 }
 
@@ -671,6 +688,17 @@ impl PreparedOptics {
                 light.prepare(device, caster, &screen)?;
                 cast.prepare(device, caster, &camera)?;
             }
+            (
+                Water::Screen {
+                    light,
+                    camera: view,
+                },
+                GpuWater::Screen(screen_space),
+            ) => {
+                // the same sizes (checked above), so the targets the bind groups hold stay
+                light.prepare(device, screen_space, &screen)?;
+                view.prepare(device, screen_space, &camera)?;
+            }
             // drawn another way than prepared: new targets (nothing written yet)
             _ => return Ok(false),
         }
@@ -758,6 +786,7 @@ impl PreparedOptics {
                 light.encode_queued(queue, encoder, &self.light_image, surfels, &self.screen)?;
             }
             Water::Cast { light, .. } => light.encode(encoder)?,
+            Water::Screen { light, .. } => light.encode(encoder)?,
         }
         self.draw_geometry(optics, encoder, &self.map_geometry);
         encoder.clear_buffer(&self.flux, 0, None);
@@ -787,6 +816,7 @@ impl PreparedOptics {
                 camera.encode_queued(queue, encoder, &self.camera_image, surfels, &self.camera)?;
             }
             Water::Cast { camera, .. } => camera.encode(encoder)?,
+            Water::Screen { camera, .. } => camera.encode(encoder)?,
         }
         self.draw_geometry(optics, encoder, &self.camera_geometry);
         self.dispatch(encoder, &optics.frame, size);

@@ -56,6 +56,9 @@ pub struct GpuPipeline {
     splat_surfels: SurfelBuffer,
     /// The ray caster of the shaded image (with [`super::Renderer::RayCast`]), made on first use.
     caster: Option<GpuCaster>,
+    /// The screen-space passes of the shaded image (with [`super::Renderer::Ssfr`]), made on
+    /// first use.
+    screen_space: Option<crate::ssfr::gpu::GpuSsfr>,
 }
 
 impl GpuPipeline {
@@ -73,7 +76,6 @@ impl GpuPipeline {
         let mut params = params.clone();
         params.scene.optics.image_size = [size.0, size.1];
         let cpu = Pipeline::new(params)?;
-        refuse_cpu_only(&cpu)?;
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let optics = OpticsGpu::new(device)?;
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -141,6 +143,7 @@ impl GpuPipeline {
             splats,
             splat_surfels,
             caster: None,
+            screen_space: None,
             cpu,
             optics,
             format,
@@ -219,19 +222,25 @@ impl GpuPipeline {
         encoder: &mut wgpu::CommandEncoder,
         frame: &Frame,
     ) -> Result<(), Error> {
-        refuse_cpu_only(&self.cpu)?;
         let surfels = &frame.render_surfels;
         let scene = self.cpu.fitted_scene(surfels)?;
         let stage = Stage::new(&scene, surfels)?;
-        // ray casting casts the light's and the camera's views through the surfels' points
+        // ray casting and screen space draw the light's and the camera's views from the
+        // surfels' points
         let (positions, radii);
-        let caster;
-        let water = if self.cpu.params().renderer == super::Renderer::RayCast {
-            (positions, radii) = super::sphere_points(surfels);
-            caster = self.cpu.caster(&positions, &radii)?;
-            GpuWater::Cast(&caster)
-        } else {
-            GpuWater::Surfels(surfels)
+        let (caster, screen);
+        let water = match self.cpu.params().renderer {
+            super::Renderer::RayCast => {
+                (positions, radii) = super::sphere_points(surfels);
+                caster = self.cpu.caster(&positions, &radii)?;
+                GpuWater::Cast(&caster)
+            }
+            super::Renderer::Ssfr => {
+                (positions, radii) = super::sphere_points(surfels);
+                screen = self.cpu.screen_space(&positions, &radii)?;
+                GpuWater::Screen(&screen)
+            }
+            _ => GpuWater::Surfels(surfels),
         };
         // the steady state: last frame's targets fit (the views are kept), only uniforms,
         // receiver and surfels are written
@@ -297,10 +306,29 @@ impl GpuPipeline {
         frame: &Frame,
         target: &wgpu::TextureView,
     ) -> Result<(), Error> {
-        refuse_cpu_only(&self.cpu)?;
         let camera = self.cpu.splat_camera(&frame.render_surfels);
         let (w, h) = self.size;
         let view = View::new(&camera, &Light::default(), &self.cpu.splat_params(), w, h)?;
+        if self.cpu.params().renderer == super::Renderer::Ssfr {
+            // the screen-space passes into their textures, shaded by the splats' shading pass
+            let (positions, radii) = super::sphere_points(&frame.render_surfels);
+            let screen = self.cpu.screen_space(&positions, &radii)?;
+            let passes = match &mut self.screen_space {
+                Some(p) => p,
+                slot => slot.insert(crate::ssfr::gpu::GpuSsfr::new(device)?),
+            };
+            passes.prepare(device, &screen, &view)?;
+            passes.encode(encoder)?;
+            self.splats.encode_shading_of(
+                device,
+                queue,
+                encoder,
+                target,
+                passes.accumulation()?,
+                &view,
+            )?;
+            return Ok(());
+        }
         if self.cpu.params().renderer == super::Renderer::RayCast {
             // cast into the caster's textures, shaded by the splats' shading pass
             let (positions, radii) = super::sphere_points(&frame.render_surfels);
@@ -401,18 +429,6 @@ fn check_size((w, h): (u32, u32)) -> Result<(), Error> {
                 crate::splat::MAX_SIZE
             ),
         });
-    }
-    Ok(())
-}
-
-/// The renderers without a GPU path ([`super::Renderer::Ssfr`]) are refused with a typed error
-/// (also after [`Pipeline::set_renderer`] through [`GpuPipeline::cpu_mut`]).
-fn refuse_cpu_only(cpu: &Pipeline) -> Result<(), Error> {
-    if cpu.params().renderer == super::Renderer::Ssfr {
-        return Err(crate::gpu::GpuError::NotOnGpu {
-            what: "the screen-space renderer (ssfr)",
-        }
-        .into());
     }
     Ok(())
 }

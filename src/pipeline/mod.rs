@@ -107,7 +107,7 @@ pub enum Renderer {
     /// Narrow-band screen-space fluid rendering (Oliveira and Paiva, [`crate::ssfr`]): the same
     /// points and radii as `ParticleSplat` drawn as spheres into a depth buffer (only the
     /// narrow band's, by default), the depth filtered (`[ssfr] filter`), the thickness from the
-    /// band's voxels; CPU only so far ([`GpuPipeline`] refuses it).
+    /// band's voxels; on the GPU in [`GpuPipeline`] too (`ssfr::gpu`).
     Ssfr,
 }
 

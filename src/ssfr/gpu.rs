@@ -44,13 +44,46 @@ const NONE: f32 = 1e30;
 /// iterations in total, so a longer list would be cut silently there.
 pub const MAX_TILE_ITEMS: usize = 60_000;
 
-/// The compiled passes, made once and used for any number of frames and views.
+/// The passes (compiled once) and, once prepared, one view's inputs and targets: the
+/// screen-space water for the caller's encoder, like [`crate::raycast::gpu::GpuCaster`]. The
+/// results are `(tint, 1)` and `(normal, depth)` in `Rgba32Float` textures
+/// ([`GpuSsfr::accumulation`]), what the splats' shading and the GPU optics read.
 pub struct GpuSsfr {
     depth: wgpu::ComputePipeline,
     filters: [wgpu::ComputePipeline; 4],
     thickness: wgpu::ComputePipeline,
     thickness_filter: wgpu::ComputePipeline,
     shade: wgpu::ComputePipeline,
+    targets: Option<Targets>,
+    frame: Option<Frame>,
+}
+
+/// The per-size buffers and textures.
+struct Targets {
+    width: u32,
+    height: u32,
+    /// The filters' ping-pong pair; the spheres' depth lands in the first.
+    depth: [wgpu::Buffer; 2],
+    raw: wgpu::Buffer,
+    thick_raw: wgpu::Buffer,
+    thick: wgpu::Buffer,
+    colour: wgpu::Texture,
+    normal_depth: wgpu::Texture,
+    views: (wgpu::TextureView, wgpu::TextureView),
+}
+
+/// One prepared view: its bind groups (holding its inputs) and what the encoder records.
+struct Frame {
+    view: View,
+    depth: wgpu::BindGroup,
+    /// The filter's pipeline index and its two bind groups (a -> b, b -> a).
+    filter: Option<(usize, [wgpu::BindGroup; 2])>,
+    iterations: usize,
+    /// Which depth buffer holds the filtered depth.
+    last: usize,
+    thickness: wgpu::BindGroup,
+    thickness_filter: wgpu::BindGroup,
+    shade: wgpu::BindGroup,
 }
 
 /// The tile lists as compressed rows: `starts[t]..starts[t + 1]` index `items`.
@@ -69,6 +102,48 @@ fn csr(tiles: &[Vec<u32>]) -> Result<(Vec<u32>, Vec<u32>), SsfrError> {
     }
     starts.push(items.len() as u32);
     Ok((starts, items))
+}
+
+impl Targets {
+    fn new(device: &wgpu::Device, width: u32, height: u32) -> Self {
+        let pixels = u64::from(width) * u64::from(height);
+        let storage = wgpu::BufferUsages::STORAGE;
+        let work = |label| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: (4 * pixels).max(16),
+                usage: storage | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        let texture = |label| {
+            crate::gpu::texture_2d(
+                device,
+                label,
+                (width.max(1), height.max(1)),
+                wgpu::TextureFormat::Rgba32Float,
+                wgpu::TextureUsages::STORAGE_BINDING
+                    | wgpu::TextureUsages::TEXTURE_BINDING
+                    | wgpu::TextureUsages::COPY_SRC,
+            )
+        };
+        let (colour, normal_depth) = (texture("ssfr colour"), texture("ssfr normal and depth"));
+        let views = (
+            colour.create_view(&Default::default()),
+            normal_depth.create_view(&Default::default()),
+        );
+        Self {
+            width,
+            height,
+            depth: [work("ssfr depth a"), work("ssfr depth b")],
+            raw: work("ssfr raw depth"),
+            thick_raw: work("ssfr raw thickness"),
+            thick: work("ssfr thickness"),
+            colour,
+            normal_depth,
+            views,
+        }
+    }
 }
 
 impl GpuSsfr {
@@ -100,6 +175,8 @@ impl GpuSsfr {
             thickness: pipeline("cs_thickness"),
             thickness_filter: pipeline("cs_thickness_filter"),
             shade: pipeline("cs_shade"),
+            targets: None,
+            frame: None,
         };
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Validation(e.to_string()));
@@ -107,21 +184,31 @@ impl GpuSsfr {
         Ok(passes)
     }
 
-    /// Every pass of `screen` from view `v`, read back: the same buffers as
-    /// [`ScreenSpace::render_view`] (the timings are not split by pass: `depth_ms` holds the
-    /// whole GPU run with its read-back).
-    pub fn render(
-        &self,
-        ctx: &GpuContext,
+    /// The size of the targets (0 x 0 before the first [`GpuSsfr::prepare`]).
+    #[must_use]
+    pub fn size(&self) -> (u32, u32) {
+        self.targets
+            .as_ref()
+            .map_or((0, 0), |t| (t.width, t.height))
+    }
+
+    /// The results' textures, `(tint, 1)` and `(normal, depth)` per pixel (zero where no fluid),
+    /// after [`GpuSsfr::prepare`].
+    pub fn accumulation(&self) -> Result<(&wgpu::TextureView, &wgpu::TextureView), GpuError> {
+        let t = self.targets.as_ref().ok_or_else(unprepared)?;
+        Ok((&t.views.0, &t.views.1))
+    }
+
+    /// Uploads `screen`'s spheres and thickness Gaussians for view `v` (binned into tiles on the
+    /// host, as the CPU bins them) and makes the targets for its size when they differ.
+    pub fn prepare(
+        &mut self,
+        device: &wgpu::Device,
         screen: &ScreenSpace<'_>,
         v: &View,
-    ) -> Result<SsfrRender, crate::Error> {
-        let t = std::time::Instant::now();
-        let device = &ctx.device;
+    ) -> Result<(), GpuError> {
         let params = screen.params();
         let (w, h) = (v.width, v.height);
-        let pixels = u64::from(w) * u64::from(h);
-        // the host's part, as the CPU does it
         let spheres: Vec<[f32; 4]> = (0..screen.drawn())
             .map(|k| {
                 let (c, r) = screen.sphere_of(k);
@@ -168,9 +255,11 @@ impl GpuSsfr {
             base: crate::splat::WATER,
             absorb: absorb.extend(0.0).to_array(),
         };
-        // buffers
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let storage = wgpu::BufferUsages::STORAGE;
+        if self.size() != (w, h) {
+            self.targets = Some(Targets::new(device, w, h));
+        }
+        let t = self.targets.as_ref().ok_or_else(unprepared)?;
         let init = |label, contents: &[u8]| {
             let padded;
             let contents = if contents.is_empty() {
@@ -182,15 +271,7 @@ impl GpuSsfr {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
                 contents,
-                usage: storage,
-            })
-        };
-        let work = |label| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: (4 * pixels).max(16),
-                usage: storage | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
+                usage: wgpu::BufferUsages::STORAGE,
             })
         };
         let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -204,26 +285,13 @@ impl GpuSsfr {
         let source_buf = init("ssfr sources", bytemuck::cast_slice(&projected));
         let source_starts = init("ssfr source starts", bytemuck::cast_slice(&source_starts));
         let source_items = init("ssfr source items", bytemuck::cast_slice(&source_items));
-        let depth = [work("ssfr depth a"), work("ssfr depth b")];
-        let raw = work("ssfr raw depth");
-        let thick_raw = work("ssfr raw thickness");
-        let thick = work("ssfr thickness");
-        let wide = |label| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: (16 * pixels).max(16),
-                usage: storage | wgpu::BufferUsages::COPY_SRC,
-                mapped_at_creation: false,
-            })
-        };
-        let colour = wide("ssfr colour");
-        let normal_depth = wide("ssfr normal and depth");
-        let group = |pipeline: &wgpu::ComputePipeline, entries: &[(u32, &wgpu::Buffer)]| {
+        let group = |pipeline: &wgpu::ComputePipeline,
+                     entries: &[(u32, wgpu::BindingResource<'_>)]| {
             let entries: Vec<wgpu::BindGroupEntry<'_>> = entries
                 .iter()
-                .map(|&(binding, b)| wgpu::BindGroupEntry {
-                    binding,
-                    resource: b.as_entire_binding(),
+                .map(|(binding, resource)| wgpu::BindGroupEntry {
+                    binding: *binding,
+                    resource: resource.clone(),
                 })
                 .collect();
             device.create_bind_group(&wgpu::BindGroupDescriptor {
@@ -232,127 +300,190 @@ impl GpuSsfr {
                 entries: &entries,
             })
         };
-        let depth_group = group(
+        fn b(buffer: &wgpu::Buffer) -> wgpu::BindingResource<'_> {
+            buffer.as_entire_binding()
+        }
+        let depth = group(
             &self.depth,
             &[
-                (0, &uniform),
-                (1, &sphere_buf),
-                (2, &tile_starts),
-                (3, &tile_items),
-                (6, &depth[0]),
+                (0, b(&uniform)),
+                (1, b(&sphere_buf)),
+                (2, b(&tile_starts)),
+                (3, b(&tile_items)),
+                (6, b(&t.depth[0])),
             ],
         );
         let iterations = params.filter_iterations() as usize;
-        let filter = match params.filter {
-            DepthFilter::NarrowRange => Some(&self.filters[0]),
-            DepthFilter::Bilateral => Some(&self.filters[1]),
-            DepthFilter::Plane => Some(&self.filters[2]),
-            DepthFilter::CurvatureFlow => Some(&self.filters[3]),
+        let index = match params.filter {
+            DepthFilter::NarrowRange => Some(0),
+            DepthFilter::Bilateral => Some(1),
+            DepthFilter::Plane => Some(2),
+            DepthFilter::CurvatureFlow => Some(3),
             DepthFilter::None => None,
-        };
-        let filter_groups = filter.map(|f| {
-            [
-                group(f, &[(0, &uniform), (5, &depth[0]), (6, &depth[1])]),
-                group(f, &[(0, &uniform), (5, &depth[1]), (6, &depth[0])]),
-            ]
+        }
+        .filter(|_| iterations > 0);
+        let filter = index.map(|k| {
+            let f = &self.filters[k];
+            (
+                k,
+                [
+                    group(
+                        f,
+                        &[(0, b(&uniform)), (5, b(&t.depth[0])), (6, b(&t.depth[1]))],
+                    ),
+                    group(
+                        f,
+                        &[(0, b(&uniform)), (5, b(&t.depth[1])), (6, b(&t.depth[0]))],
+                    ),
+                ],
+            )
         });
         // after the iterations the filtered depth is in depth[iterations % 2]
         let last = if filter.is_some() { iterations % 2 } else { 0 };
-        let thickness_group = group(
+        let thickness = group(
             &self.thickness,
             &[
-                (0, &uniform),
-                (2, &source_starts),
-                (3, &source_items),
-                (4, &source_buf),
-                (6, &thick_raw),
+                (0, b(&uniform)),
+                (2, b(&source_starts)),
+                (3, b(&source_items)),
+                (4, b(&source_buf)),
+                (6, b(&t.thick_raw)),
             ],
         );
-        let thickness_filter_group = group(
+        let thickness_filter = group(
             &self.thickness_filter,
             &[
-                (0, &uniform),
-                (5, &depth[last]),
-                (6, &thick),
-                (7, &thick_raw),
+                (0, b(&uniform)),
+                (5, b(&t.depth[last])),
+                (6, b(&t.thick)),
+                (7, b(&t.thick_raw)),
             ],
         );
-        let shade_group = group(
+        let shade = group(
             &self.shade,
             &[
-                (0, &uniform),
-                (5, &depth[last]),
-                (7, &thick),
-                (8, &colour),
-                (9, &normal_depth),
+                (0, b(&uniform)),
+                (5, b(&t.depth[last])),
+                (7, b(&t.thick)),
+                (8, wgpu::BindingResource::TextureView(&t.views.0)),
+                (9, wgpu::BindingResource::TextureView(&t.views.1)),
             ],
         );
-        let groups = (w.div_ceil(8), h.div_ceil(8));
-        let mut encoder = device.create_command_encoder(&Default::default());
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Validation(e.to_string()));
+        }
+        self.frame = Some(Frame {
+            view: *v,
+            depth,
+            filter,
+            iterations,
+            last,
+            thickness,
+            thickness_filter,
+            shade,
+        });
+        Ok(())
+    }
+
+    /// Records the prepared view's passes into `encoder`.
+    pub fn encode(&self, encoder: &mut wgpu::CommandEncoder) -> Result<(), GpuError> {
+        let (t, f) = match (&self.targets, &self.frame) {
+            (Some(t), Some(f)) => (t, f),
+            _ => return Err(unprepared()),
+        };
+        let groups = (t.width.div_ceil(8), t.height.div_ceil(8));
         {
             let mut pass = encoder.begin_compute_pass(&Default::default());
             pass.set_pipeline(&self.depth);
-            pass.set_bind_group(0, &depth_group, &[]);
+            pass.set_bind_group(0, &f.depth, &[]);
             pass.dispatch_workgroups(groups.0, groups.1, 1);
         }
-        encoder.copy_buffer_to_buffer(&depth[0], 0, &raw, 0, raw.size());
-        {
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            if let (Some(f), Some(g)) = (filter, &filter_groups) {
-                pass.set_pipeline(f);
-                for k in 0..iterations {
-                    pass.set_bind_group(0, &g[k % 2], &[]);
-                    pass.dispatch_workgroups(groups.0, groups.1, 1);
-                }
+        encoder.copy_buffer_to_buffer(&t.depth[0], 0, &t.raw, 0, t.raw.size());
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        if let Some((k, g)) = &f.filter {
+            pass.set_pipeline(&self.filters[*k]);
+            for i in 0..f.iterations {
+                pass.set_bind_group(0, &g[i % 2], &[]);
+                pass.dispatch_workgroups(groups.0, groups.1, 1);
             }
-            pass.set_pipeline(&self.thickness);
-            pass.set_bind_group(0, &thickness_group, &[]);
-            pass.dispatch_workgroups(groups.0, groups.1, 1);
-            pass.set_pipeline(&self.thickness_filter);
-            pass.set_bind_group(0, &thickness_filter_group, &[]);
-            pass.dispatch_workgroups(groups.0, groups.1, 1);
-            pass.set_pipeline(&self.shade);
-            pass.set_bind_group(0, &shade_group, &[]);
+        }
+        for (pipeline, group) in [
+            (&self.thickness, &f.thickness),
+            (&self.thickness_filter, &f.thickness_filter),
+            (&self.shade, &f.shade),
+        ] {
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, group, &[]);
             pass.dispatch_workgroups(groups.0, groups.1, 1);
         }
-        ctx.queue.submit([encoder.finish()]);
-        if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Validation(e.to_string()).into());
-        }
+        Ok(())
+    }
+
+    /// Reads the prepared view's results back after its encoder ran: the same buffers as
+    /// [`ScreenSpace::render_view`], shaded by the CPU's shading.
+    pub fn read(&self, ctx: &GpuContext) -> Result<SsfrRender, GpuError> {
+        let (t, f) = match (&self.targets, &self.frame) {
+            (Some(t), Some(f)) => (t, f),
+            _ => return Err(unprepared()),
+        };
+        let pixels = t.width as usize * t.height as usize;
         let depths = |b: &wgpu::Buffer| -> Result<Vec<f32>, GpuError> {
             let d: Vec<f32> = crate::gpu::read_buffer(ctx, b)?;
-            Ok(d[..pixels as usize]
+            Ok(d[..pixels]
                 .iter()
                 .map(|&z| if z >= NONE { f32::INFINITY } else { z })
                 .collect())
         };
-        let raw_depth = depths(&raw)?;
-        let filtered = depths(&depth[last])?;
-        let thickness: Vec<f32> = crate::gpu::read_buffer(ctx, &thick)?;
-        let wide_of = |b: &wgpu::Buffer| -> Result<Vec<[f32; 4]>, GpuError> {
-            let d: Vec<[f32; 4]> = crate::gpu::read_buffer(ctx, b)?;
-            Ok(d[..pixels as usize].to_vec())
+        let texels = |tex: &wgpu::Texture| -> Result<Vec<[f32; 4]>, GpuError> {
+            let bytes = crate::gpu::read_texture(ctx, tex, 16)?;
+            Ok(bytemuck::pod_collect_to_vec(&bytes))
         };
-        let colour = wide_of(&colour)?;
-        let normal_depth = wide_of(&normal_depth)?;
-        let shaded = crate::splat::cpu::shade_image(&colour, &normal_depth, v);
+        let raw_depth = depths(&t.raw)?;
+        let depth = depths(&t.depth[f.last])?;
+        let thickness: Vec<f32> = crate::gpu::read_buffer(ctx, &t.thick)?;
+        let colour = texels(&t.colour)?;
+        let normal_depth = texels(&t.normal_depth)?;
+        let image = crate::splat::cpu::shade_image(&colour, &normal_depth, &f.view);
         Ok(SsfrRender {
             render: Render {
-                width: w,
-                height: h,
-                image: shaded,
+                width: t.width,
+                height: t.height,
+                image,
                 colour,
                 normal_depth,
             },
             raw_depth,
-            depth: filtered,
-            thickness: thickness[..pixels as usize].to_vec(),
-            timings: SsfrTimings {
-                depth_ms: t.elapsed().as_secs_f64() * 1e3,
-                ..Default::default()
-            },
+            depth,
+            thickness: thickness[..pixels].to_vec(),
+            timings: SsfrTimings::default(),
         })
     }
+
+    /// Every pass of `screen` from view `v`, run and read back (the timings are not split by
+    /// pass: `depth_ms` holds the whole GPU run with its read-back).
+    pub fn render(
+        &mut self,
+        ctx: &GpuContext,
+        screen: &ScreenSpace<'_>,
+        v: &View,
+    ) -> Result<SsfrRender, crate::Error> {
+        let started = std::time::Instant::now();
+        self.prepare(&ctx.device, screen, v)?;
+        let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        self.encode(&mut encoder)?;
+        ctx.queue.submit([encoder.finish()]);
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Validation(e.to_string()).into());
+        }
+        let mut out = self.read(ctx)?;
+        out.timings.depth_ms = started.elapsed().as_secs_f64() * 1e3;
+        Ok(out)
+    }
+}
+
+fn unprepared() -> GpuError {
+    GpuError::Validation("the screen-space passes have no prepared view".into())
 }
 
 /// Every screen-space pass of `screen` from view `v` on the GPU (compiles the passes; keep a
