@@ -7,6 +7,18 @@ use fluid_surfels::lnm::{LnmError, LnmParams, NarrowBand, narrow_band};
 use fluid_surfels::scenes::{self, BlockParams, SphereParams};
 use glam::Vec3;
 
+/// The positions of a real file in `tests/data/`.
+fn data(name: &str) -> Vec<Vec3> {
+    fluid_surfels::io::read_particles(
+        &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data")
+            .join(name),
+        None,
+    )
+    .unwrap()
+    .positions
+}
+
 /// Every band voxel has an empty voxel or the outside of the domain within two voxels
 /// (Chebyshev distance): the band is at most two voxel layers thick.
 fn at_most_two_layers(band: &NarrowBand) {
@@ -294,16 +306,6 @@ fn the_gpu_band_equals_the_cpu_band() {
     else {
         return;
     };
-    let read = |name: &str| {
-        fluid_surfels::io::read_particles(
-            &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-                .join("tests/data")
-                .join(name),
-            None,
-        )
-        .unwrap()
-        .positions
-    };
     let block = scenes::block(&BlockParams::default()).unwrap();
     let sphere = scenes::sphere(&SphereParams::default()).unwrap();
     let cases: Vec<(&str, Vec<Vec3>, f32)> = vec![
@@ -319,12 +321,12 @@ fn the_gpu_band_equals_the_cpu_band() {
         ),
         (
             "double dam break",
-            read("double_dam_break_frame_26_4732_particles.vtk"),
+            data("double_dam_break_frame_26_4732_particles.vtk"),
             0.14,
         ),
         (
             "dam break",
-            read("dam_break_frame_23_24389_particles.bgeo"),
+            data("dam_break_frame_23_24389_particles.bgeo"),
             0.095,
         ),
         ("nothing", Vec::new(), 0.1),
@@ -376,16 +378,6 @@ fn the_gpu_band_equals_the_cpu_band() {
 #[test]
 fn dense_and_sparse_layouts_give_the_same_band() {
     use fluid_surfels::lnm::{Layout, cpu::auto_layout, narrow_band_in};
-    let read = |name: &str| {
-        fluid_surfels::io::read_particles(
-            &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-                .join("tests/data")
-                .join(name),
-            None,
-        )
-        .unwrap()
-        .positions
-    };
     let block = scenes::block(&BlockParams {
         jitter: 0.3,
         ..Default::default()
@@ -407,12 +399,12 @@ fn dense_and_sparse_layouts_give_the_same_band() {
         ),
         (
             "double dam break",
-            read("double_dam_break_frame_26_4732_particles.vtk"),
+            data("double_dam_break_frame_26_4732_particles.vtk"),
             0.14,
         ),
         (
             "dam break",
-            read("dam_break_frame_23_24389_particles.bgeo"),
+            data("dam_break_frame_23_24389_particles.bgeo"),
             0.095,
         ),
         ("block and a far drop", splash, block.support_radius),

@@ -1071,9 +1071,9 @@ pub fn bench_pipeline(args: &BenchPipelineArgs) -> Result<(), Error> {
     Ok(())
 }
 
-/// Arguments of `bench renderers`.
+/// The frame a bench draws: a file or the column scene's splash frame, resampled on request.
 #[derive(clap::Args)]
-pub struct BenchRenderersArgs {
+pub struct BenchFrame {
     /// Particle file (default: the column scene's splash frame).
     #[arg(long)]
     pub input: Option<PathBuf>,
@@ -1088,6 +1088,52 @@ pub struct BenchRenderersArgs {
     /// before any resampling.
     #[arg(long)]
     pub radius: Option<f32>,
+}
+
+impl BenchFrame {
+    /// The frame's description, particles and support radius (after any resampling).
+    fn read(&self) -> Result<(String, fluid_surfels::ParticleSet, f32), Error> {
+        let (mut source, mut positions, mut radius) = super::positions_of(
+            self.input.as_deref(),
+            self.input.is_none().then_some(super::SceneName::Column),
+            self.format,
+            None,
+            self.radius,
+        )?;
+        if let Some(n) = self.particles {
+            let (fine, h) = scenes::resample(&positions, radius, n)?;
+            source = format!("{source}, resampled from {} particles", positions.len());
+            positions = fine;
+            radius = h;
+        }
+        let set = fluid_surfels::ParticleSet::from_positions(positions);
+        set.validate()?;
+        Ok((source, set, radius))
+    }
+}
+
+/// The adapter a bench runs its GPU twins on: any, a software one too (a bench measures what it
+/// is asked), none with `no_gpu` or when none is found (said unless `json`).
+fn bench_context(no_gpu: bool, json: bool) -> Option<fluid_surfels::gpu::GpuContext> {
+    if no_gpu {
+        return None;
+    }
+    match fluid_surfels::gpu::GpuContext::headless() {
+        Ok(ctx) => Some(ctx),
+        Err(e) => {
+            if !json {
+                println!("  (no GPU: {e})");
+            }
+            None
+        }
+    }
+}
+
+/// Arguments of `bench renderers`.
+#[derive(clap::Args)]
+pub struct BenchRenderersArgs {
+    #[command(flatten)]
+    pub frame: BenchFrame,
     /// Image size, WIDTHxHEIGHT.
     #[arg(long, default_value = "1024x1024", value_parser = super::render::parse_size)]
     pub size: (u32, u32),
@@ -1176,35 +1222,8 @@ fn median_of<T>(
 pub fn bench_renderers(args: &BenchRenderersArgs) -> Result<(), Error> {
     use fluid_surfels::pipeline::{self, Pipeline, PipelineParams, Renderer, Through};
     use fluid_surfels::splat::{self, Light};
-    let (mut source, positions, mut radius) = super::positions_of(
-        args.input.as_deref(),
-        args.input.is_none().then_some(super::SceneName::Column),
-        args.format,
-        None,
-        args.radius,
-    )?;
-    let mut positions = positions;
-    if let Some(n) = args.particles {
-        let (fine, h) = scenes::resample(&positions, radius, n)?;
-        source = format!("{source}, resampled from {} particles", positions.len());
-        positions = fine;
-        radius = h;
-    }
-    let set = fluid_surfels::ParticleSet::from_positions(positions);
-    set.validate()?;
-    let ctx = if args.no_gpu {
-        None
-    } else {
-        match fluid_surfels::gpu::GpuContext::headless() {
-            Ok(ctx) => Some(ctx),
-            Err(e) => {
-                if !args.json {
-                    println!("  (no GPU: {e})");
-                }
-                None
-            }
-        }
-    };
+    let (source, set, radius) = args.frame.read()?;
+    let ctx = bench_context(args.no_gpu, args.json);
     let (w, h) = args.size;
     let light = Light::default();
     let mut rows = Vec::new();
@@ -1489,19 +1508,8 @@ pub fn bench_lnm(args: &BenchLnmArgs) -> Result<(), Error> {
 /// Arguments of `bench ssfr`.
 #[derive(clap::Args)]
 pub struct BenchSsfrArgs {
-    /// Particle file (default: the column scene's splash frame).
-    #[arg(long)]
-    pub input: Option<PathBuf>,
-    /// Format of --input (default: from its extension).
-    #[arg(long, value_parser = super::format_parser())]
-    pub format: Option<Format>,
-    /// Resample the particles to about this many first (`scenes::resample`).
-    #[arg(long)]
-    pub particles: Option<usize>,
-    /// Support radius (default: the scene's, or twice the spacing estimated from the file),
-    /// before any resampling.
-    #[arg(long)]
-    pub radius: Option<f32>,
+    #[command(flatten)]
+    pub frame: BenchFrame,
     /// Image size, WIDTHxHEIGHT (default full HD, the paper's).
     #[arg(long, default_value = "1920x1080", value_parser = super::render::parse_size)]
     pub size: (u32, u32),
@@ -1575,40 +1583,14 @@ struct SsfrBenchReport {
 pub fn bench_ssfr(args: &BenchSsfrArgs) -> Result<(), Error> {
     use fluid_surfels::splat::{self, Light, SplatParams, View};
     use fluid_surfels::ssfr::{ScreenSpace, SsfrParams};
-    let (mut source, mut positions, mut radius) = super::positions_of(
-        args.input.as_deref(),
-        args.input.is_none().then_some(super::SceneName::Column),
-        args.format,
-        None,
-        args.radius,
-    )?;
-    if let Some(n) = args.particles {
-        let (fine, h) = scenes::resample(&positions, radius, n)?;
-        source = format!("{source}, resampled from {} particles", positions.len());
-        positions = fine;
-        radius = h;
-    }
-    let set = fluid_surfels::ParticleSet::from_positions(positions);
-    set.validate()?;
+    let (source, set, radius) = args.frame.read()?;
     let p = &set.positions;
     let radii = vec![radius; p.len()];
     let spheres = splat::spheres_from(p, &[], radius, splat::WATER);
     let camera = super::render::framing(&spheres);
     let (w, h) = args.size;
     let view = View::new(&camera, &Light::default(), &SplatParams::default(), w, h)?;
-    let ctx = if args.no_gpu {
-        None
-    } else {
-        match fluid_surfels::gpu::GpuContext::headless() {
-            Ok(ctx) => Some(ctx),
-            Err(e) => {
-                if !args.json {
-                    println!("  (no GPU: {e})");
-                }
-                None
-            }
-        }
-    };
+    let ctx = bench_context(args.no_gpu, args.json);
     let mut gpu = match &ctx {
         Some(c) => Some(fluid_surfels::ssfr::gpu::GpuSsfr::new(&c.device)?),
         None => None,

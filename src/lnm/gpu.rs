@@ -103,38 +103,14 @@ pub fn narrow_band_gpu(
     let sums = zeroed("lnm sums", 12 * total);
     let voxel_of = zeroed("lnm voxel of", 4 * n as u64);
     let labels = zeroed("lnm labels", 4 * total);
-    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-        label: Some("lnm"),
-        source: wgpu::ShaderSource::Wgsl(SHADER.into()),
-    });
-    let pipeline = |entry| {
-        device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some(entry),
-            layout: None,
-            module: &module,
-            entry_point: Some(entry),
-            compilation_options: Default::default(),
-            cache: None,
-        })
-    };
-    let (count, first, second) = (
-        pipeline("cs_count"),
-        pipeline("cs_first"),
-        pipeline("cs_second"),
-    );
+    let [count, first, second] =
+        crate::gpu::compute_pipelines(device, "lnm", SHADER, ["cs_count", "cs_first", "cs_second"]);
     let group = |p: &wgpu::ComputePipeline, entries: &[(u32, &wgpu::Buffer)]| {
-        let entries: Vec<wgpu::BindGroupEntry<'_>> = entries
+        let entries: Vec<(u32, wgpu::BindingResource<'_>)> = entries
             .iter()
-            .map(|&(binding, b)| wgpu::BindGroupEntry {
-                binding,
-                resource: b.as_entire_binding(),
-            })
+            .map(|&(binding, b)| (binding, b.as_entire_binding()))
             .collect();
-        device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: None,
-            layout: &p.get_bind_group_layout(0),
-            entries: &entries,
-        })
+        crate::gpu::bind_group(device, p, &entries)
     };
     let count_group = group(
         &count,

@@ -150,31 +150,36 @@ impl GpuSsfr {
     /// Compiles the passes.
     pub fn new(device: &wgpu::Device) -> Result<Self, GpuError> {
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("ssfr"),
-            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
-        });
-        let pipeline = |entry| {
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(entry),
-                layout: None,
-                module: &module,
-                entry_point: Some(entry),
-                compilation_options: Default::default(),
-                cache: None,
-            })
-        };
-        let passes = Self {
-            depth: pipeline("cs_depth"),
-            filters: [
-                pipeline("cs_narrow_range"),
-                pipeline("cs_bilateral"),
-                pipeline("cs_plane"),
-                pipeline("cs_curvature_flow"),
+        let [
+            depth,
+            narrow,
+            bilateral,
+            plane,
+            flow,
+            thickness,
+            thickness_filter,
+            shade,
+        ] = crate::gpu::compute_pipelines(
+            device,
+            "ssfr",
+            SHADER,
+            [
+                "cs_depth",
+                "cs_narrow_range",
+                "cs_bilateral",
+                "cs_plane",
+                "cs_curvature_flow",
+                "cs_thickness",
+                "cs_thickness_filter",
+                "cs_shade",
             ],
-            thickness: pipeline("cs_thickness"),
-            thickness_filter: pipeline("cs_thickness_filter"),
-            shade: pipeline("cs_shade"),
+        );
+        let passes = Self {
+            depth,
+            filters: [narrow, bilateral, plane, flow],
+            thickness,
+            thickness_filter,
+            shade,
             targets: None,
             frame: None,
         };
@@ -285,20 +290,8 @@ impl GpuSsfr {
         let source_buf = init("ssfr sources", bytemuck::cast_slice(&projected));
         let source_starts = init("ssfr source starts", bytemuck::cast_slice(&source_starts));
         let source_items = init("ssfr source items", bytemuck::cast_slice(&source_items));
-        let group = |pipeline: &wgpu::ComputePipeline,
-                     entries: &[(u32, wgpu::BindingResource<'_>)]| {
-            let entries: Vec<wgpu::BindGroupEntry<'_>> = entries
-                .iter()
-                .map(|(binding, resource)| wgpu::BindGroupEntry {
-                    binding: *binding,
-                    resource: resource.clone(),
-                })
-                .collect();
-            device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: None,
-                layout: &pipeline.get_bind_group_layout(0),
-                entries: &entries,
-            })
+        let group = |p: &wgpu::ComputePipeline, entries: &[(u32, wgpu::BindingResource<'_>)]| {
+            crate::gpu::bind_group(device, p, entries)
         };
         fn b(buffer: &wgpu::Buffer) -> wgpu::BindingResource<'_> {
             buffer.as_entire_binding()
