@@ -445,6 +445,12 @@ struct DensityBenchReport {
     h: f32,
     threads: usize,
     cpu_density_ms: f64,
+    /// The grid in the LNM narrow band only (`density::points_grid_in_band`), the band
+    /// included, in the same run: the points it skips and whether its values off the interior
+    /// voxels equal the whole grid's.
+    cpu_band_ms: f64,
+    band_skipped_points: usize,
+    band_equals_whole: bool,
     cpu_extract_ms: Option<f64>,
     /// GPU time of the default method (`gpu_method`).
     gpu_density_ms: Option<f64>,
@@ -497,6 +503,24 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
     let t = Instant::now();
     let grid = density::density_grid(&positions, &spec, Kernel::Wyvill, h, limit)?;
     let cpu = ms(t);
+    let t = Instant::now();
+    let band = fluid_surfels::lnm::narrow_band(&positions, h, &Default::default())?;
+    let (banded, band_skipped_points) = density::points_grid_in_band(
+        density::Points::uniform(&positions, h),
+        &spec,
+        Kernel::Wyvill,
+        limit,
+        Vec::new(),
+        &band,
+        f32::MAX,
+    )?;
+    let cpu_band_ms = ms(t);
+    let band_equals_whole = grid
+        .values
+        .iter()
+        .zip(&banded.values)
+        .all(|(a, b)| a == b || *b == f32::MAX);
+    drop(banded);
     // the GPU path, when an adapter exists: one untimed run (pipeline creation, shader
     // compilation), then the timed one
     // the GPU paths, when an adapter exists: one untimed run each (pipeline creation, shader
@@ -585,6 +609,9 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
         h,
         threads: rayon::current_num_threads(),
         cpu_density_ms: cpu,
+        cpu_band_ms,
+        band_skipped_points,
+        band_equals_whole,
         cpu_extract_ms: Some(extract_ms),
         gpu_density_ms: default_gpu.map(|g| g.1),
         gpu_method: default_gpu.map(|g| g.0),
@@ -607,6 +634,16 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
             report.particles, report.grid, report.threads
         );
         println!("  CPU (z-clustered slabs, parallel)  {cpu:>9.1} ms");
+        println!(
+            "  CPU in the LNM narrow band          {cpu_band_ms:>9.1} ms   ratio {:.2}x, {band_skipped_points} of {} points skipped, {}",
+            cpu / cpu_band_ms,
+            positions.len(),
+            if band_equals_whole {
+                "equal to the whole grid off the interior"
+            } else {
+                "DIFFERENT from the whole grid"
+            }
+        );
         if let (Some(n), Some(d)) = (naive_ms, diff) {
             println!(
                 "  naive reference (one thread)       {n:>9.1} ms   ratio {:.1}x, max difference {d:e} of the peak",

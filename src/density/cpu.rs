@@ -223,3 +223,100 @@ pub fn points_naive(
         values,
     })
 }
+
+/// [`points_grid_in`] restricted to the narrow band `band` of the same points (its voxels at
+/// least as wide as the largest radius): the points deep inside (their voxel and its 26
+/// neighbours all interior, label 0) are not splatted, and every grid point in an interior voxel
+/// is set to `inside` (a value above the iso-value). Why that keeps the surface: a point reaches
+/// only the voxels next to its own, so no deep point reaches a band voxel or an empty one; their
+/// grid points get the same sums in the same order as the whole grid's, bit for bit, and the
+/// iso-surface lies there. Only an interior voxel whose true density is below the iso-value (a
+/// cavity smaller than a voxel) would read otherwise. Returns the grid and the points skipped.
+pub fn points_grid_in_band(
+    points: Points<'_>,
+    spec: &GridSpec,
+    kernel: Kernel,
+    memory_limit: u64,
+    values: Vec<f32>,
+    band: &crate::lnm::NarrowBand,
+    inside: f32,
+) -> Result<(DensityGrid, usize), DensityError> {
+    points.check()?;
+    if band.voxel_of.len() != points.len() || band.edge < points.max_radius() {
+        return Err(DensityError::InvalidGrid {
+            name: "narrow band",
+            reason: format!(
+                "a band of {} particles with voxels of {} for {} points of radius up to {}",
+                band.voxel_of.len(),
+                band.edge,
+                points.len(),
+                points.max_radius()
+            ),
+        });
+    }
+    // deep: interior and every neighbour full and interior
+    let deep: Vec<bool> = band
+        .voxels
+        .par_iter()
+        .map(|v| {
+            v.label == 0
+                && (0..27i64).filter(|&k| k != 13).all(|k| {
+                    let d = [k % 3 - 1, (k / 3) % 3 - 1, k / 9 - 1];
+                    let c: [i64; 3] = std::array::from_fn(|a| i64::from(v.coord[a]) + d[a]);
+                    c.iter().all(|&x| x >= 0)
+                        && band
+                            .voxel_at(c.map(|x| x as u32))
+                            .is_some_and(|j| band.voxels[j].label == 0)
+                })
+        })
+        .collect();
+    let kept: Vec<usize> = (0..points.len())
+        .filter(|&i| !deep[band.voxel_of[i] as usize])
+        .collect();
+    let positions: Vec<Vec3> = kept.iter().map(|&i| points.positions[i]).collect();
+    let radii: Vec<f32> = kept.iter().map(|&i| points.radius(i)).collect();
+    let mut grid = points_grid_in(
+        Points::with_radii(&positions, &radii, points.h),
+        spec,
+        kernel,
+        memory_limit,
+        values,
+    )?;
+    // the grid points in interior voxels, found as the band finds a particle's voxel
+    let inv = 1.0 / band.edge;
+    let [nx, ny, _] = spec.dims;
+    let voxel_of = |p: Vec3| -> [u32; 3] {
+        let c = ((p - band.origin) * inv).floor();
+        let at = |v: f32, n: u32| (v.max(0.0) as u32).min(n - 1);
+        [
+            at(c.x, band.dims[0]),
+            at(c.y, band.dims[1]),
+            at(c.z, band.dims[2]),
+        ]
+    };
+    let plane = nx as usize * ny as usize;
+    grid.values
+        .par_chunks_mut(plane)
+        .enumerate()
+        .for_each(|(k, slice)| {
+            for j in 0..ny {
+                // a row crosses a voxel every few grid points: look each up once
+                let mut last: Option<([u32; 3], bool)> = None;
+                for i in 0..nx {
+                    let c = voxel_of(spec.point(i, j, k as u32));
+                    let interior = match last {
+                        Some((l, b)) if l == c => b,
+                        _ => {
+                            let b = band.voxel_at(c).is_some_and(|v| band.voxels[v].label == 0);
+                            last = Some((c, b));
+                            b
+                        }
+                    };
+                    if interior {
+                        slice[j as usize * nx as usize + i as usize] = inside;
+                    }
+                }
+            }
+        });
+    Ok((grid, points.len() - kept.len()))
+}

@@ -29,8 +29,8 @@ use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 pub use cpu::{
-    density_grid, density_naive, points_grid, points_grid_in, points_naive, splat_points_slabs,
-    splat_slabs,
+    density_grid, density_naive, points_grid, points_grid_in, points_grid_in_band, points_naive,
+    splat_points_slabs, splat_slabs,
 };
 
 /// The density function of a particle.

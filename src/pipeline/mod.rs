@@ -159,6 +159,10 @@ pub struct GridParams {
     /// Largest grid in bytes (4 per grid point). A finer grid is coarsened to fit, and the frame
     /// says so in [`Frame::warnings`]. Default 1 GiB.
     pub memory_budget: u64,
+    /// Splat only near the surface: the points of the LNM narrow band ([`crate::lnm`], voxels
+    /// of the largest radius) and their neighbours, the grid points in interior voxels set
+    /// inside ([`density::points_grid_in_band`]); the same surfels (tested). Default off.
+    pub narrow_band: bool,
 }
 
 impl Default for GridParams {
@@ -168,6 +172,7 @@ impl Default for GridParams {
             cells_per_radius: 3.0,
             resolution: None,
             memory_budget: crate::io::DEFAULT_MEMORY_BUDGET,
+            narrow_band: false,
         }
     }
 }
@@ -1142,7 +1147,27 @@ pub fn iso_surfels_in(
     points.check()?;
     let (spec, warning) = grid_for(&points, grid)?;
     let t = Instant::now();
-    let values = density::points_grid_in(points, &spec, grid.kernel, grid.memory_budget, buffer)?;
+    let values = if grid.narrow_band {
+        let band = crate::lnm::narrow_band(
+            points.positions,
+            points.max_radius(),
+            &crate::lnm::LnmParams::default(),
+        )?;
+        // inside: well above the iso-value
+        let inside = 2.0 * params.iso_fraction.max(1.0) * grid.kernel.peak(points.h);
+        density::points_grid_in_band(
+            points,
+            &spec,
+            grid.kernel,
+            grid.memory_budget,
+            buffer,
+            &band,
+            inside,
+        )?
+        .0
+    } else {
+        density::points_grid_in(points, &spec, grid.kernel, grid.memory_budget, buffer)?
+    };
     let density_ms = ms(t);
     let t = Instant::now();
     let surfels = surfels::extract_points(&values, points, grid.kernel, params)?;
