@@ -486,6 +486,83 @@ impl View {
     }
 }
 
+/// Side of the square screen tiles that renderers bin spheres into (the ray caster, the screen-space passes).
+pub(crate) const TILE: usize = 16;
+
+/// The half-open pixel rectangle (columns, rows) that holds the projection of the sphere at `c`
+/// of radius `r`: the bounding box of its bounding cube's projected corners (perspective maps
+/// convex sets to convex sets). The whole screen when the cube reaches behind the eye; `None`
+/// when it lies wholly behind it or off screen.
+pub(crate) fn sphere_rect(v: &View, c: Vec3, r: f32) -> Option<[usize; 4]> {
+    let (w, h) = (v.width as f32, v.height as f32);
+    let mut lo = Vec2::splat(f32::INFINITY);
+    let mut hi = Vec2::splat(f32::NEG_INFINITY);
+    let mut behind = 0;
+    for k in 0..8 {
+        let s = Vec3::new(
+            if k & 1 == 0 { -r } else { r },
+            if k & 2 == 0 { -r } else { r },
+            if k & 4 == 0 { -r } else { r },
+        );
+        let q = v.project(c + s);
+        // NaN counts as behind
+        if q.z.is_nan() || q.z <= 0.0 {
+            behind += 1;
+            continue;
+        }
+        lo = lo.min(q.truncate());
+        hi = hi.max(q.truncate());
+    }
+    if behind == 8 {
+        return None;
+    }
+    if behind > 0 {
+        lo = Vec2::ZERO;
+        hi = Vec2::new(w, h);
+    }
+    let (x0, x1) = crate::splat::pixel_span(lo.x, hi.x, v.width as usize);
+    let (y0, y1) = crate::splat::pixel_span(lo.y, hi.y, v.height as usize);
+    (x0 < x1 && y0 < y1).then_some([x0, x1, y0, y1])
+}
+
+/// The `n` spheres (centre and radius of sphere `j`) binned into the screen's 16x16 tiles: tiles
+/// along x and each tile's spheres, in index order (so that any per-tile loop is deterministic).
+/// Refused when their rectangles add up to more pixels than the view's limit or the buffers
+/// would not fit in memory.
+pub(crate) fn bin(
+    v: &View,
+    n: usize,
+    sphere: impl Fn(usize) -> (Vec3, f32) + Sync,
+) -> Result<(usize, Vec<Vec<u32>>), crate::splat::SplatError> {
+    let (w, h) = (v.width as usize, v.height as usize);
+    use rayon::prelude::*;
+    let rects: Vec<Option<[usize; 4]>> = (0..n)
+        .into_par_iter()
+        .map(|j| {
+            let (c, r) = sphere(j);
+            sphere_rect(v, c, r)
+        })
+        .collect();
+    let fragments: u128 = rects
+        .iter()
+        .flatten()
+        .map(|r| ((r[1] - r[0]) * (r[3] - r[2])) as u128)
+        .sum();
+    crate::splat::check_cost(n, fragments, v)?;
+    let (tw, th) = (w.div_ceil(TILE), h.div_ceil(TILE));
+    let mut tiles: Vec<Vec<u32>> = vec![Vec::new(); tw * th];
+    for (j, r) in rects.iter().enumerate() {
+        if let Some([x0, x1, y0, y1]) = *r {
+            for ty in y0 / TILE..=(y1 - 1) / TILE {
+                for tx in x0 / TILE..=(x1 - 1) / TILE {
+                    tiles[ty * tw + tx].push(j as u32);
+                }
+            }
+        }
+    }
+    Ok((tw, tiles))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

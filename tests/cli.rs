@@ -966,6 +966,31 @@ fn render_ddb(dir: &Path, extra: &[&str]) -> std::process::Output {
     render_input(&dir.join("ddb.vtk"), extra)
 }
 
+/// `render --renderer R` of the double dam break in `dir` (64x48, the particles source), the
+/// shaded splats or the finished frame, on the GPU and on the CPU: the PSNR between the two
+/// PNGs, after checking that each report names its backend.
+fn gpu_against_cpu(dir: &Path, renderer: &str, optics: bool) -> f64 {
+    let draw = |backend: &str| {
+        let out = dir.join(format!("{renderer}{backend}{optics}.png"));
+        let report = json_of(
+            &bin()
+                .args(["render", "--renderer", renderer, "--json", backend])
+                .args(["--size", "64x48", "--source", "particles", "--input"])
+                .arg(dir.join("ddb.vtk"))
+                .args(optics.then_some("--optics"))
+                .arg("--out")
+                .arg(&out)
+                .output()
+                .unwrap(),
+        );
+        (report, image::open(&out).unwrap().to_rgba8())
+    };
+    let ((gpu, a), (cpu, b)) = (draw("--gpu"), draw("--cpu"));
+    assert!(gpu["backend"].as_str().unwrap().starts_with("gpu"), "{gpu}");
+    assert_eq!(cpu["backend"], "cpu reference", "{cpu}");
+    fluid_surfels::splat::psnr(&a, &b)
+}
+
 /// `render` of `input`, small, on the CPU, the raw particles' surface, with `extra` arguments.
 fn render_input(input: &Path, extra: &[&str]) -> std::process::Output {
     bin()
@@ -1129,26 +1154,8 @@ fn render_draws_particle_spheres_with_the_particle_splat_renderer() {
         .unwrap()
         .is_some()
     {
-        let cast = |backend: &str, optics: bool| {
-            let out = d.join(format!("rays{backend}{optics}.png"));
-            let report = json_of(
-                &bin()
-                    .args(["render", "--renderer", "ray-cast", "--json", backend])
-                    .args(["--size", "64x48", "--source", "particles", "--input"])
-                    .arg(d.join("ddb.vtk"))
-                    .args(optics.then_some("--optics"))
-                    .arg("--out")
-                    .arg(&out)
-                    .output()
-                    .unwrap(),
-            );
-            (report, image::open(&out).unwrap().to_rgba8())
-        };
         for optics in [false, true] {
-            let ((gpu, a), (cpu, b)) = (cast("--gpu", optics), cast("--cpu", optics));
-            assert!(gpu["backend"].as_str().unwrap().starts_with("gpu"), "{gpu}");
-            assert_eq!(cpu["backend"], "cpu reference", "{cpu}");
-            let psnr = fluid_surfels::splat::psnr(&a, &b);
+            let psnr = gpu_against_cpu(d, "ray-cast", optics);
             assert!(
                 psnr >= 35.0,
                 "optics {optics}: GPU against CPU ray casting {psnr:.1} dB"
@@ -1952,41 +1959,10 @@ fn render_draws_the_screen_space_surface_with_each_filter() {
         .unwrap()
         .is_some()
     {
-        let draw = |backend: &str| {
-            let out = d.join(format!("ssfr{backend}.png"));
-            let report = json_of(
-                &bin()
-                    .args(["render", "--renderer", "ssfr", "--json", backend])
-                    .args(["--size", "64x48", "--source", "particles", "--input"])
-                    .arg(d.join("ddb.vtk"))
-                    .arg("--out")
-                    .arg(&out)
-                    .output()
-                    .unwrap(),
-            );
-            (report, image::open(&out).unwrap().to_rgba8())
-        };
-        let ((gpu, a), (cpu, b)) = (draw("--gpu"), draw("--cpu"));
-        assert!(gpu["backend"].as_str().unwrap().starts_with("gpu"), "{gpu}");
-        assert_eq!(cpu["backend"], "cpu reference", "{cpu}");
-        let psnr = fluid_surfels::splat::psnr(&a, &b);
+        let psnr = gpu_against_cpu(d, "ssfr", false);
         assert!(psnr >= 40.0, "GPU against CPU screen space {psnr:.1} dB");
         // and the finished frame through GpuPipeline
-        let frame = |backend: &str| {
-            let out = d.join(format!("ssfr-frame{backend}.png"));
-            succeeded(
-                &bin()
-                    .args(["render", "--renderer", "ssfr", "--optics", backend])
-                    .args(["--size", "64x48", "--source", "particles", "--input"])
-                    .arg(d.join("ddb.vtk"))
-                    .arg("--out")
-                    .arg(&out)
-                    .output()
-                    .unwrap(),
-            );
-            image::open(&out).unwrap().to_rgba8()
-        };
-        let psnr = fluid_surfels::splat::psnr(&frame("--gpu"), &frame("--cpu"));
+        let psnr = gpu_against_cpu(d, "ssfr", true);
         assert!(
             psnr >= 35.0,
             "GPU against CPU screen-space frame {psnr:.1} dB"

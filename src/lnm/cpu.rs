@@ -155,7 +155,21 @@ fn sparse_band(
         }
         Some(table.get(&key(n.map(|v| v as u32))).copied())
     };
-    // layer 1: on the border, or an empty voxel in the 1-ring
+    let labels = layers(&runs, dims, params.n_min, neighbour);
+    finish(positions, lo, edge, dims, &runs, &order, &labels)
+}
+
+/// Algorithm 1's two labelling passes over the full voxels (`(key, start, count)`), in
+/// parallel: `neighbour(c, d)` is the voxel at `c + d`: `None` outside the domain, `Some(None)`
+/// empty, `Some(Some(v))` the full voxel `v`. Layer 1: on the domain's border or next to an
+/// empty voxel; layer 2: the other full voxels next to a layer-1 voxel of at most `n_min`
+/// particles.
+fn layers(
+    runs: &[(u64, u32, u32)],
+    dims: [u32; 3],
+    n_min: u32,
+    neighbour: impl Fn([u32; 3], [i64; 3]) -> Option<Option<u32>> + Sync,
+) -> Vec<u8> {
     let first: Vec<bool> = runs
         .par_iter()
         .map(|r| {
@@ -164,9 +178,7 @@ fn sparse_band(
                 || ring().any(|d| neighbour(c, d) == Some(None))
         })
         .collect();
-    // layer 2: a layer-1 neighbour with at most n_min particles
-    let labels: Vec<u8> = runs
-        .par_iter()
+    runs.par_iter()
         .zip(&first)
         .map(|(r, &one)| {
             if one {
@@ -176,12 +188,11 @@ fn sparse_band(
             let thin = ring().any(|d| {
                 neighbour(c, d)
                     .flatten()
-                    .is_some_and(|v| first[v as usize] && runs[v as usize].2 <= params.n_min)
+                    .is_some_and(|v| first[v as usize] && runs[v as usize].2 <= n_min)
             });
             if thin { 2 } else { 0 }
         })
-        .collect();
-    finish(positions, lo, edge, dims, &runs, &order, &labels)
+        .collect()
 }
 
 /// The band from the full voxels (`(key, start, count)` in key order, their particles at
@@ -329,45 +340,18 @@ fn dense_band(
             (v / (nx * ny)) as u32,
         ]
     };
-    let count_at = |c: [u32; 3], d: [i64; 3]| -> Option<u32> {
-        // None outside the domain
+    let neighbour = |c: [u32; 3], d: [i64; 3]| -> Option<Option<u32>> {
         let n: [i64; 3] = std::array::from_fn(|a| i64::from(c[a]) + d[a]);
         if (0..3).any(|a| n[a] < 0 || n[a] >= i64::from(dims[a])) {
             return None;
         }
-        Some(counts[n[0] as usize + nx * (n[1] as usize + ny * n[2] as usize)])
+        let k = compact[n[0] as usize + nx * (n[1] as usize + ny * n[2] as usize)];
+        Some((k != u32::MAX).then_some(k))
     };
-    let first: Vec<bool> = runs
-        .par_iter()
-        .map(|r| {
-            let c = coord_of(r.0);
-            (0..3).any(|a| c[a] == 0 || c[a] + 1 == dims[a])
-                || ring().any(|d| count_at(c, d) == Some(0))
-        })
-        .collect();
-    let labels: Vec<u8> = runs
-        .par_iter()
-        .zip(&first)
-        .map(|(r, &one)| {
-            if one {
-                return 1;
-            }
-            let c = coord_of(r.0);
-            let thin = ring().any(|d| {
-                let n: [i64; 3] = std::array::from_fn(|a| i64::from(c[a]) + d[a]);
-                if (0..3).any(|a| n[a] < 0 || n[a] >= i64::from(dims[a])) {
-                    return false;
-                }
-                let w = n[0] as usize + nx * (n[1] as usize + ny * n[2] as usize);
-                let k = compact[w];
-                k != u32::MAX && first[k as usize] && counts[w] <= params.n_min
-            });
-            if thin { 2 } else { 0 }
-        })
-        .collect();
     let runs: Vec<(u64, u32, u32)> = runs
         .into_iter()
         .map(|(v, s, c)| (key(coord_of(v)), s, c))
         .collect();
+    let labels = layers(&runs, dims, params.n_min, neighbour);
     finish(positions, lo, edge, dims, &runs, &order, &labels)
 }

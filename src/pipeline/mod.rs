@@ -834,6 +834,14 @@ impl Pipeline {
         Ok(())
     }
 
+    /// The reference radius of the peer renderers: the support radius, or the largest of
+    /// `radii` before one is known (never zero).
+    fn reference_radius(&self, radii: &[f32]) -> f32 {
+        self.radius
+            .unwrap_or_else(|| radii.iter().copied().fold(0.0, f32::max))
+            .max(f32::MIN_POSITIVE)
+    }
+
     /// The ray caster of [`Renderer::RayCast`] over points and their radii (from
     /// [`sphere_points`]): the grid's kernel, `[raycast]`, the support radius as the reference
     /// radius (the largest radius before one is known).
@@ -842,11 +850,8 @@ impl Pipeline {
         positions: &'a [Vec3],
         radii: &'a [f32],
     ) -> Result<crate::raycast::Caster<'a>, Error> {
-        let reference = match self.radius {
-            Some(h) => h,
-            None => radii.iter().copied().fold(0.0, f32::max),
-        };
-        let points = Points::with_radii(positions, radii, reference.max(f32::MIN_POSITIVE));
+        let reference = self.reference_radius(radii);
+        let points = Points::with_radii(positions, radii, reference);
         Ok(crate::raycast::Caster::new(
             points,
             self.params.grid.kernel,
@@ -862,14 +867,11 @@ impl Pipeline {
         positions: &'a [Vec3],
         radii: &'a [f32],
     ) -> Result<crate::ssfr::ScreenSpace<'a>, Error> {
-        let reference = match self.radius {
-            Some(h) => h,
-            None => radii.iter().copied().fold(0.0, f32::max),
-        };
+        let reference = self.reference_radius(radii);
         Ok(crate::ssfr::ScreenSpace::new(
             positions,
             radii,
-            reference.max(f32::MIN_POSITIVE),
+            reference,
             &self.params.ssfr,
         )?)
     }

@@ -10,8 +10,8 @@ use wgpu::util::DeviceExt;
 use super::cpu::{ScreenSpace, SsfrRender, SsfrTimings, depth_image, project_sources};
 use super::{DepthFilter, FilterScales, SsfrError};
 use crate::gpu::{GpuContext, GpuError};
-use crate::raycast::cpu::bin;
 use crate::splat::{Render, View};
+use crate::view::bin;
 
 /// The WGSL source of the passes.
 pub const SHADER: &str = include_str!("../../shaders/ssfr.wgsl");
