@@ -148,7 +148,10 @@ fn main() -> Result<(), fluid_surfels::Error> {
             let grid = frame
                 .grid
                 .as_ref()
-                .map(|g| format!("{}x{}x{}", g.spec.dims[0], g.spec.dims[1], g.spec.dims[2]))
+                .map(|g| {
+                    let d = g.spec().dims;
+                    format!("{}x{}x{}", d[0], d[1], d[2])
+                })
                 .unwrap_or_else(|| "-".into());
             println!(
                 "| {name} | {} | {} | {} | {grid} | {} | {} | {distance} | {ms:.0} |",

@@ -295,6 +295,114 @@ impl SurfelExtractor {
         }
     }
 
+    /// The crossings of a sparse grid ([`crate::density::sparse`]): the edges of the evaluated
+    /// blocks and of the blocks just below them (every other block's edges lie between two
+    /// values on one side of the iso-value), found in parallel and put in the order
+    /// [`Self::push_plane`] finds them in (plane, row, point, then x, y and z edge), so the
+    /// surfels are the dense grid's, in the same order.
+    #[must_use]
+    pub fn from_sparse(grid: &crate::density::SparseGrid, iso: f32) -> Self {
+        use crate::density::sparse::{BLOCK, BlockState};
+        let spec = grid.spec;
+        let [nx, ny, nz] = spec.dims;
+        let [bx, by, bz] = grid.blocks;
+        // a block is scanned when it or an upper neighbour (+x, +y, +z and their corners) is
+        // evaluated
+        let mut scan = vec![false; bx as usize * by as usize * bz as usize];
+        let at = |b: [u32; 3]| {
+            b[0] as usize + bx as usize * (b[1] as usize + by as usize * b[2] as usize)
+        };
+        for b in grid.evaluated_blocks() {
+            for d in 0..8u32 {
+                let c = [0, 1, 2].map(|a| b[a].checked_sub((d >> a) & 1));
+                if let [Some(x), Some(y), Some(z)] = c {
+                    scan[at([x, y, z])] = true;
+                }
+            }
+        }
+        let scanned: Vec<[u32; 3]> = (0..scan.len())
+            .filter(|&b| scan[b])
+            .map(|b| {
+                let (bx, by) = (bx as usize, by as usize);
+                [
+                    (b % bx) as u32,
+                    ((b / bx) % by) as u32,
+                    (b / (bx * by)) as u32,
+                ]
+            })
+            .collect();
+        drop(scan);
+        let cross = |a: f32, b: f32| (a < iso) != (b < iso);
+        let mut found: Vec<(u64, Vec3)> = scanned
+            .par_iter()
+            .flat_map_iter(|&b| {
+                let mut out = Vec::new();
+                // the block's own values read directly, its neighbours' through `at`
+                let own = grid.block_values(b);
+                let inside = matches!(grid.state(b), BlockState::Inside);
+                let [i0, j0, k0] = b.map(|c| c * BLOCK);
+                for k in k0..(k0 + BLOCK).min(nz) {
+                    for j in j0..(j0 + BLOCK).min(ny) {
+                        for i in i0..(i0 + BLOCK).min(nx) {
+                            let v = match own {
+                                Some(values) => {
+                                    values[(i - i0) as usize
+                                        + BLOCK as usize
+                                            * ((j - j0) as usize
+                                                + BLOCK as usize * (k - k0) as usize)]
+                                }
+                                None if inside => grid.inside,
+                                None => 0.0,
+                            };
+                            let key = |kk: u32, t: u64| {
+                                ((u64::from(kk) * u64::from(ny) + u64::from(j)) * u64::from(nx)
+                                    + u64::from(i))
+                                    * 3
+                                    + t
+                            };
+                            let here = spec.point(i, j, k);
+                            if i + 1 < nx {
+                                let w = grid.at(i + 1, j, k);
+                                if cross(v, w) {
+                                    out.push((
+                                        key(k, 0),
+                                        here.lerp(spec.point(i + 1, j, k), (iso - v) / (w - v)),
+                                    ));
+                                }
+                            }
+                            if j + 1 < ny {
+                                let w = grid.at(i, j + 1, k);
+                                if cross(v, w) {
+                                    out.push((
+                                        key(k, 1),
+                                        here.lerp(spec.point(i, j + 1, k), (iso - v) / (w - v)),
+                                    ));
+                                }
+                            }
+                            if k + 1 < nz {
+                                let w = grid.at(i, j, k + 1);
+                                if cross(v, w) {
+                                    out.push((
+                                        key(k + 1, 2),
+                                        here.lerp(spec.point(i, j, k + 1), (iso - v) / (w - v)),
+                                    ));
+                                }
+                            }
+                        }
+                    }
+                }
+                out
+            })
+            .collect();
+        found.par_sort_unstable_by_key(|c| c.0);
+        Self {
+            spec,
+            iso,
+            previous: None,
+            crossings: found.into_iter().map(|c| c.1).collect(),
+        }
+    }
+
     /// Takes a slab of consecutive planes starting at `k0`, as [`crate::density::splat_slabs`]
     /// hands them out.
     pub fn push_slab(&mut self, k0: u32, slab: Vec<f32>) {
@@ -341,6 +449,30 @@ impl SurfelExtractor {
     }
 }
 
+/// [`extract_points`] on a sparse grid ([`crate::density::sparse`]): the same surfels as on the
+/// dense grid, in the same order.
+pub fn extract_sparse(
+    grid: &crate::density::SparseGrid,
+    points: Points<'_>,
+    kernel: Kernel,
+    params: &SurfelParams,
+) -> Result<Surfels, SurfelError> {
+    let iso = iso_of(points.h, kernel, params)?;
+    let density = ExactDensity::of(points, kernel)?;
+    Ok(SurfelExtractor::from_sparse(grid, iso).finish(&density, params))
+}
+
+/// The absolute iso-value of `params`: `iso_fraction` of the peak `F(0, h)`.
+fn iso_of(h: f32, kernel: Kernel, params: &SurfelParams) -> Result<f32, SurfelError> {
+    if !(params.iso_fraction.is_finite() && params.iso_fraction > 0.0) {
+        return Err(SurfelError::InvalidParameter {
+            name: "iso_fraction",
+            reason: format!("must be finite and > 0, got {}", params.iso_fraction),
+        });
+    }
+    Ok(params.iso_fraction * kernel.peak(h))
+}
+
 /// Extracts the surfels of a whole density grid.
 pub fn extract(
     grid: &DensityGrid,
@@ -360,13 +492,7 @@ pub fn extract_points(
     kernel: Kernel,
     params: &SurfelParams,
 ) -> Result<Surfels, SurfelError> {
-    if !(params.iso_fraction.is_finite() && params.iso_fraction > 0.0) {
-        return Err(SurfelError::InvalidParameter {
-            name: "iso_fraction",
-            reason: format!("must be finite and > 0, got {}", params.iso_fraction),
-        });
-    }
-    let iso = params.iso_fraction * kernel.peak(points.h);
+    let iso = iso_of(points.h, kernel, params)?;
     let density = ExactDensity::of(points, kernel)?;
     let mut extractor = SurfelExtractor::new(grid.spec, iso);
     let plane = grid.spec.dims[0] as usize * grid.spec.dims[1] as usize;

@@ -84,7 +84,11 @@ fn pipeline_equals_the_stages_called_by_hand_over_the_column_frames() {
         let s = surfels::extract_points(&grid, points, Kernel::Wyvill, &SurfelParams::default())
             .unwrap();
         let got = frame.surfels.as_ref().unwrap();
-        assert_eq!(frame.grid.as_ref().unwrap().spec, spec, "frame {f}: grid");
+        assert_eq!(
+            *frame.grid.as_ref().unwrap().spec(),
+            spec,
+            "frame {f}: grid"
+        );
         assert!(!s.is_empty(), "frame {f}: no surfels");
         assert_eq!(got.positions, s.positions, "frame {f}: surfels");
         assert_eq!(got.normals, s.normals, "frame {f}: surfel normals");
@@ -166,7 +170,7 @@ fn chain_surfels_lie_closer_to_the_sphere_than_the_raw_particles() {
         .unwrap();
         let frame = p.frame_through(&scene.particles, Through::Surfels).unwrap();
         let s = frame.surfels.as_ref().unwrap();
-        assert_eq!(frame.grid.as_ref().unwrap().spec.spacing, cell);
+        assert_eq!(frame.grid.as_ref().unwrap().spec().spacing, cell);
         let (rms, max) = sphere_error(s, radius, scene.spacing);
         println!(
             "{}: {} surfels, rms distance to the sphere {rms:.3} spacings, largest {max:.3}",
@@ -417,7 +421,7 @@ fn degenerate_frames_and_the_memory_budget() {
     .unwrap();
     let f = tight.frame_through(&a, Through::Surfels).unwrap();
     let grid = f.grid.as_ref().unwrap();
-    assert!(grid.spec.bytes() <= budget as u128);
+    assert!(grid.spec().bytes() <= budget as u128);
     assert_eq!(f.warnings.len(), 1, "{:?}", f.warnings);
     assert!(f.warnings[0].contains("memory budget"), "{}", f.warnings[0]);
     assert!(!f.surfels.unwrap().is_empty());
@@ -433,11 +437,11 @@ fn recycled_frames_reuse_the_grid_buffer() {
     })
     .unwrap();
     let first = p.frame_through(&a, Through::Surfels).unwrap();
-    let grid = first.grid.as_ref().unwrap();
+    let grid = first.grid.as_ref().unwrap().dense().unwrap();
     let (pointer, values) = (grid.values.as_ptr(), grid.values.clone());
     p.recycle(first);
     let second = p.frame_through(&a, Through::Surfels).unwrap();
-    let grid = second.grid.as_ref().unwrap();
+    let grid = second.grid.as_ref().unwrap().dense().unwrap();
     assert_eq!(grid.values.as_ptr(), pointer, "a new buffer was allocated");
     assert_eq!(grid.values, values, "the recycled buffer changed the grid");
 }
@@ -787,11 +791,7 @@ fn results_do_not_depend_on_the_thread_count() {
             let (ra, rb) = (a.refined.as_ref().unwrap(), b.refined.as_ref().unwrap());
             assert_eq!(ra.positions, rb.positions, "{what}");
             assert_eq!(ra.kernel_radii, rb.kernel_radii, "{what}");
-            assert_eq!(
-                a.grid.as_ref().unwrap().values,
-                b.grid.as_ref().unwrap().values,
-                "{what}"
-            );
+            assert_eq!(a.grid, b.grid, "{what}");
             let (sa, sb) = (a.surfels.as_ref().unwrap(), b.surfels.as_ref().unwrap());
             assert_eq!(sa.positions, sb.positions, "{what}");
             assert_eq!(sa.normals, sb.normals, "{what}");

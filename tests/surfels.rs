@@ -327,15 +327,118 @@ fn surfels_lie_on_splashsurfs_mesh() {
     );
 }
 
-/// The density grid restricted to the LNM narrow band (`GridParams::narrow_band`) gives the
-/// same surfels as the whole grid, bit for bit, and the same values on every grid point outside
-/// the interior voxels, on a 20^3 lattice block, a jittered sphere and both real files; the
-/// points it skips and the time of each are printed.
+/// The pipeline's stage 3 with `GridParams::narrow_band` (the sparse grid in the LNM band)
+/// gives the same surfels as with the dense grid, bit for bit and in the same order, on the
+/// chain's points of both real files (refined surface points with their own radii beside the
+/// interior particles) and on a jittered sphere; the time of each is printed.
 #[test]
 fn the_grid_in_the_narrow_band_gives_the_same_surfels() {
+    use fluid_surfels::density::Grid;
+    use fluid_surfels::pipeline::{GridParams, Pipeline, PipelineParams, Through, iso_surfels};
+    let read = |name: &str| {
+        fluid_surfels::io::read_particles(
+            &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("tests/data")
+                .join(name),
+            None,
+        )
+        .unwrap()
+    };
+    let sphere = scenes::sphere(&scenes::SphereParams::default()).unwrap();
+    let points = density::Points::uniform(&sphere.particles.positions, sphere.support_radius);
+    let dense = iso_surfels(points, &GridParams::default(), &SurfelParams::default())
+        .unwrap()
+        .unwrap();
+    let banded = GridParams {
+        narrow_band: true,
+        ..GridParams::default()
+    };
+    let sparse = iso_surfels(points, &banded, &SurfelParams::default())
+        .unwrap()
+        .unwrap();
+    assert!(matches!(sparse.grid, Grid::Sparse(_)));
+    assert!(
+        dense.surfels == sparse.surfels,
+        "sphere: the surfels differ"
+    );
+    for name in [
+        "double_dam_break_frame_26_4732_particles.vtk",
+        "dam_break_frame_23_24389_particles.bgeo",
+    ] {
+        let particles = read(name);
+        let run = |narrow_band| {
+            let mut params = PipelineParams::default();
+            params.grid.narrow_band = narrow_band;
+            let mut pipeline = Pipeline::new(params).unwrap();
+            pipeline
+                .frame_through(&particles, Through::Surfels)
+                .unwrap()
+        };
+        let (a, b) = (run(false), run(true));
+        let (sa, sb) = (a.surfels.as_ref().unwrap(), b.surfels.as_ref().unwrap());
+        assert!(!sa.is_empty(), "{name}");
+        let (ga, gb) = (a.grid.as_ref().unwrap(), b.grid.as_ref().unwrap());
+        assert_eq!(ga.spec(), gb.spec(), "{name}");
+        let spec = *ga.spec();
+        let Grid::Sparse(sparse) = gb else {
+            panic!("{name}: not sparse")
+        };
+        let mut wrong = Vec::new();
+        for k in 0..spec.dims[2] {
+            for j in 0..spec.dims[1] {
+                for i in 0..spec.dims[0] {
+                    let (d, v) = (ga.at(i, j, k), sparse.at(i, j, k));
+                    let fine = if sparse.is_evaluated(i, j, k) {
+                        d.to_bits() == v.to_bits()
+                    } else if v == 0.0 {
+                        d == 0.0
+                    } else {
+                        d >= sb.iso
+                    };
+                    if !fine {
+                        wrong.push((i, j, k, d, v));
+                    }
+                }
+            }
+        }
+        assert!(
+            wrong.is_empty(),
+            "{name}: {} grid points differ, the first {:?} (iso {})",
+            wrong.len(),
+            &wrong[..wrong.len().min(5)],
+            sb.iso
+        );
+        let differ = (0..sa.len().min(sb.len()))
+            .filter(|&i| sa.positions[i] != sb.positions[i] || sa.normals[i] != sb.normals[i])
+            .count();
+        assert!(
+            sa.len() == sb.len() && differ == 0 && sa.radii == sb.radii,
+            "{name}: {} surfels dense, {} sparse, {differ} differ",
+            sa.len(),
+            sb.len()
+        );
+        println!(
+            "{name}: {} surfels; density + surfels {:.0} + {:.0} ms dense ({} KiB), {:.0} + {:.0} ms sparse ({} KiB)",
+            sa.len(),
+            a.timings.density_ms,
+            a.timings.surfels_ms,
+            ga.bytes() / 1024,
+            b.timings.density_ms,
+            b.timings.surfels_ms,
+            gb.bytes() / 1024
+        );
+    }
+}
+
+/// The sparse grid (`density::points_grid_sparse`, blocks of 8^3 evaluated near the surface
+/// only) against the dense one on a 20^3 lattice block, a jittered sphere, the sphere with
+/// mixed radii (the chain's case: fine points beside coarse ones), two far drops, a grid box
+/// that cuts the particles, and both real files: every evaluated value bit for bit, every empty
+/// block's values 0 in the dense grid too, every inside point above the iso-value there, the
+/// same surfels in the same order, and the same grid on one thread as on three.
+#[test]
+fn the_sparse_grid_equals_the_dense_one() {
     use fluid_surfels::density::Points;
-    use fluid_surfels::pipeline::{GridParams, iso_surfels};
-    use fluid_surfels::surfels::SurfelParams;
     let read = |name: &str| {
         fluid_surfels::io::read_particles(
             &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -352,92 +455,199 @@ fn the_grid_in_the_narrow_band_gives_the_same_surfels() {
     })
     .unwrap();
     let sphere = scenes::sphere(&scenes::SphereParams::default()).unwrap();
-    let cases: Vec<(&str, Vec<glam::Vec3>, f32)> = vec![
-        (
+    let drops: Vec<Vec3> = (0..2)
+        .flat_map(|d| {
+            (0..27).map(move |t| {
+                Vec3::new((t % 3) as f32, ((t / 3) % 3) as f32, (t / 9) as f32) * 0.5
+                    + Vec3::X * (40.0 * d as f32)
+            })
+        })
+        .collect();
+    let mixed: Vec<f32> = (0..sphere.particles.len())
+        .map(|i| {
+            if i % 3 == 0 {
+                0.5 * sphere.support_radius
+            } else {
+                sphere.support_radius
+            }
+        })
+        .collect();
+    struct Case {
+        name: &'static str,
+        positions: Vec<Vec3>,
+        h: f32,
+        radii: Option<Vec<f32>>,
+        cut: bool,
+    }
+    let case = |name, positions, h| Case {
+        name,
+        positions,
+        h,
+        radii: None,
+        cut: false,
+    };
+    let cases = vec![
+        case(
             "20^3 block",
             block.particles.positions.clone(),
             block.support_radius,
         ),
-        (
+        case(
             "sphere",
             sphere.particles.positions.clone(),
             sphere.support_radius,
         ),
-        (
+        Case {
+            radii: Some(mixed),
+            ..case(
+                "sphere, mixed radii",
+                sphere.particles.positions.clone(),
+                sphere.support_radius,
+            )
+        },
+        case("two far drops", drops, 1.0),
+        Case {
+            cut: true,
+            ..case(
+                "block cut by the grid",
+                block.particles.positions.clone(),
+                block.support_radius,
+            )
+        },
+        case(
             "double dam break",
             read("double_dam_break_frame_26_4732_particles.vtk"),
             0.14,
         ),
-        (
+        case(
             "dam break",
             read("dam_break_frame_23_24389_particles.bgeo"),
             0.095,
         ),
     ];
-    for (name, p, h) in cases {
-        let points = Points::uniform(&p, h);
-        let whole = GridParams::default();
-        let banded = GridParams {
-            narrow_band: true,
-            ..whole
+    let kernel = Kernel::Wyvill;
+    let params = SurfelParams::default();
+    for c in cases {
+        let points = match &c.radii {
+            Some(r) => Points::with_radii(&c.positions, r, c.h),
+            None => Points::uniform(&c.positions, c.h),
         };
-        let t = std::time::Instant::now();
-        let a = iso_surfels(points, &whole, &SurfelParams::default())
+        let reach = points.max_radius();
+        let spec = if c.cut {
+            // the grid holds the lower half of the block only
+            let (lo, hi) = c
+                .positions
+                .iter()
+                .fold((Vec3::MAX, Vec3::MIN), |(a, b), &p| (a.min(p), b.max(p)));
+            GridSpec::for_box(
+                lo - Vec3::splat(reach),
+                Vec3::new(hi.x + reach, 0.5 * (lo.y + hi.y), hi.z + reach),
+                Resolution::CellSize(points.min_radius() / 3.0),
+            )
             .unwrap()
-            .unwrap();
-        let whole_ms = t.elapsed().as_secs_f64() * 1e3;
-        let t = std::time::Instant::now();
-        let b = iso_surfels(points, &banded, &SurfelParams::default())
+        } else {
+            GridSpec::around(
+                &c.positions,
+                reach,
+                Resolution::CellSize(points.min_radius() / 3.0),
+            )
             .unwrap()
-            .unwrap();
-        let banded_ms = t.elapsed().as_secs_f64() * 1e3;
-        let band = fluid_surfels::lnm::narrow_band(&p, h, &Default::default()).unwrap();
-        let (_, skipped) = fluid_surfels::density::points_grid_in_band(
-            points,
-            &a.grid.spec,
-            GridParams::default().kernel,
-            GridParams::default().memory_budget,
-            Vec::new(),
-            &band,
-            1e9,
-        )
-        .unwrap();
-        println!(
-            "{name}: {} surfels; {skipped} of {} points skipped; grid and surfels {whole_ms:.0} ms whole, {banded_ms:.0} ms in the band",
-            a.surfels.len(),
-            p.len()
-        );
-        assert_eq!(a.surfels.len(), b.surfels.len(), "{name}");
-        assert_eq!(a.surfels.positions, b.surfels.positions, "{name}");
-        assert_eq!(a.surfels.normals, b.surfels.normals, "{name}");
-        // equal values off the interior voxels
-        let spec = a.grid.spec;
-        let inv = 1.0 / band.edge;
-        let mut compared = 0;
+        };
+        let limit = 1 << 30;
+        let dense = density::points_grid(points, &spec, kernel, limit).unwrap();
+        let band =
+            fluid_surfels::lnm::narrow_band(&c.positions, reach, &Default::default()).unwrap();
+        let iso = params.iso_fraction * kernel.peak(c.h);
+        let inside = 1e9;
+        let sparse =
+            density::points_grid_sparse(points, &spec, kernel, limit, &band, iso, inside).unwrap();
+        let (mut evaluated, mut empty, mut interior, mut reached) =
+            (0usize, 0usize, 0usize, 0usize);
         for k in 0..spec.dims[2] {
             for j in 0..spec.dims[1] {
                 for i in 0..spec.dims[0] {
-                    let c = ((spec.point(i, j, k) - band.origin) * inv).floor();
-                    let at = |v: f32, n: u32| (v.max(0.0) as u32).min(n - 1);
-                    let coord = [
-                        at(c.x, band.dims[0]),
-                        at(c.y, band.dims[1]),
-                        at(c.z, band.dims[2]),
-                    ];
-                    let interior = band
-                        .voxel_at(coord)
-                        .is_some_and(|v| band.voxels[v].label == 0);
-                    if !interior {
-                        assert_eq!(
-                            a.grid.at(i, j, k),
-                            b.grid.at(i, j, k),
-                            "{name} at {i} {j} {k}"
+                    let (d, s) = (dense.at(i, j, k), sparse.at(i, j, k));
+                    reached += usize::from(d > 0.0);
+                    if sparse.is_evaluated(i, j, k) {
+                        assert_eq!(d.to_bits(), s.to_bits(), "{} at {i} {j} {k}", c.name);
+                        evaluated += 1;
+                    } else if s == inside {
+                        assert!(
+                            d >= iso,
+                            "{} at {i} {j} {k}: inside, but {d} < {iso}",
+                            c.name
                         );
-                        compared += 1;
+                        interior += 1;
+                    } else {
+                        assert_eq!(s, 0.0, "{}", c.name);
+                        assert_eq!(d, 0.0, "{} at {i} {j} {k}: empty, but {d}", c.name);
+                        empty += 1;
                     }
                 }
             }
         }
-        assert!(compared > 0);
+        assert_eq!(evaluated, sparse.evaluated_points(), "{}", c.name);
+        let a = surfels::extract_points(&dense, points, kernel, &params).unwrap();
+        let b = surfels::extract_sparse(&sparse, points, kernel, &params).unwrap();
+        assert!(!a.is_empty(), "{}", c.name);
+        assert_eq!(a, b, "{}: the surfels", c.name);
+        let on = |threads| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| {
+                    density::points_grid_sparse(points, &spec, kernel, limit, &band, iso, inside)
+                        .unwrap()
+                })
+        };
+        assert!(
+            on(1) == sparse && on(3) == sparse,
+            "{}: thread count",
+            c.name
+        );
+        let (e, i, v) = sparse.counts();
+        println!(
+            "{}: {} surfels; grid {:?}: {evaluated} points evaluated ({:.1} % of the grid; the particles reach {reached}), {interior} inside, {empty} empty; blocks {e} empty, {i} inside, {v} evaluated; {} KiB against {} KiB dense",
+            c.name,
+            a.len(),
+            spec.dims,
+            100.0 * evaluated as f64 / spec.cells() as f64,
+            sparse.bytes() / 1024,
+            spec.bytes() / 1024
+        );
     }
+}
+
+/// The sparse grid refuses what it cannot hold or was given wrong, with typed errors.
+#[test]
+fn the_sparse_grid_refuses_bad_input() {
+    use fluid_surfels::density::{DensityError, Points};
+    let p = vec![Vec3::ZERO, Vec3::X * 0.5];
+    let band = fluid_surfels::lnm::narrow_band(&p, 1.0, &Default::default()).unwrap();
+    let spec = GridSpec::around(&p, 1.0, Resolution::CellSize(0.1)).unwrap();
+    let run = |points: Points<'_>, limit| {
+        density::points_grid_sparse(points, &spec, Kernel::Wyvill, limit, &band, 1.0, 1e9)
+    };
+    assert!(run(Points::uniform(&p, 1.0), 1 << 30).is_ok());
+    // a band of other particles
+    let three = vec![Vec3::ZERO, Vec3::X, Vec3::Y];
+    assert!(matches!(
+        run(Points::uniform(&three, 1.0), 1 << 30),
+        Err(DensityError::InvalidGrid { .. })
+    ));
+    // a memory limit below the block states
+    assert!(matches!(
+        run(Points::uniform(&p, 1.0), 8),
+        Err(DensityError::TooLarge { .. })
+    ));
+    let nan = vec![Vec3::ZERO, Vec3::NAN];
+    assert!(matches!(
+        run(Points::uniform(&nan, 1.0), 1 << 30),
+        Err(DensityError::NonFinite { index: 1 })
+    ));
+    assert!(matches!(
+        run(Points::uniform(&p, -1.0), 1 << 30),
+        Err(DensityError::InvalidRadius { .. })
+    ));
 }

@@ -445,13 +445,20 @@ struct DensityBenchReport {
     h: f32,
     threads: usize,
     cpu_density_ms: f64,
-    /// The grid in the LNM narrow band only (`density::points_grid_in_band`), the band
-    /// included, in the same run: the points it skips and whether its values off the interior
-    /// voxels equal the whole grid's.
-    cpu_band_ms: f64,
-    band_skipped_points: usize,
-    band_equals_whole: bool,
     cpu_extract_ms: Option<f64>,
+    /// The sparse grid (`density::points_grid_sparse`), its LNM band included (`band_ms` of
+    /// it), and the extraction from it, in the same run.
+    cpu_sparse_ms: f64,
+    band_ms: f64,
+    sparse_extract_ms: f64,
+    /// Its blocks of 8^3 points: empty, inside (not evaluated) and evaluated.
+    sparse_blocks: [usize; 3],
+    sparse_evaluated_points: usize,
+    sparse_bytes: usize,
+    /// Every evaluated value equals the dense grid's bit for bit.
+    sparse_equals_dense: bool,
+    /// The surfels from the sparse grid equal the dense grid's (same order).
+    sparse_same_surfels: bool,
     /// GPU time of the default method (`gpu_method`).
     gpu_density_ms: Option<f64>,
     gpu_method: Option<fluid_surfels::density::gpu::GpuDensityMethod>,
@@ -503,24 +510,47 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
     let t = Instant::now();
     let grid = density::density_grid(&positions, &spec, Kernel::Wyvill, h, limit)?;
     let cpu = ms(t);
+    // the sparse grid: the band, the blocks, the evaluated ones; then its surfels
+    let iso_params = fluid_surfels::surfels::SurfelParams::default();
+    let iso = iso_params.iso_fraction * Kernel::Wyvill.peak(h);
     let t = Instant::now();
     let band = fluid_surfels::lnm::narrow_band(&positions, h, &Default::default())?;
-    let (banded, band_skipped_points) = density::points_grid_in_band(
+    let band_ms = ms(t);
+    let sparse = density::points_grid_sparse(
         density::Points::uniform(&positions, h),
         &spec,
         Kernel::Wyvill,
         limit,
-        Vec::new(),
         &band,
-        f32::MAX,
+        iso,
+        2.0 * iso,
     )?;
-    let cpu_band_ms = ms(t);
-    let band_equals_whole = grid
-        .values
-        .iter()
-        .zip(&banded.values)
-        .all(|(a, b)| a == b || *b == f32::MAX);
-    drop(banded);
+    let cpu_sparse_ms = ms(t);
+    let t = Instant::now();
+    let sparse_surfels = fluid_surfels::surfels::extract_sparse(
+        &sparse,
+        density::Points::uniform(&positions, h),
+        Kernel::Wyvill,
+        &iso_params,
+    )?;
+    let sparse_extract_ms = ms(t);
+    let [nx, ny, _] = spec.dims;
+    let sparse_equals_dense = sparse.evaluated_blocks().all(|b| {
+        let values = sparse.block_values(b).expect("evaluated");
+        (0..values.len()).all(|l| {
+            let p = [l % 8, (l / 8) % 8, l / 64].map(|v| v as u32);
+            let (i, j, k) = (b[0] * 8 + p[0], b[1] * 8 + p[1], b[2] * 8 + p[2]);
+            i >= nx
+                || j >= ny
+                || k >= spec.dims[2]
+                || !sparse.is_evaluated(i, j, k)
+                || values[l].to_bits() == grid.at(i, j, k).to_bits()
+        })
+    });
+    let (empty_blocks, inside_blocks, evaluated_blocks) = sparse.counts();
+    let sparse_points = sparse.evaluated_points();
+    let sparse_bytes = sparse.bytes();
+    drop(sparse);
     // the GPU path, when an adapter exists: one untimed run (pipeline creation, shader
     // compilation), then the timed one
     // the GPU paths, when an adapter exists: one untimed run each (pipeline creation, shader
@@ -585,6 +615,7 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
         &fluid_surfels::surfels::SurfelParams::default(),
     )?;
     let extract_ms = ms(t);
+    let sparse_same_surfels = sparse_surfels == surfels;
     let (naive_ms, diff) = if args.no_naive {
         (None, None)
     } else {
@@ -609,10 +640,15 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
         h,
         threads: rayon::current_num_threads(),
         cpu_density_ms: cpu,
-        cpu_band_ms,
-        band_skipped_points,
-        band_equals_whole,
         cpu_extract_ms: Some(extract_ms),
+        cpu_sparse_ms,
+        band_ms,
+        sparse_extract_ms,
+        sparse_blocks: [empty_blocks, inside_blocks, evaluated_blocks],
+        sparse_evaluated_points: sparse_points,
+        sparse_bytes,
+        sparse_equals_dense,
+        sparse_same_surfels,
         gpu_density_ms: default_gpu.map(|g| g.1),
         gpu_method: default_gpu.map(|g| g.0),
         gpu_splat_ms: gpu_ms_of(fluid_surfels::density::gpu::GpuDensityMethod::Splat),
@@ -635,13 +671,15 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
         );
         println!("  CPU (z-clustered slabs, parallel)  {cpu:>9.1} ms");
         println!(
-            "  CPU in the LNM narrow band          {cpu_band_ms:>9.1} ms   ratio {:.2}x, {band_skipped_points} of {} points skipped, {}",
-            cpu / cpu_band_ms,
-            positions.len(),
-            if band_equals_whole {
-                "equal to the whole grid off the interior"
+            "  CPU sparse blocks (8^3, LNM band)  {cpu_sparse_ms:>9.1} ms   ratio {:.2}x ({band_ms:.1} ms of it the band); blocks {empty_blocks} empty, {inside_blocks} inside, {evaluated_blocks} evaluated ({:.1} % of the grid's points, {:.1} MiB against {:.1}), {}",
+            cpu / cpu_sparse_ms,
+            100.0 * sparse_points as f64 / spec.cells() as f64,
+            sparse_bytes as f64 / (1u64 << 20) as f64,
+            spec.bytes() as f64 / (1u64 << 20) as f64,
+            if sparse_equals_dense {
+                "every evaluated value the dense one's"
             } else {
-                "DIFFERENT from the whole grid"
+                "DIFFERENT from the dense grid"
             }
         );
         if let (Some(n), Some(d)) = (naive_ms, diff) {
@@ -653,6 +691,15 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
         println!(
             "  surfel extraction (CPU)            {extract_ms:>9.1} ms   {} surfels",
             surfels.len()
+        );
+        println!(
+            "  surfel extraction, sparse          {sparse_extract_ms:>9.1} ms   ratio {:.2}x, {}",
+            extract_ms / sparse_extract_ms,
+            if sparse_same_surfels {
+                "the same surfels"
+            } else {
+                "DIFFERENT surfels"
+            }
         );
         if let Some((timed, name)) = &gpu {
             for (method, g, d) in timed {

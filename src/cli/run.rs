@@ -105,7 +105,7 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
     )?;
     // stage 3: the chain's surfels
     let surfels = frame.surfels.as_ref().expect("the chain makes surfels");
-    let spec = frame.grid.as_ref().map(|g| g.spec);
+    let spec = frame.grid.as_ref().map(|g| *g.spec());
     let surfels_ply = out("surfels.ply");
     io::write_particles(&surfels_ply, &surfels.to_particle_set(), None)?;
     let surfels_png = out("surfels.png");

@@ -88,7 +88,12 @@ pub fn surfels_with(
     let Some(ctx) = gpu else {
         let iso = pipeline::iso_surfels(points, &grid, &params)?
             .ok_or(fluid_surfels::density::DensityError::Empty)?;
-        return Ok((iso.surfels, iso.grid.spec, iso.density_ms, iso.surfels_ms));
+        return Ok((
+            iso.surfels,
+            *iso.grid.spec(),
+            iso.density_ms,
+            iso.surfels_ms,
+        ));
     };
     points.check()?;
     let spec = GridSpec::around(positions, h, Resolution::LongestAxis(resolution))?;

@@ -18,45 +18,145 @@ fn splat_slab(
     let [nx, ny, _] = spec.dims;
     let plane = nx as usize * ny as usize;
     let planes = (slab.len() / plane) as u32;
-    let inv = 1.0 / spec.spacing;
-    let h = points.h;
+    let whole = Window {
+        lo: [0, 0],
+        hi: [nx - 1, ny - 1],
+        stride: nx as usize,
+    };
+    let columns: Vec<f32> = (0..nx).map(|i| column(spec, i)).collect();
     for &p in cluster {
         let x = points.positions[p as usize];
         let hj = points.radius(p as usize);
         for dk in 0..planes {
-            let z = spec.origin.z + (k0 + dk) as f32 * spec.spacing;
-            let dz = x.z - z;
-            if dz.abs() >= hj {
-                continue;
-            }
-            // the disk where the particle's ball meets this plane (§4.1)
-            let disk = (hj * hj - dz * dz).sqrt();
-            let i0 = (((x.x - disk - spec.origin.x) * inv).ceil().max(0.0)) as u32;
-            let i1 = (((x.x + disk - spec.origin.x) * inv)
-                .floor()
-                .min((nx - 1) as f32)) as i64;
-            let j0 = (((x.y - disk - spec.origin.y) * inv).ceil().max(0.0)) as u32;
-            let j1 = (((x.y + disk - spec.origin.y) * inv)
-                .floor()
-                .min((ny - 1) as f32)) as i64;
             let base = dk as usize * plane;
-            for j in j0 as i64..=j1 {
-                let y = spec.origin.y + j as f32 * spec.spacing;
-                let row = base + j as usize * nx as usize;
-                let dy = y - x.y;
-                let dyz2 = dy * dy + dz * dz;
-                // the whole row of the disk's square: the kernel is zero outside the ball, and
-                // a short branch-free loop beats computing each row's chord
-                let (a, b) = (i0 as i64, i1);
-                if b < a {
-                    continue;
-                }
-                let cells = &mut slab[row + a as usize..=row + b as usize];
-                for (t, v) in cells.iter_mut().enumerate() {
-                    let dx = spec.origin.x + (a as usize + t) as f32 * spec.spacing - x.x;
-                    *v += kernel.weighted_r2(dx * dx + dyz2, hj, h);
-                }
-            }
+            splat_disk(
+                spec,
+                kernel,
+                x,
+                hj,
+                points.h,
+                k0 + dk,
+                &whole,
+                &columns,
+                &mut slab[base..base + plane],
+            );
+        }
+    }
+}
+
+/// The grid points of one z plane a splat may write: `[lo, hi]` in x and y (inclusive), stored
+/// from `lo` with `stride` values per row.
+pub(super) struct Window {
+    pub lo: [u32; 2],
+    pub hi: [u32; 2],
+    pub stride: usize,
+}
+
+/// Where the ball of the point `x` (radius `hj`) meets grid plane `k` (§4.1): `dz` and the
+/// square of grid points around the disk, `(dz, [i0, j0], [i1, j1])` (inclusive, the upper ends
+/// negative when the disk misses the grid), or `None` when the ball misses the plane. The dense
+/// slabs and the sparse blocks ([`super::sparse`]) both go through it and through [`term`], so
+/// a grid point gets the same sum, bit for bit, whichever stores it.
+#[inline(always)]
+pub(super) fn disk(spec: &GridSpec, x: Vec3, hj: f32, k: u32) -> Option<(f32, [i64; 2], [i64; 2])> {
+    let [nx, ny, _] = spec.dims;
+    let inv = 1.0 / spec.spacing;
+    let z = spec.origin.z + k as f32 * spec.spacing;
+    let dz = x.z - z;
+    if dz.abs() >= hj {
+        return None;
+    }
+    let disk = (hj * hj - dz * dz).sqrt();
+    let i0 = ceil((x.x - disk - spec.origin.x) * inv).max(0.0) as i64;
+    let i1 = floor((x.x + disk - spec.origin.x) * inv).min((nx - 1) as f32) as i64;
+    let j0 = ceil((x.y - disk - spec.origin.y) * inv).max(0.0) as i64;
+    let j1 = floor((x.y + disk - spec.origin.y) * inv).min((ny - 1) as f32) as i64;
+    Some((dz, [i0, j0], [i1, j1]))
+}
+
+/// `v.floor()` as an integer would read it, without the library call (`floorf` is not inlined
+/// on the baseline x86-64 target, and the splats call it four times per plane): exact for
+/// `|v| < 2^23` by truncation, and every float at least that large is an integer already. Only
+/// the sign of a zero may differ, which no integer conversion sees.
+#[inline(always)]
+pub(super) fn floor(v: f32) -> f32 {
+    // NaN, infinities and floats of 2^23 and more: already integral (or not numbers)
+    if v.abs() >= 8_388_608.0 || v.is_nan() {
+        return v;
+    }
+    let t = v as i32 as f32;
+    if t > v { t - 1.0 } else { t }
+}
+
+/// `v.ceil()` as [`floor`] computes `floor`.
+#[inline(always)]
+pub(super) fn ceil(v: f32) -> f32 {
+    // NaN, infinities and floats of 2^23 and more: already integral (or not numbers)
+    if v.abs() >= 8_388_608.0 || v.is_nan() {
+        return v;
+    }
+    let t = v as i32 as f32;
+    if t < v { t + 1.0 } else { t }
+}
+
+/// `dy^2 + dz^2` of row `j` of a plane, for [`term`].
+#[inline(always)]
+pub(super) fn row_offset(spec: &GridSpec, x: Vec3, dz: f32, j: i64) -> f32 {
+    let y = spec.origin.y + j as f32 * spec.spacing;
+    let dy = y - x.y;
+    dy * dy + dz * dz
+}
+
+/// The x coordinate of grid column `i`, for [`term`] (computed once per column: the same value
+/// the expression gives in the loop, without a conversion per kernel).
+#[inline(always)]
+pub(super) fn column(spec: &GridSpec, i: u32) -> f32 {
+    spec.origin.x + i as f32 * spec.spacing
+}
+
+/// The kernel of the point `x` at the grid point of [`column`] `gx` in a row whose
+/// [`row_offset`] is `dyz2`.
+#[inline(always)]
+pub(super) fn term(kernel: Kernel, gx: f32, x: Vec3, hj: f32, h: f32, dyz2: f32) -> f32 {
+    let dx = gx - x.x;
+    kernel.weighted_r2(dx * dx + dyz2, hj, h)
+}
+
+/// Adds the kernel of the point `x` (radius `hj`, reference radius `h`) to the grid points of
+/// plane `k` inside `window`; `columns[i]` is [`column`] `i`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+pub(super) fn splat_disk(
+    spec: &GridSpec,
+    kernel: Kernel,
+    x: Vec3,
+    hj: f32,
+    h: f32,
+    k: u32,
+    window: &Window,
+    columns: &[f32],
+    plane: &mut [f32],
+) {
+    let Some((dz, lo, hi)) = disk(spec, x, hj, k) else {
+        return;
+    };
+    let (a, b) = (
+        lo[0].max(i64::from(window.lo[0])),
+        hi[0].min(i64::from(window.hi[0])),
+    );
+    if b < a {
+        return;
+    }
+    for j in lo[1].max(i64::from(window.lo[1]))..=hi[1].min(i64::from(window.hi[1])) {
+        let dyz2 = row_offset(spec, x, dz, j);
+        let row = (j as usize - window.lo[1] as usize) * window.stride;
+        // the whole row of the disk's square: the kernel is zero outside the ball, and a short
+        // branch-free loop beats computing each row's chord
+        let start = row + (a as usize - window.lo[0] as usize);
+        let cells = &mut plane[start..=start + (b - a) as usize];
+        let xs = &columns[a as usize..=b as usize];
+        for (v, &gx) in cells.iter_mut().zip(xs) {
+            *v += term(kernel, gx, x, hj, h, dyz2);
         }
     }
 }
@@ -222,101 +322,4 @@ pub fn points_naive(
         spec: *spec,
         values,
     })
-}
-
-/// [`points_grid_in`] restricted to the narrow band `band` of the same points (its voxels at
-/// least as wide as the largest radius): the points deep inside (their voxel and its 26
-/// neighbours all interior, label 0) are not splatted, and every grid point in an interior voxel
-/// is set to `inside` (a value above the iso-value). Why that keeps the surface: a point reaches
-/// only the voxels next to its own, so no deep point reaches a band voxel or an empty one; their
-/// grid points get the same sums in the same order as the whole grid's, bit for bit, and the
-/// iso-surface lies there. Only an interior voxel whose true density is below the iso-value (a
-/// cavity smaller than a voxel) would read otherwise. Returns the grid and the points skipped.
-pub fn points_grid_in_band(
-    points: Points<'_>,
-    spec: &GridSpec,
-    kernel: Kernel,
-    memory_limit: u64,
-    values: Vec<f32>,
-    band: &crate::lnm::NarrowBand,
-    inside: f32,
-) -> Result<(DensityGrid, usize), DensityError> {
-    points.check()?;
-    if band.voxel_of.len() != points.len() || band.edge < points.max_radius() {
-        return Err(DensityError::InvalidGrid {
-            name: "narrow band",
-            reason: format!(
-                "a band of {} particles with voxels of {} for {} points of radius up to {}",
-                band.voxel_of.len(),
-                band.edge,
-                points.len(),
-                points.max_radius()
-            ),
-        });
-    }
-    // deep: interior and every neighbour full and interior
-    let deep: Vec<bool> = band
-        .voxels
-        .par_iter()
-        .map(|v| {
-            v.label == 0
-                && (0..27i64).filter(|&k| k != 13).all(|k| {
-                    let d = [k % 3 - 1, (k / 3) % 3 - 1, k / 9 - 1];
-                    let c: [i64; 3] = std::array::from_fn(|a| i64::from(v.coord[a]) + d[a]);
-                    c.iter().all(|&x| x >= 0)
-                        && band
-                            .voxel_at(c.map(|x| x as u32))
-                            .is_some_and(|j| band.voxels[j].label == 0)
-                })
-        })
-        .collect();
-    let kept: Vec<usize> = (0..points.len())
-        .filter(|&i| !deep[band.voxel_of[i] as usize])
-        .collect();
-    let positions: Vec<Vec3> = kept.iter().map(|&i| points.positions[i]).collect();
-    let radii: Vec<f32> = kept.iter().map(|&i| points.radius(i)).collect();
-    let mut grid = points_grid_in(
-        Points::with_radii(&positions, &radii, points.h),
-        spec,
-        kernel,
-        memory_limit,
-        values,
-    )?;
-    // the grid points in interior voxels, found as the band finds a particle's voxel
-    let inv = 1.0 / band.edge;
-    let [nx, ny, _] = spec.dims;
-    let voxel_of = |p: Vec3| -> [u32; 3] {
-        let c = ((p - band.origin) * inv).floor();
-        let at = |v: f32, n: u32| (v.max(0.0) as u32).min(n - 1);
-        [
-            at(c.x, band.dims[0]),
-            at(c.y, band.dims[1]),
-            at(c.z, band.dims[2]),
-        ]
-    };
-    let plane = nx as usize * ny as usize;
-    grid.values
-        .par_chunks_mut(plane)
-        .enumerate()
-        .for_each(|(k, slice)| {
-            for j in 0..ny {
-                // a row crosses a voxel every few grid points: look each up once
-                let mut last: Option<([u32; 3], bool)> = None;
-                for i in 0..nx {
-                    let c = voxel_of(spec.point(i, j, k as u32));
-                    let interior = match last {
-                        Some((l, b)) if l == c => b,
-                        _ => {
-                            let b = band.voxel_at(c).is_some_and(|v| band.voxels[v].label == 0);
-                            last = Some((c, b));
-                            b
-                        }
-                    };
-                    if interior {
-                        slice[j as usize * nx as usize + i as usize] = inside;
-                    }
-                }
-            }
-        });
-    Ok((grid, points.len() - kept.len()))
 }

@@ -22,6 +22,7 @@
 
 pub mod cpu;
 pub mod gpu;
+pub mod sparse;
 
 use std::f32::consts::PI;
 
@@ -29,9 +30,10 @@ use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 pub use cpu::{
-    density_grid, density_naive, points_grid, points_grid_in, points_grid_in_band, points_naive,
-    splat_points_slabs, splat_slabs,
+    density_grid, density_naive, points_grid, points_grid_in, points_naive, splat_points_slabs,
+    splat_slabs,
 };
+pub use sparse::{SparseGrid, points_grid_sparse};
 
 /// The density function of a particle.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -435,6 +437,54 @@ impl GridSpec {
             });
         }
         Ok(())
+    }
+}
+
+/// A filled density grid as the pipeline keeps it: dense, or in sparse blocks evaluated near
+/// the surface only ([`sparse`]).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Grid {
+    /// Every grid point.
+    Dense(DensityGrid),
+    /// The blocks near the surface.
+    Sparse(SparseGrid),
+}
+
+impl Grid {
+    /// The grid's geometry.
+    #[must_use]
+    pub fn spec(&self) -> &GridSpec {
+        match self {
+            Self::Dense(g) => &g.spec,
+            Self::Sparse(g) => &g.spec,
+        }
+    }
+
+    /// Value at grid point `(i, j, k)` (for a sparse grid, see [`SparseGrid::at`]).
+    #[must_use]
+    pub fn at(&self, i: u32, j: u32, k: u32) -> f32 {
+        match self {
+            Self::Dense(g) => g.at(i, j, k),
+            Self::Sparse(g) => g.at(i, j, k),
+        }
+    }
+
+    /// The dense grid, when it is one.
+    #[must_use]
+    pub fn dense(&self) -> Option<&DensityGrid> {
+        match self {
+            Self::Dense(g) => Some(g),
+            Self::Sparse(_) => None,
+        }
+    }
+
+    /// Bytes its values take.
+    #[must_use]
+    pub fn bytes(&self) -> usize {
+        match self {
+            Self::Dense(g) => 4 * g.values.len(),
+            Self::Sparse(g) => g.bytes(),
+        }
     }
 }
 

@@ -41,7 +41,7 @@ use glam::Vec3;
 use image::RgbaImage;
 use serde::{Deserialize, Serialize};
 
-use crate::density::{self, DensityGrid, GridSpec, Kernel, Points, Resolution};
+use crate::density::{self, Grid, GridSpec, Kernel, Points, Resolution};
 use crate::neighbours::{self, Backend, Neighbourhoods};
 use crate::optics::{self, Caustics, OpticsScene, ReceiverKind, Stage};
 use crate::refine::{self, RefineParams, Refined};
@@ -159,9 +159,11 @@ pub struct GridParams {
     /// Largest grid in bytes (4 per grid point). A finer grid is coarsened to fit, and the frame
     /// says so in [`Frame::warnings`]. Default 1 GiB.
     pub memory_budget: u64,
-    /// Splat only near the surface: the points of the LNM narrow band ([`crate::lnm`], voxels
-    /// of the largest radius) and their neighbours, the grid points in interior voxels set
-    /// inside ([`density::points_grid_in_band`]); the same surfels (tested). Default off.
+    /// Evaluate the grid only near the surface, in sparse blocks of 8^3 points
+    /// ([`density::sparse`]): the blocks that lie in the LNM narrow band's interior voxels
+    /// ([`crate::lnm`], voxels of the largest radius) or that no point reaches are not
+    /// evaluated; the same surfels, in the same order, as the dense grid (tested), in less time
+    /// and memory. Default off.
     pub narrow_band: bool,
 }
 
@@ -384,8 +386,9 @@ pub struct Frame {
     pub surface_indices: Vec<u32>,
     /// The refined surface (through [`Through::Refine`] and after).
     pub refined: Option<Refined>,
-    /// The density grid (Chain and Particles sources).
-    pub grid: Option<DensityGrid>,
+    /// The density grid (Chain and Particles sources): dense, or sparse with
+    /// [`GridParams::narrow_band`].
+    pub grid: Option<Grid>,
     /// Surfels on the iso-surface (Chain and Particles sources, EWA renderer).
     pub surfels: Option<Surfels>,
     /// The surfels that are rendered, whatever their source (the spheres of
@@ -544,7 +547,7 @@ impl Pipeline {
     /// fills it instead of allocating: a sequence that recycles each frame after use allocates
     /// the grid only while it grows.
     pub fn recycle(&mut self, frame: Frame) {
-        if let Some(grid) = frame.grid
+        if let Some(Grid::Dense(grid)) = frame.grid
             && grid.values.capacity() > self.grid_buffer.capacity()
         {
             self.grid_buffer = grid.values;
@@ -1076,7 +1079,7 @@ pub fn sphere_points(spheres: &[Surfel]) -> (Vec<Vec3>, Vec<f32>) {
 /// What [`iso_surfels`] returns.
 #[derive(Debug)]
 pub struct IsoSurfels {
-    pub grid: DensityGrid,
+    pub grid: Grid,
     pub surfels: Surfels,
     pub density_ms: f64,
     pub surfels_ms: f64,
@@ -1156,23 +1159,32 @@ pub fn iso_surfels_in(
             &crate::lnm::LnmParams::default(),
         )?;
         // inside: well above the iso-value
+        let iso = params.iso_fraction * grid.kernel.peak(points.h);
         let inside = 2.0 * params.iso_fraction.max(1.0) * grid.kernel.peak(points.h);
-        density::points_grid_in_band(
+        Grid::Sparse(density::points_grid_sparse(
+            points,
+            &spec,
+            grid.kernel,
+            grid.memory_budget,
+            &band,
+            iso,
+            inside,
+        )?)
+    } else {
+        Grid::Dense(density::points_grid_in(
             points,
             &spec,
             grid.kernel,
             grid.memory_budget,
             buffer,
-            &band,
-            inside,
-        )?
-        .0
-    } else {
-        density::points_grid_in(points, &spec, grid.kernel, grid.memory_budget, buffer)?
+        )?)
     };
     let density_ms = ms(t);
     let t = Instant::now();
-    let surfels = surfels::extract_points(&values, points, grid.kernel, params)?;
+    let surfels = match &values {
+        Grid::Dense(g) => surfels::extract_points(g, points, grid.kernel, params)?,
+        Grid::Sparse(g) => surfels::extract_sparse(g, points, grid.kernel, params)?,
+    };
     Ok(Some(IsoSurfels {
         grid: values,
         surfels,
