@@ -1,7 +1,8 @@
 //! Criterion benchmark against the peer: splashsurf 0.14 (`splashsurf_lib`, a dev-dependency
 //! only) reconstructing its marching-cubes mesh, and our density grid plus iso-surface surfels, on
 //! the same particles with the same kernel (cubic spline), support radius and cell size, in one
-//! run. The surface each gives is compared in `tests/surfels.rs::surfels_lie_on_splashsurfs_mesh`.
+//! run, our grid both dense and sparse (`density::sparse`, the LNM band included). The surface
+//! each gives is compared in `tests/surfels.rs::surfels_lie_on_splashsurfs_mesh`.
 //!
 //! Sizes: the density benchmark's case, a jittered block of 150,000 particles (53 x 53 x 53 =
 //! 148,877), and the two real files of `tests/data/`; support radius twice the spacing, cells of
@@ -41,6 +42,26 @@ fn compare(c: &mut Criterion, name: &str, p: &[Vec3], s: f32) {
             let grid = density::density_grid(p, &spec, Kernel::CubicSpline, h, 1 << 32)
                 .expect("within memory");
             surfels::extract(&grid, p, Kernel::CubicSpline, h, &iso).expect("surfels")
+        })
+    });
+    group.bench_function("fluid_surfels_sparse_density_and_surfels", |b| {
+        b.iter(|| {
+            let spec =
+                GridSpec::around(black_box(p), h, Resolution::CellSize(cell)).expect("a grid");
+            let band = fluid_surfels::lnm::narrow_band(p, h, &Default::default()).expect("a band");
+            let level = iso.iso_fraction * Kernel::CubicSpline.peak(h);
+            let points = density::Points::uniform(p, h);
+            let grid = density::points_grid_sparse(
+                points,
+                &spec,
+                Kernel::CubicSpline,
+                1 << 32,
+                &band,
+                level,
+                2.0 * level,
+            )
+            .expect("within memory");
+            surfels::extract_sparse(&grid, points, Kernel::CubicSpline, &iso).expect("surfels")
         })
     });
     group.finish();

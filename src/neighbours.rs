@@ -325,6 +325,39 @@ impl CellGrid {
         }
     }
 
+    /// [`Self::for_each_within`] handing out the particle's cell-order slot and position
+    /// (`visit(slot, x_j)`, the particle being [`Self::order`]`[slot]`): the positions are read
+    /// where the grid keeps them, in cell order, with no lookup through the particle index.
+    #[inline]
+    pub fn for_each_slot_within(&self, p: Vec3, radius: f32, mut visit: impl FnMut(usize, Vec3)) {
+        debug_assert!(radius <= self.cell * 1.0001);
+        if self.sorted.is_empty() {
+            return;
+        }
+        let r2 = radius * radius;
+        let [cx, cy, cz] = self.cell_of(p);
+        let [nx, ny, nz] = self.dims;
+        let x0 = cx.saturating_sub(1);
+        let x1 = (cx + 1).min(nx - 1);
+        for z in cz.saturating_sub(1)..=(cz + 1).min(nz - 1) {
+            for y in cy.saturating_sub(1)..=(cy + 1).min(ny - 1) {
+                let row = nx * (y + ny * z);
+                let range = self.slots(row + x0, row + x1);
+                for (s, &q) in self.sorted[range.clone()].iter().enumerate() {
+                    if q.distance_squared(p) <= r2 {
+                        visit(range.start + s, q);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Cell-order slot -> particle index.
+    #[must_use]
+    pub fn order(&self) -> &[u32] {
+        &self.order
+    }
+
     /// The neighbourhoods of every particle within the cell size, in parallel.
     #[must_use]
     pub fn all_neighbours(&self) -> Neighbourhoods {

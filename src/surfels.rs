@@ -21,6 +21,10 @@ use serde::{Deserialize, Serialize};
 use crate::density::{DensityError, DensityGrid, GridSpec, Kernel, Points};
 use crate::neighbours::CellGrid;
 
+/// A Newton step shorter than this fraction of a cell ends the projection
+/// ([`SurfelExtractor::finish`]).
+pub const CONVERGED: f32 = 1e-4;
+
 /// Parameters of surfel extraction.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -116,6 +120,8 @@ struct Group {
     grid: CellGrid,
     /// group slot -> point index
     members: Vec<u32>,
+    /// the radius of each point in the grid's cell order (`None`: every point has `h`)
+    cell_radii: Option<Vec<f32>>,
 }
 
 impl<'a> ExactDensity<'a> {
@@ -133,6 +139,7 @@ impl<'a> ExactDensity<'a> {
                 reach: points.h,
                 grid: CellGrid::new(points.positions, points.h)?,
                 members: (0..points.len() as u32).collect(),
+                cell_radii: None,
             }),
             Some(radii) => {
                 // quarter octaves of the radius, so a group's cells are at most 19 % too large
@@ -144,10 +151,17 @@ impl<'a> ExactDensity<'a> {
                     let reach = run.iter().map(|&i| radii[i as usize]).fold(0.0, f32::max);
                     let pos: Vec<Vec3> =
                         run.iter().map(|&i| points.positions[i as usize]).collect();
+                    let grid = CellGrid::new(&pos, reach)?;
+                    let cell_radii = grid
+                        .order()
+                        .iter()
+                        .map(|&slot| radii[run[slot as usize] as usize])
+                        .collect();
                     groups.push(Group {
                         reach,
-                        grid: CellGrid::new(&pos, reach)?,
+                        grid,
                         members: run.to_vec(),
+                        cell_radii: Some(cell_radii),
                     });
                 }
             }
@@ -165,13 +179,13 @@ impl<'a> ExactDensity<'a> {
     pub fn value_and_gradient(&self, x: Vec3) -> (f32, Vec3) {
         let mut sum = 0.0;
         let mut grad = Vec3::ZERO;
-        let p = &self.points;
+        let h = self.points.h;
         for g in &self.groups {
-            g.grid.for_each_within(x, g.reach, |slot| {
-                let j = g.members[slot as usize] as usize;
-                let (v, dv) =
-                    self.kernel
-                        .weighted_and_gradient(x - p.positions[j], p.radius(j), p.h);
+            // the positions and radii in the grid's cell order: the same terms in the same order
+            // as through the point indices, without the indirection
+            g.grid.for_each_slot_within(x, g.reach, |slot, q| {
+                let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
+                let (v, dv) = self.kernel.weighted_and_gradient(x - q, r, h);
                 sum += v;
                 grad += dv;
             });
@@ -217,13 +231,11 @@ impl<'a> ExactDensity<'a> {
     #[must_use]
     pub fn value(&self, x: Vec3) -> f32 {
         let mut sum = 0.0;
-        let p = &self.points;
+        let h = self.points.h;
         for g in &self.groups {
-            g.grid.for_each_within(x, g.reach, |slot| {
-                let j = g.members[slot as usize] as usize;
-                sum +=
-                    self.kernel
-                        .weighted_r2(p.positions[j].distance_squared(x), p.radius(j), p.h);
+            g.grid.for_each_slot_within(x, g.reach, |slot, q| {
+                let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
+                sum += self.kernel.weighted_r2(q.distance_squared(x), r, h);
             });
         }
         sum
@@ -432,6 +444,11 @@ impl SurfelExtractor {
                     // a Newton step along the gradient, never more than half a cell
                     let step = (grad * ((iso - v) / g2)).clamp_length_max(0.5 * spacing);
                     x += step;
+                    // converged: Newton's steps shrink quadratically, so the next would move
+                    // the point by less than 1e-8 cells
+                    if step.length_squared() < (CONVERGED * spacing).powi(2) {
+                        break;
+                    }
                 }
                 if params.newton_steps == 0 {
                     g = density.value_and_gradient(x).1;
