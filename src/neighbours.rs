@@ -304,25 +304,7 @@ impl CellGrid {
     /// including any particle at `p` itself.
     #[inline]
     pub fn for_each_within(&self, p: Vec3, radius: f32, mut visit: impl FnMut(u32)) {
-        debug_assert!(radius <= self.cell * 1.0001);
-        if self.sorted.is_empty() {
-            return;
-        }
-        let r2 = radius * radius;
-        let [cx, cy, cz] = self.cell_of(p);
-        let [nx, ny, nz] = self.dims;
-        let x0 = cx.saturating_sub(1);
-        let x1 = (cx + 1).min(nx - 1);
-        for z in cz.saturating_sub(1)..=(cz + 1).min(nz - 1) {
-            for y in cy.saturating_sub(1)..=(cy + 1).min(ny - 1) {
-                let row = nx * (y + ny * z);
-                for s in self.slots(row + x0, row + x1) {
-                    if self.sorted[s].distance_squared(p) <= r2 {
-                        visit(self.order[s]);
-                    }
-                }
-            }
-        }
+        self.for_each_slot_within(p, radius, |s, _| visit(self.order[s]));
     }
 
     /// [`Self::for_each_within`] handing out the particle's cell-order slot and position

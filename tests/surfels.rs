@@ -327,6 +327,17 @@ fn surfels_lie_on_splashsurfs_mesh() {
     );
 }
 
+/// A particle file of `tests/data/`.
+fn read_data(name: &str) -> fluid_surfels::ParticleSet {
+    fluid_surfels::io::read_particles(
+        &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data")
+            .join(name),
+        None,
+    )
+    .unwrap()
+}
+
 /// The pipeline's stage 3 with `GridParams::narrow_band` (the sparse grid in the LNM band)
 /// gives the same surfels as with the dense grid, bit for bit and in the same order, on the
 /// chain's points of both real files (refined surface points with their own radii beside the
@@ -335,15 +346,7 @@ fn surfels_lie_on_splashsurfs_mesh() {
 fn the_grid_in_the_narrow_band_gives_the_same_surfels() {
     use fluid_surfels::density::Grid;
     use fluid_surfels::pipeline::{GridParams, Pipeline, PipelineParams, Through, iso_surfels};
-    let read = |name: &str| {
-        fluid_surfels::io::read_particles(
-            &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-                .join("tests/data")
-                .join(name),
-            None,
-        )
-        .unwrap()
-    };
+    let read = read_data;
     let sphere = scenes::sphere(&scenes::SphereParams::default()).unwrap();
     let points = density::Points::uniform(&sphere.particles.positions, sphere.support_radius);
     let dense = iso_surfels(points, &GridParams::default(), &SurfelParams::default())
@@ -439,16 +442,7 @@ fn the_grid_in_the_narrow_band_gives_the_same_surfels() {
 #[test]
 fn the_sparse_grid_equals_the_dense_one() {
     use fluid_surfels::density::Points;
-    let read = |name: &str| {
-        fluid_surfels::io::read_particles(
-            &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-                .join("tests/data")
-                .join(name),
-            None,
-        )
-        .unwrap()
-        .positions
-    };
+    let read = |name: &str| read_data(name).positions;
     let block = scenes::block(&scenes::BlockParams {
         counts: [20, 20, 20],
         ..Default::default()

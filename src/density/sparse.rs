@@ -242,17 +242,20 @@ pub fn points_grid_sparse(
     }
     let blocks = spec.dims.map(|n| n.div_ceil(BLOCK));
     let count = blocks.iter().map(|&b| b as u128).product::<u128>();
-    // per block: its state (4 bytes), its first point (4) and its interior voxel count (2)
-    if count * 10 > u128::from(memory_limit) {
+    let too_large = |bytes: u128| {
         let [nx, ny, nz] = spec.dims.map(u64::from);
-        return Err(DensityError::TooLarge {
+        Err(DensityError::TooLarge {
             nx,
             ny,
             nz,
             cells: spec.cells(),
-            bytes: count * 10,
+            bytes,
             limit: memory_limit,
-        });
+        })
+    };
+    // per block: its state (4 bytes), its first point (4) and its interior voxel count (2)
+    if count * 10 > u128::from(memory_limit) {
+        return too_large(count * 10);
     }
     let count = count as usize;
     let [bx, by, bz] = blocks.map(|b| b as usize);
@@ -376,15 +379,7 @@ pub fn points_grid_sparse(
         .collect();
     let bytes = evaluated.len() as u128 * BLOCK_VALUES as u128 * 4;
     if bytes > u128::from(memory_limit) {
-        let [nx, ny, nz] = spec.dims.map(u64::from);
-        return Err(DensityError::TooLarge {
-            nx,
-            ny,
-            nz,
-            cells: spec.cells(),
-            bytes,
-            limit: memory_limit,
-        });
+        return too_large(bytes);
     }
     for (slot, &b) in evaluated.iter().enumerate() {
         states[b as usize] = slot as u32;
