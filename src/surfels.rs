@@ -307,65 +307,32 @@ impl SurfelExtractor {
         }
     }
 
-    /// The crossings of a sparse grid ([`crate::density::sparse`]): the edges of the evaluated
-    /// blocks and of the blocks just below them (every other block's edges lie between two
-    /// values on one side of the iso-value), found in parallel and put in the order
+    /// The crossings of a sparse grid ([`crate::density::sparse`]): the edges the evaluated
+    /// blocks own (every edge lies in the closed range of the block holding its lower end, and
+    /// an empty or inside block's closed range is all 0 or all inside), found in parallel and
+    /// put in the order
     /// [`Self::push_plane`] finds them in (plane, row, point, then x, y and z edge), so the
     /// surfels are the dense grid's, in the same order.
     #[must_use]
     pub fn from_sparse(grid: &crate::density::SparseGrid, iso: f32) -> Self {
-        use crate::density::sparse::{BLOCK, BlockState};
+        use crate::density::sparse::BLOCK;
         let spec = grid.spec;
         let [nx, ny, nz] = spec.dims;
-        let [bx, by, bz] = grid.blocks;
-        // a block is scanned when it or an upper neighbour (+x, +y, +z and their corners) is
-        // evaluated
-        let mut scan = vec![false; bx as usize * by as usize * bz as usize];
-        let at = |b: [u32; 3]| {
-            b[0] as usize + bx as usize * (b[1] as usize + by as usize * b[2] as usize)
-        };
-        for b in grid.evaluated_blocks() {
-            for d in 0..8u32 {
-                let c = [0, 1, 2].map(|a| b[a].checked_sub((d >> a) & 1));
-                if let [Some(x), Some(y), Some(z)] = c {
-                    scan[at([x, y, z])] = true;
-                }
-            }
-        }
-        let scanned: Vec<[u32; 3]> = (0..scan.len())
-            .filter(|&b| scan[b])
-            .map(|b| {
-                let (bx, by) = (bx as usize, by as usize);
-                [
-                    (b % bx) as u32,
-                    ((b / bx) % by) as u32,
-                    (b / (bx * by)) as u32,
-                ]
-            })
-            .collect();
-        drop(scan);
+        let scanned: Vec<[u32; 3]> = grid.evaluated_blocks().collect();
+        let b_ = BLOCK as usize;
         let cross = |a: f32, b: f32| (a < iso) != (b < iso);
         let mut found: Vec<(u64, Vec3)> = scanned
             .par_iter()
             .flat_map_iter(|&b| {
                 let mut out = Vec::new();
                 // the block's own values read directly, its neighbours' through `at`
-                let own = grid.block_values(b);
-                let inside = matches!(grid.state(b), BlockState::Inside);
+                let own = grid.block_values(b).expect("an evaluated block");
                 let [i0, j0, k0] = b.map(|c| c * BLOCK);
                 for k in k0..(k0 + BLOCK).min(nz) {
                     for j in j0..(j0 + BLOCK).min(ny) {
                         for i in i0..(i0 + BLOCK).min(nx) {
-                            let v = match own {
-                                Some(values) => {
-                                    values[(i - i0) as usize
-                                        + BLOCK as usize
-                                            * ((j - j0) as usize
-                                                + BLOCK as usize * (k - k0) as usize)]
-                                }
-                                None if inside => grid.inside,
-                                None => 0.0,
-                            };
+                            let v = own[(i - i0) as usize
+                                + b_ * ((j - j0) as usize + b_ * (k - k0) as usize)];
                             let key = |kk: u32, t: u64| {
                                 ((u64::from(kk) * u64::from(ny) + u64::from(j)) * u64::from(nx)
                                     + u64::from(i))

@@ -555,12 +555,19 @@ fn the_sparse_grid_equals_the_dense_one() {
         let inside = 1e9;
         let sparse =
             density::points_grid_sparse(points, &spec, kernel, limit, &band, iso, inside).unwrap();
+        let full = sparse.to_dense();
         let (mut evaluated, mut empty, mut interior, mut reached) =
             (0usize, 0usize, 0usize, 0usize);
         for k in 0..spec.dims[2] {
             for j in 0..spec.dims[1] {
                 for i in 0..spec.dims[0] {
                     let (d, s) = (dense.at(i, j, k), sparse.at(i, j, k));
+                    assert_eq!(
+                        full.at(i, j, k).to_bits(),
+                        s.to_bits(),
+                        "{}: to_dense",
+                        c.name
+                    );
                     reached += usize::from(d > 0.0);
                     if sparse.is_evaluated(i, j, k) {
                         assert_eq!(d.to_bits(), s.to_bits(), "{} at {i} {j} {k}", c.name);

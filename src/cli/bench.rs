@@ -538,8 +538,14 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
     let sparse_equals_dense = sparse.evaluated_blocks().all(|b| {
         let values = sparse.block_values(b).expect("evaluated");
         (0..values.len()).all(|l| {
-            let p = [l % 8, (l / 8) % 8, l / 64].map(|v| v as u32);
-            let (i, j, k) = (b[0] * 8 + p[0], b[1] * 8 + p[1], b[2] * 8 + p[2]);
+            use fluid_surfels::density::sparse::BLOCK;
+            let n = BLOCK as usize;
+            let p = [l % n, (l / n) % n, l / (n * n)].map(|v| v as u32);
+            let (i, j, k) = (
+                b[0] * BLOCK + p[0],
+                b[1] * BLOCK + p[1],
+                b[2] * BLOCK + p[2],
+            );
             i >= nx
                 || j >= ny
                 || k >= spec.dims[2]

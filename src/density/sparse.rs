@@ -10,16 +10,18 @@
 //!   LNM narrow band ([`crate::lnm`]), whose voxels are at least as wide as the largest radius:
 //!   deep in the fluid, its values are not computed and read as `inside` (a value above the
 //!   iso-value);
-//! - **evaluated**: every other block; its `B^3` values are the dense grid's, bit for bit (the
-//!   same [`super::cpu`] splat, the points added in the same index order).
+//! - **evaluated**: every other block; its values are the dense grid's, bit for bit (the same
+//!   [`super::cpu`] splat, the points added in the same index order), except at its points that
+//!   lie in interior voxels, which read as `inside` too.
 //!
 //! Why that keeps the surfels: an edge of the grid crosses the iso-value only between two points
 //! on either side of it; every edge lies in the closed range of the block that holds its lower
 //! end, so a block whose closed range is all zero or all inside owns no crossing, and the
-//! extraction ([`crate::surfels::SurfelExtractor::from_sparse`]) scans only the evaluated blocks
-//! and the blocks just below them. The one assumption is the band's: an interior voxel's
-//! density is above the iso-value, which
-//! fails only for a cavity smaller than a voxel; tested on analytic shapes and both real files.
+//! extraction ([`crate::surfels::SurfelExtractor::from_sparse`]) scans only the evaluated
+//! blocks. An inside point that ends a crossing edge (next to a point below the iso-value) gets
+//! its exact value, the dense grid's, so that edge's surfel is placed as on the dense grid. The
+//! one assumption is the band's: an interior voxel's density is above the iso-value, which fails
+//! only for a cavity smaller than a voxel; tested on analytic shapes and both real files.
 //!
 //! Finding the blocks costs little: the points are sorted into the blocks by one counting sort,
 //! a block's candidates are the points of the blocks within reach, the interior blocks come from
@@ -90,7 +92,8 @@ impl SparseGrid {
         }
     }
 
-    /// The evaluated blocks' coordinates, in block order (x fastest).
+    /// The evaluated blocks' coordinates, in slot order: block order (x fastest), then the inside
+    /// blocks that became evaluated for an exact value at a crossing, in block order.
     pub fn evaluated_blocks(&self) -> impl ExactSizeIterator<Item = [u32; 3]> + '_ {
         self.evaluated.iter().map(|&b| self.coord(b as usize))
     }
@@ -179,7 +182,7 @@ impl SparseGrid {
     /// The whole grid, dense (for comparisons and for callers that want one).
     #[must_use]
     pub fn to_dense(&self) -> DensityGrid {
-        let [nx, ny, nz] = self.spec.dims;
+        let [nx, ny, _] = self.spec.dims;
         let mut values = vec![0.0f32; self.spec.cells() as usize];
         values
             .par_chunks_mut(nx as usize * ny as usize)
@@ -191,7 +194,6 @@ impl SparseGrid {
                     }
                 }
             });
-        let _ = nz;
         DensityGrid {
             spec: self.spec,
             values,

@@ -162,8 +162,9 @@ pub struct GridParams {
     /// Evaluate the grid only near the surface, in sparse blocks of 8^3 points
     /// ([`density::sparse`]): the blocks that lie in the LNM narrow band's interior voxels
     /// ([`crate::lnm`], voxels of the largest radius) or that no point reaches are not
-    /// evaluated; the same surfels, in the same order, as the dense grid (tested), in less time
-    /// and memory. Default off.
+    /// evaluated; the same surfels, in the same order, as the dense grid (tested), in less
+    /// memory (measured: 19 against 87 MiB on the dam break's chain, as fast as the dense grid
+    /// there; 1.3-1.7x faster on `bench density`'s 150k block). Default off.
     pub narrow_band: bool,
 }
 
