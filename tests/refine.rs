@@ -273,11 +273,13 @@ fn incremental_neighbourhoods_equal_brute_force() {
                 parallel,
                 |pos, lists, r| {
                     let truth = Neighbourhoods::build(pos, r, Backend::CellGrid).unwrap();
-                    for (i, list) in lists.iter().enumerate() {
+                    assert_eq!(lists.len(), pos.len(), "{name}");
+                    for i in 0..lists.len() {
                         let mut t: Vec<u32> = truth.of(i).to_vec();
                         t.sort_unstable();
                         assert_eq!(
-                            list, &t,
+                            lists.of(i),
+                            t.as_slice(),
                             "{name} (parallel {parallel}): point {i} after a step with radius {r}"
                         );
                     }

@@ -401,7 +401,7 @@ pub fn bench_refine(args: &BenchRefineArgs) -> Result<(), Error> {
         }
         println!("  (points/s = P3 / seconds, as in the paper's Table 1)");
         println!(
-            "  the parallel run's phases, ms over its steps: candidates | type 2 checks | type 3, accept, register (sequential) | update: moves (sequential) + neighbourhoods"
+            "  the parallel run's phases, ms over its steps: candidates | type 2 checks + registration lists | type 3 rivals (parallel) + decisions (sequential) | update: moves (sequential) + neighbourhoods"
         );
         for r in &report.frames {
             let p = r.phases;

@@ -6,11 +6,13 @@
 //! neighbourhoods for the next, smaller radius `r_{i+1} = r_i sqrt(4 - 2 sqrt 2) / 2` (eq. 16)
 //! from the relations already known, without a search structure (§3.4).
 //!
-//! Two entry points run the same step: [`refine_reference`] entirely on one thread, and
-//! [`refine`], which computes the children, the type 2 collision checks and the neighbourhood
-//! updates with rayon and keeps the type 3 checks and registrations, which depend on every
-//! earlier decision of the step, in one pass in candidate order. Both give the same points in the
-//! same order whatever the thread count (tested).
+//! Two implementations run the same step: [`refine_reference`] (module `reference`) as the
+//! paper describes it, on one thread with one `Vec` of neighbours per point, and [`refine`]
+//! (module `flat`), in flat storage (CSR neighbourhoods) with every pass but two cheap
+//! sequential ones (the acceptance decision and the moves) spread over rayon: the type 3 pass,
+//! which depends on every earlier decision of the step, is reformulated so that what a child
+//! could collide with is found in parallel beforehand. Both give the same points in the same
+//! order whatever the thread count (tested).
 //!
 //! Where this differs from, or makes precise, the paper:
 //! - Eq. 8 and 10 take `|n . a|`, which loses the side of the child: between two points on the
@@ -28,8 +30,6 @@
 //! - A rejected child moves the nearest colliding point: an older point (type 2) if any, else the
 //!   nearest child of this step (type 3). Children weigh their distance to a parent in units of
 //!   `r0`; original points weigh `original_weight` (1e6), so they effectively stay put.
-
-use std::time::Instant;
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -88,8 +88,9 @@ pub struct RefineParams {
 }
 
 /// Memory per refined point while refining: position, normal, radius, neighbour list and the
-/// step's bookkeeping (measured: peak RSS 1017 MB for the 2.61 M points of 5 steps on the
-/// double dam break file, 390 bytes a point).
+/// step's bookkeeping (measured: peak RSS 957 MB for the 2.61 M points of 5 steps on the
+/// double dam break file with the parallel implementation, 367 bytes a point; 821 MB, 315 bytes
+/// a point, with the reference).
 pub const BYTES_PER_POINT: u64 = 400;
 
 impl Default for RefineParams {
@@ -173,20 +174,28 @@ pub struct StepStats {
     pub moved: usize,
     /// Wall-clock time of the step.
     pub ms: f64,
-    /// Where the step's time went, in milliseconds: making the candidates, their type 2 checks,
-    /// the sequential type 3 checks with acceptance and registration, and the append, moves and
-    /// neighbourhood update (`bench refine` sums them).
+    /// Where the step's time went, in milliseconds: making the candidates, their type 2 checks
+    /// (with, in the parallel implementation, each candidate's would-be registrations), the type 3
+    /// checks with acceptance and registration, and the append, moves and neighbourhood update
+    /// (`bench refine` sums them).
     pub phases: StepPhases,
 }
 
 /// Milliseconds of each phase of one step ([`StepStats::phases`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct StepPhases {
+    /// The candidate pairs and their midpoints on the sphere (eq. 14-16), in parallel.
     pub candidates_ms: f64,
+    /// Type 2 checks, in parallel; the parallel implementation also lists here, per candidate,
+    /// the points it would be registered with if accepted.
     pub type2_ms: f64,
+    /// Type 3 checks and acceptance: the reference tests and registers candidate by candidate;
+    /// the parallel implementation finds each candidate's rivals in parallel, then decides in
+    /// one sequential pass over them.
     pub accept_ms: f64,
     /// Of `update_ms`: the moves of eq. 17-19 (sequential).
     pub moves_ms: f64,
+    /// Appending the accepted children, the moves, and the new neighbourhoods (in parallel).
     pub update_ms: f64,
 }
 
@@ -312,16 +321,8 @@ pub fn child(
     Some(((x1 + x2) * 0.5 + b * h, b))
 }
 
-/// Point data carried between steps.
-#[derive(Clone, Debug, Default)]
-struct Points {
-    pos: Vec<Vec3>,
-    nrm: Vec<Vec3>,
-    step: Vec<u8>,
-    weight: Vec<f32>,
-    /// neighbours within the current radius, sorted ascending
-    nb: Vec<Vec<u32>>,
-}
+mod flat;
+mod reference;
 
 /// A child candidate of the current step.
 #[derive(Clone, Copy, Debug)]
@@ -338,6 +339,64 @@ struct Candidate {
 enum Target {
     Old(u32),
     New(u32),
+}
+
+/// One sorted list of point indices per point (neighbourhoods, registrations), whatever the
+/// storage.
+trait Lists {
+    fn of(&self, i: usize) -> &[u32];
+}
+
+impl Lists for [Vec<u32>] {
+    #[inline]
+    fn of(&self, i: usize) -> &[u32] {
+        &self[i]
+    }
+}
+
+/// The neighbour lists after a step, as [`refine_observed`] shows them: for each point, the
+/// indices of the points within the new radius, ascending.
+#[derive(Clone, Copy)]
+pub struct NeighbourLists<'a>(ListsRef<'a>);
+
+#[derive(Clone, Copy)]
+enum ListsRef<'a> {
+    Nested(&'a [Vec<u32>]),
+    Flat(&'a flat::Csr),
+}
+
+impl<'a> NeighbourLists<'a> {
+    fn nested(lists: &'a [Vec<u32>]) -> Self {
+        Self(ListsRef::Nested(lists))
+    }
+
+    fn flat(lists: &'a flat::Csr) -> Self {
+        Self(ListsRef::Flat(lists))
+    }
+
+    /// Number of points.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        match self.0 {
+            ListsRef::Nested(l) => l.len(),
+            ListsRef::Flat(l) => l.len(),
+        }
+    }
+
+    /// True when there are no points.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The neighbours of point `i`, ascending.
+    #[must_use]
+    pub fn of(&self, i: usize) -> &'a [u32] {
+        match self.0 {
+            ListsRef::Nested(l) => &l[i],
+            ListsRef::Flat(l) => l.of(i),
+        }
+    }
 }
 
 fn validate(
@@ -413,50 +472,27 @@ fn validate(
     Ok(())
 }
 
-/// Initial state: input points, normalised normals (a zero normal stays zero, so its point never
-/// makes a child: `|b'|` is checked) and neighbourhoods within `r0`.
-fn initial(
-    positions: &[Vec3],
-    normals: &[Vec3],
-    params: &RefineParams,
-) -> Result<Points, RefineError> {
-    let nb = Neighbourhoods::build(positions, params.initial_radius, Backend::CellGrid)?;
-    Ok(Points {
-        pos: positions.to_vec(),
-        nrm: normals.iter().map(|n| n.normalize_or_zero()).collect(),
-        step: vec![0; positions.len()],
-        weight: vec![params.original_weight; positions.len()],
-        nb: (0..positions.len())
-            .map(|i| {
-                let mut v = nb.of(i).to_vec();
-                v.sort_unstable();
-                v
-            })
-            .collect(),
-    })
-}
-
 /// Sorted intersection of two sorted lists, visited.
 #[inline]
 fn for_each_common(a: &[u32], b: &[u32], mut f: impl FnMut(u32)) {
+    // branch-free steps: the comparisons of a merge are unpredictable
     let (mut i, mut j) = (0, 0);
     while i < a.len() && j < b.len() {
-        match a[i].cmp(&b[j]) {
-            std::cmp::Ordering::Less => i += 1,
-            std::cmp::Ordering::Greater => j += 1,
-            std::cmp::Ordering::Equal => {
-                f(a[i]);
-                i += 1;
-                j += 1;
-            }
+        let (x, y) = (a[i], b[j]);
+        if x == y {
+            f(x);
         }
+        i += usize::from(x <= y);
+        j += usize::from(y <= x);
     }
 }
 
 /// The child candidates of point `p1` with its higher-numbered neighbours, in neighbour order.
 /// Returns the number of pairs that gave no child (`|b'|` near zero).
 fn candidates_of(
-    pts: &Points,
+    pos: &[Vec3],
+    nrm: &[Vec3],
+    nb: &[u32],
     p1: usize,
     params: &RefineParams,
     r: f32,
@@ -469,19 +505,19 @@ fn candidates_of(
         params.initial_radius,
     );
     let mut no_normal = 0;
-    let (x1, n1) = (pts.pos[p1], pts.nrm[p1]);
-    for &p2 in pts.nb[p1].iter().filter(|&&p2| p2 as usize > p1) {
-        let (x2, n2) = (pts.pos[p2 as usize], pts.nrm[p2 as usize]);
+    let (x1, n1) = (pos[p1], nrm[p1]);
+    for &p2 in nb.iter().filter(|&&p2| p2 as usize > p1) {
+        let (x2, n2) = (pos[p2 as usize], nrm[p2 as usize]);
         if x1.distance_squared(x2) < r_next * r_next {
             continue; // left to the next step (type 1 collisions, §3.3.1)
         }
         match child(x1, n1, x2, n2, rule, h_max) {
-            Some((pos, nrm)) => out.push(Candidate {
+            Some((at, normal)) => out.push(Candidate {
                 p1: p1 as u32,
                 p2,
-                pos,
-                nrm,
-                weight: pos.distance(x1) / r0,
+                pos: at,
+                nrm: normal,
+                weight: at.distance(x1) / r0,
             }),
             None => no_normal += 1,
         }
@@ -490,10 +526,10 @@ fn candidates_of(
 }
 
 /// Nearest older point of `N1 ∩ N2` within `beta` of the candidate (type 2).
-fn type2_hit(pts: &Points, c: &Candidate, beta: f32) -> Option<u32> {
+fn type2_hit(pos: &[Vec3], n1: &[u32], n2: &[u32], c: &Candidate, beta: f32) -> Option<u32> {
     let mut best: Option<(f32, u32)> = None;
-    for_each_common(&pts.nb[c.p1 as usize], &pts.nb[c.p2 as usize], |q| {
-        let d2 = pts.pos[q as usize].distance_squared(c.pos);
+    for_each_common(n1, n2, |q| {
+        let d2 = pos[q as usize].distance_squared(c.pos);
         if d2 < beta * beta && best.is_none_or(|(bd, _)| d2 < bd) {
             best = Some((d2, q));
         }
@@ -501,66 +537,31 @@ fn type2_hit(pts: &Points, c: &Candidate, beta: f32) -> Option<u32> {
     best.map(|(_, q)| q)
 }
 
-/// Nearest child of this step within `beta` among those registered at both parents
-/// (type 3: `S = R1 ∩ R2`), ties to the earliest.
-fn type3_hit(
-    registered: &[Vec<u32>],
-    accepted: &[Candidate],
-    c: &Candidate,
-    beta: f32,
-) -> Option<u32> {
-    let mut best: Option<(f32, u32)> = None;
-    for_each_common(
-        &registered[c.p1 as usize],
-        &registered[c.p2 as usize],
-        |k| {
-            let d2 = accepted[k as usize].pos.distance_squared(c.pos);
-            if d2 < beta * beta && best.is_none_or(|(bd, _)| d2 < bd) {
-                best = Some((d2, k));
-            }
-        },
-    );
-    best.map(|(_, k)| k)
-}
-
 /// Calls `f(q)` once for every older point of `U = N1 ∪ N2` (which holds both parents) within
 /// `reach` of the candidate, in ascending order: a merge of the two sorted neighbour lists.
-fn for_each_registration_unique(pts: &Points, c: &Candidate, reach: f32, mut f: impl FnMut(u32)) {
+fn for_each_registration_unique(
+    pos: &[Vec3],
+    a: &[u32],
+    b: &[u32],
+    c: &Candidate,
+    reach: f32,
+    mut f: impl FnMut(u32),
+) {
     let reach2 = reach * reach;
-    let (a, b) = (&pts.nb[c.p1 as usize], &pts.nb[c.p2 as usize]);
-    let (mut i, mut j) = (0, 0);
     let mut visit = |q: u32| {
-        if pts.pos[q as usize].distance_squared(c.pos) < reach2 {
+        if pos[q as usize].distance_squared(c.pos) < reach2 {
             f(q);
         }
     };
-    while i < a.len() || j < b.len() {
-        let q = match (a.get(i), b.get(j)) {
-            (Some(&x), Some(&y)) if x == y => {
-                i += 1;
-                j += 1;
-                x
-            }
-            (Some(&x), Some(&y)) if x < y => {
-                i += 1;
-                x
-            }
-            (Some(_), Some(&y)) => {
-                j += 1;
-                y
-            }
-            (Some(&x), None) => {
-                i += 1;
-                x
-            }
-            (None, Some(&y)) => {
-                j += 1;
-                y
-            }
-            (None, None) => break,
-        };
-        visit(q);
+    // branch-free merge steps, as in `for_each_common`
+    let (mut i, mut j) = (0, 0);
+    while i < a.len() && j < b.len() {
+        let (x, y) = (a[i], b[j]);
+        visit(x.min(y));
+        i += usize::from(x <= y);
+        j += usize::from(y <= x);
     }
+    a[i..].iter().chain(&b[j..]).for_each(|&q| visit(q));
 }
 
 /// Applies eq. 17-19 in candidate order: the point hit moves towards the rejected child and
@@ -568,11 +569,15 @@ fn for_each_registration_unique(pts: &Points, c: &Candidate, reach: f32, mut f: 
 /// neighbours and the children registered near it). The paper does not guard the move; without
 /// the guard, measured on the splash frame, 3.7 % of the refined points end up closer than the
 /// final collision distance to another point (0.1 % with it).
-fn apply_moves(
-    pts: &mut Points,
+#[allow(clippy::too_many_arguments)] // one step's state, passed once
+fn apply_moves<N: Lists + ?Sized, R: Lists + ?Sized>(
+    pos: &mut [Vec3],
+    nrm: &mut [Vec3],
+    weight: &mut [f32],
+    nb: &N,
+    registered: &R,
     moves: &[(Target, Candidate)],
     accepted: &[Candidate],
-    registered: &[Vec<u32>],
     n_old: usize,
     beta: f32,
 ) -> usize {
@@ -583,146 +588,71 @@ fn apply_moves(
             Target::Old(q) => q as usize,
             Target::New(k) => n_old + k as usize,
         };
-        let (wp, wc) = (pts.weight[i], c.weight);
-        let moved = (pts.pos[i] * wp + c.pos * wc) / (wp + wc);
-        let clear = |j: usize| j == i || pts.pos[j].distance_squared(moved) >= beta2;
+        let (wp, wc) = (weight[i], c.weight);
+        let moved = (pos[i] * wp + c.pos * wc) / (wp + wc);
+        let clear = |j: usize| j == i || pos[j].distance_squared(moved) >= beta2;
         let visible_clear = match *target {
             Target::Old(q) => {
                 let q = q as usize;
-                pts.nb[q].iter().all(|&j| clear(j as usize))
-                    && registered[q].iter().all(|&k| clear(n_old + k as usize))
+                nb.of(q).iter().all(|&j| clear(j as usize))
+                    && registered.of(q).iter().all(|&k| clear(n_old + k as usize))
             }
             Target::New(k) => {
                 let a = &accepted[k as usize];
                 let (p1, p2) = (a.p1 as usize, a.p2 as usize);
                 [p1, p2].iter().all(|&j| clear(j))
-                    && pts.nb[p1]
+                    && nb
+                        .of(p1)
                         .iter()
-                        .chain(&pts.nb[p2])
+                        .chain(nb.of(p2))
                         .all(|&j| clear(j as usize))
-                    && registered[p1]
+                    && registered
+                        .of(p1)
                         .iter()
-                        .chain(&registered[p2])
+                        .chain(registered.of(p2))
                         .all(|&k2| clear(n_old + k2 as usize))
             }
         };
         if !visible_clear {
             continue;
         }
-        pts.pos[i] = moved;
-        let n = pts.nrm[i] * wp + c.nrm * wc;
-        pts.nrm[i] = n.normalize_or(pts.nrm[i]);
-        pts.weight[i] = wp + wc;
+        pos[i] = moved;
+        let n = nrm[i] * wp + c.nrm * wc;
+        nrm[i] = n.normalize_or(nrm[i]);
+        weight[i] = wp + wc;
         moved_count += 1;
     }
     moved_count
 }
 
-/// Appends the accepted children and, unless this was the last step, updates every
-/// neighbourhood to `r_next` (§3.4) from the step's relations: type 1 by filtering the old lists,
-/// types 2 and 3 from `U` of each child's parents and the children of the points in `U`.
-#[allow(clippy::too_many_arguments)] // one step's state, passed once
-fn append_and_update(
-    pts: &mut Points,
-    accepted: &[Candidate],
-    moves: &[(Target, Candidate)],
-    registered: &[Vec<u32>],
-    children_of: &[Vec<u32>],
-    step: u8,
-    r_next: f32,
-    beta: f32,
-    last: bool,
-    parallel: bool,
-) -> (usize, f64) {
-    let n_old = pts.pos.len();
-    for c in accepted {
-        pts.pos.push(c.pos);
-        pts.nrm.push(c.nrm);
-        pts.step.push(step);
-        pts.weight.push(c.weight);
-    }
-    let t = Instant::now();
-    let moved = apply_moves(pts, moves, accepted, registered, n_old, beta);
-    let moves_ms = t.elapsed().as_secs_f64() * 1e3;
-    if last {
-        // no update after the last step (§3.4)
-        pts.nb.resize(pts.pos.len(), Vec::new());
-        return (moved, moves_ms);
-    }
-    let r2 = r_next * r_next;
-    let pos = &pts.pos;
-    let nb = &pts.nb;
-    let child_lists = |k: usize| -> (Vec<u32>, Vec<u32>) {
-        let c = &accepted[k];
-        let g = (n_old + k) as u32;
-        let x = pos[g as usize];
-        let mut old = Vec::new();
-        let mut new = Vec::new();
-        for &q in [c.p1, c.p2]
-            .iter()
-            .chain(&nb[c.p1 as usize])
-            .chain(&nb[c.p2 as usize])
-        {
-            if pos[q as usize].distance_squared(x) <= r2 {
-                old.push(q); // type 2
-            }
-            for &k2 in &children_of[q as usize] {
-                let g2 = (n_old + k2 as usize) as u32;
-                if g2 != g && pos[g2 as usize].distance_squared(x) <= r2 {
-                    new.push(g2); // type 3
-                }
-            }
-        }
-        old.sort_unstable();
-        old.dedup();
-        new.sort_unstable();
-        new.dedup();
-        (old, new)
-    };
-    let lists: Vec<(Vec<u32>, Vec<u32>)> = if parallel {
-        (0..accepted.len())
-            .into_par_iter()
-            .map(child_lists)
-            .collect()
-    } else {
-        (0..accepted.len()).map(child_lists).collect()
-    };
-    // type 2, the other way round: old points gain the children near them
-    let mut pairs: Vec<(u32, u32)> = lists
-        .iter()
-        .enumerate()
-        .flat_map(|(k, (old, _))| old.iter().map(move |&q| (q, (n_old + k) as u32)))
-        .collect();
-    if parallel {
-        pairs.par_sort_unstable();
-    } else {
-        pairs.sort_unstable();
-    }
-    // type 1: old relations that survive the smaller radius
-    let pos = &pts.pos;
-    let keep = |(p, list): (usize, &mut Vec<u32>)| {
-        list.retain(|&q| pos[q as usize].distance_squared(pos[p]) <= r2)
-    };
-    if parallel {
-        pts.nb.par_iter_mut().enumerate().for_each(keep);
-    } else {
-        pts.nb.iter_mut().enumerate().for_each(keep);
-    }
-    for &(q, g) in &pairs {
-        pts.nb[q as usize].push(g); // children have higher indices: the lists stay sorted
-    }
-    for (mut old, new) in lists {
-        old.extend(new); // old indices < n_old <= new indices: sorted
-        pts.nb.push(old);
-    }
-    (moved, moves_ms)
+/// Initial neighbourhoods within `r0`.
+fn initial_neighbours(
+    positions: &[Vec3],
+    params: &RefineParams,
+) -> Result<Neighbourhoods, RefineError> {
+    Ok(Neighbourhoods::build(
+        positions,
+        params.initial_radius,
+        Backend::CellGrid,
+    )?)
 }
 
-/// Splat and kernel radii: `splat_factor * r_n` and `kernel_factor * r_n` for points that took
-/// part in the refinement; points that had no neighbour at the start (isolated drops) keep half
-/// the initial radius as splat and the initial radius as kernel.
-fn radii(pts: &Points, isolated: &[bool], params: &RefineParams, r_n: f32) -> (Vec<f32>, Vec<f32>) {
-    (0..pts.pos.len())
+/// The refined set from the final points. Splat and kernel radii: `splat_factor * r_n` and
+/// `kernel_factor * r_n` for points that took part in the refinement; points that had no
+/// neighbour at the start (isolated drops) keep half the initial radius as splat and the
+/// initial radius as kernel.
+#[allow(clippy::too_many_arguments)] // the final state, passed once
+fn finish(
+    positions: Vec<Vec3>,
+    normals: Vec<Vec3>,
+    steps: Vec<u8>,
+    weights: Vec<f32>,
+    isolated: &[bool],
+    params: &RefineParams,
+    stats: Vec<StepStats>,
+    r_n: f32,
+) -> Refined {
+    let (radii, kernel_radii) = (0..positions.len())
         .map(|i| {
             if i < isolated.len() && isolated[i] {
                 (0.5 * params.initial_radius, params.initial_radius)
@@ -730,22 +660,12 @@ fn radii(pts: &Points, isolated: &[bool], params: &RefineParams, r_n: f32) -> (V
                 (params.splat_factor * r_n, params.kernel_factor * r_n)
             }
         })
-        .unzip()
-}
-
-fn finish(
-    pts: Points,
-    isolated: Vec<bool>,
-    params: &RefineParams,
-    stats: Vec<StepStats>,
-    r_n: f32,
-) -> Refined {
-    let (radii, kernel_radii) = radii(&pts, &isolated, params, r_n);
+        .unzip();
     Refined {
-        positions: pts.pos,
-        normals: pts.nrm,
-        steps: pts.step,
-        weights: pts.weight,
+        positions,
+        normals,
+        steps,
+        weights,
         radii,
         kernel_radii,
         stats,
@@ -753,165 +673,42 @@ fn finish(
     }
 }
 
-/// One step (§3.2-3.4). With `parallel`, the children, the type 2 checks and the neighbourhood
-/// update are computed with rayon; the type 3 checks and registrations, which depend on every
-/// earlier decision of the step, always run in one pass in candidate order, as §3.3 describes:
-/// pairs in order of their first point, each child checked against the older points of
-/// `N1 ∩ N2` (type 2) and against the children registered so far at both parents (type 3).
-fn step_once(
-    pts: &mut Points,
-    params: &RefineParams,
-    r: f32,
-    step: u32,
-    parallel: bool,
-) -> Result<StepStats, RefineError> {
-    let t = Instant::now();
-    let n_old = pts.pos.len();
-    let (r_next, beta) = (r * RADIUS_FACTOR, params.collision_factor * r);
-    let mut s = StepStats {
-        step,
-        radius: r,
-        points_before: n_old,
-        ..StepStats::default()
-    };
-    // candidates, in (first point, neighbour) order
-    let generate = |p1: usize| {
-        let mut out = Vec::new();
-        let none = candidates_of(pts, p1, params, r, &mut out);
-        (out, none)
-    };
-    let per_point: Vec<(Vec<Candidate>, usize)> = if parallel {
-        (0..n_old).into_par_iter().map(generate).collect()
-    } else {
-        (0..n_old).map(generate).collect()
-    };
-    s.different_surfaces = per_point.iter().map(|p| p.1).sum();
-    // every new point is the child of one candidate pair: the bound is known before the work
-    let predicted = n_old + per_point.iter().map(|p| p.0.len()).sum::<usize>();
-    if predicted as u128 * BYTES_PER_POINT as u128 > params.memory_budget as u128 {
-        return Err(RefineError::OverBudget {
-            step,
-            steps: params.steps,
-            predicted,
-            points: n_old,
-            budget: params.memory_budget,
-        });
-    }
-    let candidates: Vec<Candidate> = per_point.into_iter().flat_map(|p| p.0).collect();
-    s.candidates = candidates.len();
-    s.phases.candidates_ms = t.elapsed().as_secs_f64() * 1e3;
-    let phase = Instant::now();
-    // type 2 hits depend on the older points only
-    let hits: Vec<Option<u32>> = match (params.collisions, parallel) {
-        (false, _) => vec![None; candidates.len()],
-        (true, true) => candidates
-            .par_iter()
-            .map(|c| type2_hit(pts, c, beta))
-            .collect(),
-        (true, false) => candidates.iter().map(|c| type2_hit(pts, c, beta)).collect(),
-    };
-    s.phases.type2_ms = phase.elapsed().as_secs_f64() * 1e3;
-    let phase = Instant::now();
-    // type 3, acceptance and registration, in candidate order
-    let mut registered: Vec<Vec<u32>> = vec![Vec::new(); n_old];
-    let mut children_of: Vec<Vec<u32>> = vec![Vec::new(); n_old];
-    let mut accepted: Vec<Candidate> = Vec::new();
-    let mut moves: Vec<(Target, Candidate)> = Vec::new();
-    for (k, c) in candidates.iter().enumerate() {
-        if let Some(q) = hits[k] {
-            s.collisions_type2 += 1;
-            moves.push((Target::Old(q), *c));
-            continue;
-        }
-        if params.collisions
-            && let Some(j) = type3_hit(&registered, &accepted, c, beta)
-        {
-            s.collisions_type3 += 1;
-            moves.push((Target::New(j), *c));
-            continue;
-        }
-        let a = accepted.len() as u32;
-        for_each_registration_unique(pts, c, r_next + beta, |q| registered[q as usize].push(a));
-        children_of[c.p1 as usize].push(a);
-        children_of[c.p2 as usize].push(a);
-        accepted.push(*c);
-    }
-    s.resolved = moves.len();
-    s.phases.accept_ms = phase.elapsed().as_secs_f64() * 1e3;
-    let phase = Instant::now();
-    (s.moved, s.phases.moves_ms) = append_and_update(
-        pts,
-        &accepted,
-        &moves,
-        &registered,
-        &children_of,
-        step as u8,
-        r_next,
-        beta,
-        step == params.steps,
-        parallel,
-    );
-    s.points_after = pts.pos.len();
-    s.phases.update_ms = phase.elapsed().as_secs_f64() * 1e3;
-    s.ms = t.elapsed().as_secs_f64() * 1e3;
-    Ok(s)
-}
-
-/// Runs the steps; `observe` sees the positions, neighbourhoods and radius after each step's
-/// update (not after the last step, which has none).
-fn run(
-    positions: &[Vec3],
-    normals: &[Vec3],
-    params: &RefineParams,
-    parallel: bool,
-    mut observe: impl FnMut(&[Vec3], &[Vec<u32>], f32),
-) -> Result<Refined, RefineError> {
-    validate(positions, normals, params)?;
-    let mut pts = initial(positions, normals, params)?;
-    let isolated: Vec<bool> = pts.nb.iter().map(Vec::is_empty).collect();
-    let mut stats = Vec::new();
-    let mut r = params.initial_radius;
-    for step in 1..=params.steps {
-        let s = step_once(&mut pts, params, r, step, parallel)?;
-        stats.push(s);
-        r *= RADIUS_FACTOR;
-        if step < params.steps {
-            observe(&pts.pos, &pts.nb, r);
-        }
-    }
-    Ok(finish(pts, isolated, params, stats, r))
-}
-
 /// The faithful single-threaded refinement (the specification the parallel one is tested
-/// against).
+/// against): the paper's steps on one `Vec` of neighbours per point.
 pub fn refine_reference(
     positions: &[Vec3],
     normals: &[Vec3],
     params: &RefineParams,
 ) -> Result<Refined, RefineError> {
-    run(positions, normals, params, false, |_, _, _| {})
+    refine_observed(positions, normals, params, false, |_, _, _| {})
 }
 
-/// The parallel refinement: the same points in the same order as [`refine_reference`], whatever
-/// the thread count.
+/// The parallel refinement in flat storage: the same points in the same order as
+/// [`refine_reference`], whatever the thread count.
 pub fn refine(
     positions: &[Vec3],
     normals: &[Vec3],
     params: &RefineParams,
 ) -> Result<Refined, RefineError> {
-    run(positions, normals, params, true, |_, _, _| {})
+    refine_observed(positions, normals, params, true, |_, _, _| {})
 }
 
-/// [`refine`] (or the reference) with a look at the incremental neighbourhoods after each
-/// step but the last: `observe(positions, neighbour lists, radius)`. For tests and diagnostics.
+/// [`refine`] (`parallel`) or [`refine_reference`] with a look at the incremental
+/// neighbourhoods after each step but the last: `observe(positions, neighbour lists, radius)`.
+/// For tests and diagnostics.
 pub fn refine_observed(
     positions: &[Vec3],
     normals: &[Vec3],
     params: &RefineParams,
     parallel: bool,
-    observe: impl FnMut(&[Vec3], &[Vec<u32>], f32),
+    observe: impl FnMut(&[Vec3], NeighbourLists<'_>, f32),
 ) -> Result<Refined, RefineError> {
-    run(positions, normals, params, parallel, observe)
+    validate(positions, normals, params)?;
+    if parallel {
+        flat::run(positions, normals, params, observe)
+    } else {
+        reference::run(positions, normals, params, observe)
+    }
 }
 
 /// Neighbours looked at by [`Refined::gap_free_radii`].
