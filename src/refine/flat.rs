@@ -27,32 +27,48 @@ const CHUNK: usize = 512;
 /// No point, no candidate.
 const NONE: u32 = u32::MAX;
 
-/// Lists in compressed sparse rows: list `i` is `items[offsets[i]..offsets[i + 1]]`.
+/// Lists in compressed sparse rows, kept in the chunks of [`CHUNK`] lists they are built in
+/// (in parallel): list `i` is `items[ends[j]..ends[j + 1]]` of chunk `i / CHUNK`, `j = i % CHUNK`.
+/// No concatenation after a parallel build (which held every list twice at its peak), and the
+/// ends are `u32`, relative to the chunk.
 #[derive(Clone, Debug, Default)]
 pub(super) struct Csr {
-    offsets: Vec<usize>,
+    n: usize,
+    chunks: Vec<Chunk>,
+}
+
+/// [`CHUNK`] lists (the last chunk fewer): `ends` starts at 0 and has one more entry than lists.
+#[derive(Clone, Debug, Default)]
+struct Chunk {
+    ends: Vec<u32>,
     items: Vec<u32>,
 }
 
 impl Lists for Csr {
     #[inline]
     fn of(&self, i: usize) -> &[u32] {
-        &self.items[self.offsets[i]..self.offsets[i + 1]]
+        let c = &self.chunks[i / CHUNK];
+        let j = i % CHUNK;
+        &c.items[c.ends[j] as usize..c.ends[j + 1] as usize]
     }
+}
+
+/// The end of a chunk's items so far, as a chunk-relative `u32`. A chunk holds the lists of
+/// [`CHUNK`] points or candidates; 2^32 items there would be 16 GiB of one chunk's lists, beyond
+/// the memory budget checked before every step.
+fn chunk_end(items: &[u32]) -> u32 {
+    u32::try_from(items.len()).expect("a chunk of lists holds fewer than 2^32 items")
 }
 
 impl Csr {
     /// `n` empty lists.
     fn empty(n: usize) -> Self {
-        Self {
-            offsets: vec![0; n + 1],
-            items: Vec::new(),
-        }
+        Self::build(n, |_, _| {})
     }
 
     /// Number of lists.
     pub(super) fn len(&self) -> usize {
-        self.offsets.len() - 1
+        self.n
     }
 
     /// Lists `0..n`, list `i` appended to `out` by `fill(i, out)`, in parallel over fixed chunks.
@@ -65,48 +81,65 @@ impl Csr {
         n: usize,
         fill: impl Fn(usize, &mut Vec<u32>) -> T + Sync,
     ) -> (Self, Vec<T>) {
-        let parts: Vec<(Vec<usize>, Vec<u32>, Vec<T>)> = (0..n.div_ceil(CHUNK))
+        let parts: Vec<(Chunk, Vec<T>)> = (0..n.div_ceil(CHUNK))
             .into_par_iter()
             .map(|c| {
                 let range = c * CHUNK..((c + 1) * CHUNK).min(n);
-                let mut ends = Vec::with_capacity(range.len());
+                let mut ends = Vec::with_capacity(range.len() + 1);
                 let mut values = Vec::with_capacity(range.len());
+                ends.push(0);
                 let mut items = Vec::new();
                 for i in range {
                     values.push(fill(i, &mut items));
-                    ends.push(items.len());
+                    ends.push(chunk_end(&items));
                 }
-                (ends, items, values)
+                items.shrink_to_fit();
+                (Chunk { ends, items }, values)
             })
             .collect();
-        let mut offsets = Vec::with_capacity(n + 1);
-        offsets.push(0);
-        let mut items = Vec::with_capacity(parts.iter().map(|p| p.1.len()).sum());
         let mut values = Vec::with_capacity(n);
-        for (ends, part, v) in parts {
-            let base = items.len();
-            offsets.extend(ends.iter().map(|e| base + e));
-            items.extend_from_slice(&part);
+        let mut chunks = Vec::with_capacity(parts.len());
+        for (chunk, v) in parts {
+            chunks.push(chunk);
             values.extend(v);
         }
-        (Self { offsets, items }, values)
+        (Self { n, chunks }, values)
     }
 
     /// Lists of `n` keys from `(key, value)` pairs, each list in the order the pairs come
     /// (a counting sort; `pairs` is called twice and must emit the same pairs both times).
     fn group(n: usize, pairs: impl Fn(&mut dyn FnMut(u32, u32))) -> Self {
-        let mut offsets = vec![0usize; n + 1];
-        pairs(&mut |k, _| offsets[k as usize + 1] += 1);
-        for i in 0..n {
-            offsets[i + 1] += offsets[i];
-        }
-        let mut items = vec![0u32; offsets[n]];
-        let mut next = offsets[..n].to_vec();
+        let mut next = vec![0u32; n];
+        pairs(&mut |k, _| next[k as usize] += 1);
+        let chunks = (0..n.div_ceil(CHUNK))
+            .map(|c| {
+                let range = c * CHUNK..((c + 1) * CHUNK).min(n);
+                let mut ends = Vec::with_capacity(range.len() + 1);
+                let mut end = 0u64;
+                ends.push(0);
+                for k in range {
+                    let count = next[k];
+                    // where key k's items start, then (second pass) where its next one goes
+                    next[k] =
+                        u32::try_from(end).expect("a chunk of lists holds fewer than 2^32 items");
+                    end += u64::from(count);
+                    ends.push(
+                        u32::try_from(end).expect("a chunk of lists holds fewer than 2^32 items"),
+                    );
+                }
+                Chunk {
+                    ends,
+                    items: vec![0; end as usize],
+                }
+            })
+            .collect::<Vec<_>>();
+        let mut csr = Self { n, chunks };
         pairs(&mut |k, v| {
-            items[next[k as usize]] = v;
-            next[k as usize] += 1;
+            let k = k as usize;
+            csr.chunks[k / CHUNK].items[next[k] as usize] = v;
+            next[k] += 1;
         });
-        Self { offsets, items }
+        csr
     }
 }
 
@@ -131,6 +164,72 @@ struct Points {
     weight: Vec<f32>,
     /// neighbours within the current radius, sorted ascending
     nb: Csr,
+}
+
+/// The step's candidates in (first point, neighbour) order, stored once at their exact count
+/// (a first parallel pass counts them, a second writes each chunk's share in place: no second
+/// copy of the largest array of the step), with the number of pairs that gave no child. The
+/// count is checked against the memory budget before anything is stored.
+fn make_candidates(
+    pts: &Points,
+    params: &RefineParams,
+    r: f32,
+    step: u32,
+) -> Result<(Vec<Candidate>, usize), RefineError> {
+    let n_old = pts.pos.len();
+    let chunks = n_old.div_ceil(CHUNK);
+    let range = |c: usize| c * CHUNK..((c + 1) * CHUNK).min(n_old);
+    let counts: Vec<(Vec<u32>, usize)> = (0..chunks)
+        .into_par_iter()
+        .map_with(Vec::new(), |scratch: &mut Vec<Candidate>, c| {
+            let mut none = 0;
+            let counts = range(c)
+                .map(|p1| {
+                    scratch.clear();
+                    none +=
+                        candidates_of(&pts.pos, &pts.nrm, pts.nb.of(p1), p1, params, r, scratch);
+                    scratch.len() as u32
+                })
+                .collect();
+            (counts, none)
+        })
+        .collect();
+    let no_normal = counts.iter().map(|c| c.1).sum();
+    let mut first = Vec::with_capacity(n_old + 1);
+    first.push(0usize);
+    for &n in counts.iter().flat_map(|c| &c.0) {
+        first.push(first[first.len() - 1] + n as usize);
+    }
+    drop(counts);
+    let total = first[n_old];
+    // every new point is the child of one candidate pair: the bound is known before the work
+    let predicted = n_old + total;
+    if predicted as u128 * BYTES_PER_POINT as u128 > params.memory_budget as u128 {
+        return Err(RefineError::OverBudget {
+            step,
+            steps: params.steps,
+            predicted,
+            points: n_old,
+            budget: params.memory_budget,
+        });
+    }
+    let mut candidates = vec![Candidate::default(); total];
+    let mut shares = Vec::with_capacity(chunks);
+    let mut rest = candidates.as_mut_slice();
+    for c in 0..chunks {
+        let r = range(c);
+        let (share, tail) = rest.split_at_mut(first[r.end] - first[r.start]);
+        shares.push(share);
+        rest = tail;
+    }
+    shares.into_par_iter().enumerate().for_each(|(c, share)| {
+        let mut out = Vec::with_capacity(share.len());
+        for p1 in range(c) {
+            candidates_of(&pts.pos, &pts.nrm, pts.nb.of(p1), p1, params, r, &mut out);
+        }
+        share.copy_from_slice(&out);
+    });
+    Ok((candidates, no_normal))
 }
 
 /// A candidate's type 2 hit, exactly as `type2_hit` finds it, and, when there is none, the older
@@ -176,43 +275,56 @@ fn type2_and_registrations(
     }
 }
 
-/// What the acceptance pass decided.
-struct Decision {
-    accepted: Vec<Candidate>,
-    moves: Vec<(Target, Candidate)>,
-    /// accepted children registered at each older point, in acceptance order
-    registered: Csr,
-    type2: usize,
-    type3: usize,
-}
-
-/// Type 3 checks, acceptance and registration: the reference's pass in candidate order,
-/// reformulated (module docs) so that all but the decision runs in parallel.
-fn decide(
-    n_old: usize,
+/// Each candidate's type 2 hit ([`NONE`] if none) and, for each older point `q`, the candidates
+/// without a hit that would be registered at `q` if accepted, ascending: the per-candidate lists
+/// of [`type2_and_registrations`], made in parallel, inverted by a counting sort.
+fn hits_and_registrations(
+    pts: &Points,
     candidates: &[Candidate],
-    hits: &[u32],
-    would: Option<Csr>,
     beta: f32,
-) -> Decision {
-    let Some(would) = would else {
-        return Decision {
-            accepted: candidates.to_vec(),
-            moves: Vec::new(),
-            registered: Csr::empty(n_old),
-            type2: 0,
-            type3: 0,
-        };
-    };
-    // inverted: the candidates that would register at each older point, in candidate order
-    let at = Csr::group(n_old, |emit| {
+    reach: f32,
+) -> (Vec<u32>, Csr) {
+    let (pos, nb) = (&pts.pos, &pts.nb);
+    let (would, hits) = Csr::build_with(candidates.len(), |k, out| {
+        let c = &candidates[k];
+        let (n1, n2) = (nb.of(c.p1 as usize), nb.of(c.p2 as usize));
+        type2_and_registrations(pos, n1, n2, c, beta, reach, out)
+    });
+    let at = Csr::group(pos.len(), |emit| {
         for k in 0..candidates.len() {
             for &q in would.of(k) {
                 emit(q, k as u32);
             }
         }
     });
-    drop(would);
+    (hits, at)
+}
+
+/// What the acceptance pass decided, as candidate indices.
+struct Decision {
+    accepted: Vec<u32>,
+    moves: Vec<(Target, u32)>,
+    /// accepted children (their rank in `accepted`) registered at each older point, in
+    /// acceptance order
+    registered: Csr,
+    type2: usize,
+    type3: usize,
+}
+
+/// Type 3 checks, acceptance and registration: the reference's pass in candidate order,
+/// reformulated (module docs) so that all but the decision runs in parallel. `at`: the
+/// candidates that would register at each older point, ascending
+/// ([`hits_and_registrations`]); `None` when collisions are off.
+fn decide(candidates: &[Candidate], hits: &[u32], at: Option<Csr>, beta: f32) -> Decision {
+    let Some(at) = at else {
+        return Decision {
+            accepted: (0..candidates.len() as u32).collect(),
+            moves: Vec::new(),
+            registered: Csr::empty(0),
+            type2: 0,
+            type3: 0,
+        };
+    };
     // each candidate's rivals: earlier candidates within beta registered at both its parents
     let beta2 = beta * beta;
     let rivals = Csr::build(candidates.len(), |k, out| {
@@ -245,7 +357,7 @@ fn decide(
     for (k, c) in candidates.iter().enumerate() {
         if hits[k] != NONE {
             d.type2 += 1;
-            d.moves.push((Target::Old(hits[k]), *c));
+            d.moves.push((Target::Old(hits[k]), k as u32));
             continue;
         }
         // nearest accepted rival, ties to the earliest (rivals are in candidate order)
@@ -261,13 +373,14 @@ fn decide(
         }
         if let Some((_, a)) = best {
             d.type3 += 1;
-            d.moves.push((Target::New(a), *c));
+            d.moves.push((Target::New(a), k as u32));
             continue;
         }
         index[k] = d.accepted.len() as u32;
-        d.accepted.push(*c);
+        d.accepted.push(k as u32);
     }
-    d.registered = Csr::build(n_old, |q, out| {
+    drop(rivals);
+    d.registered = Csr::build(at.len(), |q, out| {
         out.extend(
             at.of(q)
                 .iter()
@@ -281,18 +394,25 @@ fn decide(
 /// The neighbourhoods within `r_next` after the step (§3.4), as in the reference: type 1 by
 /// filtering the old lists, types 2 and 3 from `U` of each child's parents and the children of
 /// the points in `U`.
-fn update(pts: &Points, accepted: &[Candidate], n_old: usize, r_next: f32) -> Csr {
+fn update(
+    pts: &Points,
+    candidates: &[Candidate],
+    accepted: &[u32],
+    n_old: usize,
+    r_next: f32,
+) -> Csr {
     let r2 = r_next * r_next;
     let (pos, nb) = (&pts.pos, &pts.nb);
     let children_of = Csr::group(n_old, |emit| {
-        for (a, c) in accepted.iter().enumerate() {
+        for (a, &k) in accepted.iter().enumerate() {
+            let c = &candidates[k as usize];
             emit(c.p1, a as u32);
             emit(c.p2, a as u32);
         }
     });
     // each child's list: old points (type 2) then children (type 3), sorted
     let lists = Csr::build(accepted.len(), |k, out| {
-        let c = &accepted[k];
+        let c = &candidates[accepted[k] as usize];
         let g = (n_old + k) as u32;
         let x = pos[g as usize];
         let start = out.len();
@@ -353,59 +473,34 @@ fn step_once(
         points_before: n_old,
         ..StepStats::default()
     };
-    // candidates, in (first point, neighbour) order
-    let parts: Vec<(Vec<Candidate>, usize)> = (0..n_old.div_ceil(CHUNK))
-        .into_par_iter()
-        .map(|c| {
-            let mut out = Vec::new();
-            let mut none = 0;
-            for p1 in c * CHUNK..((c + 1) * CHUNK).min(n_old) {
-                none += candidates_of(&pts.pos, &pts.nrm, pts.nb.of(p1), p1, params, r, &mut out);
-            }
-            (out, none)
-        })
-        .collect();
-    s.different_surfaces = parts.iter().map(|p| p.1).sum();
-    s.candidates = parts.iter().map(|p| p.0.len()).sum();
-    // every new point is the child of one candidate pair: the bound is known before the work
-    let predicted = n_old + s.candidates;
-    if predicted as u128 * BYTES_PER_POINT as u128 > params.memory_budget as u128 {
-        return Err(RefineError::OverBudget {
-            step,
-            steps: params.steps,
-            predicted,
-            points: n_old,
-            budget: params.memory_budget,
-        });
-    }
-    let mut candidates = Vec::with_capacity(s.candidates);
-    for (part, _) in parts {
-        candidates.extend_from_slice(&part);
-    }
+    let (candidates, no_normal) = make_candidates(pts, params, r, step)?;
+    s.different_surfaces = no_normal;
+    s.candidates = candidates.len();
     s.phases.candidates_ms = t.elapsed().as_secs_f64() * 1e3;
     let phase = Instant::now();
     // type 2 hits depend on the older points only; with them, the older points each candidate
     // would register at, were it accepted
-    let (would, hits) = if params.collisions {
-        let (pos, nb) = (&pts.pos, &pts.nb);
-        let (would, hits) = Csr::build_with(candidates.len(), |k, out| {
-            let c = &candidates[k];
-            let (n1, n2) = (nb.of(c.p1 as usize), nb.of(c.p2 as usize));
-            type2_and_registrations(pos, n1, n2, c, beta, r_next + beta, out)
-        });
-        (Some(would), hits)
+    let (hits, at) = if params.collisions {
+        let (hits, at) = hits_and_registrations(pts, &candidates, beta, r_next + beta);
+        (hits, Some(at))
     } else {
-        (None, vec![NONE; candidates.len()])
+        (vec![NONE; candidates.len()], None)
     };
     s.phases.type2_ms = phase.elapsed().as_secs_f64() * 1e3;
     let phase = Instant::now();
-    let d = decide(n_old, &candidates, &hits, would, beta);
-    drop((candidates, hits));
+    let d = decide(&candidates, &hits, at, beta);
+    drop(hits);
     (s.collisions_type2, s.collisions_type3) = (d.type2, d.type3);
     s.resolved = d.moves.len();
     s.phases.accept_ms = phase.elapsed().as_secs_f64() * 1e3;
     let phase = Instant::now();
-    for c in &d.accepted {
+    let n_new = n_old + d.accepted.len();
+    pts.pos.reserve_exact(n_new - pts.pos.len());
+    pts.nrm.reserve_exact(n_new - pts.nrm.len());
+    pts.step.reserve_exact(n_new - pts.step.len());
+    pts.weight.reserve_exact(n_new - pts.weight.len());
+    for &k in &d.accepted {
+        let c = &candidates[k as usize];
         pts.pos.push(c.pos);
         pts.nrm.push(c.nrm);
         pts.step.push(step as u8);
@@ -417,15 +512,18 @@ fn step_once(
         &mut pts.weight,
         &pts.nb,
         &d.registered,
-        &d.moves,
-        &d.accepted,
+        d.moves.iter().map(|&(t, k)| (t, &candidates[k as usize])),
+        |a| {
+            let c = &candidates[d.accepted[a as usize] as usize];
+            (c.p1, c.p2)
+        },
         n_old,
         beta,
     );
     s.phases.moves_ms = phase.elapsed().as_secs_f64() * 1e3;
-    drop(d.registered);
+    drop((d.registered, d.moves));
     if step < params.steps {
-        pts.nb = update(pts, &d.accepted, n_old, r_next);
+        pts.nb = update(pts, &candidates, &d.accepted, n_old, r_next);
     }
     // no update after the last step (§3.4)
     s.points_after = pts.pos.len();

@@ -88,8 +88,8 @@ pub struct RefineParams {
 }
 
 /// Memory per refined point while refining: position, normal, radius, neighbour list and the
-/// step's bookkeeping (measured: peak RSS 957 MB for the 2.61 M points of 5 steps on the
-/// double dam break file with the parallel implementation, 367 bytes a point; 821 MB, 315 bytes
+/// step's bookkeeping (measured: peak RSS 698 MB for the 2.61 M points of 5 steps on the
+/// double dam break file with the parallel implementation, 268 bytes a point; 821 MB, 315 bytes
 /// a point, with the reference).
 pub const BYTES_PER_POINT: u64 = 400;
 
@@ -187,7 +187,8 @@ pub struct StepPhases {
     /// The candidate pairs and their midpoints on the sphere (eq. 14-16), in parallel.
     pub candidates_ms: f64,
     /// Type 2 checks, in parallel; the parallel implementation also lists here, per candidate,
-    /// the points it would be registered with if accepted.
+    /// the points it would be registered with if accepted, and inverts those lists (per point,
+    /// the candidates that would register there).
     pub type2_ms: f64,
     /// Type 3 checks and acceptance: the reference tests and registers candidate by candidate;
     /// the parallel implementation finds each candidate's rivals in parallel, then decides in
@@ -325,7 +326,7 @@ mod flat;
 mod reference;
 
 /// A child candidate of the current step.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 struct Candidate {
     p1: u32,
     p2: u32,
@@ -570,36 +571,38 @@ fn for_each_registration_unique(
 /// the guard, measured on the splash frame, 3.7 % of the refined points end up closer than the
 /// final collision distance to another point (0.1 % with it).
 #[allow(clippy::too_many_arguments)] // one step's state, passed once
-fn apply_moves<N: Lists + ?Sized, R: Lists + ?Sized>(
+/// `moves` gives each rejected child with the point it hit, in candidate order; `parents(k)`
+/// the parents of the `k`-th accepted child.
+fn apply_moves<'a, N: Lists + ?Sized, R: Lists + ?Sized>(
     pos: &mut [Vec3],
     nrm: &mut [Vec3],
     weight: &mut [f32],
     nb: &N,
     registered: &R,
-    moves: &[(Target, Candidate)],
-    accepted: &[Candidate],
+    moves: impl IntoIterator<Item = (Target, &'a Candidate)>,
+    parents: impl Fn(u32) -> (u32, u32),
     n_old: usize,
     beta: f32,
 ) -> usize {
     let beta2 = beta * beta;
     let mut moved_count = 0;
     for (target, c) in moves {
-        let i = match *target {
+        let i = match target {
             Target::Old(q) => q as usize,
             Target::New(k) => n_old + k as usize,
         };
         let (wp, wc) = (weight[i], c.weight);
         let moved = (pos[i] * wp + c.pos * wc) / (wp + wc);
         let clear = |j: usize| j == i || pos[j].distance_squared(moved) >= beta2;
-        let visible_clear = match *target {
+        let visible_clear = match target {
             Target::Old(q) => {
                 let q = q as usize;
                 nb.of(q).iter().all(|&j| clear(j as usize))
                     && registered.of(q).iter().all(|&k| clear(n_old + k as usize))
             }
             Target::New(k) => {
-                let a = &accepted[k as usize];
-                let (p1, p2) = (a.p1 as usize, a.p2 as usize);
+                let (p1, p2) = parents(k);
+                let (p1, p2) = (p1 as usize, p2 as usize);
                 [p1, p2].iter().all(|&j| clear(j))
                     && nb
                         .of(p1)

@@ -78,8 +78,8 @@ fn append_and_update(
         &mut pts.weight,
         pts.nb.as_slice(),
         registered,
-        moves,
-        accepted,
+        moves.iter().map(|(t, c)| (*t, c)),
+        |k| (accepted[k as usize].p1, accepted[k as usize].p2),
         n_old,
         beta,
     );
