@@ -73,15 +73,40 @@ pub enum Backend {
 /// A particle is never its own neighbour; the relation is symmetric (up to the rounding of the
 /// inclusive bound `|p_i - p_j| <= radius`, which is computed identically both ways).
 /// Rows are stored in the order the search visited particles (cell order for the grid), which
-/// keeps the build cache-friendly; [`Neighbourhoods::of`] hides this.
+/// keeps the build cache-friendly, and in the chunks of 4,096 rows the parallel search made
+/// them in (joining the chunks into one array was a sixth of the search's time and held every
+/// list twice); [`Neighbourhoods::of`] hides both.
 #[derive(Clone, Debug, Default)]
 pub struct Neighbourhoods {
     radius: f32,
     /// particle index -> row
     row_of: Vec<u32>,
-    /// row -> start in `indices`; one more entry than rows
-    offsets: Vec<usize>,
+    /// rows `c * CHUNK..` of chunk `c`
+    chunks: Vec<Rows>,
+    total: usize,
+}
+
+/// Up to [`CHUNK`] rows: row `j` is `indices[ends[j]..ends[j + 1]]` (`ends` starts at 0).
+#[derive(Clone, Debug, Default)]
+struct Rows {
+    ends: Vec<usize>,
     indices: Vec<u32>,
+}
+
+impl Rows {
+    fn new(rows: usize, indices: usize) -> Self {
+        let mut ends = Vec::with_capacity(rows + 1);
+        ends.push(0);
+        Self {
+            ends,
+            indices: Vec::with_capacity(indices),
+        }
+    }
+
+    /// Closes the row made of the indices pushed since the last call.
+    fn end_row(&mut self) {
+        self.ends.push(self.indices.len());
+    }
 }
 
 impl Neighbourhoods {
@@ -101,18 +126,27 @@ impl Neighbourhoods {
     /// Builds from one list per particle (used by the reference implementation and tests).
     #[must_use]
     pub fn from_lists(radius: f32, lists: &[Vec<u32>]) -> Self {
-        let mut offsets = Vec::with_capacity(lists.len() + 1);
-        offsets.push(0);
-        let mut indices = Vec::with_capacity(lists.iter().map(Vec::len).sum());
-        for l in lists {
-            indices.extend_from_slice(l);
-            offsets.push(indices.len());
-        }
+        let chunks = lists
+            .chunks(CHUNK)
+            .map(|part| {
+                let mut rows = Rows::new(part.len(), part.iter().map(Vec::len).sum());
+                for l in part {
+                    rows.indices.extend_from_slice(l);
+                    rows.end_row();
+                }
+                rows
+            })
+            .collect();
+        Self::from_chunks(radius, (0..lists.len() as u32).collect(), chunks)
+    }
+
+    fn from_chunks(radius: f32, row_of: Vec<u32>, chunks: Vec<Rows>) -> Self {
+        let total = chunks.iter().map(|c| c.indices.len()).sum();
         Self {
             radius,
-            row_of: (0..lists.len() as u32).collect(),
-            offsets,
-            indices,
+            row_of,
+            chunks,
+            total,
         }
     }
 
@@ -139,13 +173,15 @@ impl Neighbourhoods {
     #[inline]
     pub fn of(&self, i: usize) -> &[u32] {
         let row = self.row_of[i] as usize;
-        &self.indices[self.offsets[row]..self.offsets[row + 1]]
+        let c = &self.chunks[row / CHUNK];
+        let j = row % CHUNK;
+        &c.indices[c.ends[j]..c.ends[j + 1]]
     }
 
     /// Total number of (ordered) neighbour pairs.
     #[must_use]
     pub fn total(&self) -> usize {
-        self.indices.len()
+        self.total
     }
 
     /// Mean number of neighbours per particle.
@@ -161,7 +197,12 @@ impl Neighbourhoods {
     /// Memory held, in bytes.
     #[must_use]
     pub fn heap_bytes(&self) -> usize {
-        self.row_of.capacity() * 4 + self.offsets.capacity() * 8 + self.indices.capacity() * 4
+        self.row_of.capacity() * 4
+            + self
+                .chunks
+                .iter()
+                .map(|c| c.ends.capacity() * 8 + c.indices.capacity() * 4)
+                .sum::<usize>()
     }
 }
 
@@ -312,11 +353,25 @@ impl CellGrid {
     /// where the grid keeps them, in cell order, with no lookup through the particle index.
     #[inline]
     pub fn for_each_slot_within(&self, p: Vec3, radius: f32, mut visit: impl FnMut(usize, Vec3)) {
+        let r2 = radius * radius;
+        self.for_each_run(p, radius, |range| {
+            for (s, &q) in self.sorted[range.clone()].iter().enumerate() {
+                if q.distance_squared(p) <= r2 {
+                    visit(range.start + s, q);
+                }
+            }
+        });
+    }
+
+    /// Calls `run(slots)` for each of the (up to nine) runs of cell-order slots that hold the
+    /// particles of the 27 cells around `p`'s cell (one run per row of three cells along x),
+    /// which hold every particle within `radius` (<= the cell size) of `p`.
+    #[inline]
+    fn for_each_run(&self, p: Vec3, radius: f32, mut run: impl FnMut(std::ops::Range<usize>)) {
         debug_assert!(radius <= self.cell * 1.0001);
         if self.sorted.is_empty() {
             return;
         }
-        let r2 = radius * radius;
         let [cx, cy, cz] = self.cell_of(p);
         let [nx, ny, nz] = self.dims;
         let x0 = cx.saturating_sub(1);
@@ -324,12 +379,7 @@ impl CellGrid {
         for z in cz.saturating_sub(1)..=(cz + 1).min(nz - 1) {
             for y in cy.saturating_sub(1)..=(cy + 1).min(ny - 1) {
                 let row = nx * (y + ny * z);
-                let range = self.slots(row + x0, row + x1);
-                for (s, &q) in self.sorted[range.clone()].iter().enumerate() {
-                    if q.distance_squared(p) <= r2 {
-                        visit(range.start + s, q);
-                    }
-                }
+                run(self.slots(row + x0, row + x1));
             }
         }
     }
@@ -344,99 +394,64 @@ impl CellGrid {
     #[must_use]
     pub fn all_neighbours(&self) -> Neighbourhoods {
         let n = self.sorted.len();
-        let chunks: Vec<(Vec<usize>, Vec<u32>)> = (0..n.div_ceil(CHUNK))
+        let chunks: Vec<Rows> = (0..n.div_ceil(CHUNK))
             .into_par_iter()
             .map(|c| {
                 let slots = c * CHUNK..((c + 1) * CHUNK).min(n);
-                let mut counts = Vec::with_capacity(slots.len());
-                let mut found = Vec::with_capacity(slots.len() * 40);
+                let mut rows = Rows::new(slots.len(), slots.len() * 40);
                 for s in slots {
                     let me = self.order[s];
-                    let before = found.len();
                     self.for_each_within(self.sorted[s], self.cell, |j| {
                         if j != me {
-                            found.push(j);
+                            rows.indices.push(j);
                         }
                     });
-                    counts.push(found.len() - before);
+                    rows.end_row();
                 }
-                (counts, found)
+                rows
             })
             .collect();
         let mut row_of = vec![0u32; n];
         for (s, &i) in self.order.iter().enumerate() {
             row_of[i as usize] = s as u32;
         }
-        assemble(self.cell, row_of, chunks)
-    }
-}
-
-/// Joins per-chunk (counts, indices) into one CSR structure, copying chunks in parallel.
-fn assemble(radius: f32, row_of: Vec<u32>, chunks: Vec<(Vec<usize>, Vec<u32>)>) -> Neighbourhoods {
-    let rows: usize = chunks.iter().map(|c| c.0.len()).sum();
-    let total: usize = chunks.iter().map(|c| c.1.len()).sum();
-    let mut offsets = Vec::with_capacity(rows + 1);
-    offsets.push(0usize);
-    for (counts, _) in &chunks {
-        for &k in counts {
-            offsets.push(offsets[offsets.len() - 1] + k);
-        }
-    }
-    let mut indices = vec![0u32; total];
-    let mut parts = Vec::with_capacity(chunks.len());
-    let mut rest = indices.as_mut_slice();
-    for (_, found) in &chunks {
-        let (head, tail) = rest.split_at_mut(found.len());
-        parts.push(head);
-        rest = tail;
-    }
-    parts
-        .into_par_iter()
-        .zip(chunks.par_iter())
-        .for_each(|(dst, (_, src))| dst.copy_from_slice(src));
-    Neighbourhoods {
-        radius,
-        row_of,
-        offsets,
-        indices,
+        Neighbourhoods::from_chunks(self.cell, row_of, chunks)
     }
 }
 
 fn kd_tree_neighbours(positions: &[Vec3], radius: f32) -> Result<Neighbourhoods, NeighbourError> {
     let n = positions.len();
     if n == 0 {
-        return Ok(Neighbourhoods {
-            radius,
-            offsets: vec![0],
-            ..Neighbourhoods::default()
-        });
+        return Ok(Neighbourhoods::from_chunks(radius, Vec::new(), Vec::new()));
     }
     let points: Vec<[f32; 3]> = positions.iter().map(|p| p.to_array()).collect();
     let tree: ImmutableKdTree<f32, 3> = ImmutableKdTree::new_from_slice(&points)
         .map_err(|e| NeighbourError::KdTree(format!("{e:?}")))?;
     let r2 = radius * radius;
-    let chunks: Vec<(Vec<usize>, Vec<u32>)> = (0..n.div_ceil(CHUNK))
+    let chunks: Vec<Rows> = (0..n.div_ceil(CHUNK))
         .into_par_iter()
         .map(|c| {
-            let rows = c * CHUNK..((c + 1) * CHUNK).min(n);
-            let mut counts = Vec::with_capacity(rows.len());
-            let mut found = Vec::with_capacity(rows.len() * 40);
-            for i in rows {
-                let before = found.len();
+            let range = c * CHUNK..((c + 1) * CHUNK).min(n);
+            let mut rows = Rows::new(range.len(), range.len() * 40);
+            for i in range {
                 tree.query(&points[i])
                     .within::<SquaredEuclidean<f32>>(r2)
                     .unsorted()
                     .visit(|nb| {
                         if nb.item as usize != i {
-                            found.push(nb.item);
+                            rows.indices.push(nb.item);
                         }
                     });
-                counts.push(found.len() - before);
+                rows.end_row();
             }
-            (counts, found)
+            rows
         })
         .collect();
-    Ok(assemble(radius, (0..n as u32).collect(), chunks))
+    Ok(Neighbourhoods::from_chunks(
+        radius,
+        (0..n as u32).collect(),
+        chunks,
+    ))
 }
 
 /// The straightforward single-threaded neighbour search that benchmarks compare against: a hash
