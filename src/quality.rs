@@ -12,7 +12,11 @@
 //!   luminance of the `window x window` square around them): the 1-pixel dark dots of a badly
 //!   normalised splat or a shadow test that fails on one texel.
 //! - [`mean_abs_diff`]: the mean absolute difference of two images' RGB values, in [0, 1].
+//!
+//! And one measure of a surface: [`MeshDistance`], the exact distance from points to a triangle
+//! mesh (our surfels against a peer's marching-cubes mesh).
 
+use glam::Vec3;
 use image::RgbaImage;
 
 /// Holes inside a silhouette, from [`holes`].
@@ -352,9 +356,349 @@ pub fn against(
     d
 }
 
+/// Distance from `p` to the triangle `abc` (Ericson, Real-Time Collision Detection, §5.1.5: the
+/// closest point by Voronoi regions of the vertices, edges and face).
+#[must_use]
+pub fn point_triangle_distance(p: Vec3, a: Vec3, b: Vec3, c: Vec3) -> f32 {
+    let (ab, ac, ap) = (b - a, c - a, p - a);
+    let (d1, d2) = (ab.dot(ap), ac.dot(ap));
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return ap.length();
+    }
+    let bp = p - b;
+    let (d3, d4) = (ab.dot(bp), ac.dot(bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return bp.length();
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        return (p - (a + ab * (d1 / (d1 - d3)))).length();
+    }
+    let cp = p - c;
+    let (d5, d6) = (ab.dot(cp), ac.dot(cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return cp.length();
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        return (p - (a + ac * (d2 / (d2 - d6)))).length();
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0 {
+        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        return (p - (b + (c - b) * w)).length();
+    }
+    let denom = 1.0 / (va + vb + vc);
+    let (v, w) = (vb * denom, vc * denom);
+    (p - (a + ab * v + ac * w)).length()
+}
+
+/// Most cells along one axis of a [`MeshDistance`] grid.
+const MESH_GRID_AXIS: usize = 256;
+/// Most (cell, triangle) entries of a [`MeshDistance`] grid: a coarser grid is used beyond it.
+const MESH_GRID_ENTRIES: usize = 1 << 26;
+
+/// Exact distances from points to a triangle mesh (how far one surface lies from another, e.g.
+/// our surfels from a peer's marching-cubes mesh). The triangles are binned by their bounding
+/// boxes into a uniform grid; a query searches shells of cells around its own, one ring at a
+/// time, and stops once no unseen triangle can be nearer than the nearest found (every unseen
+/// triangle lies outside the searched cube, at least the distance to its nearest inner face).
+/// The result is the brute-force minimum over all triangles, bit for bit.
+#[derive(Clone, Debug)]
+pub struct MeshDistance {
+    triangles: Vec<[Vec3; 3]>,
+    origin: Vec3,
+    cell: f32,
+    dims: [usize; 3],
+    /// `start[c]..start[c + 1]` of `items`: the triangles whose box meets cell `c`
+    start: Vec<u32>,
+    items: Vec<u32>,
+    /// what the rounding of cell coordinates may move a box face by, kept off the stopping bound
+    slack: f32,
+}
+
+impl MeshDistance {
+    /// The grid over `triangles`, with cells of about `cell` (coarsened so that there are at
+    /// most 256 along an axis and 2^26 entries). Non-finite vertices are left out, with their
+    /// triangles.
+    #[must_use]
+    pub fn new(triangles: Vec<[Vec3; 3]>, cell: f32) -> Self {
+        let triangles: Vec<[Vec3; 3]> = triangles
+            .into_iter()
+            .filter(|t| t.iter().all(|v| v.is_finite()))
+            .collect();
+        let (lo, hi) = triangles
+            .iter()
+            .flatten()
+            .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &v| {
+                (lo.min(v), hi.max(v))
+            });
+        if triangles.is_empty() {
+            return Self {
+                triangles,
+                origin: Vec3::ZERO,
+                cell: 1.0,
+                dims: [1; 3],
+                start: vec![0, 0],
+                items: Vec::new(),
+                slack: 0.0,
+            };
+        }
+        let extent = (hi - lo).max_element();
+        let mut cell = if cell.is_finite() && cell > 0.0 {
+            cell
+        } else {
+            extent
+        };
+        cell = cell
+            .max(extent / MESH_GRID_AXIS as f32)
+            .max(f32::MIN_POSITIVE);
+        loop {
+            let dims = ((hi - lo) / cell)
+                .to_array()
+                .map(|d| (d as usize + 1).min(MESH_GRID_AXIS + 1));
+            let grid = Self {
+                triangles: Vec::new(),
+                origin: lo,
+                cell,
+                dims,
+                start: Vec::new(),
+                items: Vec::new(),
+                slack: cell * 1e-3 + (lo.abs().max(hi.abs()).max_element() + extent) * 1e-6,
+            };
+            let entries: usize = triangles
+                .iter()
+                .map(|t| {
+                    let (a, b) = grid.cell_box(t);
+                    (0..3).map(|i| b[i] - a[i] + 1).product::<usize>()
+                })
+                .sum();
+            if entries > MESH_GRID_ENTRIES && cell < extent {
+                cell *= 2.0;
+                continue;
+            }
+            return grid.fill(triangles);
+        }
+    }
+
+    fn cell_of(&self, p: Vec3) -> [usize; 3] {
+        let c = ((p - self.origin) / self.cell).max(Vec3::ZERO).to_array();
+        [0, 1, 2].map(|i| (c[i] as usize).min(self.dims[i] - 1))
+    }
+
+    /// The cells a triangle's bounding box meets, inclusive.
+    fn cell_box(&self, t: &[Vec3; 3]) -> ([usize; 3], [usize; 3]) {
+        let lo = t[0].min(t[1]).min(t[2]);
+        let hi = t[0].max(t[1]).max(t[2]);
+        (self.cell_of(lo), self.cell_of(hi))
+    }
+
+    fn key(&self, c: [usize; 3]) -> usize {
+        c[0] + self.dims[0] * (c[1] + self.dims[1] * c[2])
+    }
+
+    fn fill(mut self, triangles: Vec<[Vec3; 3]>) -> Self {
+        let cells = self.dims.iter().product::<usize>();
+        let mut start = vec![0u32; cells + 1];
+        let each = |grid: &Self, f: &mut dyn FnMut(usize, u32)| {
+            for (i, t) in triangles.iter().enumerate() {
+                let (a, b) = grid.cell_box(t);
+                for z in a[2]..=b[2] {
+                    for y in a[1]..=b[1] {
+                        for x in a[0]..=b[0] {
+                            f(grid.key([x, y, z]), i as u32);
+                        }
+                    }
+                }
+            }
+        };
+        each(&self, &mut |k, _| start[k + 1] += 1);
+        for k in 0..cells {
+            start[k + 1] += start[k];
+        }
+        let mut next = start[..cells].to_vec();
+        let mut items = vec![0u32; start[cells] as usize];
+        each(&self, &mut |k, i| {
+            items[next[k] as usize] = i;
+            next[k] += 1;
+        });
+        self.start = start;
+        self.items = items;
+        self.triangles = triangles;
+        self
+    }
+
+    /// Distance from `p` to the nearest triangle; infinite for a mesh without triangles or a
+    /// non-finite `p`.
+    #[must_use]
+    pub fn distance(&self, p: Vec3) -> f32 {
+        if self.triangles.is_empty() || !p.is_finite() {
+            return f32::INFINITY;
+        }
+        let c = self.cell_of(p);
+        let mut best = f32::INFINITY;
+        let near = |key: usize| {
+            self.items[self.start[key] as usize..self.start[key + 1] as usize]
+                .iter()
+                .map(|&t| {
+                    let [a, b, cc] = self.triangles[t as usize];
+                    point_triangle_distance(p, a, b, cc)
+                })
+                .fold(f32::INFINITY, f32::min)
+        };
+        // cells visited; past the triangle count a brute-force pass is the cheaper exact answer
+        // (a point far from a finely gridded mesh)
+        let mut cells = 0usize;
+        for k in 0..=self.dims.iter().copied().max().unwrap_or(1) {
+            let lo = [0, 1, 2].map(|i| c[i].saturating_sub(k));
+            let hi = [0, 1, 2].map(|i| (c[i] + k).min(self.dims[i] - 1));
+            // the shell of cells `k` from `c` (those nearer were searched in earlier rings)
+            for z in lo[2]..=hi[2] {
+                for y in lo[1]..=hi[1] {
+                    if z.abs_diff(c[2]) == k || y.abs_diff(c[1]) == k {
+                        for x in lo[0]..=hi[0] {
+                            best = best.min(near(self.key([x, y, z])));
+                        }
+                        cells += hi[0] - lo[0] + 1;
+                    } else {
+                        if c[0] >= k {
+                            best = best.min(near(self.key([c[0] - k, y, z])));
+                        }
+                        if k > 0 && c[0] + k < self.dims[0] {
+                            best = best.min(near(self.key([c[0] + k, y, z])));
+                        }
+                        cells += 2;
+                    }
+                }
+            }
+            // the unseen triangles lie in cells outside the cube lo..=hi: at least as far as
+            // its nearest face that is not the grid's border
+            let mut bound = f32::INFINITY;
+            for i in 0..3 {
+                if lo[i] > 0 {
+                    bound = bound.min(p[i] - (self.origin[i] + lo[i] as f32 * self.cell));
+                }
+                if hi[i] + 1 < self.dims[i] {
+                    bound = bound.min(self.origin[i] + (hi[i] + 1) as f32 * self.cell - p[i]);
+                }
+            }
+            if best <= bound - self.slack {
+                break;
+            }
+            if cells > self.triangles.len() {
+                return self
+                    .triangles
+                    .iter()
+                    .map(|t| point_triangle_distance(p, t[0], t[1], t[2]))
+                    .fold(f32::INFINITY, f32::min);
+            }
+        }
+        best
+    }
+
+    /// [`Self::distance`] of every point, in parallel.
+    #[must_use]
+    pub fn distances(&self, points: &[Vec3]) -> Vec<f32> {
+        use rayon::prelude::*;
+        points.par_iter().map(|&p| self.distance(p)).collect()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A closed mesh: the 12 triangles of the cube `[lo, hi]`.
+    fn cube(lo: Vec3, hi: Vec3) -> Vec<[Vec3; 3]> {
+        let v = |i: usize| {
+            Vec3::new(
+                if i & 1 == 0 { lo.x } else { hi.x },
+                if i & 2 == 0 { lo.y } else { hi.y },
+                if i & 4 == 0 { lo.z } else { hi.z },
+            )
+        };
+        let faces = [
+            [0, 1, 3, 2],
+            [4, 6, 7, 5],
+            [0, 4, 5, 1],
+            [2, 3, 7, 6],
+            [0, 2, 6, 4],
+            [1, 5, 7, 3],
+        ];
+        faces
+            .iter()
+            .flat_map(|f| [[v(f[0]), v(f[1]), v(f[2])], [v(f[0]), v(f[2]), v(f[3])]])
+            .collect()
+    }
+
+    #[test]
+    fn point_triangle_distance_in_each_region() {
+        let (a, b, c) = (Vec3::ZERO, Vec3::X, Vec3::Y);
+        // above the face, beyond an edge, beyond a vertex
+        assert_eq!(
+            point_triangle_distance(Vec3::new(0.25, 0.25, 2.0), a, b, c),
+            2.0
+        );
+        assert_eq!(
+            point_triangle_distance(Vec3::new(0.5, -3.0, 0.0), a, b, c),
+            3.0
+        );
+        assert_eq!(
+            point_triangle_distance(Vec3::new(-3.0, -4.0, 0.0), a, b, c),
+            5.0
+        );
+        let d = point_triangle_distance(Vec3::new(1.0, 1.0, 0.0), a, b, c);
+        assert!((d - 0.5f32.sqrt()).abs() < 1e-6, "{d}");
+    }
+
+    /// The grid search gives the brute-force minimum, bit for bit: points inside, near and far
+    /// from a mesh of two cubes and a thin sliver, with cells from much finer than the
+    /// triangles to coarser than the mesh.
+    #[test]
+    fn mesh_distance_equals_brute_force() {
+        let mut tris = cube(Vec3::ZERO, Vec3::ONE);
+        tris.extend(cube(Vec3::new(3.0, 0.5, -1.0), Vec3::new(3.2, 2.5, 0.3)));
+        tris.push([
+            Vec3::new(-1.0, -1.0, 2.0),
+            Vec3::new(4.0, -0.9, 2.1),
+            Vec3::new(-0.9, 3.0, 2.0),
+        ]);
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut rnd = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let points: Vec<Vec3> = (0..2000)
+            .map(|_| Vec3::new(rnd(), rnd(), rnd()) * 12.0 - Vec3::splat(4.0))
+            .collect();
+        for cell in [0.01, 0.1, 0.37, 1.0, 50.0] {
+            let mesh = MeshDistance::new(tris.clone(), cell);
+            let fast = mesh.distances(&points);
+            for (p, d) in points.iter().zip(&fast) {
+                let brute = tris
+                    .iter()
+                    .map(|t| point_triangle_distance(*p, t[0], t[1], t[2]))
+                    .fold(f32::INFINITY, f32::min);
+                assert_eq!(d.to_bits(), brute.to_bits(), "cell {cell}, point {p}");
+            }
+        }
+        // a point on a face, an empty mesh, a non-finite point, non-finite vertices
+        let mesh = MeshDistance::new(tris.clone(), 0.2);
+        assert_eq!(mesh.distance(Vec3::new(0.5, 0.5, 0.0)), 0.0);
+        assert_eq!(
+            MeshDistance::new(Vec::new(), 0.1).distance(Vec3::ZERO),
+            f32::INFINITY
+        );
+        assert_eq!(mesh.distance(Vec3::NAN), f32::INFINITY);
+        let mut bad = tris;
+        bad.push([Vec3::NAN, Vec3::ZERO, Vec3::ONE]);
+        assert_eq!(
+            MeshDistance::new(bad, 0.2).distance(Vec3::new(0.5, 0.5, -1.0)),
+            1.0
+        );
+    }
 
     fn disk(w: usize, h: usize, c: (f32, f32), r: f32) -> Vec<bool> {
         (0..w * h)

@@ -206,41 +206,6 @@ fn streamed_extraction_equals_whole_grid_extraction() {
     );
 }
 
-/// Distance from `p` to the triangle `abc` (Ericson, Real-Time Collision Detection, §5.1.5).
-fn point_triangle_distance(p: Vec3, a: Vec3, b: Vec3, c: Vec3) -> f32 {
-    let (ab, ac, ap) = (b - a, c - a, p - a);
-    let (d1, d2) = (ab.dot(ap), ac.dot(ap));
-    if d1 <= 0.0 && d2 <= 0.0 {
-        return ap.length();
-    }
-    let bp = p - b;
-    let (d3, d4) = (ab.dot(bp), ac.dot(bp));
-    if d3 >= 0.0 && d4 <= d3 {
-        return bp.length();
-    }
-    let vc = d1 * d4 - d3 * d2;
-    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
-        return (p - (a + ab * (d1 / (d1 - d3)))).length();
-    }
-    let cp = p - c;
-    let (d5, d6) = (ab.dot(cp), ac.dot(cp));
-    if d6 >= 0.0 && d5 <= d6 {
-        return cp.length();
-    }
-    let vb = d5 * d2 - d1 * d6;
-    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
-        return (p - (a + ac * (d2 / (d2 - d6)))).length();
-    }
-    let va = d3 * d6 - d5 * d4;
-    if va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0 {
-        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
-        return (p - (b + (c - b) * w)).length();
-    }
-    let denom = 1.0 / (va + vb + vc);
-    let (v, w) = (vb * denom, vc * denom);
-    (p - (a + ab * v + ac * w)).length()
-}
-
 /// Our surfels against splashsurf's marching-cubes mesh (the peer of issue 17) on the same
 /// particles, with the same kernel (cubic spline), support radius and cell size: how far each
 /// surfel lies from the mesh, in cell sizes. The two iso-values are defined differently
@@ -287,17 +252,18 @@ fn surfels_lie_on_splashsurfs_mesh() {
         ..SurfelParams::default()
     };
     let same_iso = surfels::extract(&grid, p, Kernel::CubicSpline, h, &matched).unwrap();
-    let distances = |surfels: &surfels::Surfels| -> (f32, f32) {
-        let d: Vec<f32> = surfels
-            .positions
+    let near = fluid_surfels::quality::MeshDistance::new(
+        mesh.triangles
             .iter()
-            .map(|&q| {
-                mesh.triangles
-                    .iter()
-                    .map(|t| point_triangle_distance(q, v[t[0]], v[t[1]], v[t[2]]))
-                    .fold(f32::INFINITY, f32::min)
-                    / cell
-            })
+            .map(|t| [v[t[0]], v[t[1]], v[t[2]]])
+            .collect(),
+        cell,
+    );
+    let distances = |surfels: &surfels::Surfels| -> (f32, f32) {
+        let d: Vec<f32> = near
+            .distances(&surfels.positions)
+            .iter()
+            .map(|d| d / cell)
             .collect();
         let mean = d.iter().sum::<f32>() / d.len() as f32;
         (mean, d.iter().copied().fold(0.0, f32::max))
