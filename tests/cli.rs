@@ -470,6 +470,47 @@ fn bench_refine_reports_table_1_frames() {
     }
 }
 
+/// `bench refine --input`: both implementations on a real file, each in a child process, with
+/// the same points and each one's peak memory; a bad file is a clear error naming it.
+#[test]
+fn bench_refine_on_a_file_measures_each_implementation_apart() {
+    let out = bin()
+        .args([
+            "bench", "refine", "--steps", "2", "--repeat", "1", "--json", "--input",
+        ])
+        .arg(data("double_dam_break_frame_26_4732_particles.vtk"))
+        .output()
+        .unwrap();
+    let v = json_of(&out);
+    let runs = v["runs"].as_array().unwrap();
+    assert_eq!(runs.len(), 2);
+    assert_eq!(runs[0]["implementation"], "parallel");
+    assert_eq!(runs[1]["implementation"], "reference");
+    let points = runs[0]["points"].as_u64().unwrap();
+    assert!(points > 4732, "{points} points");
+    assert_eq!(runs[1]["points"].as_u64(), Some(points));
+    if cfg!(target_os = "linux") {
+        for r in runs {
+            let mib = r["peak_rss_mib"].as_f64().unwrap();
+            assert!(mib > 1.0 && mib < 4096.0, "{mib} MiB");
+        }
+    }
+    let bad = bin()
+        .args([
+            "bench",
+            "refine",
+            "--repeat",
+            "1",
+            "--input",
+            "no_such_file.vtk",
+        ])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(err.contains("no_such_file.vtk"), "{err}");
+}
+
 #[test]
 fn bench_density_compares_with_the_naive_reference() {
     let out = bin()

@@ -280,6 +280,129 @@ pub struct BenchRefineArgs {
     /// Print one JSON object instead of text.
     #[arg(long)]
     pub json: bool,
+    /// A particle file to refine instead of the column frames: its surface is detected, then
+    /// each implementation runs as a `refine` child process of its own, so that the peak memory
+    /// of each is measured apart (peak resident set of the child, input and detection included).
+    #[arg(long)]
+    pub input: Option<std::path::PathBuf>,
+    /// Refinement steps with `--input` (the children get the same `--memory-budget`).
+    #[arg(long, default_value_t = 4, requires = "input")]
+    pub steps: u32,
+}
+
+/// One implementation's run on a file (`bench refine --input`).
+#[derive(Serialize)]
+struct FileRun {
+    implementation: &'static str,
+    points: u64,
+    /// Fastest refinement of the runs, ms (detection and input not included).
+    refine_ms: f64,
+    /// Peak resident set of the first child, MiB (absent where the system does not report it).
+    peak_rss_mib: Option<f64>,
+}
+
+/// `bench refine --input`: both implementations on one file, each in its own process.
+fn bench_refine_file(args: &BenchRefineArgs, input: &std::path::Path) -> Result<(), Error> {
+    let exe = std::env::current_exe().map_err(|e| Error::InvalidArgument {
+        argument: "--input",
+        reason: format!("cannot find this program to run its refine children: {e}"),
+    })?;
+    let mut runs = Vec::new();
+    for (implementation, flag) in [("parallel", None), ("reference", Some("--reference"))] {
+        let mut best: Option<FileRun> = None;
+        for _ in 0..args.repeat.max(1) {
+            let mut cmd = std::process::Command::new(&exe);
+            cmd.arg("refine")
+                .arg("--input")
+                .arg(input)
+                .args(["--steps", &args.steps.to_string()])
+                .args([
+                    "--memory-budget",
+                    &super::memory_budget().to_string(),
+                    "--json",
+                ])
+                .args(flag);
+            let out = cmd.output().map_err(|e| Error::InvalidArgument {
+                argument: "--input",
+                reason: format!("cannot run the refine child: {e}"),
+            })?;
+            if !out.status.success() {
+                return Err(Error::InvalidArgument {
+                    argument: "--input",
+                    reason: format!(
+                        "the {implementation} refinement failed: {}",
+                        String::from_utf8_lossy(&out.stderr)
+                            .trim()
+                            .trim_start_matches("error: ")
+                    ),
+                });
+            }
+            let v: serde_json::Value =
+                serde_json::from_slice(&out.stdout).map_err(|e| Error::InvalidArgument {
+                    argument: "--input",
+                    reason: format!("the refine child's report does not parse: {e}"),
+                })?;
+            let run = FileRun {
+                implementation,
+                points: v["points"].as_u64().unwrap_or(0),
+                refine_ms: v["refine_ms"].as_f64().unwrap_or(f64::NAN),
+                peak_rss_mib: v["peak_rss_mib"].as_f64(),
+            };
+            best = Some(match best {
+                Some(b) if b.refine_ms <= run.refine_ms => b,
+                Some(b) => FileRun {
+                    peak_rss_mib: b.peak_rss_mib,
+                    ..run
+                },
+                None => run,
+            });
+        }
+        runs.extend(best);
+    }
+    if runs[0].points != runs[1].points {
+        return Err(Error::InvalidArgument {
+            argument: "--input",
+            reason: format!(
+                "the implementations disagree: {} against {} points",
+                runs[0].points, runs[1].points
+            ),
+        });
+    }
+    let report = serde_json::json!({
+        "input": input.display().to_string(),
+        "steps": args.steps,
+        "threads": rayon::current_num_threads(),
+        "runs": runs,
+        "speedup": runs[1].refine_ms / runs[0].refine_ms,
+    });
+    if args.json {
+        super::print_json(&report);
+        return Ok(());
+    }
+    println!(
+        "bench refine: {} in {} steps -> {} points, {} threads, fastest of {}, each in its own process",
+        input.display(),
+        args.steps,
+        runs[0].points,
+        rayon::current_num_threads(),
+        args.repeat.max(1)
+    );
+    println!("  implementation   refinement ms   peak RSS MiB (whole process)");
+    for r in &runs {
+        let rss = r
+            .peak_rss_mib
+            .map_or_else(|| "not reported".to_string(), |m| format!("{m:.1}"));
+        println!("  {:<15} {:>14.1}   {rss}", r.implementation, r.refine_ms);
+    }
+    println!(
+        "  parallel against reference: {:.2}x the speed{}",
+        runs[1].refine_ms / runs[0].refine_ms,
+        match (runs[0].peak_rss_mib, runs[1].peak_rss_mib) {
+            (Some(a), Some(b)) => format!(", {:.2}x the memory", a / b),
+            _ => String::new(),
+        }
+    );
+    Ok(())
 }
 
 #[derive(Serialize)]
@@ -309,6 +432,9 @@ struct RefineBenchReport {
 /// splashing, equilibrium) with the parallel and the reference implementation.
 pub fn bench_refine(args: &BenchRefineArgs) -> Result<(), Error> {
     use fluid_surfels::refine::{RefineParams, refine, refine_reference};
+    if let Some(input) = &args.input {
+        return bench_refine_file(args, input);
+    }
     use fluid_surfels::scenes::{ColumnParams, ColumnSim};
     let frames = [
         ("initial block", ColumnParams::INITIAL_FRAME),

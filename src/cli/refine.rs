@@ -62,6 +62,10 @@ struct RefineReport {
     steps: Vec<StepStats>,
     detect_ms: f64,
     refine_ms: f64,
+    /// Peak resident set of the whole command (input, detection, refinement, output), MiB;
+    /// absent where the system does not report it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    peak_rss_mib: Option<f64>,
     outputs: Vec<String>,
 }
 
@@ -223,6 +227,7 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
         steps: refined.stats.clone(),
         detect_ms,
         refine_ms,
+        peak_rss_mib: super::peak_rss_mib(),
         outputs,
     };
     if args.outputs.json {
@@ -256,6 +261,9 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
         "  ms: input and detection {:.1}, refinement {:.1} ({})",
         report.detect_ms, report.refine_ms, report.implementation
     );
+    if let Some(mib) = report.peak_rss_mib {
+        println!("  peak resident set {mib:.1} MiB (the whole command)");
+    }
     for o in &report.outputs {
         println!("  wrote {o}");
     }
