@@ -19,7 +19,7 @@ use rayon::prelude::*;
 
 use super::{
     BYTES_PER_POINT, Candidate, Lists, NeighbourLists, RADIUS_FACTOR, RefineError, RefineParams,
-    Refined, StepStats, Target, apply_moves, candidates_of, finish, initial_neighbours,
+    Refined, StepStats, Target, apply_moves, candidates_of, finish, initial_neighbours, pairs_of,
 };
 
 /// Items per parallel task: fixed, so that the output does not depend on the thread count.
@@ -166,10 +166,11 @@ struct Points {
     nb: Csr,
 }
 
-/// The step's candidates in (first point, neighbour) order, stored once at their exact count
-/// (a first parallel pass counts them, a second writes each chunk's share in place: no second
-/// copy of the largest array of the step), with the number of pairs that gave no child. The
-/// count is checked against the memory budget before anything is stored.
+/// The step's candidates in (first point, neighbour) order, stored once (no second copy of the
+/// largest array of the step), with the number of pairs that gave no child. A first parallel
+/// pass counts each point's pairs (a distance test each), a second makes the candidates in
+/// place, a pair without a child leaving a hole that a last pass closes. The count is checked
+/// against the memory budget before the candidates are kept.
 fn make_candidates(
     pts: &Points,
     params: &RefineParams,
@@ -177,33 +178,49 @@ fn make_candidates(
     step: u32,
 ) -> Result<(Vec<Candidate>, usize), RefineError> {
     let n_old = pts.pos.len();
+    let r_next = r * RADIUS_FACTOR;
     let chunks = n_old.div_ceil(CHUNK);
     let range = |c: usize| c * CHUNK..((c + 1) * CHUNK).min(n_old);
-    let counts: Vec<(Vec<u32>, usize)> = (0..chunks)
+    let pairs: Vec<usize> = (0..chunks)
         .into_par_iter()
-        .map_with(Vec::new(), |scratch: &mut Vec<Candidate>, c| {
-            let mut none = 0;
-            let counts = range(c)
-                .map(|p1| {
-                    scratch.clear();
-                    none +=
-                        candidates_of(&pts.pos, &pts.nrm, pts.nb.of(p1), p1, params, r, scratch);
-                    scratch.len() as u32
-                })
-                .collect();
-            (counts, none)
+        .map(|c| {
+            range(c)
+                .map(|p1| pairs_of(&pts.pos, pts.nb.of(p1), p1, r_next).count())
+                .sum()
         })
         .collect();
-    let no_normal = counts.iter().map(|c| c.1).sum();
-    let mut first = Vec::with_capacity(n_old + 1);
-    first.push(0usize);
-    for &n in counts.iter().flat_map(|c| &c.0) {
-        first.push(first[first.len() - 1] + n as usize);
+    let mut candidates = vec![Candidate::default(); pairs.iter().sum()];
+    let mut shares = Vec::with_capacity(chunks);
+    let mut rest = candidates.as_mut_slice();
+    for &n in &pairs {
+        let (share, tail) = rest.split_at_mut(n);
+        shares.push(share);
+        rest = tail;
     }
-    drop(counts);
-    let total = first[n_old];
+    let hole = Candidate {
+        p2: NONE,
+        ..Candidate::default()
+    };
+    let no_normal: usize = shares
+        .into_par_iter()
+        .enumerate()
+        .map(|(c, share)| {
+            let mut out = Vec::with_capacity(share.len());
+            let mut none = 0;
+            for p1 in range(c) {
+                let n = candidates_of(&pts.pos, &pts.nrm, pts.nb.of(p1), p1, params, r, &mut out);
+                out.extend(std::iter::repeat_n(hole, n));
+                none += n;
+            }
+            share.copy_from_slice(&out);
+            none
+        })
+        .sum();
+    if no_normal > 0 {
+        candidates.retain(|c| c.p2 != NONE);
+    }
     // every new point is the child of one candidate pair: the bound is known before the work
-    let predicted = n_old + total;
+    let predicted = n_old + candidates.len();
     if predicted as u128 * BYTES_PER_POINT as u128 > params.memory_budget as u128 {
         return Err(RefineError::OverBudget {
             step,
@@ -213,22 +230,6 @@ fn make_candidates(
             budget: params.memory_budget,
         });
     }
-    let mut candidates = vec![Candidate::default(); total];
-    let mut shares = Vec::with_capacity(chunks);
-    let mut rest = candidates.as_mut_slice();
-    for c in 0..chunks {
-        let r = range(c);
-        let (share, tail) = rest.split_at_mut(first[r.end] - first[r.start]);
-        shares.push(share);
-        rest = tail;
-    }
-    shares.into_par_iter().enumerate().for_each(|(c, share)| {
-        let mut out = Vec::with_capacity(share.len());
-        for p1 in range(c) {
-            candidates_of(&pts.pos, &pts.nrm, pts.nb.of(p1), p1, params, r, &mut out);
-        }
-        share.copy_from_slice(&out);
-    });
     Ok((candidates, no_normal))
 }
 

@@ -488,6 +488,20 @@ fn for_each_common(a: &[u32], b: &[u32], mut f: impl FnMut(u32)) {
     }
 }
 
+/// The neighbours of `p1` that make a pair with it this step: the higher-numbered ones at least
+/// `r_next` away (nearer ones are left to the next step: type 1 collisions, §3.3.1).
+fn pairs_of<'a>(
+    pos: &'a [Vec3],
+    nb: &'a [u32],
+    p1: usize,
+    r_next: f32,
+) -> impl Iterator<Item = u32> + 'a {
+    let x1 = pos[p1];
+    nb.iter().copied().filter(move |&p2| {
+        p2 as usize > p1 && x1.distance_squared(pos[p2 as usize]) >= r_next * r_next
+    })
+}
+
 /// The child candidates of point `p1` with its higher-numbered neighbours, in neighbour order.
 /// Returns the number of pairs that gave no child (`|b'|` near zero).
 fn candidates_of(
@@ -507,11 +521,8 @@ fn candidates_of(
     );
     let mut no_normal = 0;
     let (x1, n1) = (pos[p1], nrm[p1]);
-    for &p2 in nb.iter().filter(|&&p2| p2 as usize > p1) {
+    for p2 in pairs_of(pos, nb, p1, r_next) {
         let (x2, n2) = (pos[p2 as usize], nrm[p2 as usize]);
-        if x1.distance_squared(x2) < r_next * r_next {
-            continue; // left to the next step (type 1 collisions, §3.3.1)
-        }
         match child(x1, n1, x2, n2, rule, h_max) {
             Some((at, normal)) => out.push(Candidate {
                 p1: p1 as u32,
