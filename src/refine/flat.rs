@@ -1,7 +1,9 @@
 //! The parallel refinement ([`super::refine`]): the reference's steps in flat storage (one
-//! array per attribute, neighbourhoods and registrations in CSR form), every pass but the
-//! acceptance and the moves spread over rayon in fixed chunks of points or candidates, so the
-//! result does not depend on the thread count.
+//! array per attribute, neighbourhoods and registrations in CSR form, kept in the chunks they
+//! are built in), every pass but three spread over rayon in fixed chunks of points or
+//! candidates, so the result does not depend on the thread count. The three sequential ones:
+//! the inversion of the would-be registrations (a counting sort), the acceptance decision and
+//! the moves of eq. 17-19. The candidates are made once, in place, at their counted size.
 //!
 //! The type 3 pass of the reference (§3.3) is sequential by nature: a child is checked against
 //! the children accepted before it. It is reformulated so that only a cheap decision stays

@@ -8,8 +8,9 @@
 //!
 //! Two implementations run the same step: [`refine_reference`] (module `reference`) as the
 //! paper describes it, on one thread with one `Vec` of neighbours per point, and [`refine`]
-//! (module `flat`), in flat storage (CSR neighbourhoods) with every pass but two cheap
-//! sequential ones (the acceptance decision and the moves) spread over rayon: the type 3 pass,
+//! (module `flat`), in flat storage (CSR neighbourhoods) with every pass but three cheap
+//! sequential ones (the inversion of the would-be registrations, the acceptance decision and
+//! the moves) spread over rayon: the type 3 pass,
 //! which depends on every earlier decision of the step, is reformulated so that what a child
 //! could collide with is found in parallel beforehand. Both give the same points in the same
 //! order whatever the thread count (tested).
