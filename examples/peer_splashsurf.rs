@@ -36,18 +36,11 @@ fn case_by_name(name: &str) -> peer::Case {
     }
 }
 
-/// Peak resident set of this process in KiB (`VmHWM`), if the system reports it.
-fn peak_kib() -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    line.split_whitespace().nth(1)?.parse().ok()
-}
-
-/// The child: one tool on one case, `repeat` times; prints `best_ms peak_kib reset`.
+/// The child: one tool on one case, `repeat` times; prints `best_ms peak_mib reset`.
 fn child(tool: &str, case: &str, repeat: usize) {
     let c = case_by_name(case);
     let (input, params) = peer::peer_input(&c.positions, c.spacing);
-    let reset = std::fs::write("/proc/self/clear_refs", "5").is_ok();
+    let reset = fluid_surfels::reset_peak_resident();
     let mut best = f64::INFINITY;
     for _ in 0..repeat {
         let t = Instant::now();
@@ -59,7 +52,10 @@ fn child(tool: &str, case: &str, repeat: usize) {
         best = best.min(t.elapsed().as_secs_f64() * 1e3);
         std::hint::black_box(n);
     }
-    println!("{best} {} {reset}", peak_kib().unwrap_or(0));
+    println!(
+        "{best} {} {reset}",
+        fluid_surfels::peak_resident_mib().unwrap_or(0.0)
+    );
 }
 
 /// Runs the child for `tool` on `case`: (best ms, peak MiB, whether the peak is the tool's own).
@@ -78,7 +74,7 @@ fn measure(tool: &str, case: &str, repeat: usize) -> (f64, f64, bool) {
     let f: Vec<&str> = text.split_whitespace().collect();
     (
         f[0].parse().expect("ms"),
-        f[1].parse::<f64>().expect("KiB") / 1024.0,
+        f[1].parse().expect("MiB"),
         f[2] == "true",
     )
 }

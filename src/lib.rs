@@ -52,6 +52,23 @@ pub mod view;
 
 pub use particles::{Attribute, ParticleSet, ParticleView, ScalarKind};
 
+/// This process's peak resident set so far, in MiB (`VmHWM` of `/proc/self/status`); `None`
+/// where the system does not report it. What the benches and `refine --json` report as peak
+/// memory.
+#[must_use]
+pub fn peak_resident_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}
+
+/// Resets [`peak_resident_mib`] to the present resident set (Linux `/proc/self/clear_refs`), so
+/// that a later reading is the peak of what ran in between; false where that is not available.
+pub fn reset_peak_resident() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}
+
 /// Every error the crate returns.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]

@@ -292,15 +292,6 @@ pub fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
 
-/// This process's peak resident set so far, in MiB (`VmHWM` of `/proc/self/status`); `None`
-/// where the system does not report it.
-pub fn peak_rss_mib() -> Option<f64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib / 1024.0)
-}
-
 /// The surface particles with their normals (and every attribute they had).
 pub fn surface_particles(particles: &ParticleSet, surface: &Surface) -> ParticleSet {
     let idx = surface.indices_of(ParticleClass::Surface);

@@ -227,7 +227,7 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
         steps: refined.stats.clone(),
         detect_ms,
         refine_ms,
-        peak_rss_mib: super::peak_rss_mib(),
+        peak_rss_mib: fluid_surfels::peak_resident_mib(),
         outputs,
     };
     if args.outputs.json {

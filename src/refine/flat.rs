@@ -21,7 +21,8 @@ use rayon::prelude::*;
 
 use super::{
     BYTES_PER_POINT, Candidate, Lists, NeighbourLists, RADIUS_FACTOR, RefineError, RefineParams,
-    Refined, StepStats, Target, apply_moves, candidates_of, finish, initial_neighbours, pairs_of,
+    Refined, StepStats, Target, apply_moves, candidates_of, finish, for_each_new_neighbour,
+    initial_neighbours, pairs_of,
 };
 
 /// Items per parallel task: fixed, so that the output does not depend on the thread count.
@@ -55,11 +56,11 @@ impl Lists for Csr {
     }
 }
 
-/// The end of a chunk's items so far, as a chunk-relative `u32`. A chunk holds the lists of
-/// [`CHUNK`] points or candidates; 2^32 items there would be 16 GiB of one chunk's lists, beyond
-/// the memory budget checked before every step.
-fn chunk_end(items: &[u32]) -> u32 {
-    u32::try_from(items.len()).expect("a chunk of lists holds fewer than 2^32 items")
+/// A chunk-relative item offset as a `u32`. A chunk holds the lists of [`CHUNK`] points or
+/// candidates; 2^32 items there would be 16 GiB of one chunk's lists, beyond the memory budget
+/// checked before every step.
+fn chunk_offset(n: usize) -> u32 {
+    u32::try_from(n).expect("a chunk of lists holds fewer than 2^32 items")
 }
 
 impl Csr {
@@ -93,7 +94,7 @@ impl Csr {
                 let mut items = Vec::new();
                 for i in range {
                     values.push(fill(i, &mut items));
-                    ends.push(chunk_end(&items));
+                    ends.push(chunk_offset(items.len()));
                 }
                 items.shrink_to_fit();
                 (Chunk { ends, items }, values)
@@ -117,21 +118,18 @@ impl Csr {
             .map(|c| {
                 let range = c * CHUNK..((c + 1) * CHUNK).min(n);
                 let mut ends = Vec::with_capacity(range.len() + 1);
-                let mut end = 0u64;
+                let mut end = 0usize;
                 ends.push(0);
                 for k in range {
-                    let count = next[k];
+                    let count = next[k] as usize;
                     // where key k's items start, then (second pass) where its next one goes
-                    next[k] =
-                        u32::try_from(end).expect("a chunk of lists holds fewer than 2^32 items");
-                    end += u64::from(count);
-                    ends.push(
-                        u32::try_from(end).expect("a chunk of lists holds fewer than 2^32 items"),
-                    );
+                    next[k] = chunk_offset(end);
+                    end += count;
+                    ends.push(chunk_offset(end));
                 }
                 Chunk {
                     ends,
-                    items: vec![0; end as usize],
+                    items: vec![0; end],
                 }
             })
             .collect::<Vec<_>>();
@@ -416,24 +414,9 @@ fn update(
     // each child's list: old points (type 2) then children (type 3), sorted
     let lists = Csr::build(accepted.len(), |k, out| {
         let c = &candidates[accepted[k] as usize];
-        let g = (n_old + k) as u32;
-        let x = pos[g as usize];
         let start = out.len();
-        for &q in [c.p1, c.p2]
-            .iter()
-            .chain(nb.of(c.p1 as usize))
-            .chain(nb.of(c.p2 as usize))
-        {
-            if pos[q as usize].distance_squared(x) <= r2 {
-                out.push(q);
-            }
-            for &k2 in children_of.of(q as usize) {
-                let g2 = (n_old + k2 as usize) as u32;
-                if g2 != g && pos[g2 as usize].distance_squared(x) <= r2 {
-                    out.push(g2);
-                }
-            }
-        }
+        let g = (n_old + k) as u32;
+        for_each_new_neighbour(pos, nb, &children_of, c, g, n_old, r_next, |q| out.push(q));
         sort_dedup_tail(out, start);
     });
     // type 2, the other way round: old points gain the children near them, in index order

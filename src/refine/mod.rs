@@ -577,6 +577,40 @@ fn for_each_registration_unique(
     a[i..].iter().chain(&b[j..]).for_each(|&q| visit(q));
 }
 
+/// The neighbours within `r_next` of the new child `g` (a point index, `x` its position) of the
+/// pair `c`, as §3.4 finds them without a search: `visit(q)` for each point `q` of `U = N1 ∪ N2`
+/// (the parents included) within `r_next` (type 2), and for each child `g2 != g` of this step,
+/// of a point of `U`, within `r_next` (type 3; children are numbered from `n_old`, in the order
+/// of `children_of`). A point can be visited more than once: callers sort and deduplicate.
+#[allow(clippy::too_many_arguments)] // one child's relations, passed once
+fn for_each_new_neighbour<N: Lists + ?Sized, C: Lists + ?Sized>(
+    pos: &[Vec3],
+    nb: &N,
+    children_of: &C,
+    c: &Candidate,
+    g: u32,
+    n_old: usize,
+    r_next: f32,
+    mut visit: impl FnMut(u32),
+) {
+    let (r2, x) = (r_next * r_next, pos[g as usize]);
+    for &q in [c.p1, c.p2]
+        .iter()
+        .chain(nb.of(c.p1 as usize))
+        .chain(nb.of(c.p2 as usize))
+    {
+        if pos[q as usize].distance_squared(x) <= r2 {
+            visit(q);
+        }
+        for &k2 in children_of.of(q as usize) {
+            let g2 = (n_old + k2 as usize) as u32;
+            if g2 != g && pos[g2 as usize].distance_squared(x) <= r2 {
+                visit(g2);
+            }
+        }
+    }
+}
+
 /// Applies eq. 17-19 in candidate order: the point hit moves towards the rejected child and
 /// takes its weight, unless the move would bring it within `beta` of a point it can see (its
 /// neighbours and the children registered near it). The paper does not guard the move; without

@@ -12,7 +12,7 @@ use glam::Vec3;
 
 use super::{
     BYTES_PER_POINT, Candidate, NeighbourLists, RADIUS_FACTOR, RefineError, RefineParams, Refined,
-    StepStats, Target, apply_moves, candidates_of, finish, for_each_common,
+    StepStats, Target, apply_moves, candidates_of, finish, for_each_common, for_each_new_neighbour,
     for_each_registration_unique, initial_neighbours, type2_hit,
 };
 
@@ -94,26 +94,26 @@ fn append_and_update(
     let nb = &pts.nb;
     let lists: Vec<(Vec<u32>, Vec<u32>)> = (0..accepted.len())
         .map(|k| {
-            let c = &accepted[k];
             let g = (n_old + k) as u32;
-            let x = pos[g as usize];
             let mut old = Vec::new();
             let mut new = Vec::new();
-            for &q in [c.p1, c.p2]
-                .iter()
-                .chain(&nb[c.p1 as usize])
-                .chain(&nb[c.p2 as usize])
-            {
-                if pos[q as usize].distance_squared(x) <= r2 {
-                    old.push(q); // type 2
-                }
-                for &k2 in &children_of[q as usize] {
-                    let g2 = (n_old + k2 as usize) as u32;
-                    if g2 != g && pos[g2 as usize].distance_squared(x) <= r2 {
-                        new.push(g2); // type 3
+            for_each_new_neighbour(
+                pos,
+                nb.as_slice(),
+                children_of,
+                &accepted[k],
+                g,
+                n_old,
+                r_next,
+                |q| {
+                    // type 2, type 3
+                    if (q as usize) < n_old {
+                        old.push(q)
+                    } else {
+                        new.push(q)
                     }
-                }
-            }
+                },
+            );
             old.sort_unstable();
             old.dedup();
             new.sort_unstable();
