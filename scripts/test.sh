@@ -1,8 +1,28 @@
 #!/usr/bin/env bash
-# The whole test suite: formatting, lints, docs, unit, integration and doc tests, examples built.
-# CI runs exactly this (.ci/run). Works on a fresh Debian machine with the Rust toolchain.
+# The whole test suite: formatting, lints, docs, unit, integration and doc tests, examples built
+# and run, the Python wheel and its tests. CI runs exactly this (.ci/run). Works on a fresh Debian
+# machine with the Rust toolchain.
+#
+#   scripts/test.sh           the whole suite (CI)
+#   scripts/test.sh --quick   the loop for iterating: fmt, clippy, unit tests and the fast
+#                             integration tests (see QUICK_TESTS below and the README's testing rule)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+quick=0
+case "${1:-}" in
+  "") ;;
+  --quick) quick=1 ;;
+  -h | --help)
+    sed -n '2,9p' "$0"
+    exit 0
+    ;;
+  *)
+    echo "usage: scripts/test.sh [--quick]" >&2
+    exit 2
+    ;;
+esac
+suite_start=$(date +%s)
 
 # GPU tests run on Mesa's software Vulkan driver (lavapipe). Install it when missing; cargo cannot.
 if ! ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1; then
@@ -25,14 +45,28 @@ fi
 
 echo "== cargo fmt --check"
 cargo fmt --all -- --check
-echo "== cargo clippy (all targets and the Python bindings, warnings are errors)"
-cargo clippy --locked --all-targets -- -D warnings
-cargo clippy --locked -p fluid-surfels-python --all-targets -- -D warnings
+echo "== cargo clippy (the library, the command line and the Python bindings, all targets; warnings are errors)"
+cargo clippy --locked --workspace --all-targets -- -D warnings
+
+if [ "$quick" = 1 ]; then
+  # Integration test binaries that finish in seconds each on 2 cores (measured; the README's
+  # testing section says how a test stays in this list). The unit tests of the library and the
+  # command line run whole.
+  QUICK_TESTS=(formats io lnm particle_splat splat density surfels ssfr raycast refine)
+  echo "== cargo test --quick (unit tests; integration tests: ${QUICK_TESTS[*]})"
+  cargo test --locked --lib --bins
+  args=()
+  for t in "${QUICK_TESTS[@]}"; do args+=(--test "$t"); done
+  cargo test --locked -p fluid-surfels "${args[@]}"
+  echo "== quick suite passed in $(( $(date +%s) - suite_start )) s"
+  exit 0
+fi
+
 echo "== cargo doc (warnings are errors)"
-RUSTDOCFLAGS="-D warnings" cargo doc --locked --no-deps
-echo "== cargo test (unit, integration, doc tests; examples and benches built)"
+RUSTDOCFLAGS="-D warnings" cargo doc --locked --no-deps -p fluid-surfels
+echo "== cargo test (library and command line: unit, integration, doc tests; examples and benches built)"
 cargo test --locked --all-targets
-cargo test --locked --doc
+cargo test --locked --doc -p fluid-surfels
 echo "== example: the renderer on a caller's own device (game style)"
 example_out="$(mktemp -d)"
 cargo run --locked --quiet --example game_style -- "$example_out/game_style.png"
@@ -69,3 +103,4 @@ rm -rf "$wheel_dir"
 # the command line the tests compare with: the one the cargo tests built
 (cd python/tests && FLUID_SURFELS_BIN="$PWD/../../target/debug/fluid-surfels" \
   "../../$py_env/bin/python" -m pytest -q -p no:cacheprovider .)
+echo "== whole suite passed in $(( $(date +%s) - suite_start )) s"

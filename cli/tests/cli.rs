@@ -25,7 +25,7 @@ fn json_of(out: &std::process::Output) -> serde_json::Value {
 
 fn data(name: &str) -> String {
     Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
+        .join("../tests/data")
         .join(name)
         .display()
         .to_string()
