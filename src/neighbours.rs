@@ -590,6 +590,18 @@ pub fn estimate_spacing(positions: &[Vec3]) -> Result<f32, NeighbourError> {
     spacing_estimate(positions).map(|e| e.spacing)
 }
 
+/// The support radius in multiples of the particle spacing that the chain uses when none is given
+/// (Solenthaler et al. 2007 §3.1 take the SPH smoothing length; SPH codes set it to about twice
+/// the spacing).
+pub const SUPPORT_SPACINGS: f32 = 2.0;
+
+/// The support radius the chain uses when none is given: [`SUPPORT_SPACINGS`] times the
+/// [`estimate_spacing`] of `positions`. The pipeline, the command line and the Python bindings
+/// all take their default radius from here.
+pub fn support_radius(positions: &[Vec3]) -> Result<f32, NeighbourError> {
+    estimate_spacing(positions).map(|s| SUPPORT_SPACINGS * s)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

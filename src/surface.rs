@@ -43,6 +43,20 @@ pub enum NormalMethod {
     ColourField,
 }
 
+impl NormalMethod {
+    /// Every method, in the order of the documentation.
+    pub const ALL: [Self; 2] = [Self::Covariance, Self::ColourField];
+
+    /// The name used in files and on the command line.
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Covariance => "covariance",
+            Self::ColourField => "colour-field",
+        }
+    }
+}
+
 /// Parameters of surface detection.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]

@@ -805,3 +805,59 @@ fn results_do_not_depend_on_the_thread_count() {
         }
     }
 }
+
+/// The command line parses the library's own enums by their `as_str` names (no mirror enums in
+/// the CLI); those names are the serde names of the TOML keys, so a value reads the same on the
+/// command line, in a scene file and from Python.
+#[test]
+fn command_line_names_are_the_serde_names() {
+    fn check<T: serde::Serialize + Copy>(all: &[T], name: fn(T) -> &'static str) {
+        for &v in all {
+            let json = serde_json::to_string(&v).unwrap();
+            assert_eq!(json, format!("\"{}\"", name(v)));
+        }
+    }
+    use fluid_surfels::pipeline::Renderer;
+    check(&Renderer::ALL, Renderer::as_str);
+    check(&SurfelSource::ALL, SurfelSource::as_str);
+    check(
+        &fluid_surfels::ssfr::DepthFilter::ALL,
+        fluid_surfels::ssfr::DepthFilter::as_str,
+    );
+    check(
+        &fluid_surfels::splat::SplatMode::ALL,
+        fluid_surfels::splat::SplatMode::as_str,
+    );
+    check(
+        &fluid_surfels::surface::NormalMethod::ALL,
+        fluid_surfels::surface::NormalMethod::as_str,
+    );
+    check(
+        &fluid_surfels::refine::HeightRule::ALL,
+        fluid_surfels::refine::HeightRule::as_str,
+    );
+}
+
+/// `scripts/test.sh --quick` names its integration test binaries; each must exist (a renamed
+/// or moved test file would otherwise drop out of the quick loop with an error only there).
+#[test]
+fn quick_test_list_names_existing_test_files() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let script = std::fs::read_to_string(root.join("scripts/test.sh")).unwrap();
+    let line = script
+        .lines()
+        .find(|l| l.trim_start().starts_with("QUICK_TESTS=("))
+        .expect("scripts/test.sh defines QUICK_TESTS");
+    let names: Vec<&str> = line
+        .split_once('(')
+        .and_then(|(_, r)| r.split_once(')'))
+        .map(|(list, _)| list.split_whitespace().collect())
+        .unwrap();
+    assert!(names.len() >= 5, "{names:?}");
+    for name in names {
+        assert!(
+            root.join("tests").join(format!("{name}.rs")).is_file(),
+            "QUICK_TESTS names tests/{name}.rs, which does not exist"
+        );
+    }
+}

@@ -575,7 +575,7 @@ impl Pipeline {
         let radius = match self.radius {
             Some(r) => r,
             None => {
-                let r = 2.0 * neighbours::estimate_spacing(particles.positions)?;
+                let r = neighbours::support_radius(particles.positions)?;
                 self.radius = Some(r);
                 r
             }

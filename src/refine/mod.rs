@@ -57,6 +57,20 @@ pub enum HeightRule {
     Average,
 }
 
+impl HeightRule {
+    /// Every rule, in the order of the documentation.
+    pub const ALL: [Self; 2] = [Self::Min, Self::Average];
+
+    /// The name used in files and on the command line.
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Min => "min",
+            Self::Average => "average",
+        }
+    }
+}
+
 /// Parameters of the refinement.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]

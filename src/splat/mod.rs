@@ -78,6 +78,21 @@ pub enum SplatMode {
     Spheres,
 }
 
+impl SplatMode {
+    /// Every mode, in the order of the documentation.
+    pub const ALL: [Self; 3] = [Self::Ewa, Self::Sprites, Self::Spheres];
+
+    /// The name used in files and on the command line.
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Ewa => "ewa",
+            Self::Sprites => "sprites",
+            Self::Spheres => "spheres",
+        }
+    }
+}
+
 /// Parameters of the splatting passes.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]

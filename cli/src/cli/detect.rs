@@ -21,9 +21,10 @@ pub struct DetectArgs {
     pub source: super::SourceArgs,
     #[command(flatten)]
     pub outputs: super::OutputArgs,
-    /// Normal estimation.
-    #[arg(long, value_enum, default_value = "pca")]
-    pub normals: NormalChoice,
+    /// Normal estimation: covariance (PCA of the neighbourhood, the paper's [Paj03]; `pca` is
+    /// the same) or colour-field (the gradient of the SPH colour field).
+    #[arg(long, value_parser = normals_parser(), default_value = "covariance")]
+    pub normals: NormalMethod,
     /// High threshold, as a fraction of the radius (default 0.14).
     #[arg(long)]
     pub high: Option<f32>,
@@ -36,6 +37,21 @@ pub struct DetectArgs {
     /// agreement with the centre-of-mass classes is reported).
     #[arg(long, value_enum, default_value = "centre-of-mass")]
     pub method: MethodChoice,
+}
+
+/// `--normals`: the library's names, and `pca` (the name this option had first) for covariance.
+fn normals_parser() -> impl clap::builder::TypedValueParser<Value = NormalMethod> {
+    use clap::builder::{PossibleValue, TypedValueParser};
+    let values = NormalMethod::ALL.map(|m| match m {
+        NormalMethod::Covariance => PossibleValue::new(m.as_str()).alias("pca"),
+        _ => PossibleValue::new(m.as_str()),
+    });
+    clap::builder::PossibleValuesParser::new(values).map(|s| {
+        NormalMethod::ALL
+            .into_iter()
+            .find(|m| m.as_str() == s || (s == "pca" && *m == NormalMethod::Covariance))
+            .expect("one of the possible values")
+    })
 }
 
 /// `--method` on the command line.
@@ -103,15 +119,6 @@ fn lnm_surface(
     Ok((surface, report))
 }
 
-/// Normal estimation choices on the command line.
-#[derive(Clone, Copy, clap::ValueEnum)]
-pub enum NormalChoice {
-    /// Covariance (PCA) analysis of the neighbourhood.
-    Pca,
-    /// Gradient of the SPH colour field.
-    ColourField,
-}
-
 #[derive(Serialize)]
 struct DetectReport {
     /// Particles dropped by `--bounds` (only with it).
@@ -152,10 +159,7 @@ fn params(args: &DetectArgs) -> Result<SurfaceParams, Error> {
     let params = SurfaceParams {
         high_threshold: high,
         low_threshold: args.low.unwrap_or(defaults.low_threshold.min(high)),
-        normals: match args.normals {
-            NormalChoice::Pca => NormalMethod::Covariance,
-            NormalChoice::ColourField => NormalMethod::ColourField,
-        },
+        normals: args.normals,
     };
     params.validate()?;
     Ok(params)

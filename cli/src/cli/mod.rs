@@ -256,7 +256,7 @@ pub fn positions_of(
             let particles = read_particles(path, format)?;
             let r = match radius {
                 Some(r) => r,
-                None => 2.0 * fluid_surfels::neighbours::estimate_spacing(&particles.positions)?,
+                None => fluid_surfels::neighbours::support_radius(&particles.positions)?,
             };
             Ok((path.display().to_string(), particles.positions, r))
         }
@@ -635,7 +635,7 @@ pub fn prepare_sequence<'a>(
         (Some(r), _) => r,
         (None, Some(&f)) => {
             let first = read_particles(&pattern.path(f), source.format)?;
-            2.0 * fluid_surfels::neighbours::estimate_spacing(&first.positions)?
+            fluid_surfels::neighbours::support_radius(&first.positions)?
         }
         (None, None) => 0.0,
     };

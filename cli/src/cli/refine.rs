@@ -32,20 +32,11 @@ pub struct RefineArgs {
     #[arg(long, default_value_t = 3)]
     pub steps: u32,
     /// Child height rule: min (eq. 5, keeps edges) or average (eq. 4, smoother).
-    #[arg(long, value_enum, default_value = "min")]
-    pub height: HeightChoice,
+    #[arg(long, value_parser = super::names_parser(&HeightRule::ALL, HeightRule::as_str), default_value = "min")]
+    pub height: HeightRule,
     /// Run the single-threaded reference implementation instead of the parallel one.
     #[arg(long)]
     pub reference: bool,
-}
-
-/// Eq. 4 or 5 on the command line.
-#[derive(Clone, Copy, clap::ValueEnum)]
-pub enum HeightChoice {
-    /// Eq. 5.
-    Min,
-    /// Eq. 4.
-    Average,
 }
 
 #[derive(Serialize)]
@@ -108,10 +99,7 @@ pub fn surface_of(particles: &ParticleSet, surface: &Surface) -> (Vec<Vec3>, Vec
 fn params(args: &RefineArgs, radius: f32) -> RefineParams {
     RefineParams {
         steps: args.steps,
-        height: match args.height {
-            HeightChoice::Min => HeightRule::Min,
-            HeightChoice::Average => HeightRule::Average,
-        },
+        height: args.height,
         memory_budget: super::memory_budget(),
         ..RefineParams::with_radius(radius)
     }
@@ -175,7 +163,7 @@ pub fn refine_command(args: &RefineArgs) -> Result<(), Error> {
             let particles = super::read_particles(path, args.source.format)?;
             let radius = match args.source.radius {
                 Some(r) => r,
-                None => 2.0 * neighbours::estimate_spacing(&particles.positions)?,
+                None => neighbours::support_radius(&particles.positions)?,
             };
             let (p, n) = surface_points(&particles, radius, args.surface_input)?;
             (path.display().to_string(), radius, p, n)

@@ -49,8 +49,8 @@ pub struct RenderArgs {
     /// Where the rendered surfels come from: chain (the refined surface and the interior
     /// particles in one density grid), particles (the density grid of the raw particles) or
     /// refined (the refined points as surfels).
-    #[arg(long, value_enum, default_value = "chain")]
-    pub source: SourceChoice,
+    #[arg(long, value_parser = super::names_parser(&SurfelSource::ALL, SurfelSource::as_str), default_value = "chain")]
+    pub source: SurfelSource,
     /// How the surface is drawn: ewa (EWA surface splatting of the source's surfels),
     /// particle-splat (Adams et al. 2006: the source's points as spheres of their kernel
     /// radius, blended within 1.5 radii of the nearest; no density grid), ray-cast (Xiao et
@@ -58,13 +58,13 @@ pub struct RenderArgs {
     /// reference surface), or ssfr (Oliveira and Paiva: narrow-band screen-space fluid
     /// rendering, the source's points as spheres in a depth buffer, filtered), in the shaded
     /// splats and in the finished frame alike.
-    #[arg(long, value_enum, default_value = "ewa")]
-    pub renderer: RendererChoice,
+    #[arg(long, value_parser = super::names_parser(&Renderer::ALL, Renderer::as_str), default_value = "ewa")]
+    pub renderer: Renderer,
     /// The depth filter of --renderer ssfr: narrow-range (Truong and Yuksel 2018), bilateral
     /// (Green 2010), plane (plane fitting, Imai et al. 2016), curvature-flow (van der Laan et
     /// al. 2009) or none; 7x7, 4 iterations (30 for curvature flow).
-    #[arg(long, value_enum, default_value = "narrow-range")]
-    pub filter: FilterChoice,
+    #[arg(long, value_parser = super::names_parser(&DepthFilter::ALL, DepthFilter::as_str), default_value = "narrow-range")]
+    pub filter: DepthFilter,
     /// With --renderer ssfr: draw every point's depth and take the thickness from every point
     /// (eq. 1), instead of the narrow band's particles and voxels (eq. 3).
     #[arg(long)]
@@ -236,66 +236,6 @@ pub enum FitChoice {
     Union,
 }
 
-/// `--source` on the command line.
-#[derive(Clone, Copy, clap::ValueEnum)]
-pub enum SourceChoice {
-    Chain,
-    Particles,
-    Refined,
-}
-
-/// `--renderer` on the command line.
-#[derive(Clone, Copy, clap::ValueEnum)]
-pub enum RendererChoice {
-    Ewa,
-    ParticleSplat,
-    RayCast,
-    Ssfr,
-}
-
-impl From<RendererChoice> for Renderer {
-    fn from(c: RendererChoice) -> Self {
-        match c {
-            RendererChoice::Ewa => Self::Ewa,
-            RendererChoice::ParticleSplat => Self::ParticleSplat,
-            RendererChoice::RayCast => Self::RayCast,
-            RendererChoice::Ssfr => Self::Ssfr,
-        }
-    }
-}
-
-/// `--filter` on the command line.
-#[derive(Clone, Copy, clap::ValueEnum)]
-pub enum FilterChoice {
-    NarrowRange,
-    Bilateral,
-    Plane,
-    CurvatureFlow,
-    None,
-}
-
-impl From<FilterChoice> for DepthFilter {
-    fn from(c: FilterChoice) -> Self {
-        match c {
-            FilterChoice::NarrowRange => Self::NarrowRange,
-            FilterChoice::Bilateral => Self::Bilateral,
-            FilterChoice::Plane => Self::Plane,
-            FilterChoice::CurvatureFlow => Self::CurvatureFlow,
-            FilterChoice::None => Self::None,
-        }
-    }
-}
-
-impl From<SourceChoice> for SurfelSource {
-    fn from(c: SourceChoice) -> Self {
-        match c {
-            SourceChoice::Chain => Self::Chain,
-            SourceChoice::Particles => Self::Particles,
-            SourceChoice::Refined => Self::Refined,
-        }
-    }
-}
-
 /// The GPU context to render with: `--gpu` needs one (any adapter, a software one included),
 /// `--cpu` takes none, otherwise a hardware adapter when one is found: a software rasteriser
 /// (lavapipe) would run the GPU path 5-10x slower than the CPU reference.
@@ -346,9 +286,9 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
     if args.radius.is_some() {
         p.support_radius = args.radius;
     }
-    p.source = args.source.into();
-    p.renderer = args.renderer.into();
-    p.ssfr.filter = args.filter.into();
+    p.source = args.source;
+    p.renderer = args.renderer;
+    p.ssfr.filter = args.filter;
     if args.no_narrow_band {
         p.ssfr.narrow_band = false;
     }
@@ -669,10 +609,8 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         outside_bounds: super::outside_bounds(),
         source,
         particles,
-        surfel_source: particles
-            .map(|_| args.source.into())
-            .map(SurfelSource::as_str),
-        renderer: Renderer::from(args.renderer).as_str(),
+        surfel_source: particles.map(|_| args.source).map(SurfelSource::as_str),
+        renderer: args.renderer.as_str(),
         surfels: surfels.len(),
         skipped_surfels: surfels.iter().filter(|s| !s.is_drawable()).count(),
         width: args.size.0,
@@ -732,8 +670,8 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
 /// What the renderer draws, for the reports: surfels, or the spheres of particle splatting.
 fn drawn_as(args: &RenderArgs) -> &'static str {
     match args.renderer {
-        RendererChoice::Ewa => "surfels",
-        RendererChoice::ParticleSplat | RendererChoice::RayCast | RendererChoice::Ssfr => "spheres",
+        Renderer::Ewa => "surfels",
+        Renderer::ParticleSplat | Renderer::RayCast | Renderer::Ssfr => "spheres",
     }
 }
 
@@ -995,7 +933,7 @@ fn union_bounds(
             }
             let pad = match (args.radius, k) {
                 (Some(r), _) => r,
-                (None, 0) => 2.0 * fluid_surfels::neighbours::estimate_spacing(&set.positions)?,
+                (None, 0) => fluid_surfels::neighbours::support_radius(&set.positions)?,
                 _ => 0.0,
             };
             Ok((set.bounds(), pad))
