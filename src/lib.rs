@@ -1,20 +1,32 @@
 //! # fluid-surfels
 //!
 //! Turns the particles of a low-resolution fluid simulation (SPH, PBF, MPS, FLIP) into a
-//! rendered water surface. The pipeline, one module per stage:
+//! rendered water surface. The chain is one type, [`pipeline::Pipeline`] on the CPU or
+//! [`pipeline::GpuPipeline`] on the caller's wgpu device (drawing into the caller's texture);
+//! [`pipeline`] reads as the design. Its stages, one module each:
 //!
-//! 1. [`surface`]: surface particle detection with hysteresis and normals
-//!    (Solenthaler et al. 2007, §3.1), on top of [`neighbours`] (fixed-radius neighbour search).
+//! 1. [`surface`]: surface particle detection with hysteresis and normals (Solenthaler et al.
+//!    2007, §3.1), on [`neighbours`] (fixed-radius neighbour search).
 //! 2. [`refine`]: upsampling of the surface points by spherical interpolation with collision
 //!    avoidance and incremental neighbourhoods (Solenthaler et al. 2007, §3.2-3.4).
-//! 3. [`density`]: the density grid (Iwasaki et al., §4) on the CPU, slab by slab; the GPU path
-//!    and surfel extraction ([`surfels`]) follow, then 4. surfel splatting ([`splat`]) and
-//!    5. optics ([`optics`]: caustics, refraction, reflection).
+//! 3. [`density`]: the density grid of the refined surface points and the interior particles,
+//!    each with its own kernel radius (Iwasaki et al. §4), dense or sparse, on the CPU and on
+//!    the GPU; [`surfels`] on its iso-surface.
+//! 4. [`splat`]: EWA surface splatting (Botsch et al. 2005), with particle splatting (Adams et
+//!    al. 2006) as a mode; the peer renderers [`raycast`] (ray casting to the iso-surface, Xiao
+//!    et al.) and [`ssfr`] (narrow-band screen-space rendering, Oliveira and Paiva, on the
+//!    narrow band of [`lnm`]).
+//! 5. [`optics`]: caustics through illumination volumes, refraction and reflection (Iwasaki et
+//!    al. §5).
 //!
 //! Supporting modules: [`particles`] (the [`ParticleSet`] every stage reads), [`io`] (readers and
 //! writers for PLY, legacy VTK, VTU, BGEO, XYZ, CSV and JSON), [`sequence`] (numbered frame
-//! sequences), [`scenes`] (deterministic test scenes and a small simulator) [`preview`] (PNG
-//! pictures of particle sets) and [`quality`] (holes, specks and differences of rendered frames).
+//! sequences), [`scenes`] (deterministic test scenes and a small simulator), [`view`] (cameras,
+//! lights and projections), [`gpu`] (the shared wgpu context and read-back), [`kernels`] (SPH
+//! kernels), [`linalg`] (3x3 symmetric eigen-decomposition), [`preview`] (PNG pictures of
+//! particle sets) and [`quality`] (holes, specks and differences of rendered frames, distances
+//! to meshes). The command line is the crate `fluid-surfels-cli` (`cli/`, binary
+//! `fluid-surfels`); the Python bindings are `python/`.
 //!
 //! ```
 //! use fluid_surfels::{scenes, neighbours::{Backend, Neighbourhoods}, surface::{SurfaceDetector, SurfaceParams}};

@@ -861,3 +861,26 @@ fn quick_test_list_names_existing_test_files() {
         );
     }
 }
+
+/// The crate documentation names every public module (a link each), so a newcomer's map of the
+/// crate is whole.
+#[test]
+fn crate_docs_name_every_public_module() {
+    let lib = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/src/lib.rs")).unwrap();
+    let docs: String = lib
+        .lines()
+        .filter(|l| l.starts_with("//!"))
+        .collect::<Vec<_>>()
+        .join("\n");
+    let modules: Vec<&str> = lib
+        .lines()
+        .filter_map(|l| l.strip_prefix("pub mod ")?.strip_suffix(';'))
+        .collect();
+    assert!(modules.len() > 10, "{modules:?}");
+    for m in modules {
+        assert!(
+            docs.contains(&format!("[`{m}`]")),
+            "src/lib.rs's crate docs do not name the public module `{m}`"
+        );
+    }
+}

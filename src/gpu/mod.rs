@@ -55,8 +55,9 @@ pub struct AdapterSummary {
 
 impl AdapterSummary {
     /// Whether the adapter is a software rasteriser (Mesa's lavapipe/llvmpipe, wgpu's
-    /// `DeviceType::Cpu`): it proves the GPU path correct but runs it 5-10x slower than the CPU
-    /// path (PLATFORM.md), so it is no default.
+    /// `DeviceType::Cpu`): it proves the GPU path correct but runs it slower than the CPU path
+    /// (the renderers 1.3-3.4x in ARCHITECTURE.md's measured tables; PLATFORM.md), so it is no
+    /// default.
     #[must_use]
     pub fn is_software(&self) -> bool {
         self.device_type == format!("{:?}", wgpu::DeviceType::Cpu)
@@ -76,22 +77,52 @@ pub struct GpuContext {
 pub const REQUIRED_FEATURES: wgpu::Features = wgpu::Features::FLOAT32_BLENDABLE;
 
 impl GpuContext {
-    /// Creates its own device on the first adapter found (`WGPU_BACKEND` is honoured).
+    /// Creates its own device on the best adapter that has [`REQUIRED_FEATURES`]: of every
+    /// adapter of the backends this build has (the crate's features `vulkan`, `metal`, `dx12`,
+    /// `gles`; `WGPU_BACKEND` narrows them), a discrete GPU before an integrated, virtual or
+    /// other one, a software rasteriser last, and in each kind Vulkan, Metal or DX12 before GL.
+    /// When no adapter has the features, the error names the adapters and what they lack.
     pub fn headless() -> Result<Self, GpuError> {
-        let instance =
-            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle().with_env());
-        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
-            power_preference: wgpu::PowerPreference::HighPerformance,
-            ..Default::default()
-        }))
-        .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
-        let info = adapter.get_info();
-        if !adapter.features().contains(REQUIRED_FEATURES) {
-            return Err(GpuError::MissingFeature {
-                adapter: info.name,
-                feature: "FLOAT32_BLENDABLE (additive blending into 32-bit float targets)",
-            });
+        if wgpu::Instance::enabled_backend_features().is_empty() {
+            return Err(GpuError::NoAdapter(
+                "this build has no wgpu backend (features vulkan, metal, dx12, gles)".into(),
+            ));
         }
+        let descriptor = wgpu::InstanceDescriptor::new_without_display_handle().with_env();
+        let backends = descriptor.backends;
+        let instance = wgpu::Instance::new(descriptor);
+        let adapters = pollster::block_on(instance.enumerate_adapters(backends));
+        let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(wgpu::Adapter::get_info).collect();
+        let candidates: Vec<(wgpu::DeviceType, wgpu::Backend, bool)> = adapters
+            .iter()
+            .zip(&infos)
+            .map(|(a, i)| {
+                (
+                    i.device_type,
+                    i.backend,
+                    a.features().contains(REQUIRED_FEATURES),
+                )
+            })
+            .collect();
+        let Some(index) = pick_adapter(&candidates) else {
+            return Err(if infos.is_empty() {
+                GpuError::NoAdapter(format!("no adapter on the backends {backends:?}"))
+            } else {
+                GpuError::MissingFeature {
+                    adapter: infos
+                        .iter()
+                        .map(|i| format!("{} ({:?})", i.name, i.backend))
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    feature: "FLOAT32_BLENDABLE (additive blending into 32-bit float targets)",
+                }
+            });
+        };
+        let adapter = adapters
+            .into_iter()
+            .nth(index)
+            .expect("an index of the list");
+        let info = infos.into_iter().nth(index).expect("an index of the list");
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("fluid-surfels"),
             required_features: REQUIRED_FEATURES,
@@ -119,6 +150,31 @@ impl GpuContext {
             adapter: None,
         }
     }
+}
+
+/// The index of the adapter [`GpuContext::headless`] takes among `(kind, backend, has the
+/// required features)` per adapter, of those that have the features: the best device kind
+/// (discrete, integrated, virtual, other, software), then Vulkan, Metal or DX12 before GL, then
+/// the first listed. `None` when none has them.
+#[must_use]
+pub fn pick_adapter(adapters: &[(wgpu::DeviceType, wgpu::Backend, bool)]) -> Option<usize> {
+    let kind = |t: wgpu::DeviceType| match t {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Other => 3,
+        wgpu::DeviceType::Cpu => 4,
+    };
+    let backend = |b: wgpu::Backend| match b {
+        wgpu::Backend::Vulkan | wgpu::Backend::Metal | wgpu::Backend::Dx12 => 0,
+        _ => 1,
+    };
+    adapters
+        .iter()
+        .enumerate()
+        .filter(|(_, a)| a.2)
+        .min_by_key(|&(i, &(t, b, _))| (kind(t), backend(b), i))
+        .map(|(i, _)| i)
 }
 
 /// The descriptor of a 2D texture of one mip level and one sample.
@@ -374,5 +430,42 @@ pub fn context_or_skip(what: &str) -> Result<Option<GpuContext>, GpuError> {
             );
             Ok(None)
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::pick_adapter;
+    use wgpu::{Backend, DeviceType};
+
+    /// The headless context's choice: features first, then the device kind, then the backend,
+    /// then the order listed; none when no adapter has the features.
+    #[test]
+    fn adapter_choice_prefers_features_then_kind_then_native_backends() {
+        assert_eq!(pick_adapter(&[]), None);
+        assert_eq!(
+            pick_adapter(&[(DeviceType::DiscreteGpu, Backend::Vulkan, false)]),
+            None
+        );
+        // a software Vulkan (lavapipe) before a GL software rasteriser
+        let software = [
+            (DeviceType::Cpu, Backend::Gl, true),
+            (DeviceType::Cpu, Backend::Vulkan, true),
+        ];
+        assert_eq!(pick_adapter(&software), Some(1));
+        // a discrete GPU without the features loses to an integrated one with them
+        let mixed = [
+            (DeviceType::DiscreteGpu, Backend::Vulkan, false),
+            (DeviceType::Cpu, Backend::Vulkan, true),
+            (DeviceType::IntegratedGpu, Backend::Gl, true),
+            (DeviceType::IntegratedGpu, Backend::Metal, true),
+        ];
+        assert_eq!(pick_adapter(&mixed), Some(3));
+        // ties keep the order listed
+        let twins = [
+            (DeviceType::DiscreteGpu, Backend::Dx12, true),
+            (DeviceType::DiscreteGpu, Backend::Vulkan, true),
+        ];
+        assert_eq!(pick_adapter(&twins), Some(0));
     }
 }

@@ -9,8 +9,9 @@
 //! optics stage (the light's splatting of the water, the caustics, the camera's splatting, the
 //! refraction, reflection and the final image) runs on the GPU, and the frame is presented by a
 //! full-screen pass. Nothing is read back and nothing waits on the GPU on the frame path; the
-//! optics stage still creates its per-frame resources in `prepare` (the next step: reuse them
-//! while the views are kept).
+//! optics stage keeps its targets, buffers and bind groups from frame to frame and updates the
+//! water in place while the views' sizes, the receiver and the environment stay the same
+//! ([`GpuPipeline::reused_resources`] says so), and builds them anew only when one changes.
 
 use super::{Frame, Pipeline, PipelineParams, Through};
 use crate::gpu::{GpuContext, GpuError, entry};
