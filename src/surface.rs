@@ -57,6 +57,36 @@ impl NormalMethod {
     }
 }
 
+/// Which particles a frame's surface is made of.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SurfaceMethod {
+    /// Solenthaler et al. 2007 §3.1: the centre-of-mass offset with two thresholds and
+    /// hysteresis across frames, normals of [`NormalMethod`]. The chain's design.
+    #[default]
+    CentreOfMass,
+    /// The narrow band of the Layered Neighborhood Method (Oliveira and Paiva, Algorithm 1;
+    /// [`crate::lnm`]): band particles are surface (isolated where the centre-of-mass detection
+    /// found no neighbour), the rest interior; normals from the voxels
+    /// ([`crate::lnm::NarrowBand::ring_normals`]); no hysteresis (`flips` is 0). The pipeline
+    /// runs the centre-of-mass detection too, for the isolated particles and the offsets.
+    Lnm,
+}
+
+impl SurfaceMethod {
+    /// Every method, in the order of the documentation.
+    pub const ALL: [Self; 2] = [Self::CentreOfMass, Self::Lnm];
+
+    /// The name used in files and on the command line.
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::CentreOfMass => "centre-of-mass",
+            Self::Lnm => "lnm",
+        }
+    }
+}
+
 /// Parameters of surface detection.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -75,6 +105,10 @@ pub struct SurfaceParams {
     pub low_threshold: f32,
     /// How normals of surface particles are computed.
     pub normals: NormalMethod,
+    /// Which particles are the surface: the centre-of-mass detection (default) or the LNM
+    /// narrow band. [`SurfaceDetector`] itself always runs the centre-of-mass detection; the
+    /// [`crate::pipeline::Pipeline`] turns it into the band with [`crate::lnm::band_surface`].
+    pub method: SurfaceMethod,
 }
 
 impl Default for SurfaceParams {
@@ -83,6 +117,7 @@ impl Default for SurfaceParams {
             high_threshold: 0.14,
             low_threshold: 0.09,
             normals: NormalMethod::default(),
+            method: SurfaceMethod::default(),
         }
     }
 }

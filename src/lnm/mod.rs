@@ -248,6 +248,37 @@ pub struct Agreement {
     pub agreement: f64,
 }
 
+/// The narrow band as a [`crate::surface::Surface`] (the detection method
+/// [`crate::surface::SurfaceMethod::Lnm`]): band particles are surface, isolated where `com` (the
+/// centre-of-mass detection of the same particles) found them isolated, the rest interior;
+/// normals from the voxels ([`NarrowBand::ring_normals`]); the offsets are `com`'s; `flips` 0
+/// (the band has no hysteresis).
+#[must_use]
+pub fn band_surface(
+    band: &NarrowBand,
+    positions: &[Vec3],
+    com: &crate::surface::Surface,
+) -> crate::surface::Surface {
+    use crate::surface::ParticleClass;
+    let classes = band
+        .labels
+        .iter()
+        .zip(&com.classes)
+        .map(|(&l, &c)| match (l, c) {
+            (0, _) => ParticleClass::Interior,
+            (_, ParticleClass::Isolated) => ParticleClass::Isolated,
+            _ => ParticleClass::Surface,
+        })
+        .collect();
+    crate::surface::Surface {
+        classes,
+        offsets: com.offsets.clone(),
+        normals: band.ring_normals(positions),
+        flips: 0,
+        timings: Default::default(),
+    }
+}
+
 /// The agreement of `band` with `classes` (one per particle).
 #[must_use]
 pub fn agreement(band: &NarrowBand, classes: &[crate::surface::ParticleClass]) -> Agreement {

@@ -591,7 +591,17 @@ impl Pipeline {
             );
         }
         let t = Instant::now();
-        let surface = self.detector.detect(particles, &nb)?;
+        let mut surface = self.detector.detect(particles, &nb)?;
+        if self.params.surface.method == crate::surface::SurfaceMethod::Lnm {
+            // the band in place of the centre-of-mass classes (its isolated particles and
+            // offsets kept); the detector keeps its own hysteresis state
+            let band = crate::lnm::narrow_band(
+                particles.positions,
+                radius,
+                &crate::lnm::LnmParams::default(),
+            )?;
+            surface = crate::lnm::band_surface(&band, particles.positions, &surface);
+        }
         timings.detect_ms = ms(t);
         let surface_indices = refined_indices(&surface);
         let mut frame = Frame {

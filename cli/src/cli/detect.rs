@@ -8,7 +8,7 @@ use fluid_surfels::pipeline::{self, Pipeline, PipelineParams, Through};
 use fluid_surfels::preview::{self, PreviewCamera};
 use fluid_surfels::scenes::{self, ColumnParams, SceneName};
 use fluid_surfels::sequence::FramePattern;
-use fluid_surfels::surface::{self, NormalMethod, Surface, SurfaceParams};
+use fluid_surfels::surface::{self, NormalMethod, Surface, SurfaceMethod, SurfaceParams};
 use fluid_surfels::{Error, ParticleSet};
 use serde::Serialize;
 
@@ -35,8 +35,8 @@ pub struct DetectArgs {
     /// the chain's) or lnm (the narrow band of the Layered Neighborhood Method, Oliveira and
     /// Paiva Algorithm 1: voxel layers, no neighbour search, normals from the voxels; its
     /// agreement with the centre-of-mass classes is reported).
-    #[arg(long, value_enum, default_value = "centre-of-mass")]
-    pub method: MethodChoice,
+    #[arg(long, value_parser = super::names_parser(&SurfaceMethod::ALL, SurfaceMethod::as_str), default_value = "centre-of-mass")]
+    pub method: SurfaceMethod,
 }
 
 /// `--normals`: the library's names, and `pca` (the name this option had first) for covariance.
@@ -52,13 +52,6 @@ fn normals_parser() -> impl clap::builder::TypedValueParser<Value = NormalMethod
             .find(|m| m.as_str() == s || (s == "pca" && *m == NormalMethod::Covariance))
             .expect("one of the possible values")
     })
-}
-
-/// `--method` on the command line.
-#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum MethodChoice {
-    CentreOfMass,
-    Lnm,
 }
 
 /// What `--method lnm` adds to the report.
@@ -84,37 +77,19 @@ fn lnm_surface(
     com: &Surface,
     com_ms: f64,
 ) -> Result<(Surface, LnmReport), Error> {
-    use fluid_surfels::lnm::{LnmParams, agreement, narrow_band};
-    use fluid_surfels::surface::ParticleClass;
+    use fluid_surfels::lnm::{LnmParams, agreement, band_surface, narrow_band};
     let t = Instant::now();
     let band = narrow_band(&particles.positions, radius, &LnmParams::default())?;
     let band_ms = ms(t);
     let t = Instant::now();
-    let normals = band.ring_normals(&particles.positions);
+    let surface = band_surface(&band, &particles.positions, com);
     let normals_ms = ms(t);
-    let classes = band
-        .labels
-        .iter()
-        .zip(&com.classes)
-        .map(|(&l, &c)| match (l, c) {
-            (0, _) => ParticleClass::Interior,
-            (_, ParticleClass::Isolated) => ParticleClass::Isolated,
-            _ => ParticleClass::Surface,
-        })
-        .collect();
     let report = LnmReport {
         agreement: agreement(&band, &com.classes),
         voxels: band.voxels.len(),
         band_ms,
         normals_ms,
         centre_of_mass_ms: com_ms,
-    };
-    let surface = Surface {
-        classes,
-        offsets: com.offsets.clone(),
-        normals,
-        flips: 0,
-        timings: Default::default(),
     };
     Ok((surface, report))
 }
@@ -160,6 +135,9 @@ fn params(args: &DetectArgs) -> Result<SurfaceParams, Error> {
         high_threshold: high,
         low_threshold: args.low.unwrap_or(defaults.low_threshold.min(high)),
         normals: args.normals,
+        // the centre-of-mass classes always: `--method lnm` reports the band's agreement with
+        // them and then takes the band (`lnm_surface`)
+        method: SurfaceMethod::CentreOfMass,
     };
     params.validate()?;
     Ok(params)
@@ -280,7 +258,7 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
     };
     timings.classify = surface.timings.classify_ms;
     timings.normals = surface.timings.normals_ms;
-    let (surface, lnm) = if args.method == MethodChoice::Lnm {
+    let (surface, lnm) = if args.method == SurfaceMethod::Lnm {
         let com_ms = timings.neighbours + timings.classify + timings.normals;
         let (s, r) = lnm_surface(&particles, radius, &surface, com_ms)?;
         (s, Some(r))
@@ -442,7 +420,7 @@ fn detect_sequence(
             let surface = pipeline
                 .frame_through(&particles, Through::Surface)?
                 .surface;
-            let (surface, lnm) = if args.method == MethodChoice::Lnm {
+            let (surface, lnm) = if args.method == SurfaceMethod::Lnm {
                 let (s, r) = lnm_surface(&particles, radius, &surface, 0.0)?;
                 (s, Some(r.agreement))
             } else {
