@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import fluid_surfels as fs
-from conftest import DAM_BREAK
+from conftest import DAM_BREAK, DATA
 from png import read_png
 
 
@@ -334,3 +334,18 @@ def test_warnings_reach_pythons_warnings_module():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert fs.Pipeline().frame(d["positions"], through="surface").warnings == []
+
+
+def test_the_lnm_detection_method_equals_detect_method_lnm(cli, tmp_path):
+    """surface={"method": "lnm"} gives the narrow band that `detect --method lnm` writes: the
+    same surface particles in the same order (the dam break BGEO, a bulk body whose band is
+    not all of it), a superset of the centre-of-mass surface."""
+    bgeo = DATA / "dam_break_frame_23_24389_particles.bgeo"
+    cli("detect", "--input", bgeo, "--method", "lnm", "--out", tmp_path / "band.ply")
+    pos = fs.read(bgeo)["positions"]
+    band = fs.Pipeline(surface={"method": "lnm"}).frame(pos, through="surface")
+    com = fs.Pipeline().frame(pos, through="surface")
+    written = fs.read(tmp_path / "band.ply")["positions"]
+    np.testing.assert_array_equal(pos[band.classes == fs.SURFACE], written)
+    in_band = band.classes != fs.INTERIOR
+    assert in_band[com.classes == fs.SURFACE].all() and 0 < len(written) < len(pos)
