@@ -1,8 +1,16 @@
-//! Numbered frame sequences: file name patterns (`dir/frame_{}.vtk`, `out_{:04}.ply`) and frame
-//! ranges (`0..20`, `0..=20`, `0..100:5`), shared by every CLI subcommand.
+//! Numbered frame sequences: file name patterns (`dir/frame_{}.vtk`, `out_{:04}.ply`), frame
+//! ranges (`0..20`, `0..=20`, `0..100:5`), the checks of a run's outputs before any work, and
+//! [`Sequence`], the runner that takes the frames in parallel runs of consecutive frames.
 
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use crate::{Error, io};
 
 /// Errors of patterns and ranges.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -247,6 +255,279 @@ impl FromStr for FrameRange {
     }
 }
 
+// ---------------------------------------------------------------------------------------------
+// Outputs of a run and the sequence runner
+
+/// Whether an output belongs to a sequence (where `--skip-existing` is the other way out).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OutputKind {
+    /// One file of a one-file run.
+    Single,
+    /// A frame's file of a sequence.
+    Frame,
+}
+
+/// Checks an output before any work: its folder exists and takes files, it is not the input,
+/// and it does not exist unless `force` (`--force`) replaces it.
+pub fn check_output(
+    out: &Path,
+    input: Option<&Path>,
+    force: bool,
+    kind: OutputKind,
+) -> Result<(), Error> {
+    check_replaceable(out, input, force, kind)?;
+    check_folder(out)
+}
+
+/// [`check_output`] without the folder: for the frames of a sequence, whose folder is checked
+/// once.
+pub fn check_replaceable(
+    out: &Path,
+    input: Option<&Path>,
+    force: bool,
+    kind: OutputKind,
+) -> Result<(), Error> {
+    let refuse = |kind: std::io::ErrorKind, why: String| -> Result<(), Error> {
+        Err(io::IoError::Os {
+            path: out.to_owned(),
+            source: std::io::Error::new(kind, why),
+        }
+        .into())
+    };
+    let same = input.is_some_and(|i| {
+        i == out || matches!((std::fs::canonicalize(i), std::fs::canonicalize(out)), (Ok(a), Ok(b)) if a == b)
+    });
+    if same {
+        return refuse(
+            std::io::ErrorKind::AlreadyExists,
+            "refusing to overwrite: it is the input file".into(),
+        );
+    }
+    if out.is_dir() {
+        return refuse(
+            std::io::ErrorKind::AlreadyExists,
+            "is a folder; name a file to write".into(),
+        );
+    }
+    if out.exists() && !force {
+        return refuse(
+            std::io::ErrorKind::AlreadyExists,
+            match kind {
+                OutputKind::Single => {
+                    "refusing to overwrite: it exists; pass --force to replace it"
+                }
+                OutputKind::Frame => {
+                    "refusing to overwrite: this frame's output exists; pass --force to replace \
+                     the frames that exist, or --skip-existing to keep them and do only the others"
+                }
+            }
+            .into(),
+        );
+    }
+    Ok(())
+}
+
+/// The folder `out` goes into exists and takes a new file (probed by creating and removing one).
+pub fn check_folder(out: &Path) -> Result<(), Error> {
+    let dir = match out.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let fail = |why: String| -> Result<(), Error> {
+        Err(io::IoError::Os {
+            path: out.to_owned(),
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, why),
+        }
+        .into())
+    };
+    if !dir.is_dir() {
+        return fail(format!(
+            "the output folder {} does not exist (create it first; nothing was done)",
+            dir.display()
+        ));
+    }
+    let probe = dir.join(format!(".fluid-surfels-probe-{}", std::process::id()));
+    match std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&probe)
+    {
+        Ok(_) => {
+            // a probe left behind is harmless; nothing to report if its removal fails
+            let _ = std::fs::remove_file(&probe);
+            Ok(())
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(()),
+        Err(e) => fail(format!(
+            "cannot write into the output folder {} ({e}; nothing was done)",
+            dir.display()
+        )),
+    }
+}
+
+/// How a command runs over the frames of a sequence: which frames, their outputs, how many at
+/// once. Used by the command line's `detect`, `refine` and `surfels`, and open to library and
+/// Python users.
+pub struct Sequence<'a> {
+    /// Input file pattern.
+    pub input: &'a FramePattern,
+    /// Frames asked for.
+    pub frames: Vec<usize>,
+    /// Output patterns (a frame is done when all exist).
+    pub outputs: Vec<FramePattern>,
+    /// Frames at once.
+    pub jobs: usize,
+    /// Skip frames whose outputs all exist.
+    pub skip_existing: bool,
+    /// Replace existing outputs.
+    pub force: bool,
+    /// What the frames are for, in progress reports (`"detect"`, `"refine"`...).
+    pub label: &'static str,
+    /// Called once with the number of frames to do, then after each frame done (from the
+    /// worker threads); the command line draws its progress bar with it.
+    pub progress: Option<Box<dyn Fn(Progress) + Sync + 'a>>,
+}
+
+/// What [`Sequence::progress`] is told.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Progress {
+    /// The run starts with this many frames to do.
+    Start(usize),
+    /// One more frame is done.
+    Frame,
+    /// The run ended (done, or stopped by an error).
+    End,
+}
+
+/// What [`Sequence::run`] reports.
+#[derive(Debug)]
+pub struct SequenceRun<R> {
+    /// Per processed frame, in frame order.
+    pub results: Vec<R>,
+    /// Frames skipped because their outputs existed.
+    pub skipped: Vec<usize>,
+    /// Jobs actually used.
+    pub jobs: usize,
+    /// Wall-clock seconds of the processing.
+    pub seconds: f64,
+}
+
+impl Sequence<'_> {
+    /// Frames still to do and frames skipped, after `skip_existing` and the refusal to
+    /// overwrite without `force` (checked for every frame before anything runs).
+    pub fn plan(&self) -> Result<(Vec<usize>, Vec<usize>), Error> {
+        let mut todo = Vec::new();
+        let mut skipped = Vec::new();
+        let mut folders = std::collections::HashSet::new();
+        for &f in &self.frames {
+            let targets: Vec<PathBuf> = self.outputs.iter().map(|p| p.path(f)).collect();
+            if self.skip_existing && !targets.is_empty() && targets.iter().all(|t| t.exists()) {
+                skipped.push(f);
+                continue;
+            }
+            let input = self.input.path(f);
+            for t in &targets {
+                check_replaceable(t, Some(&input), self.force, OutputKind::Frame)?;
+                if folders.insert(t.parent().map(Path::to_path_buf)) {
+                    check_folder(t)?;
+                }
+            }
+            todo.push(f);
+        }
+        Ok((todo, skipped))
+    }
+
+    /// Runs `process(state, frame)` over the frames to do: `jobs` runs of consecutive frames in
+    /// parallel, each with its own `state` (made by `make_state`) used in frame order. Stops at
+    /// the first error.
+    pub fn run<S, R: Send>(
+        &self,
+        make_state: impl Fn() -> Result<S, Error> + Sync,
+        process: impl Fn(&mut S, usize) -> Result<R, Error> + Sync,
+    ) -> Result<SequenceRun<R>, Error> {
+        let (todo, skipped) = self.plan()?;
+        let jobs = jobs(self.jobs, todo.len())?;
+        let block = todo.len().div_ceil(jobs).max(1);
+        let blocks: Vec<&[usize]> = todo.chunks(block).collect();
+        let tell = |p: Progress| {
+            if let Some(progress) = &self.progress {
+                progress(p);
+            }
+        };
+        tell(Progress::Start(todo.len()));
+        let failed = AtomicBool::new(false);
+        let first_error: Mutex<Option<Error>> = Mutex::new(None);
+        let fail = |e: Error| {
+            failed.store(true, Ordering::SeqCst);
+            first_error
+                .lock()
+                .expect("no panic holds the lock")
+                .get_or_insert(e);
+        };
+        let start = Instant::now();
+        let run_block = |frames: &[usize]| -> Vec<(usize, R)> {
+            let mut out = Vec::new();
+            let mut state = match make_state() {
+                Ok(s) => s,
+                Err(e) => {
+                    fail(e);
+                    return out;
+                }
+            };
+            for &f in frames {
+                if failed.load(Ordering::SeqCst) {
+                    break;
+                }
+                match process(&mut state, f) {
+                    Ok(r) => out.push((f, r)),
+                    Err(e) => {
+                        fail(e);
+                        break;
+                    }
+                }
+                tell(Progress::Frame);
+            }
+            out
+        };
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(jobs.max(rayon::current_num_threads()))
+            .build()
+            .map_err(|e| Error::InvalidArgument {
+                argument: "jobs",
+                reason: e.to_string(),
+            })?;
+        let mut done: Vec<(usize, R)> =
+            pool.install(|| blocks.par_iter().flat_map_iter(|b| run_block(b)).collect());
+        tell(Progress::End);
+        if let Some(e) = first_error.into_inner().expect("no panic holds the lock") {
+            return Err(e);
+        }
+        done.sort_by_key(|(f, _)| *f);
+        Ok(SequenceRun {
+            results: done.into_iter().map(|(_, r)| r).collect(),
+            skipped,
+            jobs,
+            seconds: start.elapsed().as_secs_f64(),
+        })
+    }
+}
+
+/// The most frames processed at once: each job holds its frame's data in memory.
+pub const MAX_JOBS: usize = 1024;
+
+/// The frames at once asked for (`--jobs`), checked (1 to [`MAX_JOBS`]) and capped at the number of frames.
+pub fn jobs(jobs: usize, frames: usize) -> Result<usize, Error> {
+    if jobs == 0 || jobs > MAX_JOBS {
+        return Err(Error::InvalidArgument {
+            argument: "--jobs",
+            reason: format!(
+                "{jobs} frames at once; give 1 to {MAX_JOBS} (each job holds a frame in memory)"
+            ),
+        });
+    }
+    Ok(jobs.min(frames.max(1)))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -299,5 +580,98 @@ mod tests {
             .unwrap();
         assert!(p.existing_frames().is_err());
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A sequence over `frames` of `dir`, writing `out_{}.txt` there.
+    fn sequence<'a>(input: &'a FramePattern, out: &Path, frames: Vec<usize>) -> Sequence<'a> {
+        Sequence {
+            input,
+            frames,
+            outputs: vec![
+                FramePattern::parse(&format!("{}/out_{{}}.txt", out.display()))
+                    .unwrap()
+                    .unwrap(),
+            ],
+            jobs: 2,
+            skip_existing: false,
+            force: false,
+            label: "test",
+            progress: None,
+        }
+    }
+
+    /// The runner: results in frame order whatever the jobs, each run's state used in frame
+    /// order, progress told once per frame; existing outputs skipped or refused before any
+    /// work; the first error stops the run.
+    #[test]
+    fn the_runner_keeps_frame_order_skips_refuses_and_stops() {
+        use std::sync::atomic::AtomicUsize;
+        let dir = tempfile::tempdir().unwrap();
+        let input = FramePattern::parse(&format!("{}/in_{{}}.txt", dir.path().display()))
+            .unwrap()
+            .unwrap();
+        let told = Mutex::new(Vec::new());
+        let mut seq = sequence(&input, dir.path(), (0..7).collect());
+        seq.progress = Some(Box::new(|p| told.lock().unwrap().push(p)));
+        // each state records the frames it saw, in the order it saw them
+        let run = seq
+            .run(
+                || Ok(Vec::new()),
+                |seen: &mut Vec<usize>, f| {
+                    seen.push(f);
+                    Ok((f, seen.clone()))
+                },
+            )
+            .unwrap();
+        assert_eq!(run.jobs, 2);
+        assert_eq!(
+            run.results.iter().map(|r| r.0).collect::<Vec<_>>(),
+            (0..7).collect::<Vec<_>>()
+        );
+        for (f, seen) in &run.results {
+            assert_eq!(seen.last(), Some(f));
+            assert!(seen.windows(2).all(|w| w[1] == w[0] + 1), "{seen:?}");
+        }
+        drop(seq);
+        let told = told.into_inner().unwrap();
+        assert_eq!(told.first(), Some(&Progress::Start(7)));
+        assert_eq!(told.last(), Some(&Progress::End));
+        assert_eq!(told.iter().filter(|&&p| p == Progress::Frame).count(), 7);
+
+        // frames 2 and 5 written: skipped with skip_existing, refused without it
+        for f in [2, 5] {
+            std::fs::write(dir.path().join(format!("out_{f}.txt")), "done").unwrap();
+        }
+        let calls = AtomicUsize::new(0);
+        let process = |_: &mut (), f: usize| {
+            calls.fetch_add(1, Ordering::SeqCst);
+            Ok(f)
+        };
+        let mut skipping = sequence(&input, dir.path(), (0..7).collect());
+        skipping.skip_existing = true;
+        let run = skipping.run(|| Ok(()), process).unwrap();
+        assert_eq!(run.skipped, vec![2, 5]);
+        assert_eq!(run.results, vec![0, 1, 3, 4, 6]);
+        calls.store(0, Ordering::SeqCst);
+        let refused = sequence(&input, dir.path(), (0..7).collect()).run(|| Ok(()), process);
+        assert!(refused.is_err() && calls.load(Ordering::SeqCst) == 0);
+
+        // an error stops the run and is returned
+        let failing = sequence(&input, dir.path(), vec![0, 1, 3, 4]).run(
+            || Ok(()),
+            |_: &mut (), f| {
+                if f == 3 {
+                    Err(Error::InvalidArgument {
+                        argument: "frame",
+                        reason: "three".into(),
+                    })
+                } else {
+                    Ok(f)
+                }
+            },
+        );
+        assert!(failing.unwrap_err().to_string().contains("three"));
+        assert!(jobs(0, 5).is_err() && jobs(MAX_JOBS + 1, 5).is_err());
+        assert_eq!(jobs(8, 3).unwrap(), 3);
     }
 }

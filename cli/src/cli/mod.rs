@@ -11,15 +11,16 @@ pub mod run;
 pub mod surfels;
 
 use std::io::IsTerminal;
-use std::path::{Path, PathBuf};
-use std::sync::Mutex;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::path::Path;
+use std::sync::atomic::Ordering;
 use std::time::Instant;
 
 use fluid_surfels::io::Format;
 use fluid_surfels::scenes::SceneName;
 use fluid_surfels::sequence::{FramePattern, FrameRange};
-use rayon::prelude::*;
+pub use fluid_surfels::sequence::{
+    OutputKind, Progress, Sequence, check_folder, check_output, check_replaceable, jobs,
+};
 
 use fluid_surfels::io;
 use fluid_surfels::surface::{ParticleClass, Surface};
@@ -306,6 +307,26 @@ pub fn warn_at_once(pipeline: &mut fluid_surfels::pipeline::Pipeline) {
     pipeline.on_warning(|w| eprintln!("warning: {}", io::clean(w, 1000)));
 }
 
+/// A [`Sequence`]'s progress as a bar on stderr (when it is a terminal).
+pub fn progress_bar(label: &'static str) -> Box<dyn Fn(Progress) + Sync> {
+    let bar = std::sync::OnceLock::new();
+    Box::new(move |p| match p {
+        Progress::Start(n) => {
+            let _ = bar.set(progress(n as u64, label));
+        }
+        Progress::Frame => {
+            if let Some(b) = bar.get() {
+                b.inc(1);
+            }
+        }
+        Progress::End => {
+            if let Some(b) = bar.get() {
+                b.finish_and_clear();
+            }
+        }
+    })
+}
+
 /// A progress bar on stderr when it is a terminal, hidden otherwise.
 pub fn progress(len: u64, what: &str) -> indicatif::ProgressBar {
     if !std::io::stderr().is_terminal() {
@@ -322,238 +343,6 @@ pub fn progress(len: u64, what: &str) -> indicatif::ProgressBar {
     bar
 }
 
-/// Whether an output belongs to a sequence (where `--skip-existing` is the other way out).
-#[derive(Clone, Copy, PartialEq, Eq)]
-pub enum OutputKind {
-    /// One file of a one-file run.
-    Single,
-    /// A frame's file of a sequence.
-    Frame,
-}
-
-/// Checks an output before any work: its folder exists and takes files, it is not the input,
-/// and it does not exist unless `--force` replaces it.
-pub fn check_output(
-    out: &Path,
-    input: Option<&Path>,
-    force: bool,
-    kind: OutputKind,
-) -> Result<(), Error> {
-    check_replaceable(out, input, force, kind)?;
-    check_folder(out)
-}
-
-/// [`check_output`] without the folder: for the frames of a sequence, whose folder is checked
-/// once.
-pub fn check_replaceable(
-    out: &Path,
-    input: Option<&Path>,
-    force: bool,
-    kind: OutputKind,
-) -> Result<(), Error> {
-    let refuse = |kind: std::io::ErrorKind, why: String| -> Result<(), Error> {
-        Err(io::IoError::Os {
-            path: out.to_owned(),
-            source: std::io::Error::new(kind, why),
-        }
-        .into())
-    };
-    let same = input.is_some_and(|i| {
-        i == out || matches!((std::fs::canonicalize(i), std::fs::canonicalize(out)), (Ok(a), Ok(b)) if a == b)
-    });
-    if same {
-        return refuse(
-            std::io::ErrorKind::AlreadyExists,
-            "refusing to overwrite: it is the input file".into(),
-        );
-    }
-    if out.is_dir() {
-        return refuse(
-            std::io::ErrorKind::AlreadyExists,
-            "is a folder; name a file to write".into(),
-        );
-    }
-    if out.exists() && !force {
-        return refuse(
-            std::io::ErrorKind::AlreadyExists,
-            match kind {
-                OutputKind::Single => {
-                    "refusing to overwrite: it exists; pass --force to replace it"
-                }
-                OutputKind::Frame => {
-                    "refusing to overwrite: this frame's output exists; pass --force to replace \
-                     the frames that exist, or --skip-existing to keep them and do only the others"
-                }
-            }
-            .into(),
-        );
-    }
-    Ok(())
-}
-
-/// The folder `out` goes into exists and takes a new file (probed by creating and removing one).
-pub fn check_folder(out: &Path) -> Result<(), Error> {
-    let dir = match out.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let fail = |why: String| -> Result<(), Error> {
-        Err(io::IoError::Os {
-            path: out.to_owned(),
-            source: std::io::Error::new(std::io::ErrorKind::NotFound, why),
-        }
-        .into())
-    };
-    if !dir.is_dir() {
-        return fail(format!(
-            "the output folder {} does not exist (create it first; nothing was done)",
-            dir.display()
-        ));
-    }
-    let probe = dir.join(format!(".fluid-surfels-probe-{}", std::process::id()));
-    match std::fs::OpenOptions::new()
-        .write(true)
-        .create_new(true)
-        .open(&probe)
-    {
-        Ok(_) => {
-            // a probe left behind is harmless; nothing to report if its removal fails
-            let _ = std::fs::remove_file(&probe);
-            Ok(())
-        }
-        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(()),
-        Err(e) => fail(format!(
-            "cannot write into the output folder {} ({e}; nothing was done)",
-            dir.display()
-        )),
-    }
-}
-
-/// How a subcommand runs over the frames of a sequence.
-pub struct Sequence<'a> {
-    /// Input file pattern.
-    pub input: &'a FramePattern,
-    /// Frames asked for.
-    pub frames: Vec<usize>,
-    /// Output patterns (a frame is done when all exist).
-    pub outputs: Vec<FramePattern>,
-    /// Frames at once.
-    pub jobs: usize,
-    /// Skip frames whose outputs all exist.
-    pub skip_existing: bool,
-    /// Replace existing outputs.
-    pub force: bool,
-    /// Progress bar label.
-    pub label: &'static str,
-}
-
-/// What [`Sequence::run`] reports.
-pub struct SequenceRun<R> {
-    /// Per processed frame, in frame order.
-    pub results: Vec<R>,
-    /// Frames skipped because their outputs existed.
-    pub skipped: Vec<usize>,
-    /// Jobs actually used.
-    pub jobs: usize,
-    /// Wall-clock seconds of the processing.
-    pub seconds: f64,
-}
-
-impl Sequence<'_> {
-    /// Frames still to do, after `--skip-existing` and the refusal to overwrite without
-    /// `--force` (checked for every frame before anything runs).
-    pub fn plan(&self) -> Result<(Vec<usize>, Vec<usize>), Error> {
-        let mut todo = Vec::new();
-        let mut skipped = Vec::new();
-        let mut folders = std::collections::HashSet::new();
-        for &f in &self.frames {
-            let targets: Vec<PathBuf> = self.outputs.iter().map(|p| p.path(f)).collect();
-            if self.skip_existing && !targets.is_empty() && targets.iter().all(|t| t.exists()) {
-                skipped.push(f);
-                continue;
-            }
-            let input = self.input.path(f);
-            for t in &targets {
-                check_replaceable(t, Some(&input), self.force, OutputKind::Frame)?;
-                if folders.insert(t.parent().map(Path::to_path_buf)) {
-                    check_folder(t)?;
-                }
-            }
-            todo.push(f);
-        }
-        Ok((todo, skipped))
-    }
-
-    /// Runs `process(state, frame)` over the frames to do: `jobs` runs of consecutive frames in
-    /// parallel, each with its own `state` (made by `make_state`) used in frame order. Stops at
-    /// the first error.
-    pub fn run<S, R: Send>(
-        &self,
-        make_state: impl Fn() -> Result<S, Error> + Sync,
-        process: impl Fn(&mut S, usize) -> Result<R, Error> + Sync,
-    ) -> Result<SequenceRun<R>, Error> {
-        let (todo, skipped) = self.plan()?;
-        let jobs = jobs(self.jobs, todo.len())?;
-        let block = todo.len().div_ceil(jobs).max(1);
-        let blocks: Vec<&[usize]> = todo.chunks(block).collect();
-        let bar = progress(todo.len() as u64, self.label);
-        let failed = AtomicBool::new(false);
-        let first_error: Mutex<Option<Error>> = Mutex::new(None);
-        let fail = |e: Error| {
-            failed.store(true, Ordering::SeqCst);
-            first_error
-                .lock()
-                .expect("no panic holds the lock")
-                .get_or_insert(e);
-        };
-        let start = Instant::now();
-        let run_block = |frames: &[usize]| -> Vec<(usize, R)> {
-            let mut out = Vec::new();
-            let mut state = match make_state() {
-                Ok(s) => s,
-                Err(e) => {
-                    fail(e);
-                    return out;
-                }
-            };
-            for &f in frames {
-                if failed.load(Ordering::SeqCst) {
-                    break;
-                }
-                match process(&mut state, f) {
-                    Ok(r) => out.push((f, r)),
-                    Err(e) => {
-                        fail(e);
-                        break;
-                    }
-                }
-                bar.inc(1);
-            }
-            out
-        };
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(jobs.max(rayon::current_num_threads()))
-            .build()
-            .map_err(|e| Error::InvalidArgument {
-                argument: "--jobs",
-                reason: e.to_string(),
-            })?;
-        let mut done: Vec<(usize, R)> =
-            pool.install(|| blocks.par_iter().flat_map_iter(|b| run_block(b)).collect());
-        bar.finish_and_clear();
-        if let Some(e) = first_error.into_inner().expect("no panic holds the lock") {
-            return Err(e);
-        }
-        done.sort_by_key(|(f, _)| *f);
-        Ok(SequenceRun {
-            results: done.into_iter().map(|(_, r)| r).collect(),
-            skipped,
-            jobs,
-            seconds: start.elapsed().as_secs_f64(),
-        })
-    }
-}
-
 /// The frames of a sequence: the range given (every frame's file checked to exist before any
 /// work), or every file of the pattern found on disk.
 pub fn sequence_frames(
@@ -561,22 +350,6 @@ pub fn sequence_frames(
     range: Option<fluid_surfels::sequence::FrameRange>,
 ) -> Result<Vec<usize>, Error> {
     Ok(pattern.frames(range)?)
-}
-
-/// The most frames processed at once: each job holds its frame's data in memory.
-pub const MAX_JOBS: usize = 1024;
-
-/// `--jobs`, checked (1 to [`MAX_JOBS`]) and capped at the number of frames.
-pub fn jobs(jobs: usize, frames: usize) -> Result<usize, Error> {
-    if jobs == 0 || jobs > MAX_JOBS {
-        return Err(Error::InvalidArgument {
-            argument: "--jobs",
-            reason: format!(
-                "{jobs} frames at once; give 1 to {MAX_JOBS} (each job holds a frame in memory)"
-            ),
-        });
-    }
-    Ok(jobs.min(frames.max(1)))
 }
 
 /// An output pattern that must have a placeholder because the input is a sequence.
@@ -629,6 +402,7 @@ pub fn prepare_sequence<'a>(
         skip_existing: outputs.skip_existing,
         force: outputs.force,
         label,
+        progress: Some(progress_bar(label)),
     };
     let (todo, _) = sequence.plan()?;
     let radius = match (source.radius, todo.first()) {
