@@ -610,3 +610,60 @@ fn gpu_pipeline_reuses_its_resources_across_a_sequence() {
     println!("frame 13, reused resources against a fresh preparation: {db:.1} dB");
     assert!(db.is_infinite(), "{db:.1} dB");
 }
+
+/// Stage 3 with the grid on the GPU (`pipeline::iso_surfels_gpu`, `surfels --gpu`) against the
+/// CPU's `pipeline::iso_surfels`: the same grid, the same number of surfels within 1 %, each
+/// GPU surfel within 1e-3 spacings of a CPU one; over the memory budget both coarsen the grid
+/// alike and say so; no point gives no surfels.
+#[test]
+fn gpu_iso_surfels_match_the_cpu_stage() {
+    use fluid_surfels::pipeline::{GridParams, iso_surfels, iso_surfels_gpu};
+    use fluid_surfels::surfels::SurfelParams;
+    let Some(ctx) = gpu::context_or_skip("gpu_iso_surfels_match_the_cpu_stage").unwrap() else {
+        return;
+    };
+    let scene = scenes::sphere(&scenes::SphereParams::default()).unwrap();
+    let p = &scene.particles.positions;
+    let h = scene.support_radius;
+    let params = SurfelParams::default();
+    for budget in [1 << 30, 1 << 18] {
+        let grid = GridParams {
+            memory_budget: budget,
+            ..GridParams::default()
+        };
+        let cpu = iso_surfels(Points::uniform(p, h), &grid, &params)
+            .unwrap()
+            .unwrap();
+        let gpu = iso_surfels_gpu(&ctx, Points::uniform(p, h), &grid, &params)
+            .unwrap()
+            .unwrap();
+        assert_eq!(cpu.grid.spec(), gpu.grid.spec(), "budget {budget}");
+        assert_eq!(cpu.warning.is_some(), budget < 1 << 20, "{:?}", cpu.warning);
+        assert_eq!(cpu.warning, gpu.warning);
+        let (c, g) = (&cpu.surfels.positions, &gpu.surfels.positions);
+        assert!(
+            (c.len() as f32 - g.len() as f32).abs() <= 0.01 * c.len() as f32,
+            "{} CPU against {} GPU surfels",
+            c.len(),
+            g.len()
+        );
+        let tolerance = 1e-3 * scene.spacing;
+        for (i, q) in g.iter().enumerate() {
+            let nearest = c
+                .iter()
+                .map(|x| x.distance(*q))
+                .fold(f32::INFINITY, f32::min);
+            assert!(
+                nearest <= tolerance,
+                "GPU surfel {i} is {nearest} from the CPU's"
+            );
+        }
+    }
+    let none = iso_surfels_gpu(
+        &ctx,
+        Points::uniform(&[], h),
+        &GridParams::default(),
+        &params,
+    );
+    assert!(none.unwrap().is_none());
+}

@@ -433,3 +433,37 @@ fn check_size((w, h): (u32, u32)) -> Result<(), Error> {
     }
     Ok(())
 }
+
+/// Stage 3 with the density grid splatted on the GPU (Iwasaki et al. §4: slice by slice, four
+/// planes per RGBA pass, each point with its own radius; [`crate::density::gpu`]) and read back
+/// for the CPU surfel extraction: [`super::iso_surfels`]'s twin, with the same grid (its box,
+/// resolution and memory budget, coarsened with a warning when over it, as on the CPU) and
+/// the same surfels to the tolerance of the GPU's sums (`tests/gpu.rs`). Always a dense grid:
+/// `grid.narrow_band` (the sparse blocks) is a CPU layout. `None` when there is no point.
+///
+/// The read-back waits on the GPU, so this is for offline use (`surfels --gpu`); the frame path
+/// of a game keeps the CPU grid until extraction moves to the GPU.
+pub fn iso_surfels_gpu(
+    ctx: &GpuContext,
+    points: crate::density::Points<'_>,
+    grid: &super::GridParams,
+    params: &crate::surfels::SurfelParams,
+) -> Result<Option<super::IsoSurfels>, Error> {
+    if points.is_empty() {
+        return Ok(None);
+    }
+    points.check()?;
+    let (spec, warning) = super::grid_for(&points, grid)?;
+    let t = std::time::Instant::now();
+    let values = crate::density::gpu::density_grid_gpu(ctx, points, &spec, grid.kernel)?;
+    let density_ms = t.elapsed().as_secs_f64() * 1e3;
+    let t = std::time::Instant::now();
+    let surfels = crate::surfels::extract_points(&values, points, grid.kernel, params)?;
+    Ok(Some(super::IsoSurfels {
+        grid: crate::density::Grid::Dense(values),
+        surfels,
+        density_ms,
+        surfels_ms: t.elapsed().as_secs_f64() * 1e3,
+        warning,
+    }))
+}

@@ -53,7 +53,7 @@ use crate::{Error, ParticleView};
 
 pub mod gpu;
 
-pub use gpu::GpuPipeline;
+pub use gpu::{GpuPipeline, iso_surfels_gpu};
 
 /// Where the surfels that are rendered come from.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]

@@ -1,19 +1,18 @@
 //! `fluid-surfels surfels`: density grid and iso-surface surfels (Iwasaki et al., §4).
 
 use std::path::{Path, PathBuf};
-use std::time::Instant;
 
 use fluid_surfels::Error;
-use fluid_surfels::density::{GridSpec, Kernel, Points, Resolution};
+use fluid_surfels::density::{GridSpec, Points, Resolution};
 use fluid_surfels::io;
 use fluid_surfels::pipeline::{self, GridParams};
 use fluid_surfels::preview;
 use fluid_surfels::sequence::FramePattern;
-use fluid_surfels::surfels::{self, SurfelParams, Surfels};
+use fluid_surfels::surfels::{SurfelParams, Surfels};
 use glam::Vec3;
 use serde::Serialize;
 
-use super::{OutputKind, check_output, ms};
+use super::{OutputKind, check_output};
 
 /// Arguments of `surfels`.
 #[derive(clap::Args)]
@@ -77,7 +76,7 @@ pub fn surfels_with(
 ) -> Result<(Surfels, GridSpec, f64, f64), Error> {
     let grid = GridParams {
         resolution: Some(Resolution::LongestAxis(resolution)),
-        memory_budget: io::available_memory() / 2,
+        memory_budget: super::memory_budget(),
         ..GridParams::default()
     };
     let params = SurfelParams {
@@ -85,25 +84,20 @@ pub fn surfels_with(
         ..SurfelParams::default()
     };
     let points = Points::uniform(positions, h);
-    let Some(ctx) = gpu else {
-        let iso = pipeline::iso_surfels(points, &grid, &params)?
-            .ok_or(fluid_surfels::density::DensityError::Empty)?;
-        return Ok((
-            iso.surfels,
-            *iso.grid.spec(),
-            iso.density_ms,
-            iso.surfels_ms,
-        ));
-    };
-    points.check()?;
-    let spec = GridSpec::around(positions, h, Resolution::LongestAxis(resolution))?;
-    spec.check_memory(grid.memory_budget)?;
-    let t = Instant::now();
-    let values = fluid_surfels::density::gpu::density_grid_gpu(ctx, points, &spec, Kernel::Wyvill)?;
-    let density_ms = ms(t);
-    let t = Instant::now();
-    let s = surfels::extract(&values, positions, Kernel::Wyvill, h, &params)?;
-    Ok((s, spec, density_ms, ms(t)))
+    let iso = match gpu {
+        None => pipeline::iso_surfels(points, &grid, &params)?,
+        Some(ctx) => pipeline::iso_surfels_gpu(ctx, points, &grid, &params)?,
+    }
+    .ok_or(fluid_surfels::density::DensityError::Empty)?;
+    if let Some(w) = &iso.warning {
+        eprintln!("warning: {w}");
+    }
+    Ok((
+        iso.surfels,
+        *iso.grid.spec(),
+        iso.density_ms,
+        iso.surfels_ms,
+    ))
 }
 
 fn write(
