@@ -667,3 +667,42 @@ fn gpu_iso_surfels_match_the_cpu_stage() {
     );
     assert!(none.unwrap().is_none());
 }
+
+/// `Pipeline::draw` is the shaded splats of `Through::Splats` (the same picture, bit for bit, for
+/// every renderer), and `Pipeline::draw_gpu` its GPU twin (every renderer within 45 dB; the
+/// renderers' own tests hold them tighter): the one render entry `render` calls.
+#[test]
+fn pipeline_draw_is_the_shaded_splats_on_either_backend() {
+    use fluid_surfels::pipeline::Renderer;
+    let Some(ctx) = gpu::context_or_skip("pipeline_draw").unwrap() else {
+        return;
+    };
+    let scene = scenes::sphere(&scenes::SphereParams::default()).unwrap();
+    for renderer in Renderer::ALL {
+        let mut params = PipelineParams {
+            support_radius: Some(scene.support_radius),
+            renderer,
+            ..Default::default()
+        };
+        params.scene.optics.image_size = [96, 72];
+        let mut pipeline = Pipeline::new(params).unwrap();
+        let frame = pipeline
+            .frame_through(&scene.particles, Through::Splats)
+            .unwrap();
+        let camera = frame.camera.unwrap();
+        let cpu = pipeline
+            .draw(&frame.render_surfels, &camera, (96, 72))
+            .unwrap();
+        assert_eq!(
+            cpu.image,
+            frame.splats.as_ref().unwrap().image,
+            "{renderer:?}"
+        );
+        let gpu = pipeline
+            .draw_gpu(&ctx, &frame.render_surfels, &camera, (96, 72))
+            .unwrap();
+        let db = splat::psnr(&cpu.image, &gpu.image);
+        assert!(db >= 45.0, "{renderer:?}: GPU {db:.1} dB from the CPU");
+        assert!(cpu.covered_pixels() > 500, "{renderer:?}");
+    }
+}

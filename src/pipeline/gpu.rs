@@ -467,3 +467,36 @@ pub fn iso_surfels_gpu(
         warning,
     }))
 }
+
+impl Pipeline {
+    /// [`Pipeline::draw`] on a GPU: the same picture drawn by the renderer's wgpu twin
+    /// (`splat::gpu`, `raycast::gpu`, `ssfr::gpu`) on `ctx`, read back (offline use: `render
+    /// --gpu`; a game draws through [`GpuPipeline`] instead).
+    pub fn draw_gpu(
+        &self,
+        ctx: &GpuContext,
+        surfels: &[crate::splat::Surfel],
+        camera: &crate::splat::Camera,
+        (w, h): (u32, u32),
+    ) -> Result<crate::splat::Render, Error> {
+        use super::{Renderer, sphere_points};
+        let light = Light::default();
+        let params = self.splat_params();
+        Ok(match self.params().renderer {
+            Renderer::Ssfr => {
+                let (positions, radii) = sphere_points(surfels);
+                let screen = self.screen_space(&positions, &radii)?;
+                let view = View::new(camera, &light, &params, w, h)?;
+                crate::ssfr::gpu::render_view_gpu(ctx, &screen, &view)?.render
+            }
+            Renderer::RayCast => {
+                let (positions, radii) = sphere_points(surfels);
+                let caster = self.caster(&positions, &radii)?;
+                crate::raycast::gpu::render_gpu(ctx, &caster, camera, &light, &params, w, h)?.render
+            }
+            Renderer::Ewa | Renderer::ParticleSplat => {
+                crate::splat::gpu::render_gpu(ctx, surfels, camera, &light, &params, w, h)?
+            }
+        })
+    }
+}

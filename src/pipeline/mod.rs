@@ -819,33 +819,57 @@ impl Pipeline {
             return Ok(());
         }
         let t = Instant::now();
-        frame.splats = Some(match (&caster, &screen) {
-            (_, Some(s)) => {
-                let v = splat::View::new(&camera, &Light::default(), &self.splat_params(), w, h)?;
-                s.render_view(&v)?.render
-            }
-            (Some(c), _) => {
-                crate::raycast::render_cpu(
-                    c,
-                    &camera,
-                    &Light::default(),
-                    &self.splat_params(),
-                    w,
-                    h,
-                )?
-                .render
-            }
-            (None, None) => splat::render_cpu(
-                surfels,
-                &camera,
-                &Light::default(),
-                &self.splat_params(),
-                w,
-                h,
-            )?,
-        });
+        frame.splats =
+            Some(self.draw_with(caster.as_ref(), screen.as_ref(), surfels, &camera, (w, h))?);
         frame.timings.splats_ms = ms(t);
         Ok(())
+    }
+
+    /// The shaded picture of `surfels` (a frame's [`Frame::render_surfels`]) seen by `camera`,
+    /// `size` pixels, drawn on the CPU by the pipeline's renderer with its parameters (the
+    /// default light): EWA or particle splats, rays cast to the points' iso-surface, or the
+    /// screen-space surface. [`Pipeline::draw_gpu`] is its twin on a GPU; the shaded splats of
+    /// [`Through::Splats`] are this picture at the image size.
+    pub fn draw(
+        &self,
+        surfels: &[Surfel],
+        camera: &Camera,
+        size: (u32, u32),
+    ) -> Result<Render, Error> {
+        let points = matches!(self.params.renderer, Renderer::RayCast | Renderer::Ssfr)
+            .then(|| sphere_points(surfels));
+        let caster = match &points {
+            Some((p, r)) if self.params.renderer == Renderer::RayCast => Some(self.caster(p, r)?),
+            _ => None,
+        };
+        let screen = match &points {
+            Some((p, r)) if self.params.renderer == Renderer::Ssfr => {
+                Some(self.screen_space(p, r)?)
+            }
+            _ => None,
+        };
+        self.draw_with(caster.as_ref(), screen.as_ref(), surfels, camera, size)
+    }
+
+    /// [`Pipeline::draw`] with the ray caster or the screen-space renderer already built.
+    fn draw_with(
+        &self,
+        caster: Option<&crate::raycast::Caster<'_>>,
+        screen: Option<&crate::ssfr::ScreenSpace<'_>>,
+        surfels: &[Surfel],
+        camera: &Camera,
+        (w, h): (u32, u32),
+    ) -> Result<Render, Error> {
+        let light = Light::default();
+        let params = self.splat_params();
+        Ok(match (caster, screen) {
+            (_, Some(s)) => {
+                let v = splat::View::new(camera, &light, &params, w, h)?;
+                s.render_view(&v)?.render
+            }
+            (Some(c), _) => crate::raycast::render_cpu(c, camera, &light, &params, w, h)?.render,
+            (None, None) => splat::render_cpu(surfels, camera, &light, &params, w, h)?,
+        })
     }
 
     /// The reference radius of the peer renderers: the support radius, or the largest of

@@ -14,7 +14,7 @@ use fluid_surfels::pipeline::{
 };
 use fluid_surfels::scenes::{self, ColumnParams, ColumnSim, SceneName};
 use fluid_surfels::sequence::{FramePattern, FrameRange};
-use fluid_surfels::splat::{self, Camera, Light, Render, SplatMode, SplatParams, Surfel};
+use fluid_surfels::splat::{self, Camera, SplatMode, Surfel};
 use fluid_surfels::ssfr::DepthFilter;
 use fluid_surfels::view::UpAxis;
 use glam::Vec3;
@@ -250,21 +250,6 @@ pub fn choose_gpu(cpu: bool, gpu: bool) -> Result<Option<GpuContext>, Error> {
         Err(e) if gpu => Err(e.into()),
         Err(_) => Ok(None),
     }
-}
-
-/// Renders on the GPU when a context is given, else with the CPU reference.
-pub fn render_with(
-    ctx: Option<&GpuContext>,
-    surfels: &[Surfel],
-    camera: &Camera,
-    params: &SplatParams,
-    (width, height): (u32, u32),
-) -> Result<Render, Error> {
-    let light = Light::default();
-    Ok(match ctx {
-        Some(ctx) => splat::gpu::render_gpu(ctx, surfels, camera, &light, params, width, height)?,
-        None => splat::render_cpu(surfels, camera, &light, params, width, height)?,
-    })
 }
 
 /// A camera framing the surfels (or the unit box when none is drawable).
@@ -555,45 +540,9 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         .map_or_else(|| framing(surfels), |c| turned_camera(c, args.up));
     let ctx = choose_gpu(args.cpu, args.gpu)?;
     let t = Instant::now();
-    let render = if pipeline.params().renderer == Renderer::Ssfr {
-        let (positions, radii) = pipeline::sphere_points(surfels);
-        let screen = pipeline.screen_space(&positions, &radii)?;
-        let view = splat::View::new(
-            &camera,
-            &Light::default(),
-            &splat_params,
-            args.size.0,
-            args.size.1,
-        )?;
-        match ctx.as_ref() {
-            Some(ctx) => fluid_surfels::ssfr::gpu::render_view_gpu(ctx, &screen, &view)?.render,
-            None => screen.render_view(&view)?.render,
-        }
-    } else if pipeline.params().renderer == Renderer::RayCast {
-        let (positions, radii) = pipeline::sphere_points(surfels);
-        let caster = pipeline.caster(&positions, &radii)?;
-        let (w, h) = args.size;
-        let light = Light::default();
-        match ctx.as_ref() {
-            Some(ctx) => {
-                fluid_surfels::raycast::gpu::render_gpu(
-                    ctx,
-                    &caster,
-                    &camera,
-                    &light,
-                    &splat_params,
-                    w,
-                    h,
-                )?
-                .render
-            }
-            None => {
-                fluid_surfels::raycast::render_cpu(&caster, &camera, &light, &splat_params, w, h)?
-                    .render
-            }
-        }
-    } else {
-        render_with(ctx.as_ref(), surfels, &camera, &splat_params, args.size)?
+    let render = match ctx.as_ref() {
+        Some(ctx) => pipeline.draw_gpu(ctx, surfels, &camera, args.size)?,
+        None => pipeline.draw(surfels, &camera, args.size)?,
     };
     let render_ms = ms(t);
     let covered: Vec<bool> = render.colour.iter().map(|c| c[3] > 0.0).collect();
