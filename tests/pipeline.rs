@@ -884,3 +884,39 @@ fn crate_docs_name_every_public_module() {
         );
     }
 }
+
+/// `Pipeline::source_surfels` (the main job's side-by-side panels) gives, for a chain frame, the
+/// surfels a pipeline of that source makes of the same particles: the `particles` and `refined`
+/// sources and the chain itself, equal surfel for surfel.
+#[test]
+fn source_surfels_are_the_sources_own() {
+    let scene = scenes::sphere(&scenes::SphereParams::default()).unwrap();
+    let params = |source| PipelineParams {
+        support_radius: Some(scene.support_radius),
+        source,
+        ..Default::default()
+    };
+    let mut chain = Pipeline::new(params(SurfelSource::Chain)).unwrap();
+    let frame = chain
+        .frame_through(&scene.particles, Through::Surfels)
+        .unwrap();
+    for source in SurfelSource::ALL {
+        let own = Pipeline::new(params(source))
+            .unwrap()
+            .frame_through(&scene.particles, Through::Surfels)
+            .unwrap()
+            .render_surfels;
+        let drawn = chain
+            .source_surfels(&scene.particles, &frame, source)
+            .unwrap();
+        assert!(!own.is_empty(), "{source:?}");
+        assert!(
+            own == drawn,
+            "{source:?}: {} against {}",
+            own.len(),
+            drawn.len()
+        );
+    }
+    // the chain pipeline is still on the chain
+    assert_eq!(chain.params().source, SurfelSource::Chain);
+}

@@ -635,6 +635,25 @@ impl Pipeline {
             return Ok(frame);
         }
         // stage 3: density grid and iso-surface surfels
+        self.source_stage(particles, &mut frame, radius, &mut warnings)?;
+        if through >= Through::Splats {
+            self.render(&mut frame, through)?;
+        }
+        frame.warnings = warnings;
+        frame.timings.total_ms = ms(total);
+        Ok(frame)
+    }
+
+    /// Stage 3 for the pipeline's source and renderer: the frame's render surfels (and its grid
+    /// and surfels for the density sources with the EWA renderer; spheres of the source's points
+    /// for the peer renderers).
+    fn source_stage(
+        &mut self,
+        particles: ParticleView<'_>,
+        frame: &mut Frame,
+        radius: f32,
+        warnings: &mut Vec<String>,
+    ) -> Result<(), Error> {
         let colour = splat::WATER;
         if self.params.renderer != Renderer::Ewa {
             let (positions, radii) = match self.params.source {
@@ -652,14 +671,49 @@ impl Pipeline {
             };
             frame.render_surfels = splat::spheres_from(&positions, &radii, radius, colour);
         } else {
-            self.iso_or_refined_surfels(particles, &mut frame, radius, &mut warnings)?;
+            self.iso_or_refined_surfels(particles, frame, radius, warnings)?;
         }
-        if through >= Through::Splats {
-            self.render(&mut frame, through)?;
+        Ok(())
+    }
+
+    /// The surfels `source` draws for a frame this pipeline made from `particles` (its surface
+    /// and refined points), as [`Pipeline::frame_through`] with that source would make them:
+    /// the chain's, the raw particles' or the refined points', for pictures that set the
+    /// sources side by side (the main job's `splats.png`). The hysteresis state is not touched.
+    pub fn source_surfels<'a>(
+        &mut self,
+        particles: impl Into<ParticleView<'a>>,
+        frame: &Frame,
+        source: SurfelSource,
+    ) -> Result<Vec<Surfel>, Error> {
+        let particles: ParticleView<'a> = particles.into();
+        let mut scratch = Frame {
+            radius: frame.radius,
+            mean_neighbours: frame.mean_neighbours,
+            surface: frame.surface.clone(),
+            surface_indices: frame.surface_indices.clone(),
+            refined: frame.refined.clone(),
+            grid: None,
+            surfels: None,
+            render_surfels: Vec::new(),
+            camera: None,
+            splats: None,
+            finished: None,
+            timings: FrameTimings::default(),
+            warnings: Vec::new(),
+        };
+        if scratch.refined.is_none() && source != SurfelSource::Particles {
+            return Err(Error::InvalidArgument {
+                argument: "frame",
+                reason: "the chain and refined sources need a frame made through refinement".into(),
+            });
         }
-        frame.warnings = warnings;
-        frame.timings.total_ms = ms(total);
-        Ok(frame)
+        let kept = std::mem::replace(&mut self.params.source, source);
+        let mut warnings = Vec::new();
+        let made = self.source_stage(particles, &mut scratch, frame.radius, &mut warnings);
+        self.params.source = kept;
+        made?;
+        Ok(scratch.render_surfels)
     }
 
     /// Stage 3 of the EWA renderer: the source's surfels (on the iso-surface of its density

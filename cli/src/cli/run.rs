@@ -4,7 +4,6 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use fluid_surfels::Error;
-use fluid_surfels::density::Points;
 use fluid_surfels::io;
 use fluid_surfels::pipeline::{self, Frame, Pipeline, PipelineParams, SurfelSource, Through};
 use fluid_surfels::preview::{self, PreviewCamera};
@@ -25,10 +24,12 @@ pub struct RunArgs {
     pub frame: usize,
 }
 
-/// What [`column_to_frame`] returns: the simulation at the frame and the pipeline's frame.
+/// What [`column_to_frame`] returns: the simulation at the frame, the pipeline's frame and the
+/// pipeline that made it (for more pictures of the same frame).
 pub struct ColumnFrame {
     pub sim: ColumnSim,
     pub frame: Frame,
+    pub pipeline: Pipeline,
 }
 
 /// Runs the column simulation to `frame` through the pipeline (surface detection on every
@@ -48,7 +49,11 @@ pub fn column_to_frame(
     let bar = progress(frame as u64 + 1, "simulating column");
     let f = pipeline::column_frame(&mut pipeline, &mut sim, frame, through, |_| bar.inc(1))?;
     bar.finish_and_clear();
-    Ok(ColumnFrame { sim, frame: f })
+    Ok(ColumnFrame {
+        sim,
+        frame: f,
+        pipeline,
+    })
 }
 
 /// The column scene's pipeline settings ([`pipeline::column_params`]) with `surface`.
@@ -67,7 +72,11 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
     })?;
     let out = |name: &str| args.out_dir.join(name);
     let t = Instant::now();
-    let ColumnFrame { sim, frame } = column_to_frame(
+    let ColumnFrame {
+        sim,
+        frame,
+        mut pipeline,
+    } = column_to_frame(
         args.frame,
         column_params(SurfaceParams::default()),
         Through::Frame,
@@ -115,20 +124,9 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
     )?;
     // stage 4: the three surfel sources side by side as EWA splats, and the chain's as sprites
     let t_sources = Instant::now();
-    let p = frame.radius;
-    let raw = pipeline::iso_surfels(
-        Points::uniform(&particles.positions, p),
-        &Default::default(),
-        &Default::default(),
-    )?
-    .map(|s| s.surfels)
-    .unwrap_or_default();
-    let water = splat::WATER;
-    let as_surfels = |s: &fluid_surfels::surfels::Surfels| {
-        splat::surfels_from(&s.positions, &s.normals, &s.radii, water)
-    };
-    let refined_surfels =
-        splat::surfels_from(&refined.positions, &refined.normals, &refined.radii, water);
+    // each source's surfels as the pipeline draws them (`render --source ...`)
+    let raw = pipeline.source_surfels(particles, &frame, SurfelSource::Particles)?;
+    let refined_surfels = pipeline.source_surfels(particles, &frame, SurfelSource::Refined)?;
     let splat_camera = frame.camera.expect("rendered frames have a camera");
     let ewa = SplatParams::default();
     let sprites = SplatParams {
@@ -138,7 +136,7 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
     let mut panels = Vec::new();
     for (s, params) in [
         (&frame.render_surfels, &ewa),
-        (&as_surfels(&raw), &ewa),
+        (&raw, &ewa),
         (&refined_surfels, &ewa),
         (&frame.render_surfels, &sprites),
     ] {
