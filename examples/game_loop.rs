@@ -81,6 +81,46 @@ fn percentile(v: &[f64], p: f64) -> f64 {
     s[((s.len() as f64 - 1.0) * p).round() as usize]
 }
 
+/// Two timestamps around a frame's work: the query set, the buffer it resolves into and the
+/// buffer read back.
+fn timestamp_query(device: &wgpu::Device) -> (wgpu::QuerySet, wgpu::Buffer, wgpu::Buffer) {
+    let set = device.create_query_set(&wgpu::QuerySetDescriptor {
+        label: Some("frame"),
+        ty: wgpu::QueryType::Timestamp,
+        count: 2,
+    });
+    let resolve = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("timestamps"),
+        size: 16,
+        usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+        mapped_at_creation: false,
+    });
+    let read = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("timestamps read"),
+        size: 16,
+        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+        mapped_at_creation: false,
+    });
+    (set, resolve, read)
+}
+
+/// The ticks between the two timestamps copied into `read` (waits for the GPU).
+fn read_ticks(
+    device: &wgpu::Device,
+    read: &wgpu::Buffer,
+) -> Result<u64, Box<dyn std::error::Error>> {
+    let slice = read.slice(..);
+    let (tx, rx) = std::sync::mpsc::channel();
+    slice.map_async(wgpu::MapMode::Read, move |r| {
+        let _ = tx.send(r);
+    });
+    device.poll(wgpu::PollType::wait_indefinitely())?;
+    rx.recv()??;
+    let ticks: Vec<u64> = bytemuck::cast_slice(&slice.get_mapped_range()?).to_vec();
+    read.unmap();
+    Ok(ticks[1].saturating_sub(ticks[0]))
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args = args()?;
     // --- the game's own device ---
@@ -122,26 +162,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut gpu = GpuPipeline::new(&device, &queue, format, args.size, &params)?;
     // the CPU reference, stepped in lockstep (detection every frame for the same hysteresis)
     let mut reference = Pipeline::new(params)?;
-    let query = timestamps.then(|| {
-        let set = device.create_query_set(&wgpu::QuerySetDescriptor {
-            label: Some("frame"),
-            ty: wgpu::QueryType::Timestamp,
-            count: 2,
-        });
-        let resolve = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("timestamps"),
-            size: 16,
-            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        let read = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("timestamps read"),
-            size: 16,
-            usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
-            mapped_at_creation: false,
-        });
-        (set, resolve, read)
-    });
+    let query = timestamps.then(|| timestamp_query(&device));
     let period_ns = f64::from(queue.get_timestamp_period());
     if !args.save.is_empty() {
         std::fs::create_dir_all(&args.out)?;
@@ -166,16 +187,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         queue.submit([encoder.finish()]);
         cpu_ms.push(t.elapsed().as_secs_f64() * 1e3);
         if let Some((_, _, read)) = &query {
-            let slice = read.slice(..);
-            let (tx, rx) = std::sync::mpsc::channel();
-            slice.map_async(wgpu::MapMode::Read, move |r| {
-                let _ = tx.send(r);
-            });
-            device.poll(wgpu::PollType::wait_indefinitely())?;
-            rx.recv()??;
-            let ticks: Vec<u64> = bytemuck::cast_slice(&slice.get_mapped_range()?).to_vec();
-            read.unmap();
-            gpu_ms.push(ticks[1].saturating_sub(ticks[0]) as f64 * period_ns * 1e-6);
+            gpu_ms.push(read_ticks(&device, read)? as f64 * period_ns * 1e-6);
         }
         // the CPU reference: detection on every frame, the whole frame where one is saved
         let through = if save {

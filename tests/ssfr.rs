@@ -64,7 +64,7 @@ fn frames() -> Vec<(&'static str, Vec<Vec3>, f32)> {
         "dam_break_frame_23_24389_particles.bgeo",
     ] {
         let set = data(name);
-        let h = 2.0 * fluid_surfels::neighbours::estimate_spacing(&set.positions).unwrap();
+        let h = fluid_surfels::neighbours::support_radius(&set.positions).unwrap();
         out.push((name, set.positions.clone(), h));
     }
     out
@@ -287,7 +287,7 @@ fn the_pipeline_draws_the_screen_space_water_in_the_splats_and_the_optics() {
 #[test]
 fn one_thread_renders_what_two_render() {
     let set = data("double_dam_break_frame_26_4732_particles.vtk");
-    let h = 2.0 * fluid_surfels::neighbours::estimate_spacing(&set.positions).unwrap();
+    let h = fluid_surfels::neighbours::support_radius(&set.positions).unwrap();
     let radii = vec![h; set.len()];
     let v = view(&camera_for(&set.positions, 2.2), 160, 120);
     let run = |threads: usize| {
@@ -389,7 +389,7 @@ fn gpu_passes_match_the_cpu_reference_for_every_filter() {
     };
     let set = data("double_dam_break_frame_26_4732_particles.vtk");
     let p = &set.positions;
-    let h = 2.0 * fluid_surfels::neighbours::estimate_spacing(p).unwrap();
+    let h = fluid_surfels::neighbours::support_radius(p).unwrap();
     let radii = vec![h; p.len()];
     let camera = camera_for(p, 2.2);
     let perspective = view(&camera, 160, 120);

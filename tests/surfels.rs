@@ -406,6 +406,10 @@ fn the_grid_in_the_narrow_band_gives_the_same_surfels() {
 /// block's values 0 in the dense grid too, every inside point above the iso-value there, the
 /// same surfels in the same order, and the same grid on one thread as on three.
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "a test is one scenario; issue 38 exempts tests"
+)]
 fn the_sparse_grid_equals_the_dense_one() {
     use fluid_surfels::density::Points;
     let read = |name: &str| read_data(name).positions;

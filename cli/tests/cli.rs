@@ -1150,7 +1150,7 @@ fn render_draws_particle_spheres_with_the_particle_splat_renderer() {
     assert_eq!(report["surfels"].as_u64().unwrap(), set.len() as u64);
     let camera: fluid_surfels::splat::Camera =
         serde_json::from_value(report["camera"].clone()).unwrap();
-    let radius = 2.0 * fluid_surfels::neighbours::estimate_spacing(&set.positions).unwrap();
+    let radius = fluid_surfels::neighbours::support_radius(&set.positions).unwrap();
     let spheres = fluid_surfels::splat::spheres_from(
         &set.positions,
         &[],
@@ -1940,7 +1940,7 @@ fn render_draws_the_screen_space_surface_with_each_filter() {
     let dir = ddb_dir();
     let d = dir.path();
     let set = ddb_set();
-    let h = 2.0 * fluid_surfels::neighbours::estimate_spacing(&set.positions).unwrap();
+    let h = fluid_surfels::neighbours::support_radius(&set.positions).unwrap();
     let radii = vec![h; set.len()];
     for filter in DepthFilter::ALL {
         for band in [true, false] {

@@ -211,6 +211,10 @@ fn closed(b: u32, n: u32) -> (u32, u32) {
 /// from `band` (the LNM band of the same points, voxels at least as wide as the largest radius);
 /// refused when its blocks' states, or the values of the blocks it evaluates, would need more
 /// than `memory_limit` bytes.
+#[allow(
+    clippy::too_many_lines,
+    reason = "issue 38: still to split into named phases"
+)]
 pub fn points_grid_sparse(
     points: Points<'_>,
     spec: &GridSpec,

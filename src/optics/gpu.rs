@@ -294,6 +294,10 @@ impl OpticsGpu {
     /// [`Self::prepare`] with the water drawn from `water`: splatted surfels, or rays cast to
     /// the iso-surface of a caster's points (the light's view and the camera's, each cast on
     /// the GPU into the textures the optics read).
+    #[allow(
+        clippy::too_many_lines,
+        reason = "issue 38: still to split into named phases"
+    )]
     pub fn prepare_water(
         &self,
         device: &wgpu::Device,

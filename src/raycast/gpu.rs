@@ -373,6 +373,10 @@ impl GpuCaster {
         Ok(())
     }
 
+    #[allow(
+        clippy::too_many_lines,
+        reason = "issue 38: still to split into named phases"
+    )]
     fn upload(
         &self,
         device: &wgpu::Device,

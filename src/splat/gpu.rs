@@ -149,6 +149,10 @@ fn create_targets(device: &wgpu::Device, width: u32, height: u32) -> Targets {
 impl SplatRenderer {
     /// Builds the pipelines for targets of `format` and the intermediate buffers for
     /// `width` x `height`. The device needs [`REQUIRED_FEATURES`].
+    #[allow(
+        clippy::too_many_lines,
+        reason = "issue 38: still to split into named phases"
+    )]
     pub fn new(
         device: &wgpu::Device,
         format: wgpu::TextureFormat,

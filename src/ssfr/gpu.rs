@@ -206,6 +206,10 @@ impl GpuSsfr {
 
     /// Uploads `screen`'s spheres and thickness Gaussians for view `v` (binned into tiles on the
     /// host, as the CPU bins them) and makes the targets for its size when they differ.
+    #[allow(
+        clippy::too_many_lines,
+        reason = "issue 38: still to split into named phases"
+    )]
     pub fn prepare(
         &mut self,
         device: &wgpu::Device,

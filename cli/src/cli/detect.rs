@@ -300,48 +300,53 @@ pub fn detect(args: &DetectArgs) -> Result<(), Error> {
     if args.outputs.json {
         super::print_json(&report);
     } else {
-        let c = report.counts;
-        let estimate = report
-            .spacing_estimate
-            .map(|s| format!(" (2 x estimated spacing {s})"))
-            .unwrap_or_default();
-        println!(
-            "{}: {} particles, radius {}{estimate}",
-            report.source, report.particles, report.radius
-        );
-        println!(
-            "  surface {}, interior {}, isolated {} (mean {:.1} neighbours)",
-            c.surface, c.interior, c.isolated, report.mean_neighbours
-        );
-        if let Some(l) = &report.lnm {
-            let a = &l.agreement;
-            println!(
-                "  lnm narrow band: {} particles in {} voxels, {:.1} ms, normals {:.1} ms (centre of mass with its neighbour search {:.1} ms); \
-                 holds {:.2} % of the {} centre-of-mass surface particles, {} more, same side for {:.1} % of all",
-                a.band,
-                l.voxels,
-                l.band_ms,
-                l.normals_ms,
-                l.centre_of_mass_ms,
-                100.0 * a.recall,
-                a.detected,
-                a.band_only,
-                100.0 * a.agreement
-            );
-        }
-        for w in &report.warnings {
-            println!("  warning: {w}");
-        }
-        let t = &report.timings_ms;
-        println!(
-            "  ms: read {:.1}, neighbours {:.1}, classify {:.1}, normals {:.1}, write {:.1}",
-            t.read, t.neighbours, t.classify, t.normals, t.write
-        );
-        for o in &report.outputs {
-            println!("  wrote {o}");
-        }
+        print_report(&report);
     }
     Ok(())
+}
+
+/// The report of one frame as text.
+fn print_report(report: &DetectReport) {
+    let c = report.counts;
+    let estimate = report
+        .spacing_estimate
+        .map(|s| format!(" (2 x estimated spacing {s})"))
+        .unwrap_or_default();
+    println!(
+        "{}: {} particles, radius {}{estimate}",
+        report.source, report.particles, report.radius
+    );
+    println!(
+        "  surface {}, interior {}, isolated {} (mean {:.1} neighbours)",
+        c.surface, c.interior, c.isolated, report.mean_neighbours
+    );
+    if let Some(l) = &report.lnm {
+        let a = &l.agreement;
+        println!(
+            "  lnm narrow band: {} particles in {} voxels, {:.1} ms, normals {:.1} ms (centre of mass with its neighbour search {:.1} ms); \
+             holds {:.2} % of the {} centre-of-mass surface particles, {} more, same side for {:.1} % of all",
+            a.band,
+            l.voxels,
+            l.band_ms,
+            l.normals_ms,
+            l.centre_of_mass_ms,
+            100.0 * a.recall,
+            a.detected,
+            a.band_only,
+            100.0 * a.agreement
+        );
+    }
+    for w in &report.warnings {
+        println!("  warning: {w}");
+    }
+    let t = &report.timings_ms;
+    println!(
+        "  ms: read {:.1}, neighbours {:.1}, classify {:.1}, normals {:.1}, write {:.1}",
+        t.read, t.neighbours, t.classify, t.normals, t.write
+    );
+    for o in &report.outputs {
+        println!("  wrote {o}");
+    }
 }
 
 /// Writes the surface particles and the picture, each when asked for.

@@ -70,7 +70,6 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
         path: args.out_dir.clone(),
         source: e,
     })?;
-    let out = |name: &str| args.out_dir.join(name);
     let t = Instant::now();
     let ColumnFrame {
         sim,
@@ -82,15 +81,43 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
         Through::Frame,
     )?;
     let chain_ms = ms(t) - frame.timings.total_ms;
+    let t = Instant::now();
+    let (written, sources_ms) = write_stages(&args.out_dir, &sim, &mut pipeline, &frame)?;
+    let write_ms = ms(t) - sources_ms;
+    print_summary(&sim, &frame, [chain_ms, sources_ms, write_ms]);
+    for (path, what) in &written {
+        println!("  wrote              {} ({what})", path.display());
+    }
+    println!(
+        "  surfel source      {} (others: {})",
+        SurfelSource::Chain.as_str(),
+        [SurfelSource::Particles, SurfelSource::Refined]
+            .map(|s| s.as_str())
+            .join(", ")
+    );
+    println!("  total              {:.0} ms", ms(total));
+    Ok(())
+}
+
+/// The files the main job wrote, each with what it shows.
+type Written = Vec<(PathBuf, &'static str)>;
+
+/// Writes each stage's files and pictures into `dir`: what was written with what it shows, in
+/// the order of the stages, and the ms the other sources' surfels of `splats.png` took.
+fn write_stages(
+    dir: &Path,
+    sim: &ColumnSim,
+    pipeline: &mut Pipeline,
+    frame: &Frame,
+) -> Result<(Written, f64), Error> {
+    let out = |name: &str| dir.join(name);
+    let mut written = Vec::new();
     let particles = sim.particles();
     let surface = &frame.surface;
-    let counts = surface.counts();
-    let tm = &frame.timings;
-
     // stage 1: the surface particles and a picture of the classes
-    let t = Instant::now();
     let surface_ply = out("surface.ply");
     io::write_particles(&surface_ply, &surface_particles(particles, surface), None)?;
+    written.push((surface_ply, "surface particles with normals"));
     let camera = PreviewCamera::framing(glam::Vec3::ZERO, sim.params().tank);
     let picture = preview::render_points(
         &particles.positions,
@@ -102,31 +129,85 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
     )?;
     let classes_png = out("classes.png");
     preview::save_png(&picture, &classes_png)?;
+    written.push((classes_png, "orange surface, blue interior, green isolated"));
     // stage 2: the refined surface
     let refined = frame.refined.as_ref().expect("the chain refines");
     let (points, _) = pipeline::gather(particles, surface, &frame.surface_indices);
     let refined_ply = out("refined.ply");
     io::write_particles(&refined_ply, &refined.to_particle_set(), None)?;
+    written.push((
+        refined_ply,
+        "refined points: normal, step, weight, splat radius, kernel radius",
+    ));
     let refine_png = out("refine.png");
     preview::save_png(
         &preview::refinement_picture(&points, refined, 700)?,
         &refine_png,
     )?;
+    written.push((
+        refine_png,
+        "input | refined: black P0, blue P1, red P2, yellow P3",
+    ));
     // stage 3: the chain's surfels
     let surfels = frame.surfels.as_ref().expect("the chain makes surfels");
-    let spec = frame.grid.as_ref().map(|g| *g.spec());
     let surfels_ply = out("surfels.ply");
     io::write_particles(&surfels_ply, &surfels.to_particle_set(), None)?;
+    written.push((surfels_ply, "the chain's surfels: normal, radius"));
     let surfels_png = out("surfels.png");
     preview::save_png(
         &preview::surfels_picture(surfels, Some(&camera), 800)?,
         &surfels_png,
     )?;
+    written.push((surfels_png, "surfels coloured by normal"));
     // stage 4: the three surfel sources side by side as EWA splats, and the chain's as sprites
     let t_sources = Instant::now();
-    // each source's surfels as the pipeline draws them (`render --source ...`)
-    let raw = pipeline.source_surfels(particles, &frame, SurfelSource::Particles)?;
-    let refined_surfels = pipeline.source_surfels(particles, &frame, SurfelSource::Refined)?;
+    let panels = source_panels(pipeline, particles, frame)?;
+    let sources_ms = ms(t_sources);
+    let splats_png = out("splats.png");
+    preview::save_png(&preview::side_by_side(&panels), &splats_png)?;
+    written.push((
+        splats_png,
+        "EWA splats of the surfel sources: chain | particles | refined points; point sprites of the chain",
+    ));
+    // stage 5: the finished frame
+    let finished = frame.finished.as_ref().expect("through the frame");
+    let frame_png = out("frame.png");
+    preview::save_rgba_png(&finished.image, &frame_png)?;
+    written.push((
+        frame_png,
+        "the chain's water with refraction, reflection and caustics",
+    ));
+    let caustics_png = out("caustics.png");
+    preview::save_rgba_png(&finished.caustics.image(&finished.stage), &caustics_png)?;
+    written.push((
+        caustics_png,
+        "light arriving on the pool, seen from the light",
+    ));
+    let stages_png = out("stages.png");
+    preview::save_png(
+        &preview::stages_panel(
+            Some((&finished.caustics, &finished.stage)),
+            &finished.image,
+            512,
+        ),
+        &stages_png,
+    )?;
+    written.push((
+        stages_png,
+        "light's view of the water | caustics map | frame",
+    ));
+    Ok((written, sources_ms))
+}
+
+/// The panels of `splats.png`: each source's surfels as the pipeline draws them (`render
+/// --source ...`) as EWA splats, then the chain's as point sprites.
+fn source_panels(
+    pipeline: &mut Pipeline,
+    particles: &fluid_surfels::ParticleSet,
+    frame: &Frame,
+) -> Result<Vec<image::RgbImage>, Error> {
+    let raw = pipeline.source_surfels(particles, frame, SurfelSource::Particles)?;
+    let refined_surfels = pipeline.source_surfels(particles, frame, SurfelSource::Refined)?;
     let splat_camera = frame.camera.expect("rendered frames have a camera");
     let ewa = SplatParams::default();
     let sprites = SplatParams {
@@ -143,28 +224,19 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
         let r = splat::render_cpu(s, &splat_camera, &Light::default(), params, 480, 480)?;
         panels.push(image::buffer::ConvertBuffer::convert(&r.image));
     }
-    let sources_ms = ms(t_sources);
-    let splats_png = out("splats.png");
-    preview::save_png(&preview::side_by_side(&panels), &splats_png)?;
-    // stage 5: the finished frame
-    let finished = frame.finished.as_ref().expect("through the frame");
-    let frame_png = out("frame.png");
-    preview::save_rgba_png(&finished.image, &frame_png)?;
-    let caustics_png = out("caustics.png");
-    preview::save_rgba_png(&finished.caustics.image(&finished.stage), &caustics_png)?;
-    let stages_png = out("stages.png");
-    preview::save_png(
-        &preview::stages_panel(
-            Some((&finished.caustics, &finished.stage)),
-            &finished.image,
-            512,
-        ),
-        &stages_png,
-    )?;
-    let write_ms = ms(t) - sources_ms;
+    Ok(panels)
+}
 
-    let wrote =
-        |path: &Path, what: &str| println!("  wrote              {} ({what})", path.display());
+/// The main job's report on stdout: the frame, each stage's counts and times; `ms` holds the
+/// simulation before the frame, the other sources of `splats.png` and the writing.
+fn print_summary(sim: &ColumnSim, frame: &Frame, [chain_ms, sources_ms, write_ms]: [f64; 3]) {
+    let particles = sim.particles();
+    let surface = &frame.surface;
+    let counts = surface.counts();
+    let tm = &frame.timings;
+    let refined = frame.refined.as_ref().expect("the chain refines");
+    let surfels = frame.surfels.as_ref().expect("the chain makes surfels");
+    let finished = frame.finished.as_ref().expect("through the frame");
     println!(
         "fluid-surfels: scene `column` (collapsing water column, position based fluids), frame {}",
         sim.frame()
@@ -186,13 +258,13 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
         .collect();
     println!(
         "  refinement         {} surface points -> {} in {} steps ({}), {:.1}x",
-        points.len(),
+        frame.surface_indices.len(),
         refined.len(),
         refined.stats.len(),
         steps.join(" -> "),
-        refined.len() as f64 / points.len().max(1) as f64,
+        refined.len() as f64 / frame.surface_indices.len().max(1) as f64,
     );
-    if let Some(spec) = spec {
+    if let Some(spec) = frame.grid.as_ref().map(|g| *g.spec()) {
         println!(
             "  density grid       refined surface + {} interior particles, each with its own kernel radius: {:?} points (spacing {:.4}); {} surfels",
             counts.interior,
@@ -233,44 +305,4 @@ pub fn run(args: &RunArgs) -> Result<(), Error> {
         sources_ms,
         write_ms
     );
-    wrote(&surface_ply, "surface particles with normals");
-    wrote(
-        &classes_png,
-        "orange surface, blue interior, green isolated",
-    );
-    wrote(
-        &refined_ply,
-        "refined points: normal, step, weight, splat radius, kernel radius",
-    );
-    wrote(
-        &refine_png,
-        "input | refined: black P0, blue P1, red P2, yellow P3",
-    );
-    wrote(&surfels_ply, "the chain's surfels: normal, radius");
-    wrote(&surfels_png, "surfels coloured by normal");
-    wrote(
-        &splats_png,
-        "EWA splats of the surfel sources: chain | particles | refined points; point sprites of the chain",
-    );
-    wrote(
-        &frame_png,
-        "the chain's water with refraction, reflection and caustics",
-    );
-    wrote(
-        &caustics_png,
-        "light arriving on the pool, seen from the light",
-    );
-    wrote(
-        &stages_png,
-        "light's view of the water | caustics map | frame",
-    );
-    println!(
-        "  surfel source      {} (others: {})",
-        SurfelSource::Chain.as_str(),
-        [SurfelSource::Particles, SurfelSource::Refined]
-            .map(|s| s.as_str())
-            .join(", ")
-    );
-    println!("  total              {:.0} ms", ms(total));
-    Ok(())
 }
