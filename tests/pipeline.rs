@@ -954,3 +954,45 @@ fn long_functions_only_go_down() {
     let allowed = count(&root.join("src")) + count(&root.join("cli/src"));
     assert!(allowed <= 9, "{allowed} functions over 150 lines allowed");
 }
+
+/// `docs/parameters.md` names only keys the pipeline has: every key in the first column of its
+/// tables is a key of `PipelineParams` (a dotted one a path of it, a plain one the last part of
+/// one), and the page lists the detection method.
+#[test]
+fn the_parameters_page_names_real_keys() {
+    fn paths(v: &serde_json::Value, prefix: &str, out: &mut Vec<String>) {
+        if let serde_json::Value::Object(map) = v {
+            for (k, child) in map {
+                let path = if prefix.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{prefix}.{k}")
+                };
+                out.push(path.clone());
+                paths(child, &path, out);
+            }
+        }
+    }
+    let mut all = Vec::new();
+    paths(
+        &serde_json::to_value(PipelineParams::default()).unwrap(),
+        "",
+        &mut all,
+    );
+    let page = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/parameters.md"))
+        .unwrap();
+    let keys: Vec<&str> = page
+        .lines()
+        .filter_map(|l| l.strip_prefix("| `")?.split('`').next())
+        .collect();
+    assert!(keys.len() > 30 && keys.contains(&"method"), "{keys:?}");
+    for key in keys {
+        let known = all
+            .iter()
+            .any(|p| p == key || p.ends_with(&format!(".{key}")));
+        assert!(
+            known,
+            "docs/parameters.md names `{key}`, no key of PipelineParams"
+        );
+    }
+}

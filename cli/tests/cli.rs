@@ -2105,3 +2105,82 @@ fn detect_with_the_lnm_method_writes_the_band_and_its_agreement() {
         assert_eq!(f["lnm"]["band"].as_u64().unwrap(), band, "{f}");
     }
 }
+
+/// Every command the README and the pages of `docs/` show (the `fluid-surfels ...` lines of
+/// their `sh` blocks) names a subcommand that exists and only options that its `--help` lists,
+/// so the docs stay true as options change.
+#[test]
+fn documented_commands_exist() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let mut pages = vec![root.join("README.md")];
+    let mut docs: Vec<_> = std::fs::read_dir(root.join("docs"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "md"))
+        .collect();
+    docs.sort();
+    pages.extend(docs);
+    let mut helps = std::collections::HashMap::new();
+    let mut checked = 0;
+    for page in &pages {
+        let text = std::fs::read_to_string(page).unwrap();
+        let mut in_sh = false;
+        let mut command = String::new();
+        for line in text.lines() {
+            if line.starts_with("```") {
+                in_sh = line == "```sh";
+                continue;
+            }
+            if !in_sh {
+                continue;
+            }
+            // a command continued over lines with a trailing backslash
+            command.push_str(line.trim_end_matches('\\'));
+            command.push(' ');
+            if line.ends_with('\\') {
+                continue;
+            }
+            let full = std::mem::take(&mut command);
+            let code = full.split(" #").next().unwrap_or("").trim();
+            let Some(rest) = code.strip_prefix("fluid-surfels") else {
+                continue;
+            };
+            let words: Vec<&str> = rest.split_whitespace().collect();
+            let mut sub: Vec<&str> = Vec::new();
+            if let Some(&first) = words.first().filter(|w| !w.starts_with('-')) {
+                sub.push(first);
+                if first == "bench" {
+                    sub.push(words[1]);
+                }
+            }
+            let help = helps.entry(sub.join(" ")).or_insert_with(|| {
+                let out = bin().args(&sub).arg("--help").output().unwrap();
+                assert!(
+                    out.status.success(),
+                    "{}: `fluid-surfels {}` is not a command",
+                    page.display(),
+                    sub.join(" ")
+                );
+                String::from_utf8_lossy(&out.stdout).into_owned()
+            });
+            for word in &words {
+                let flag = word.split(['=', '[', ']']).next().unwrap_or("");
+                if !flag.starts_with("--") || flag.len() < 3 {
+                    continue;
+                }
+                let listed = help.match_indices(flag).any(|(i, _)| {
+                    !help[i + flag.len()..]
+                        .starts_with(|c: char| c.is_ascii_alphanumeric() || c == '-')
+                });
+                assert!(
+                    listed,
+                    "{}: `fluid-surfels {}` has no option {flag} (in `{code}`)",
+                    page.display(),
+                    sub.join(" ")
+                );
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 50, "only {checked} options found in the docs");
+}

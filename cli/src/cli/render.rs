@@ -127,7 +127,7 @@ pub struct RenderArgs {
     #[arg(long)]
     pub optics: bool,
     /// Scene and pipeline file (TOML: camera, light, receiver, water, environment, optics, and
-    /// the stages' tables); see the README. Default: a pool around the water (the tank for the
+    /// the stages' tables); see docs/parameters.md. Default: a pool around the water (the tank for the
     /// column scene), sunlight, clear water.
     #[arg(long)]
     pub config: Option<PathBuf>,
