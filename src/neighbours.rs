@@ -10,7 +10,7 @@
 //!   memory.
 //! - [`Backend::KdTree`]: kiddo's immutable k-d tree with unsorted radius queries.
 //!
-//! `fluid-surfels bench detect` times both; ARCHITECTURE.md records why the grid is the default.
+//! `fluid-surfels bench detect` times both; docs/design.md records why the grid is the default.
 //! kiddo also serves k-nearest queries ([`estimate_spacing`]).
 
 use std::num::NonZeroUsize;
@@ -61,7 +61,7 @@ pub enum NeighbourError {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Backend {
-    /// Uniform cell grid (default; measured faster, see ARCHITECTURE.md).
+    /// Uniform cell grid (default; measured faster, see docs/design.md).
     #[default]
     CellGrid,
     /// kiddo's immutable k-d tree.

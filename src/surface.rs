@@ -94,7 +94,7 @@ pub struct SurfaceParams {
     /// A particle not yet at the surface becomes surface when its centre-of-mass offset exceeds
     /// this fraction of the support radius. Default 0.14, the middle of the range 0.11-0.19
     /// where both jittered test solids (block, sphere; 10 % jitter, r = 2 spacings) keep recall
-    /// >= 99.7 % and precision >= 95 % (`examples/threshold_sweep.rs`, ARCHITECTURE.md).
+    /// >= 99.7 % and precision >= 95 % (`examples/threshold_sweep.rs`, docs/design.md).
     pub high_threshold: f32,
     /// A surface particle stops being surface only when its offset falls below this fraction of
     /// the support radius. Default 0.09: on the settling `column` pool (frames 101-200) it cuts

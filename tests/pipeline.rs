@@ -996,3 +996,57 @@ fn the_parameters_page_names_real_keys() {
         );
     }
 }
+
+/// Docs in layers (issue 38): the README stays a front page and ARCHITECTURE.md a map; the
+/// reference lives in `docs/`, and every decision the map lists links to its section there.
+#[test]
+fn docs_stay_in_layers() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let read = |p: &str| std::fs::read_to_string(root.join(p)).unwrap();
+    let (readme, map, design) = (
+        read("README.md"),
+        read("ARCHITECTURE.md"),
+        read("docs/design.md"),
+    );
+    assert!(
+        readme.lines().count() < 250,
+        "README.md: {} lines",
+        readme.lines().count()
+    );
+    assert!(
+        map.lines().count() < 400,
+        "ARCHITECTURE.md: {} lines",
+        map.lines().count()
+    );
+    // every heading of the design page is linked from the map, by its anchor
+    let anchor = |h: &str| -> String {
+        h.to_lowercase()
+            .chars()
+            .filter(|c| c.is_alphanumeric() || *c == '-' || *c == '_' || *c == ' ')
+            .collect::<String>()
+            .replace(' ', "-")
+    };
+    let headings: Vec<&str> = design
+        .lines()
+        .filter_map(|l| l.strip_prefix("### ").or_else(|| l.strip_prefix("#### ")))
+        .collect();
+    assert!(headings.len() > 20);
+    for h in headings {
+        let link = format!("(docs/design.md#{})", anchor(h));
+        assert!(map.contains(&link), "ARCHITECTURE.md does not link {link}");
+    }
+    for page in [
+        "cli",
+        "library",
+        "python",
+        "parameters",
+        "benchmarks",
+        "design",
+    ] {
+        assert!(readme.contains(&format!("docs/{page}.md")) || page == "design");
+        assert!(
+            root.join(format!("docs/{page}.md")).is_file(),
+            "docs/{page}.md"
+        );
+    }
+}

@@ -328,7 +328,7 @@ pub enum GpuDensityMethod {
     /// The paper's method: particles drawn as point sprites into four planes per RGBA pass with
     /// additive blending ([`splat_slabs_gpu`]). The default: the faster of the two on lavapipe,
     /// the only adapter measured so far (150,000 particles into 256^3: 2.0-2.4 s against
-    /// 5.1-6.2 s for the gather; see ARCHITECTURE.md).
+    /// 5.1-6.2 s for the gather; see docs/design.md).
     #[default]
     Splat,
     /// A compute shader: particles binned by the CPU, one invocation per grid point gathers the

@@ -56,7 +56,7 @@ pub struct AdapterSummary {
 impl AdapterSummary {
     /// Whether the adapter is a software rasteriser (Mesa's lavapipe/llvmpipe, wgpu's
     /// `DeviceType::Cpu`): it proves the GPU path correct but runs it slower than the CPU path
-    /// (the renderers 1.3-3.4x in ARCHITECTURE.md's measured tables; PLATFORM.md), so it is no
+    /// (the renderers 1.3-3.4x in docs/design.md's measured tables; PLATFORM.md), so it is no
     /// default.
     #[must_use]
     pub fn is_software(&self) -> bool {

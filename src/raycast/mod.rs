@@ -80,7 +80,7 @@ pub struct RayCastParams {
     /// Radius `R` of the PCA neighbourhood (eqs. 3, 4) in radii of each point. Default 2: the
     /// paper's `R = 3` beside a rendering radius equal to its smoothing length gives no ratio
     /// in our units; measured on the noisy slab (`tests/raycast.rs`), PCA smooths only when its
-    /// neighbourhood is wider than the density's own (figures in ARCHITECTURE.md).
+    /// neighbourhood is wider than the density's own (figures in docs/design.md).
     pub pca_radius: f32,
     /// Shape `d` of the blending function (eq. 6). Default 10, the paper's.
     pub blend_d: f32,

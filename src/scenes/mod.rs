@@ -247,7 +247,7 @@ pub fn block(params: &BlockParams) -> Result<Scene, SceneError> {
 /// staircase whose depth below the sphere spans half to one and a half spacings, so "within one
 /// spacing of the boundary" would call half of the outermost particles interior. Measured with
 /// the default detector, that lattice sphere gives 100 % recall but at most 55-75 % precision
-/// whatever the threshold (ARCHITECTURE.md); the shells give the sphere clean layers like the
+/// whatever the threshold (docs/design.md); the shells give the sphere clean layers like the
 /// block's, which is what the analytic truth assumes.
 pub fn sphere(params: &SphereParams) -> Result<Scene, SceneError> {
     check_lattice(params.spacing, params.jitter)?;
