@@ -158,7 +158,7 @@ fn main() -> Result<(), fluid_surfels::Error> {
                 particles.len(),
                 source.as_str(),
                 positions.len(),
-                splats.enclosed_holes(),
+                fluid_surfels::quality::enclosed_holes(splats),
                 splats.covered_pixels(),
             );
             for w in &frame.warnings {

@@ -22,7 +22,7 @@
 //! Supporting modules: [`particles`] (the [`ParticleSet`] every stage reads), [`io`] (readers and
 //! writers for PLY, legacy VTK, VTU, BGEO, XYZ, CSV and JSON), [`sequence`] (numbered frame
 //! sequences), [`scenes`] (deterministic test scenes and a small simulator), [`view`] (cameras,
-//! lights and projections), [`gpu`] (the shared wgpu context and read-back), [`kernels`] (SPH
+//! lights, the view parameters `SplatParams`, projections and the `Render` buffers), [`gpu`] (the shared wgpu context and read-back), [`kernels`] (SPH
 //! kernels), [`linalg`] (3x3 symmetric eigen-decomposition), [`preview`] (PNG pictures of
 //! particle sets) and [`quality`] (holes, specks and differences of rendered frames, distances
 //! to meshes). The command line is the crate `fluid-surfels-cli` (`cli/`, binary

@@ -19,6 +19,8 @@
 use glam::Vec3;
 use image::RgbaImage;
 
+use crate::view::Render;
+
 /// Holes inside a silhouette, from [`holes`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
 pub struct Holes {
@@ -310,9 +312,9 @@ pub struct SurfaceDifference {
 /// When the two renders or the view differ in size.
 #[must_use]
 pub fn against(
-    render: &crate::splat::Render,
-    reference: &crate::splat::Render,
-    view: &crate::splat::View,
+    render: &Render,
+    reference: &Render,
+    view: &crate::view::View,
     unit: f32,
 ) -> SurfaceDifference {
     assert_eq!(
@@ -604,6 +606,52 @@ impl MeshDistance {
     }
 }
 
+/// Peak signal-to-noise ratio of two images' RGB channels in dB (infinite when equal).
+///
+/// # Panics
+/// When the sizes differ.
+#[must_use]
+pub fn psnr(a: &RgbaImage, b: &RgbaImage) -> f64 {
+    assert_eq!(a.dimensions(), b.dimensions(), "images of different sizes");
+    let (mut sum, mut n) = (0.0f64, 0usize);
+    for (p, q) in a.pixels().zip(b.pixels()) {
+        for c in 0..3 {
+            let d = f64::from(p[c]) - f64::from(q[c]);
+            sum += d * d;
+            n += 1;
+        }
+    }
+    let mse = sum / n.max(1) as f64;
+    if mse == 0.0 {
+        f64::INFINITY
+    } else {
+        10.0 * (255.0f64 * 255.0 / mse).log10()
+    }
+}
+
+/// The absolute difference of two images, scaled by `gain`, for failure reports.
+#[must_use]
+pub fn difference_image(a: &RgbaImage, b: &RgbaImage, gain: u8) -> RgbaImage {
+    RgbaImage::from_fn(a.width(), a.height(), |x, y| {
+        let (p, q) = (a.get_pixel(x, y), b.get_pixel(x, y));
+        let d = |c: usize| p[c].abs_diff(q[c]).saturating_mul(gain);
+        image::Rgba([d(0), d(1), d(2), 255])
+    })
+}
+
+/// Holes of a render: uncovered pixels that cannot be reached from the image border through
+/// uncovered pixels (4-connected), i.e. background showing through inside the silhouette.
+#[must_use]
+pub fn enclosed_holes(render: &Render) -> usize {
+    let covered: Vec<bool> = render.colour.iter().map(|c| c[3] > 0.0).collect();
+    let outside = reachable_from_border(&covered, render.width as usize, render.height as usize);
+    covered
+        .iter()
+        .zip(&outside)
+        .filter(|&(&c, &o)| !c && !o)
+        .count()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -711,7 +759,7 @@ mod tests {
 
     #[test]
     fn against_measures_depth_along_the_ray_normals_and_coverage() {
-        use crate::splat::{Camera, Light, Render, SplatParams, View};
+        use crate::view::{Camera, Light, Render, SplatParams, View};
         let (w, h) = (8u32, 6u32);
         let view = View::new(
             &Camera::default(),

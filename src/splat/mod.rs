@@ -24,158 +24,17 @@
 //! of `shaders/surfel_splat.wgsl`, which [`gpu`] runs. Tests compare the two images.
 
 use glam::{Vec2, Vec3, Vec3Swizzles, Vec4, Vec4Swizzles};
-use image::RgbaImage;
-
-use serde::{Deserialize, Serialize};
 
 pub mod cpu;
 pub mod gpu;
 
-pub use crate::view::{Camera, Light, View};
+// the view's types and the picture metrics, where the splats have always been found
+pub use crate::quality::{difference_image, psnr};
+pub use crate::view::{
+    BYTES_PER_PIXEL, Camera, Light, MAX_SIZE, Render, SplatError, SplatMode, SplatParams, View,
+};
+pub(crate) use crate::view::{check_cost, pixel_span};
 pub use cpu::{render_cpu, render_view_cpu};
-
-/// Errors of surfel rendering.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum SplatError {
-    /// A parameter is out of range.
-    #[error("invalid splatting parameter `{name}`: {reason}")]
-    InvalidParameter { name: &'static str, reason: String },
-    /// The image size is zero or too large.
-    #[error("image size {width}x{height} must be between 1 and {max} on each side")]
-    InvalidSize { width: u32, height: u32, max: u32 },
-    /// The splats would cover more pixels than the limit: the work grows with the image size
-    /// times the splats' screen areas, which the low-pass radius widens quadratically.
-    #[error(
-        "the {surfels} splats would cover {fragments} pixel fragments ({} per splat, with a low-pass radius of {low_pass_px} px) at {width}x{height}, over the limit of {limit}: lower the low-pass radius (--low-pass) or the image size, or raise the limit (`SplatParams::max_fragments`, --max-fragments)",
-        fragments / (*surfels as u128).max(1)
-    )]
-    TooCostly {
-        surfels: usize,
-        fragments: u128,
-        limit: u64,
-        low_pass_px: f32,
-        width: u32,
-        height: u32,
-    },
-}
-
-/// What the splats are drawn as.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum SplatMode {
-    /// EWA surface splatting (the method).
-    #[default]
-    Ewa,
-    /// Plain point sprites: round screen disks of the projected radius, the nearest wins, no
-    /// blending (the baseline the method improves on).
-    Sprites,
-    /// Particle splatting (Adams, Lenaerts, Dutré 2006, §3): each surfel's position and radius
-    /// is a sphere (its normal and stretch are not used, see [`Surfel::sphere`]); the visibility
-    /// pass writes the nearest sphere depth (eq. 5) pushed back by `sphere_depth_offset` radii;
-    /// the attribute pass blends the per-fragment sphere normals of the spheres within that
-    /// distance with the weight `W1 W2` (eqs. 6, 7): the linear fall-off to the projected rim
-    /// times the depth fall-off to the shifted depth.
-    Spheres,
-}
-
-impl SplatMode {
-    /// Every mode, in the order of the documentation.
-    pub const ALL: [Self; 3] = [Self::Ewa, Self::Sprites, Self::Spheres];
-
-    /// The name used in files and on the command line.
-    #[must_use]
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Ewa => "ewa",
-            Self::Sprites => "sprites",
-            Self::Spheres => "spheres",
-        }
-    }
-}
-
-/// Parameters of the splatting passes.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct SplatParams {
-    /// Pass 1 depth offset epsilon as a multiple of each surfel's radius. Surfaces closer than
-    /// epsilon along the view ray blend; farther behind they are hidden. Default 1.0: neighbouring
-    /// disks of one smooth surface differ in depth by a fraction of a radius, while the two sides
-    /// of a sheet are at least a particle apart (about two surfel radii for density surfels).
-    pub depth_offset: f32,
-    /// Radius of the screen-space low-pass filter in pixels (0 switches it off). Default 1.0, the
-    /// "about one pixel" of Botsch et al.
-    pub low_pass_px: f32,
-    /// Gaussian weight `exp(-sharpness * r^2)`, `r = 1` at the disk's rim. Default 2.0 (the rim
-    /// at two standard deviations, weight 0.135).
-    pub sharpness: f32,
-    /// Colour of pixels no surfel covers (linear RGBA).
-    pub background: [f32; 4],
-    /// EWA splats, plain point sprites, or particle spheres.
-    pub mode: SplatMode,
-    /// The depth offset epsilon of [`SplatMode::Spheres`] as a multiple of each sphere's
-    /// radius. Default 1.5, Adams et al.'s `epsilon = 1.5 h_i` (§4); 0 degenerates to the
-    /// nearest sphere alone (no blending, seams between spheres).
-    pub sphere_depth_offset: f32,
-    /// The most pixel fragments (the sum over splats of the pixels of each one's screen
-    /// rectangle, counted before rasterising) a render may cost; more is refused with
-    /// [`SplatError::TooCostly`]. Default 10^9, about a minute of the CPU reference on two
-    /// cores (measured: 2.3 x 10^9 fragments in 150 s); ordinary frames cost 10^6 to 10^8.
-    pub max_fragments: u64,
-}
-
-impl Default for SplatParams {
-    fn default() -> Self {
-        Self {
-            depth_offset: 1.0,
-            low_pass_px: 1.0,
-            sharpness: 2.0,
-            background: [0.08, 0.09, 0.11, 1.0],
-            mode: SplatMode::Ewa,
-            sphere_depth_offset: 1.5,
-            max_fragments: 1_000_000_000,
-        }
-    }
-}
-
-impl SplatParams {
-    pub(crate) fn validate(&self) -> Result<(), SplatError> {
-        let check = |name, ok: bool, reason: &str| {
-            if ok {
-                Ok(())
-            } else {
-                Err(SplatError::InvalidParameter {
-                    name,
-                    reason: reason.to_string(),
-                })
-            }
-        };
-        check(
-            "depth_offset",
-            self.depth_offset >= 0.0 && self.depth_offset.is_finite(),
-            "must be finite and >= 0",
-        )?;
-        check(
-            "sphere_depth_offset",
-            self.sphere_depth_offset >= 0.0 && self.sphere_depth_offset.is_finite(),
-            "must be finite and >= 0",
-        )?;
-        check(
-            "low_pass_px",
-            self.low_pass_px >= 0.0 && self.low_pass_px.is_finite(),
-            "must be finite and >= 0",
-        )?;
-        check(
-            "sharpness",
-            self.sharpness >= 0.0 && self.sharpness.is_finite(),
-            "must be finite and >= 0",
-        )?;
-        check(
-            "background",
-            self.background.iter().all(|c| c.is_finite()),
-            "must be finite",
-        )
-    }
-}
 
 /// One surfel as the GPU stores it (64 bytes, `SurfelIn` in the WGSL): position and radius,
 /// normal and stretch (minor / major axis; 1 for a circle), the major axis direction (ignored
@@ -387,16 +246,6 @@ pub fn drawable(surfels: &[Surfel]) -> (Vec<Surfel>, usize) {
     (kept, skipped)
 }
 
-/// Largest image side.
-pub const MAX_SIZE: u32 = 16384;
-
-/// The pixel columns (or rows) whose centres lie in `[lo, hi)` of a line of `n` pixels.
-pub(crate) fn pixel_span(lo: f32, hi: f32, n: usize) -> (usize, usize) {
-    let a = (lo - 0.5).ceil().clamp(0.0, n as f32) as usize;
-    let b = (hi - 0.5).ceil().clamp(0.0, n as f32) as usize;
-    (a, b)
-}
-
 /// The pixel fragments a render of `surfels` in `v` costs, known before rasterising: the sum
 /// over drawn splats of the pixels of their screen rectangles.
 #[must_use]
@@ -413,40 +262,6 @@ pub fn fragments(surfels: &[Surfel], v: &View) -> u128 {
             (xs.1 - xs.0) as u128 * (ys.1 - ys.0) as u128
         })
         .sum()
-}
-
-/// Bytes a render holds per pixel: the depth, the accumulated colour and normal-depth, and the
-/// image (4 + 16 + 16 + 4), with the read-back copies of the GPU path as much again.
-pub const BYTES_PER_PIXEL: u64 = 80;
-
-/// Refuses a render of `fragments` pixel fragments over the view's limit, or whose buffers
-/// would not fit in the memory left.
-pub(crate) fn check_cost(surfels: usize, fragments: u128, v: &View) -> Result<(), SplatError> {
-    let bytes = v.width as u128 * v.height as u128 * BYTES_PER_PIXEL as u128;
-    let available = crate::io::available_memory();
-    if bytes > available as u128 {
-        return Err(SplatError::InvalidParameter {
-            name: "size",
-            reason: format!(
-                "a {}x{} render needs {} MiB of buffers ({BYTES_PER_PIXEL} bytes a pixel), more than the {} MiB of memory available",
-                v.width,
-                v.height,
-                bytes >> 20,
-                available >> 20
-            ),
-        });
-    }
-    if fragments > v.max_fragments as u128 {
-        return Err(SplatError::TooCostly {
-            surfels,
-            fragments,
-            limit: v.max_fragments,
-            low_pass_px: v.low_pass,
-            width: v.width,
-            height: v.height,
-        });
-    }
-    Ok(())
 }
 
 /// The largest surfel radius read from a file, as a multiple of the extent (bounding box
@@ -713,117 +528,4 @@ pub fn shade(pixel: Vec2, colour: Vec4, normal_depth: Vec4, v: &View) -> Vec4 {
     let lit = base * (v.light_dir.w + (1.0 - v.light_dir.w) * diffuse) * v.light_colour.xyz()
         + v.light_colour.w * specular * v.light_colour.xyz();
     lit.clamp(Vec3::ZERO, Vec3::ONE).extend(1.0)
-}
-
-/// A rendered image with the buffers it was made from.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Render {
-    pub width: u32,
-    pub height: u32,
-    /// The shaded image (8-bit, linear RGB as stored by an `Rgba8Unorm` target).
-    pub image: RgbaImage,
-    /// Per pixel, row-major from the top: `(sum w colour, sum w)`.
-    pub colour: Vec<[f32; 4]>,
-    /// Per pixel: `(sum w normal, sum w depth)`.
-    pub normal_depth: Vec<[f32; 4]>,
-}
-
-impl Render {
-    /// Accumulated weight of pixel `i` (0: no surfel covers it).
-    #[must_use]
-    pub fn weight(&self, i: usize) -> f32 {
-        self.colour[i][3]
-    }
-
-    /// Number of pixels some surfel covers (weight > 0).
-    #[must_use]
-    pub fn covered_pixels(&self) -> usize {
-        self.colour.iter().filter(|c| c[3] > 0.0).count()
-    }
-
-    /// Holes: uncovered pixels that cannot be reached from the image border through uncovered
-    /// pixels (4-connected), i.e. background showing through inside the silhouette.
-    #[must_use]
-    pub fn enclosed_holes(&self) -> usize {
-        let covered: Vec<bool> = self.colour.iter().map(|c| c[3] > 0.0).collect();
-        let outside = crate::quality::reachable_from_border(
-            &covered,
-            self.width as usize,
-            self.height as usize,
-        );
-        covered
-            .iter()
-            .zip(&outside)
-            .filter(|&(&c, &o)| !c && !o)
-            .count()
-    }
-
-    /// Normalised world normal of pixel `i`, if covered.
-    #[must_use]
-    pub fn normal(&self, i: usize) -> Option<Vec3> {
-        let w = self.weight(i);
-        (w > 0.0).then(|| (Vec3::from_slice(&self.normal_depth[i][..3]) / w).normalize_or_zero())
-    }
-
-    /// Normalised view depth of pixel `i`, if covered.
-    #[must_use]
-    pub fn depth(&self, i: usize) -> Option<f32> {
-        let w = self.weight(i);
-        (w > 0.0).then(|| self.normal_depth[i][3] / w)
-    }
-
-    /// Checks the buffers: right sizes, every value finite, weights >= 0.
-    pub fn validate(&self) -> Result<(), String> {
-        let n = self.width as usize * self.height as usize;
-        if self.colour.len() != n || self.normal_depth.len() != n {
-            return Err(format!(
-                "buffers of {} and {} pixels for {n}",
-                self.colour.len(),
-                self.normal_depth.len()
-            ));
-        }
-        for (i, (c, nd)) in self.colour.iter().zip(&self.normal_depth).enumerate() {
-            if c.iter().chain(nd).any(|x| !x.is_finite()) || c[3] < 0.0 {
-                return Err(format!(
-                    "pixel {i} (x {}, y {}): colour {c:?}, normal/depth {nd:?}",
-                    i % self.width as usize,
-                    i / self.width as usize
-                ));
-            }
-        }
-        Ok(())
-    }
-}
-
-/// Peak signal-to-noise ratio of two images' RGB channels in dB (infinite when equal).
-///
-/// # Panics
-/// When the sizes differ.
-#[must_use]
-pub fn psnr(a: &RgbaImage, b: &RgbaImage) -> f64 {
-    assert_eq!(a.dimensions(), b.dimensions(), "images of different sizes");
-    let (mut sum, mut n) = (0.0f64, 0usize);
-    for (p, q) in a.pixels().zip(b.pixels()) {
-        for c in 0..3 {
-            let d = f64::from(p[c]) - f64::from(q[c]);
-            sum += d * d;
-            n += 1;
-        }
-    }
-    let mse = sum / n.max(1) as f64;
-    if mse == 0.0 {
-        f64::INFINITY
-    } else {
-        10.0 * (255.0f64 * 255.0 / mse).log10()
-    }
-}
-
-/// The absolute difference of two images, scaled by `gain`, for failure reports.
-#[must_use]
-pub fn difference_image(a: &RgbaImage, b: &RgbaImage, gain: u8) -> RgbaImage {
-    RgbaImage::from_fn(a.width(), a.height(), |x, y| {
-        let (p, q) = (a.get_pixel(x, y), b.get_pixel(x, y));
-        let d = |c: usize| p[c].abs_diff(q[c]).saturating_mul(gain);
-        image::Rgba([d(0), d(1), d(2), 255])
-    })
 }
