@@ -146,13 +146,43 @@ fn create_targets(device: &wgpu::Device, width: u32, height: u32) -> Targets {
     }
 }
 
+/// The bind group layouts of the three passes: the splats' uniforms (visibility), the uniforms
+/// and the visibility depth (attributes), the uniforms and the accumulated targets (shading).
+fn bind_group_layouts(device: &wgpu::Device) -> [wgpu::BindGroupLayout; 3] {
+    let splat_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("splat uniforms"),
+        entries: &[entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT)],
+    });
+    let attributes_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("splat attributes"),
+        entries: &[
+            entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT),
+            wgpu::BindGroupLayoutEntry {
+                binding: 3,
+                visibility: wgpu::ShaderStages::FRAGMENT,
+                ty: wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Depth,
+                    view_dimension: wgpu::TextureViewDimension::D2,
+                    multisampled: false,
+                },
+                count: None,
+            },
+        ],
+    });
+    let shade_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("splat shading"),
+        entries: &[
+            entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT),
+            entry::texture(1, wgpu::ShaderStages::FRAGMENT),
+            entry::texture(2, wgpu::ShaderStages::FRAGMENT),
+        ],
+    });
+    [splat_layout, attributes_layout, shade_layout]
+}
+
 impl SplatRenderer {
     /// Builds the pipelines for targets of `format` and the intermediate buffers for
     /// `width` x `height`. The device needs [`REQUIRED_FEATURES`].
-    #[allow(
-        clippy::too_many_lines,
-        reason = "issue 38: still to split into named phases"
-    )]
     pub fn new(
         device: &wgpu::Device,
         format: wgpu::TextureFormat,
@@ -171,34 +201,7 @@ impl SplatRenderer {
             label: Some("surfel_splat"),
             source: wgpu::ShaderSource::Wgsl(SHADER.into()),
         });
-        let splat_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("splat uniforms"),
-            entries: &[entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT)],
-        });
-        let attributes_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("splat attributes"),
-            entries: &[
-                entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT),
-                wgpu::BindGroupLayoutEntry {
-                    binding: 3,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
-                    ty: wgpu::BindingType::Texture {
-                        sample_type: wgpu::TextureSampleType::Depth,
-                        view_dimension: wgpu::TextureViewDimension::D2,
-                        multisampled: false,
-                    },
-                    count: None,
-                },
-            ],
-        });
-        let shade_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("splat shading"),
-            entries: &[
-                entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT),
-                entry::texture(1, wgpu::ShaderStages::FRAGMENT),
-                entry::texture(2, wgpu::ShaderStages::FRAGMENT),
-            ],
-        });
+        let [splat_layout, attributes_layout, shade_layout] = bind_group_layouts(device);
         let splat_pipeline_layout =
             device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                 label: Some("splat"),

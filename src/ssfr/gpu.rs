@@ -146,6 +146,39 @@ impl Targets {
     }
 }
 
+/// The passes' uniforms for view `v` of `screen`, whose spheres were binned into `tw` tiles a row.
+fn raw_params(screen: &ScreenSpace<'_>, v: &View, tw: usize) -> RawSsfrParams {
+    let params = screen.params();
+    let (w, h) = (v.width, v.height);
+    let scales = FilterScales::of(params, screen.sphere());
+    let image = depth_image(v, Vec::new());
+    let absorb = glam::Vec3::from(params.absorption) / screen.reference_radius();
+    RawSsfrParams {
+        inv_view: v.inv_view.to_cols_array_2d(),
+        screen: [w as f32, h as f32, v.tan_half.x, v.tan_half.y],
+        a: [
+            u32::from(v.is_orthographic()),
+            tw as u32,
+            scales.radius_px,
+            0,
+        ],
+        b: [
+            scales.sigma_px,
+            scales.sigma_depth,
+            scales.range,
+            scales.clamp,
+        ],
+        c: [
+            scales.step,
+            image.pixel_size,
+            params.thickness_sigma_range * screen.reference_radius(),
+            0.0,
+        ],
+        base: crate::splat::WATER,
+        absorb: absorb.extend(0.0).to_array(),
+    }
+}
+
 impl GpuSsfr {
     /// Compiles the passes.
     pub fn new(device: &wgpu::Device) -> Result<Self, GpuError> {
@@ -206,10 +239,6 @@ impl GpuSsfr {
 
     /// Uploads `screen`'s spheres and thickness Gaussians for view `v` (binned into tiles on the
     /// host, as the CPU bins them) and makes the targets for its size when they differ.
-    #[allow(
-        clippy::too_many_lines,
-        reason = "issue 38: still to split into named phases"
-    )]
     pub fn prepare(
         &mut self,
         device: &wgpu::Device,
@@ -237,33 +266,7 @@ impl GpuSsfr {
         })
         .map_err(SsfrError::from)?;
         let (source_starts, source_items) = csr(&source_tiles)?;
-        let scales = FilterScales::of(params, screen.sphere());
-        let image = depth_image(v, Vec::new());
-        let absorb = glam::Vec3::from(params.absorption) / screen.reference_radius();
-        let uniforms = RawSsfrParams {
-            inv_view: v.inv_view.to_cols_array_2d(),
-            screen: [w as f32, h as f32, v.tan_half.x, v.tan_half.y],
-            a: [
-                u32::from(v.is_orthographic()),
-                tw as u32,
-                scales.radius_px,
-                0,
-            ],
-            b: [
-                scales.sigma_px,
-                scales.sigma_depth,
-                scales.range,
-                scales.clamp,
-            ],
-            c: [
-                scales.step,
-                image.pixel_size,
-                params.thickness_sigma_range * screen.reference_radius(),
-                0.0,
-            ],
-            base: crate::splat::WATER,
-            absorb: absorb.extend(0.0).to_array(),
-        };
+        let uniforms = raw_params(screen, v, tw);
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         if self.size() != (w, h) {
             self.targets = Some(Targets::new(device, w, h));
