@@ -288,11 +288,93 @@ fn rfind(hay: &[u8], needle: &[u8]) -> Option<usize> {
     hay.windows(needle.len()).rposition(|w| w == needle)
 }
 
+/// The `<VTKFile>` element's settings: its type (unstructured grid or poly data), byte order,
+/// header size and compressor.
+fn root_settings(
+    e: &BytesStart<'_>,
+    path: &Path,
+    at: u64,
+    info: &mut FileInfo,
+) -> Result<(), IoError> {
+    let kind = attr(e, "type").unwrap_or_default();
+    if kind != "UnstructuredGrid" && kind != "PolyData" {
+        return Err(IoError::unsupported(
+            path,
+            Location::Byte(at),
+            format!(
+                "VTK XML type {} (particles come as UnstructuredGrid or PolyData)",
+                super::quoted(&kind)
+            ),
+        ));
+    }
+    info.big_endian = attr(e, "byte_order").as_deref() == Some("BigEndian");
+    info.header_size = match attr(e, "header_type").as_deref() {
+        None | Some("UInt32") => 4,
+        Some("UInt64") => 8,
+        Some(other) => {
+            return Err(IoError::unsupported(
+                path,
+                Location::Byte(at),
+                format!("header type {}", super::quoted(other)),
+            ));
+        }
+    };
+    match attr(e, "compressor").as_deref() {
+        None | Some("") => {}
+        Some("vtkZLibDataCompressor") => info.compressed = true,
+        Some(other) => {
+            return Err(IoError::unsupported(
+                path,
+                Location::Byte(at),
+                format!("the compressor {} (only zlib)", super::quoted(other)),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// A `<DataArray>` element of `section` in piece `piece`: its type, components, name, format
+/// and offset (its text follows).
+fn data_array(
+    e: &BytesStart<'_>,
+    path: &Path,
+    at: u64,
+    section: Section,
+    piece: usize,
+) -> Result<ArrayRef, IoError> {
+    let ty_name = attr(e, "type").unwrap_or_default();
+    let ty = array_type(&ty_name).ok_or_else(|| {
+        IoError::unsupported(
+            path,
+            Location::Byte(at),
+            format!("DataArray type {}", super::quoted(&ty_name)),
+        )
+    })?;
+    let components = attr(e, "NumberOfComponents")
+        .map_or(Ok(1), |c| c.parse::<usize>())
+        .map_err(|_| IoError::parse(path, Location::Byte(at), "a component count", "text"))?;
+    if components == 0 || components > 64 {
+        return Err(IoError::parse(
+            path,
+            Location::Byte(at),
+            "1 to 64 components",
+            components.to_string(),
+        ));
+    }
+    Ok(ArrayRef {
+        section,
+        name: attr(e, "Name").unwrap_or_default(),
+        ty,
+        components,
+        format: attr(e, "format").unwrap_or_else(|| "ascii".into()),
+        offset: attr(e, "offset").and_then(|o| o.trim().parse().ok()),
+        text: String::new(),
+        at,
+        piece,
+    })
+}
+
 /// Walks the XML, collecting the file's settings, the pieces' point counts and every array.
-#[allow(
-    clippy::too_many_lines,
-    reason = "issue 38: still to split into named phases"
-)]
 fn scan(
     xml: &str,
     path: &Path,
@@ -325,40 +407,7 @@ fn scan(
             Event::Start(e) | Event::Empty(e) => match e.name().as_ref() {
                 "VTKFile" => {
                     saw_root = true;
-                    let kind = attr(&e, "type").unwrap_or_default();
-                    if kind != "UnstructuredGrid" && kind != "PolyData" {
-                        return Err(IoError::unsupported(
-                            path,
-                            Location::Byte(at),
-                            format!(
-                                "VTK XML type {} (particles come as UnstructuredGrid or PolyData)",
-                                super::quoted(&kind)
-                            ),
-                        ));
-                    }
-                    info.big_endian = attr(&e, "byte_order").as_deref() == Some("BigEndian");
-                    info.header_size = match attr(&e, "header_type").as_deref() {
-                        None | Some("UInt32") => 4,
-                        Some("UInt64") => 8,
-                        Some(other) => {
-                            return Err(IoError::unsupported(
-                                path,
-                                Location::Byte(at),
-                                format!("header type {}", super::quoted(other)),
-                            ));
-                        }
-                    };
-                    match attr(&e, "compressor").as_deref() {
-                        None | Some("") => {}
-                        Some("vtkZLibDataCompressor") => info.compressed = true,
-                        Some(other) => {
-                            return Err(IoError::unsupported(
-                                path,
-                                Location::Byte(at),
-                                format!("the compressor {} (only zlib)", super::quoted(other)),
-                            ));
-                        }
-                    }
+                    root_settings(&e, path, at, &mut info)?;
                 }
                 "Piece" => {
                     let n = attr(&e, "NumberOfPoints").unwrap_or_default();
@@ -378,38 +427,8 @@ fn scan(
                     section = Section::Other
                 }
                 "DataArray" => {
-                    let ty_name = attr(&e, "type").unwrap_or_default();
-                    let ty = array_type(&ty_name).ok_or_else(|| {
-                        IoError::unsupported(
-                            path,
-                            Location::Byte(at),
-                            format!("DataArray type {}", super::quoted(&ty_name)),
-                        )
-                    })?;
-                    let components = attr(&e, "NumberOfComponents")
-                        .map_or(Ok(1), |c| c.parse::<usize>())
-                        .map_err(|_| {
-                            IoError::parse(path, Location::Byte(at), "a component count", "text")
-                        })?;
-                    if components == 0 || components > 64 {
-                        return Err(IoError::parse(
-                            path,
-                            Location::Byte(at),
-                            "1 to 64 components",
-                            components.to_string(),
-                        ));
-                    }
-                    let array = ArrayRef {
-                        section,
-                        name: attr(&e, "Name").unwrap_or_default(),
-                        ty,
-                        components,
-                        format: attr(&e, "format").unwrap_or_else(|| "ascii".into()),
-                        offset: attr(&e, "offset").and_then(|o| o.trim().parse().ok()),
-                        text: String::new(),
-                        at,
-                        piece: info.pieces.len().saturating_sub(1),
-                    };
+                    let array =
+                        data_array(&e, path, at, section, info.pieces.len().saturating_sub(1))?;
                     if empty {
                         arrays.push(array);
                     } else {
