@@ -85,32 +85,9 @@ fn kernel_constant(kernel: Kernel, h: f32) -> f32 {
     }
 }
 
-/// Fills the density grid on the GPU and hands slabs of four planes to `sink(k0, values)` in
-/// increasing z, like [`super::splat_points_slabs`].
-#[allow(
-    clippy::too_many_lines,
-    reason = "issue 38: still to split into named phases"
-)]
-pub fn splat_slabs_gpu(
-    ctx: &GpuContext,
-    points: Points<'_>,
-    spec: &GridSpec,
-    kernel: Kernel,
-    mut sink: impl FnMut(u32, Vec<f32>),
-) -> Result<(), GpuError> {
-    check_inputs(&points)?;
-    let (h, reach) = (points.h, points.max_radius());
-    let device = &ctx.device;
-    let [nx, ny, nz] = spec.dims;
-    let max_dim = device.limits().max_texture_dimension_2d;
-    if nx > max_dim || ny > max_dim {
-        return Err(GpuError::Validation(format!(
-            "a {nx} x {ny} plane exceeds the GPU's {max_dim} texture size"
-        )));
-    }
-    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-    // particles sorted by z: each group's cluster is a contiguous instance range (§4.2)
-    let mut sorted = instances(&points);
+/// The points as instances `(x, y, z, radius)` sorted by z, uploaded, and their z in that order.
+fn upload_sorted(device: &wgpu::Device, points: &Points<'_>) -> (wgpu::Buffer, Vec<f32>) {
+    let mut sorted = instances(points);
     sorted.sort_by(|a, b| a[2].total_cmp(&b[2]));
     let zs: Vec<f32> = sorted.iter().map(|p| p[2]).collect();
     use wgpu::util::DeviceExt;
@@ -123,6 +100,12 @@ pub fn splat_slabs_gpu(
         }),
         usage: wgpu::BufferUsages::VERTEX,
     });
+    (instances, zs)
+}
+
+/// The splatting pass (§4.1): one instanced quad per particle and plane group, additive
+/// blending into the four planes of an `Rgba32Float` target; with its bind group layout.
+fn splat_pipeline(device: &wgpu::Device) -> (wgpu::RenderPipeline, wgpu::BindGroupLayout) {
     let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some("density_splat"),
         source: wgpu::ShaderSource::Wgsl(SHADER.into()),
@@ -173,6 +156,33 @@ pub fn splat_slabs_gpu(
         multiview_mask: None,
         cache: None,
     });
+    (pipeline, layout)
+}
+
+/// Fills the density grid on the GPU and hands slabs of four planes to `sink(k0, values)` in
+/// increasing z, like [`super::splat_points_slabs`].
+pub fn splat_slabs_gpu(
+    ctx: &GpuContext,
+    points: Points<'_>,
+    spec: &GridSpec,
+    kernel: Kernel,
+    mut sink: impl FnMut(u32, Vec<f32>),
+) -> Result<(), GpuError> {
+    check_inputs(&points)?;
+    let (h, reach) = (points.h, points.max_radius());
+    let device = &ctx.device;
+    let [nx, ny, nz] = spec.dims;
+    let max_dim = device.limits().max_texture_dimension_2d;
+    if nx > max_dim || ny > max_dim {
+        return Err(GpuError::Validation(format!(
+            "a {nx} x {ny} plane exceeds the GPU's {max_dim} texture size"
+        )));
+    }
+    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    // particles sorted by z: each group's cluster is a contiguous instance range (§4.2)
+    let (instances, zs) = upload_sorted(device, &points);
+    use wgpu::util::DeviceExt;
+    let (pipeline, layout) = splat_pipeline(device);
     let target = gpu::texture_2d(
         device,
         "density planes",
