@@ -23,7 +23,8 @@
 //! writers for PLY, legacy VTK, VTU, BGEO, XYZ, CSV and JSON), [`sequence`] (numbered frame
 //! sequences), [`scenes`] (deterministic test scenes and a small simulator), [`view`] (cameras,
 //! lights, the view parameters `SplatParams`, projections and the `Render` buffers), [`gpu`] (the shared wgpu context and read-back), [`kernels`] (SPH
-//! kernels), [`linalg`] (3x3 symmetric eigen-decomposition), [`preview`] (PNG pictures of
+//! kernels), [`linalg`] (3x3 symmetric eigen-decomposition), [`memory`] (the memory
+//! left, the default budget and the peak resident set), [`preview`] (PNG pictures of
 //! particle sets) and [`quality`] (holes, specks and differences of rendered frames, distances
 //! to meshes). The command line is the crate `fluid-surfels-cli` (`cli/`, binary
 //! `fluid-surfels`); the Python bindings are `python/`.
@@ -46,6 +47,7 @@ pub mod io;
 pub mod kernels;
 pub mod linalg;
 pub mod lnm;
+pub mod memory;
 pub mod neighbours;
 pub mod optics;
 pub mod particles;
@@ -64,22 +66,7 @@ pub mod view;
 
 pub use particles::{Attribute, ParticleSet, ParticleView, ScalarKind};
 
-/// This process's peak resident set so far, in MiB (`VmHWM` of `/proc/self/status`); `None`
-/// where the system does not report it. What the benches and `refine --json` report as peak
-/// memory.
-#[must_use]
-pub fn peak_resident_mib() -> Option<f64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib / 1024.0)
-}
-
-/// Resets [`peak_resident_mib`] to the present resident set (Linux `/proc/self/clear_refs`), so
-/// that a later reading is the peak of what ran in between; false where that is not available.
-pub fn reset_peak_resident() -> bool {
-    std::fs::write("/proc/self/clear_refs", "5").is_ok()
-}
+pub use memory::{peak_resident_mib, reset_peak_resident};
 
 /// Every error the crate returns.
 #[derive(Debug, thiserror::Error)]

@@ -724,7 +724,7 @@ pub const BYTES_PER_PIXEL: u64 = 80;
 /// would not fit in the memory left.
 pub(crate) fn check_cost(surfels: usize, fragments: u128, v: &View) -> Result<(), SplatError> {
     let bytes = v.width as u128 * v.height as u128 * BYTES_PER_PIXEL as u128;
-    let available = crate::io::available_memory();
+    let available = crate::memory::available_memory();
     if bytes > available as u128 {
         return Err(SplatError::InvalidParameter {
             name: "size",

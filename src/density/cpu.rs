@@ -297,7 +297,7 @@ pub fn points_naive(
     kernel: Kernel,
 ) -> Result<DensityGrid, DensityError> {
     points.check()?;
-    spec.check_memory(crate::io::available_memory())?;
+    spec.check_memory(crate::memory::available_memory())?;
     let [nx, ny, nz] = spec.dims;
     let mut values = vec![0.0f32; spec.cells() as usize];
     for (p, &x) in points.positions.iter().enumerate() {

@@ -394,7 +394,7 @@ impl GridSpec {
                 // saturating: absurd sizes must not overflow while being reported
                 cells: dims_u.iter().product::<f64>().min(u128::MAX as f64 / 8.0) as u128,
                 bytes: (dims_u.iter().product::<f64>() * 4.0).min(u128::MAX as f64 / 2.0) as u128,
-                limit: crate::io::available_memory(),
+                limit: crate::memory::available_memory(),
             });
         }
         Ok(Self {

@@ -240,9 +240,8 @@ impl Format {
     }
 }
 
-/// The memory budget of decompression when reading, and of the density grid
-/// ([`crate::pipeline::GridParams::memory_budget`]): 1 GiB.
-pub const DEFAULT_MEMORY_BUDGET: u64 = 1 << 30;
+// the memory helpers live in `crate::memory`; still reachable here
+pub use crate::memory::{DEFAULT_MEMORY_BUDGET, available_memory};
 
 /// How files are read.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -376,40 +375,6 @@ pub fn describe(bytes: &[u8]) -> String {
         )
     } else {
         "binary data".into()
-    }
-}
-
-/// Memory this process can still take, in bytes: the machine's `MemAvailable`, lowered to what
-/// is left under the process's address-space limit (`ulimit -v`) when one is set; 8 GiB where
-/// neither is known.
-#[must_use]
-pub fn available_memory() -> u64 {
-    let field = |text: &str, key: &str| {
-        text.lines().find(|l| l.starts_with(key)).and_then(|l| {
-            l[key.len()..]
-                .split_whitespace()
-                .next()?
-                .parse::<u64>()
-                .ok()
-        })
-    };
-    let machine = std::fs::read_to_string("/proc/meminfo")
-        .ok()
-        .and_then(|s| field(&s, "MemAvailable:"))
-        .map_or(8 << 30, |kib| kib * 1024);
-    // "Max address space  <soft> <hard> bytes"; the soft limit is the one that fails allocations
-    let limit = std::fs::read_to_string("/proc/self/limits")
-        .ok()
-        .and_then(|s| field(&s, "Max address space"));
-    match limit {
-        Some(limit) => {
-            let used = std::fs::read_to_string("/proc/self/status")
-                .ok()
-                .and_then(|s| field(&s, "VmSize:"))
-                .map_or(0, |kib| kib * 1024);
-            machine.min(limit.saturating_sub(used))
-        }
-        None => machine,
     }
 }
 

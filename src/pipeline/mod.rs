@@ -174,7 +174,7 @@ impl Default for GridParams {
             kernel: Kernel::Wyvill,
             cells_per_radius: 3.0,
             resolution: None,
-            memory_budget: crate::io::DEFAULT_MEMORY_BUDGET,
+            memory_budget: crate::memory::DEFAULT_MEMORY_BUDGET,
             narrow_band: false,
         }
     }

@@ -98,7 +98,7 @@ pub struct RefineParams {
     /// The most memory the refined points may take, in bytes, at [`BYTES_PER_POINT`] each: a
     /// step whose candidates (an upper bound on its new points) would go over it is refused
     /// before it runs, with [`RefineError::OverBudget`]. Default
-    /// [`crate::io::DEFAULT_MEMORY_BUDGET`], the density grid's.
+    /// [`crate::memory::DEFAULT_MEMORY_BUDGET`], the density grid's.
     pub memory_budget: u64,
 }
 
@@ -120,7 +120,7 @@ impl Default for RefineParams {
             original_weight: 1e6,
             splat_factor: 0.6,
             kernel_factor: 2.0,
-            memory_budget: crate::io::DEFAULT_MEMORY_BUDGET,
+            memory_budget: crate::memory::DEFAULT_MEMORY_BUDGET,
         }
     }
 }
