@@ -227,26 +227,9 @@ fn data_type(c: &Cursor<'_>, word: Option<&str>) -> Result<VtkType, IoError> {
     })
 }
 
-/// Parses a whole legacy VTK file held in memory; `path` names it in errors.
-#[allow(
-    clippy::too_many_lines,
-    reason = "issue 38: still to split into named phases"
-)]
-pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
-    if !bytes.starts_with(b"# vtk DataFile") {
-        return Err(IoError::WrongFormat {
-            path: path.to_owned(),
-            expected: "legacy VTK",
-            found: super::describe(bytes),
-        });
-    }
-    let mut c = Cursor {
-        bytes,
-        pos: 0,
-        line: 0,
-        binary: false,
-        path,
-    };
+/// The header: the version line (1.x to 5.x), the title and `ASCII` or `BINARY` (which sets the
+/// cursor's mode); returns the version.
+fn header(c: &mut Cursor<'_>, path: &Path) -> Result<f32, IoError> {
     let first = c.raw_line()?.unwrap_or_default();
     let version: f32 = first
         .rsplit(' ')
@@ -271,6 +254,150 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
             ));
         }
     }
+    Ok(version)
+}
+
+/// Skips a `CELLS`-like block (the particles need no cells): 5.x `OFFSETS` and `CONNECTIVITY`
+/// arrays of their own type, or the older single list of ints.
+fn skip_cells(
+    c: &mut Cursor<'_>,
+    words: &mut std::str::SplitWhitespace<'_>,
+    version: f32,
+    binary: bool,
+) -> Result<(), IoError> {
+    let a: u64 = number(c, words.next(), "a cell count")?;
+    let b: u64 = number(c, words.next(), "a cell list size")?;
+    if version >= 5.0 {
+        // 5.x: OFFSETS <type> (a values) and CONNECTIVITY <type> (b values)
+        for (label, count) in [("OFFSETS", a), ("CONNECTIVITY", b)] {
+            c.binary = false;
+            let l = c.line()?.unwrap_or("end of file");
+            c.binary = binary;
+            let mut w = l.split_whitespace();
+            if w.next().map(str::to_ascii_uppercase).as_deref() != Some(label) {
+                return Err(c.err(format!("`{label} <type>`"), super::quoted(l)));
+            }
+            let t = data_type(c, w.next())?;
+            c.values(count, t, label)?;
+        }
+    } else {
+        c.values(b, vtk_type("int").expect("int is a VTK type"), "cell lists")?;
+    }
+    Ok(())
+}
+
+/// The component count and value type of a `SCALARS`, `VECTORS`, `NORMALS`, `TENSORS`,
+/// `TEXTURE_COORDINATES` or `COLOR_SCALARS` header.
+fn array_header(
+    c: &Cursor<'_>,
+    keyword: &str,
+    words: &mut std::str::SplitWhitespace<'_>,
+    binary: bool,
+) -> Result<(usize, VtkType), IoError> {
+    Ok(match keyword {
+        "SCALARS" => {
+            let t = data_type(c, words.next())?;
+            (
+                words
+                    .next()
+                    .map_or(Ok(1), |w| number::<usize>(c, Some(w), "a component count"))?,
+                t,
+            )
+        }
+        "VECTORS" | "NORMALS" => (3, data_type(c, words.next())?),
+        "TENSORS" => (9, data_type(c, words.next())?),
+        "TEXTURE_COORDINATES" => {
+            let dim: usize = number(c, words.next(), "a dimension")?;
+            (dim, data_type(c, words.next())?)
+        }
+        _ => {
+            let k: usize = number(c, words.next(), "a component count")?;
+            let t = if binary {
+                vtk_type("unsigned_char")
+            } else {
+                vtk_type("float")
+            };
+            (k, t.expect("known VTK types"))
+        }
+    })
+}
+
+/// Skips a `LOOKUP_TABLE` block (four values a colour).
+fn skip_lookup_table(
+    c: &mut Cursor<'_>,
+    words: &mut std::str::SplitWhitespace<'_>,
+    binary: bool,
+) -> Result<(), IoError> {
+    let _name = words.next();
+    let size: u64 = number(c, words.next(), "a table size")?;
+    let t = if binary {
+        vtk_type("unsigned_char")
+    } else {
+        vtk_type("float")
+    };
+    c.values(
+        size.saturating_mul(4),
+        t.expect("known VTK types"),
+        "a lookup table",
+    )?;
+    Ok(())
+}
+
+/// A `FIELD` block's arrays; those of point data with one tuple a point (`point_count`, given
+/// inside `POINT_DATA` only) join `attributes`.
+fn field_arrays(
+    c: &mut Cursor<'_>,
+    words: &mut std::str::SplitWhitespace<'_>,
+    binary: bool,
+    point_count: Option<u64>,
+    attributes: &mut Vec<RawAttribute>,
+) -> Result<(), IoError> {
+    let _name = words.next();
+    let arrays: u64 = number(c, words.next(), "an array count")?;
+    for _ in 0..arrays {
+        c.binary = false;
+        let l = c
+            .line()?
+            .ok_or_else(|| c.err("a field array header", "end of file"))?;
+        c.binary = binary;
+        let mut w = l.split_whitespace();
+        let name = w.next().unwrap_or("").to_owned();
+        let components: usize = number(c, w.next(), "a component count")?;
+        let tuples: u64 = number(c, w.next(), "a tuple count")?;
+        let t = data_type(c, w.next())?;
+        if components == 0 || components > 64 {
+            return Err(c.err("1 to 64 components", components.to_string()));
+        }
+        let values = c.values(tuples.saturating_mul(components as u64), t, &name)?;
+        if point_count == Some(tuples) {
+            attributes.push(RawAttribute {
+                name,
+                kind: t.kind,
+                components,
+                values,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Parses a whole legacy VTK file held in memory; `path` names it in errors.
+pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
+    if !bytes.starts_with(b"# vtk DataFile") {
+        return Err(IoError::WrongFormat {
+            path: path.to_owned(),
+            expected: "legacy VTK",
+            found: super::describe(bytes),
+        });
+    }
+    let mut c = Cursor {
+        bytes,
+        pos: 0,
+        line: 0,
+        binary: false,
+        path,
+    };
+    let version = header(&mut c, path)?;
     let binary = c.binary;
     let mut positions: Option<Vec<glam::Vec3>> = None;
     let mut point_count: Option<u64> = None;
@@ -316,24 +443,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                 point_count = Some(n);
             }
             "CELLS" | "VERTICES" | "LINES" | "POLYGONS" | "TRIANGLE_STRIPS" => {
-                let a: u64 = number(&c, words.next(), "a cell count")?;
-                let b: u64 = number(&c, words.next(), "a cell list size")?;
-                if version >= 5.0 {
-                    // 5.x: OFFSETS <type> (a values) and CONNECTIVITY <type> (b values)
-                    for (label, count) in [("OFFSETS", a), ("CONNECTIVITY", b)] {
-                        c.binary = false;
-                        let l = c.line()?.unwrap_or("end of file");
-                        c.binary = binary;
-                        let mut w = l.split_whitespace();
-                        if w.next().map(str::to_ascii_uppercase).as_deref() != Some(label) {
-                            return Err(c.err(format!("`{label} <type>`"), super::quoted(l)));
-                        }
-                        let t = data_type(&c, w.next())?;
-                        c.values(count, t, label)?;
-                    }
-                } else {
-                    c.values(b, vtk_type("int").expect("int is a VTK type"), "cell lists")?;
-                }
+                skip_cells(&mut c, &mut words, version, binary)?;
             }
             "CELL_TYPES" => {
                 let n: u64 = number(&c, words.next(), "a cell type count")?;
@@ -360,32 +470,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                     .next()
                     .ok_or_else(|| c.err("an array name", "end of line"))?
                     .to_owned();
-                let (components, t) = match keyword.as_str() {
-                    "SCALARS" => {
-                        let t = data_type(&c, words.next())?;
-                        (
-                            words.next().map_or(Ok(1), |w| {
-                                number::<usize>(&c, Some(w), "a component count")
-                            })?,
-                            t,
-                        )
-                    }
-                    "VECTORS" | "NORMALS" => (3, data_type(&c, words.next())?),
-                    "TENSORS" => (9, data_type(&c, words.next())?),
-                    "TEXTURE_COORDINATES" => {
-                        let dim: usize = number(&c, words.next(), "a dimension")?;
-                        (dim, data_type(&c, words.next())?)
-                    }
-                    _ => {
-                        let k: usize = number(&c, words.next(), "a component count")?;
-                        let t = if binary {
-                            vtk_type("unsigned_char")
-                        } else {
-                            vtk_type("float")
-                        };
-                        (k, t.expect("known VTK types"))
-                    }
-                };
+                let (components, t) = array_header(&c, &keyword, &mut words, binary)?;
                 if components == 0 || components > 64 {
                     return Err(c.err("1 to 64 components", components.to_string()));
                 }
@@ -416,46 +501,16 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                 }
             }
             "LOOKUP_TABLE" => {
-                let _name = words.next();
-                let size: u64 = number(&c, words.next(), "a table size")?;
-                let t = if binary {
-                    vtk_type("unsigned_char")
-                } else {
-                    vtk_type("float")
-                };
-                c.values(
-                    size.saturating_mul(4),
-                    t.expect("known VTK types"),
-                    "a lookup table",
-                )?;
+                skip_lookup_table(&mut c, &mut words, binary)?;
             }
             "FIELD" => {
-                let _name = words.next();
-                let arrays: u64 = number(&c, words.next(), "an array count")?;
-                for _ in 0..arrays {
-                    c.binary = false;
-                    let l = c
-                        .line()?
-                        .ok_or_else(|| c.err("a field array header", "end of file"))?;
-                    c.binary = binary;
-                    let mut w = l.split_whitespace();
-                    let name = w.next().unwrap_or("").to_owned();
-                    let components: usize = number(&c, w.next(), "a component count")?;
-                    let tuples: u64 = number(&c, w.next(), "a tuple count")?;
-                    let t = data_type(&c, w.next())?;
-                    if components == 0 || components > 64 {
-                        return Err(c.err("1 to 64 components", components.to_string()));
-                    }
-                    let values = c.values(tuples.saturating_mul(components as u64), t, &name)?;
-                    if in_point_data && Some(tuples) == point_count {
-                        attributes.push(RawAttribute {
-                            name,
-                            kind: t.kind,
-                            components,
-                            values,
-                        });
-                    }
-                }
+                field_arrays(
+                    &mut c,
+                    &mut words,
+                    binary,
+                    in_point_data.then_some(point_count).flatten(),
+                    &mut attributes,
+                )?;
             }
             "METADATA" => {
                 // a block of text ended by a blank line
