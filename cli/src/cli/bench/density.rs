@@ -63,21 +63,24 @@ struct DensityBenchReport {
     surfels: Option<usize>,
 }
 
-/// The paper's case by default: 150,000 particles of a water body into a 256^3 grid.
-#[allow(
-    clippy::too_many_lines,
-    reason = "issue 38: still to split into named phases"
-)]
-pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
-    use fluid_surfels::density::{self, GridSpec, Kernel, Resolution};
+/// Each GPU method's time in ms and its largest relative difference from the CPU, with the
+/// adapter's name.
+type GpuTimes = (
+    Vec<(fluid_surfels::density::gpu::GpuDensityMethod, f64, f32)>,
+    String,
+);
+
+/// `particles` points of a block filling the lower half of the unit box (side n, height n/2),
+/// and the support radius (two spacings).
+fn block_positions(particles: usize) -> (Vec<glam::Vec3>, f32) {
     // a block filling the lower half of the unit box: side n, height n/2
-    let side = ((2 * args.particles.max(1)) as f64).cbrt().round().max(2.0) as u32;
+    let side = ((2 * particles.max(1)) as f64).cbrt().round().max(2.0) as u32;
     let s = 1.0 / side as f32;
-    let mut positions = Vec::with_capacity(args.particles);
+    let mut positions = Vec::with_capacity(particles);
     'fill: for k in 0..side {
         for j in 0..side {
             for i in 0..side {
-                if positions.len() == args.particles {
+                if positions.len() == particles {
                     break 'fill;
                 }
                 positions.push((glam::Vec3::new(i as f32, k as f32, j as f32) + 0.5) * s);
@@ -85,6 +88,78 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
         }
     }
     let h = 2.0 * s;
+    (positions, h)
+}
+
+/// Whether every evaluated value of the sparse grid is the dense grid's, bit for bit.
+fn sparse_equals_dense(
+    sparse: &fluid_surfels::density::SparseGrid,
+    grid: &fluid_surfels::density::DensityGrid,
+    spec: &fluid_surfels::density::GridSpec,
+) -> bool {
+    let [nx, ny, _] = spec.dims;
+    sparse.evaluated_blocks().all(|b| {
+        let values = sparse.block_values(b).expect("evaluated");
+        (0..values.len()).all(|l| {
+            use fluid_surfels::density::sparse::BLOCK;
+            let n = BLOCK as usize;
+            let p = [l % n, (l / n) % n, l / (n * n)].map(|v| v as u32);
+            let (i, j, k) = (
+                b[0] * BLOCK + p[0],
+                b[1] * BLOCK + p[1],
+                b[2] * BLOCK + p[2],
+            );
+            i >= nx
+                || j >= ny
+                || k >= spec.dims[2]
+                || !sparse.is_evaluated(i, j, k)
+                || values[l].to_bits() == grid.at(i, j, k).to_bits()
+        })
+    })
+}
+
+/// Each GPU method's time on `positions` (after an untimed run on a few) and its largest
+/// difference from the CPU's `grid`, relative to the grid's peak.
+fn time_gpu(
+    ctx: &fluid_surfels::gpu::GpuContext,
+    positions: &[glam::Vec3],
+    h: f32,
+    spec: &fluid_surfels::density::GridSpec,
+    grid: &fluid_surfels::density::DensityGrid,
+) -> Result<Vec<(fluid_surfels::density::gpu::GpuDensityMethod, f64, f32)>, Error> {
+    use fluid_surfels::density::Kernel;
+    use fluid_surfels::density::Points;
+    use fluid_surfels::density::gpu::{GpuDensityMethod, density_grid_gpu_with};
+    let max = grid.max().max(f32::MIN_POSITIVE);
+    let mut timed = Vec::new();
+    for method in [GpuDensityMethod::Splat, GpuDensityMethod::Gather] {
+        let few = &positions[..positions.len().min(1000)];
+        let _ = density_grid_gpu_with(ctx, Points::uniform(few, h), spec, Kernel::Wyvill, method)?;
+        let t = Instant::now();
+        let g = density_grid_gpu_with(
+            ctx,
+            Points::uniform(positions, h),
+            spec,
+            Kernel::Wyvill,
+            method,
+        )?;
+        let gpu_ms = ms(t);
+        let diff = g
+            .values
+            .iter()
+            .zip(&grid.values)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max)
+            / max;
+        timed.push((method, gpu_ms, diff));
+    }
+    Ok(timed)
+}
+
+/// The paper's case by default: 150,000 particles of a water body into a 256^3 grid.
+pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
+    use fluid_surfels::density::{self, GridSpec, Kernel, Resolution};
+    let (positions, h) = block_positions(args.particles);
     let spec = GridSpec::for_box(
         glam::Vec3::ZERO,
         glam::Vec3::ONE,
@@ -126,66 +201,16 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
         &iso_params,
     )?;
     let sparse_extract_ms = ms(t);
-    let [nx, ny, _] = spec.dims;
-    let sparse_equals_dense = sparse.evaluated_blocks().all(|b| {
-        let values = sparse.block_values(b).expect("evaluated");
-        (0..values.len()).all(|l| {
-            use fluid_surfels::density::sparse::BLOCK;
-            let n = BLOCK as usize;
-            let p = [l % n, (l / n) % n, l / (n * n)].map(|v| v as u32);
-            let (i, j, k) = (
-                b[0] * BLOCK + p[0],
-                b[1] * BLOCK + p[1],
-                b[2] * BLOCK + p[2],
-            );
-            i >= nx
-                || j >= ny
-                || k >= spec.dims[2]
-                || !sparse.is_evaluated(i, j, k)
-                || values[l].to_bits() == grid.at(i, j, k).to_bits()
-        })
-    });
+    let sparse_equals_dense = sparse_equals_dense(&sparse, &grid, &spec);
     let (empty_blocks, inside_blocks, evaluated_blocks) = sparse.counts();
     let sparse_points = sparse.evaluated_points();
     let sparse_bytes = sparse.bytes();
     drop(sparse);
-    // the GPU path, when an adapter exists: one untimed run (pipeline creation, shader
-    // compilation), then the timed one
     // the GPU paths, when an adapter exists: one untimed run each (pipeline creation, shader
     // compilation), then the timed one
     let gpu = match fluid_surfels::gpu::GpuContext::headless() {
         Ok(ctx) => {
-            use fluid_surfels::density::Points;
-            use fluid_surfels::density::gpu::{GpuDensityMethod, density_grid_gpu_with};
-            let max = grid.max().max(f32::MIN_POSITIVE);
-            let mut timed = Vec::new();
-            for method in [GpuDensityMethod::Splat, GpuDensityMethod::Gather] {
-                let few = &positions[..positions.len().min(1000)];
-                let _ = density_grid_gpu_with(
-                    &ctx,
-                    Points::uniform(few, h),
-                    &spec,
-                    Kernel::Wyvill,
-                    method,
-                )?;
-                let t = Instant::now();
-                let g = density_grid_gpu_with(
-                    &ctx,
-                    Points::uniform(&positions, h),
-                    &spec,
-                    Kernel::Wyvill,
-                    method,
-                )?;
-                let gpu_ms = ms(t);
-                let diff = g
-                    .values
-                    .iter()
-                    .zip(&grid.values)
-                    .map(|(a, b)| (a - b).abs())
-                    .fold(0.0f32, f32::max)
-                    / max;
-                timed.push((method, gpu_ms, diff));
-            }
+            let timed = time_gpu(&ctx, &positions, h, &spec, &grid)?;
             Some((timed, ctx.adapter.map(|a| a.name).unwrap_or_default()))
         }
         Err(e) => {
@@ -263,50 +288,70 @@ pub fn bench_density(args: &BenchDensityArgs) -> Result<(), Error> {
     if args.json {
         crate::cli::print_json(&report);
     } else {
-        println!(
-            "bench density: {} particles (block filling the lower half of a cubic box), h = {h:.5}, grid {:?}, {} threads",
-            report.particles, report.grid, report.threads
-        );
-        println!("  CPU (z-clustered slabs, parallel)  {cpu:>9.1} ms");
-        println!(
-            "  CPU sparse blocks (8^3, LNM band)  {cpu_sparse_ms:>9.1} ms   ratio {:.2}x ({band_ms:.1} ms of it the band); blocks {empty_blocks} empty, {inside_blocks} inside, {evaluated_blocks} evaluated ({:.1} % of the grid's points, {:.1} MiB against {:.1}), {}",
-            cpu / cpu_sparse_ms,
-            100.0 * sparse_points as f64 / spec.cells() as f64,
-            sparse_bytes as f64 / (1u64 << 20) as f64,
-            spec.bytes() as f64 / (1u64 << 20) as f64,
-            if sparse_equals_dense {
-                "every evaluated value the dense one's"
-            } else {
-                "DIFFERENT from the dense grid"
-            }
-        );
-        if let (Some(n), Some(d)) = (naive_ms, diff) {
-            println!(
-                "  naive reference (one thread)       {n:>9.1} ms   ratio {:.1}x, max difference {d:e} of the peak",
-                n / cpu
-            );
-        }
-        println!(
-            "  surfel extraction (CPU)            {extract_ms:>9.1} ms   {} surfels",
-            surfels.len()
-        );
-        println!(
-            "  surfel extraction, sparse          {sparse_extract_ms:>9.1} ms   ratio {:.2}x, {}",
-            extract_ms / sparse_extract_ms,
-            if sparse_same_surfels {
-                "the same surfels"
-            } else {
-                "DIFFERENT surfels"
-            }
-        );
-        if let Some((timed, name)) = &gpu {
-            for (method, g, d) in timed {
-                println!(
-                    "  GPU {method:?} ({name})  {g:>9.1} ms   ratio to CPU {:.2}x, max difference {d:e} of the peak",
-                    cpu / g
-                );
-            }
-        }
+        print_text(&report, &spec, gpu.as_ref());
     }
     Ok(())
+}
+
+/// The bench's text report: each path's time, the ratios, the sizes, and each GPU method's.
+fn print_text(
+    report: &DensityBenchReport,
+    spec: &fluid_surfels::density::GridSpec,
+    gpu: Option<&GpuTimes>,
+) {
+    let cpu = report.cpu_density_ms;
+    println!(
+        "bench density: {} particles (block filling the lower half of a cubic box), h = {:.5}, grid {:?}, {} threads",
+        report.particles, report.h, report.grid, report.threads
+    );
+    println!(
+        "  CPU (z-clustered slabs, parallel)  {:>9.1} ms",
+        report.cpu_density_ms
+    );
+    println!(
+        "  CPU sparse blocks (8^3, LNM band)  {:>9.1} ms   ratio {:.2}x ({:.1} ms of it the band); blocks {} empty, {} inside, {} evaluated ({:.1} % of the grid's points, {:.1} MiB against {:.1}), {}",
+        report.cpu_sparse_ms,
+        cpu / report.cpu_sparse_ms,
+        report.band_ms,
+        report.sparse_blocks[0],
+        report.sparse_blocks[1],
+        report.sparse_blocks[2],
+        100.0 * report.sparse_evaluated_points as f64 / spec.cells() as f64,
+        report.sparse_bytes as f64 / (1u64 << 20) as f64,
+        spec.bytes() as f64 / (1u64 << 20) as f64,
+        if report.sparse_equals_dense {
+            "every evaluated value the dense one's"
+        } else {
+            "DIFFERENT from the dense grid"
+        }
+    );
+    if let (Some(n), Some(d)) = (report.naive_density_ms, report.max_difference_from_naive) {
+        println!(
+            "  naive reference (one thread)       {n:>9.1} ms   ratio {:.1}x, max difference {d:e} of the peak",
+            n / cpu
+        );
+    }
+    println!(
+        "  surfel extraction (CPU)            {:>9.1} ms   {} surfels",
+        report.cpu_extract_ms.unwrap_or(0.0),
+        report.surfels.unwrap_or(0)
+    );
+    println!(
+        "  surfel extraction, sparse          {:>9.1} ms   ratio {:.2}x, {}",
+        report.sparse_extract_ms,
+        report.cpu_extract_ms.unwrap_or(0.0) / report.sparse_extract_ms,
+        if report.sparse_same_surfels {
+            "the same surfels"
+        } else {
+            "DIFFERENT surfels"
+        }
+    );
+    if let Some((timed, name)) = gpu {
+        for (method, g, d) in timed {
+            println!(
+                "  GPU {method:?} ({name})  {g:>9.1} ms   ratio to CPU {:.2}x, max difference {d:e} of the peak",
+                cpu / g
+            );
+        }
+    }
 }
