@@ -479,22 +479,18 @@ impl Pipeline {
         camera: &crate::splat::Camera,
         (w, h): (u32, u32),
     ) -> Result<crate::splat::Render, Error> {
-        use super::{Renderer, sphere_points};
         let light = Light::default();
         let params = self.splat_params();
-        Ok(match self.params().renderer {
-            Renderer::Ssfr => {
-                let (positions, radii) = sphere_points(surfels);
-                let screen = self.screen_space(&positions, &radii)?;
+        let points = self.peer_points(surfels);
+        Ok(match self.peer_renderers(points.as_ref())? {
+            (_, Some(screen)) => {
                 let view = View::new(camera, &light, &params, w, h)?;
                 crate::ssfr::gpu::render_view_gpu(ctx, &screen, &view)?.render
             }
-            Renderer::RayCast => {
-                let (positions, radii) = sphere_points(surfels);
-                let caster = self.caster(&positions, &radii)?;
+            (Some(caster), _) => {
                 crate::raycast::gpu::render_gpu(ctx, &caster, camera, &light, &params, w, h)?.render
             }
-            Renderer::Ewa | Renderer::ParticleSplat => {
+            (None, None) => {
                 crate::splat::gpu::render_gpu(ctx, surfels, camera, &light, &params, w, h)?
             }
         })

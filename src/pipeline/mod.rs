@@ -635,7 +635,25 @@ impl Pipeline {
             return Ok(frame);
         }
         // stage 3: density grid and iso-surface surfels
-        self.source_stage(particles, &mut frame, radius, &mut warnings)?;
+        let (render, iso) = self.source_stage(
+            self.params.source,
+            particles,
+            &frame.surface,
+            frame.refined.as_ref(),
+            radius,
+        )?;
+        frame.render_surfels = render;
+        match iso {
+            Some(Some(iso)) => {
+                frame.timings.density_ms = iso.density_ms;
+                frame.timings.surfels_ms = iso.surfels_ms;
+                self.warn(&mut warnings, iso.warning);
+                frame.grid = Some(iso.grid);
+                frame.surfels = Some(iso.surfels);
+            }
+            Some(None) => frame.surfels = Some(Surfels::default()),
+            None => {}
+        }
         if through >= Through::Splats {
             self.render(&mut frame, through)?;
         }
@@ -644,36 +662,67 @@ impl Pipeline {
         Ok(frame)
     }
 
-    /// Stage 3 for the pipeline's source and renderer: the frame's render surfels (and its grid
-    /// and surfels for the density sources with the EWA renderer; spheres of the source's points
-    /// for the peer renderers).
+    /// Stage 3 for `source` and the pipeline's renderer, from a frame's surface and refined
+    /// points: the surfels to draw (spheres of the source's points for the peer renderers), and
+    /// for the density sources with the EWA renderer the grid stage's result (`Some(None)`: no
+    /// point to make a grid of).
     fn source_stage(
         &mut self,
+        source: SurfelSource,
         particles: ParticleView<'_>,
-        frame: &mut Frame,
+        surface: &Surface,
+        refined: Option<&Refined>,
         radius: f32,
-        warnings: &mut Vec<String>,
-    ) -> Result<(), Error> {
+    ) -> Result<(Vec<Surfel>, Option<Option<IsoSurfels>>), Error> {
         let colour = splat::WATER;
+        let refined = || refined.expect("refined above");
         if self.params.renderer != Renderer::Ewa {
-            let (positions, radii) = match self.params.source {
-                SurfelSource::Chain => chain_points(
-                    particles,
-                    &frame.surface,
-                    frame.refined.as_ref().expect("refined above"),
-                    radius,
-                ),
+            let (positions, radii) = match source {
+                SurfelSource::Chain => chain_points(particles, surface, refined(), radius),
                 SurfelSource::Particles => (particles.positions.to_vec(), Vec::new()),
                 SurfelSource::Refined => {
-                    let r = frame.refined.as_ref().expect("refined above");
+                    let r = refined();
                     (r.positions.clone(), r.kernel_radii.clone())
                 }
             };
-            frame.render_surfels = splat::spheres_from(&positions, &radii, radius, colour);
-        } else {
-            self.iso_or_refined_surfels(particles, frame, radius, warnings)?;
+            return Ok((
+                splat::spheres_from(&positions, &radii, radius, colour),
+                None,
+            ));
         }
-        Ok(())
+        // stage 3 of the EWA renderer: the refined points themselves, or the iso-surface of
+        // the source's density grid
+        let (positions, radii) = match source {
+            SurfelSource::Refined => {
+                let r = refined();
+                let render =
+                    splat::surfels_from(&r.positions, &r.normals, &r.gap_free_radii(), colour);
+                return Ok((render, None));
+            }
+            SurfelSource::Chain => {
+                let (p, r) = chain_points(particles, surface, refined(), radius);
+                (std::borrow::Cow::Owned(p), r)
+            }
+            SurfelSource::Particles => {
+                (std::borrow::Cow::Borrowed(particles.positions), Vec::new())
+            }
+        };
+        let points = if radii.is_empty() {
+            Points::uniform(&positions, radius)
+        } else {
+            Points::with_radii(&positions, &radii, radius)
+        };
+        let buffer = std::mem::take(&mut self.grid_buffer);
+        let iso = iso_surfels_in(points, &self.params.grid, &self.params.surfels, buffer)?;
+        let render = iso.as_ref().map_or_else(Vec::new, |iso| {
+            splat::surfels_from(
+                &iso.surfels.positions,
+                &iso.surfels.normals,
+                &iso.surfels.radii,
+                colour,
+            )
+        });
+        Ok((render, Some(iso)))
     }
 
     /// The surfels `source` draws for a frame this pipeline made from `particles` (its surface
@@ -686,91 +735,24 @@ impl Pipeline {
         frame: &Frame,
         source: SurfelSource,
     ) -> Result<Vec<Surfel>, Error> {
-        let particles: ParticleView<'a> = particles.into();
-        let mut scratch = Frame {
-            radius: frame.radius,
-            mean_neighbours: frame.mean_neighbours,
-            surface: frame.surface.clone(),
-            surface_indices: frame.surface_indices.clone(),
-            refined: frame.refined.clone(),
-            grid: None,
-            surfels: None,
-            render_surfels: Vec::new(),
-            camera: None,
-            splats: None,
-            finished: None,
-            timings: FrameTimings::default(),
-            warnings: Vec::new(),
-        };
-        if scratch.refined.is_none() && source != SurfelSource::Particles {
+        if frame.refined.is_none() && source != SurfelSource::Particles {
             return Err(Error::InvalidArgument {
                 argument: "frame",
                 reason: "the chain and refined sources need a frame made through refinement".into(),
             });
         }
-        let kept = std::mem::replace(&mut self.params.source, source);
-        let mut warnings = Vec::new();
-        let made = self.source_stage(particles, &mut scratch, frame.radius, &mut warnings);
-        self.params.source = kept;
-        made?;
-        Ok(scratch.render_surfels)
-    }
-
-    /// Stage 3 of the EWA renderer: the source's surfels (on the iso-surface of its density
-    /// grid, or the refined points themselves).
-    fn iso_or_refined_surfels(
-        &mut self,
-        particles: ParticleView<'_>,
-        frame: &mut Frame,
-        radius: f32,
-        warnings: &mut Vec<String>,
-    ) -> Result<(), Error> {
-        let colour = splat::WATER;
-        match self.params.source {
-            SurfelSource::Refined => {
-                let r = frame.refined.as_ref().expect("refined above");
-                frame.render_surfels =
-                    splat::surfels_from(&r.positions, &r.normals, &r.gap_free_radii(), colour);
-            }
-            source => {
-                let (positions, radii) = match source {
-                    SurfelSource::Chain => {
-                        let (p, r) = chain_points(
-                            particles,
-                            &frame.surface,
-                            frame.refined.as_ref().expect("refined above"),
-                            radius,
-                        );
-                        (std::borrow::Cow::Owned(p), r)
-                    }
-                    _ => (std::borrow::Cow::Borrowed(particles.positions), Vec::new()),
-                };
-                let points = if radii.is_empty() {
-                    Points::uniform(&positions, radius)
-                } else {
-                    Points::with_radii(&positions, &radii, radius)
-                };
-                let buffer = std::mem::take(&mut self.grid_buffer);
-                if let Some(iso) =
-                    iso_surfels_in(points, &self.params.grid, &self.params.surfels, buffer)?
-                {
-                    frame.timings.density_ms = iso.density_ms;
-                    frame.timings.surfels_ms = iso.surfels_ms;
-                    self.warn(warnings, iso.warning);
-                    frame.render_surfels = splat::surfels_from(
-                        &iso.surfels.positions,
-                        &iso.surfels.normals,
-                        &iso.surfels.radii,
-                        colour,
-                    );
-                    frame.grid = Some(iso.grid);
-                    frame.surfels = Some(iso.surfels);
-                } else {
-                    frame.surfels = Some(Surfels::default());
-                }
-            }
+        let (render, iso) = self.source_stage(
+            source,
+            particles.into(),
+            &frame.surface,
+            frame.refined.as_ref(),
+            frame.radius,
+        )?;
+        // a coarsened grid is said as frame_through says it
+        if let Some(Some(iso)) = iso {
+            self.warn(&mut Vec::new(), iso.warning);
         }
-        Ok(())
+        Ok(render)
     }
 
     /// Stages 4 and 5 on surfels made elsewhere (a file of surfels, another tool's): the shaded
@@ -826,22 +808,41 @@ impl Pipeline {
         p
     }
 
+    /// The points and radii the peer renderers draw ([`sphere_points`] of the surfels), for
+    /// [`Renderer::RayCast`] and [`Renderer::Ssfr`]; `None` for the splatting renderers.
+    fn peer_points(&self, surfels: &[Surfel]) -> Option<(Vec<Vec3>, Vec<f32>)> {
+        matches!(self.params.renderer, Renderer::RayCast | Renderer::Ssfr)
+            .then(|| sphere_points(surfels))
+    }
+
+    /// What the peer renderer draws `points` (of [`Pipeline::peer_points`]) with, built once for
+    /// every view of a frame: the ray caster or the screen-space renderer (with its narrow band).
+    fn peer_renderers<'a>(
+        &self,
+        points: Option<&'a (Vec<Vec3>, Vec<f32>)>,
+    ) -> Result<
+        (
+            Option<crate::raycast::Caster<'a>>,
+            Option<crate::ssfr::ScreenSpace<'a>>,
+        ),
+        Error,
+    > {
+        let Some((p, r)) = points else {
+            return Ok((None, None));
+        };
+        Ok(match self.params.renderer {
+            Renderer::RayCast => (Some(self.caster(p, r)?), None),
+            Renderer::Ssfr => (None, Some(self.screen_space(p, r)?)),
+            Renderer::Ewa | Renderer::ParticleSplat => (None, None),
+        })
+    }
+
     /// Stages 4 and 5 on the frame's surfels, with the views kept for the sequence.
     fn render(&mut self, frame: &mut Frame, through: Through) -> Result<(), Error> {
         let surfels = &frame.render_surfels;
         let [w, h] = self.params.scene.optics.image_size;
-        let points = matches!(self.params.renderer, Renderer::RayCast | Renderer::Ssfr)
-            .then(|| sphere_points(surfels));
-        let caster = match &points {
-            Some((p, r)) if self.params.renderer == Renderer::RayCast => Some(self.caster(p, r)?),
-            _ => None,
-        };
-        let screen = match &points {
-            Some((p, r)) if self.params.renderer == Renderer::Ssfr => {
-                Some(self.screen_space(p, r)?)
-            }
-            _ => None,
-        };
+        let points = self.peer_points(surfels);
+        let (caster, screen) = self.peer_renderers(points.as_ref())?;
         let water: &dyn optics::WaterSurface = match (&caster, &screen) {
             (Some(c), _) => c,
             (_, Some(s)) => s,
@@ -890,18 +891,8 @@ impl Pipeline {
         camera: &Camera,
         size: (u32, u32),
     ) -> Result<Render, Error> {
-        let points = matches!(self.params.renderer, Renderer::RayCast | Renderer::Ssfr)
-            .then(|| sphere_points(surfels));
-        let caster = match &points {
-            Some((p, r)) if self.params.renderer == Renderer::RayCast => Some(self.caster(p, r)?),
-            _ => None,
-        };
-        let screen = match &points {
-            Some((p, r)) if self.params.renderer == Renderer::Ssfr => {
-                Some(self.screen_space(p, r)?)
-            }
-            _ => None,
-        };
+        let points = self.peer_points(surfels);
+        let (caster, screen) = self.peer_renderers(points.as_ref())?;
         self.draw_with(caster.as_ref(), screen.as_ref(), surfels, camera, size)
     }
 
