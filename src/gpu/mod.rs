@@ -56,7 +56,8 @@ pub struct AdapterSummary {
 impl AdapterSummary {
     /// Whether the adapter is a software rasteriser (Mesa's lavapipe/llvmpipe, wgpu's
     /// `DeviceType::Cpu`): it proves the GPU path correct but runs it slower than the CPU path
-    /// (the renderers 1.3-3.4x in docs/design.md's measured tables; PLATFORM.md), so it is no
+    /// (measured in docs/design.md: the splatting renderers 1.3-3.2x, ray casting 38-94x;
+    /// PLATFORM.md), so it is no
     /// default.
     #[must_use]
     pub fn is_software(&self) -> bool {
