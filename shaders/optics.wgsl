@@ -48,6 +48,9 @@ struct Uniforms {
     env_ground: vec4<f32>,
     // x: receiver triangles met by exact rays (0: the geometry-map search instead)
     exact: vec4<f32>,
+    // the receiver's container: floor corner (w = 1: there is one) and opposite corner
+    container_min: vec4<f32>,
+    container_max: vec4<f32>,
 }
 
 struct Vertex {
@@ -372,6 +375,25 @@ fn water_at(colour: vec4<f32>, normal_depth: vec4<f32>) -> vec4<f32> {
     return nd;
 }
 
+// Mirror: Stage::holds_water and Container::holds (NaN is outside).
+fn holds_water(p: vec3<f32>) -> bool {
+    if (!(u.container_min.w > 0.0)) {
+        return true;
+    }
+    let lo = u.container_min.xyz;
+    let hi = u.container_max.xyz;
+    return p.x >= lo.x && p.x <= hi.x && p.z >= lo.z && p.z <= hi.z && p.y >= lo.y;
+}
+
+// Mirror: Container::outer_face.
+fn outer_face(p: vec3<f32>, n: vec3<f32>) -> bool {
+    if (!(u.container_min.w > 0.0)) {
+        return false;
+    }
+    let e = u.container_max.xyz - u.container_min.xyz;
+    return !holds_water(p + n * (1e-4 * max(e.x, max(e.y, e.z))));
+}
+
 fn unit_or(n: vec3<f32>, fallback: vec3<f32>) -> vec3<f32> {
     let l2 = dot(n, n);
     if (!(l2 > 0.0 && l2 < 3.0e38)) {
@@ -394,9 +416,10 @@ fn cs_vertices(@builtin(global_invocation_id) id: vec3<u32>) {
     v.transmit = vec4<f32>(0.0);
     let p = vec2<i32>(id.xy);
     let nd = water_at(textureLoad(screen_colour, p, 0), textureLoad(screen_normal, p, 0));
-    if (nd.w > 0.0) {
-        let ray = world_ray(u.screen, vec2<f32>(id.xy) + 0.5);
-        let s = ray.origin + ray.dir * nd.w;
+    let ray = world_ray(u.screen, vec2<f32>(id.xy) + 0.5);
+    let s = ray.origin + ray.dir * nd.w;
+    // the water outside its container sends no light
+    if (nd.w > 0.0 && holds_water(s)) {
         let inc = incoming(s);
         let n = unit_or(nd.xyz, -inc.dir);
         let cos_i = -dot(n, inc.dir);
@@ -418,13 +441,19 @@ fn cs_vertices(@builtin(global_invocation_id) id: vec3<u32>) {
         }
         v.surface = vec4<f32>(s, nd.w);
         var hit: vec4<f32>;
+        // w = 2: the ray met the side of a surface facing away from the light (the inside of
+        // a thin wall), which the light's map does not hold (mirror: CausticVertex::hit); the
+        // search finds only what the map shows, the side the light sees
+        var side = 1.0;
         if (u.exact.x > 0.0) {
-            hit = intersect_receiver(s, dir, u.env.y).hit;
+            let e = intersect_receiver(s, dir, u.env.y);
+            hit = e.hit;
+            side = select(2.0, 1.0, dot(e.normal, -inc.dir) > 0.0);
         } else {
             hit = search_receiver(u.map, map_position, s, dir);
         }
         if (hit.w >= 0.0) {
-            v.hit = vec4<f32>(hit.xyz, 1.0);
+            v.hit = vec4<f32>(hit.xyz, side);
             v.transmit = vec4<f32>(transmittance * exp(-u.extinction.rgb * hit.w), 0.0);
         }
     }
@@ -495,21 +524,46 @@ fn finite2(p: vec2<f32>) -> bool {
     return abs(p.x) < 3.0e38 && abs(p.y) < 3.0e38;
 }
 
-// Mirror: deposit in src/optics/cpu.rs (box-filtered, flux-conserving rasterisation).
-fn deposit_triangle(p0: vec2<f32>, p1: vec2<f32>, p2: vec2<f32>, value: vec3<f32>) {
+// Mirror: depth_bias (1.5 texels plus twice the surface's depth change across a texel).
+fn depth_bias(q: vec2<f32>, z: f32, n: vec3<f32>) -> f32 {
+    let d = world_ray(u.map, q).dir;
+    let c = abs(dot(n, d) / max(length(d), 1e-20));
+    let slope = min(sqrt(max(1.0 - c * c, 0.0)) / max(c, 0.05), 20.0);
+    return (1.5 + 2.0 * slope) * pixel_size(u.map, z);
+}
+
+// Whether the map texel (x, y) shows the caustics triangle's own surface: its receiver depth
+// within the triangle's depths [z0, z1], widened by the texel's bias (mirror: deposit_owned).
+fn owns_texel(x: u32, y: u32, z0: f32, z1: f32) -> bool {
+    let t = vec2<i32>(i32(x), i32(y));
+    let g = textureLoad(map_position, t, 0).w;
+    let n = textureLoad(map_normal, t, 0).xyz;
+    let bias = depth_bias(vec2<f32>(f32(x) + 0.5, f32(y) + 0.5), g, n);
+    return g > 0.0 && g >= z0 - bias && g <= z1 + bias;
+}
+
+// Mirror: deposit_owned in src/optics/cpu.rs (box-filtered, flux-conserving rasterisation into
+// the texels that show the triangle's own surface). q0..q2: map pixel coordinates and depth.
+fn deposit_triangle(q0: vec3<f32>, q1: vec3<f32>, q2: vec3<f32>, value: vec3<f32>) {
     let width = u.map.viewport.x;
     let height = u.map.viewport.y;
+    let p0 = q0.xy;
+    let p1 = q1.xy;
+    let p2 = q2.xy;
     if (!(finite2(p0) && finite2(p1) && finite2(p2))) {
         return;
     }
     let e1 = p1 - p0;
     let e2 = p2 - p0;
     let total = abs(e1.x * e2.y - e1.y * e2.x);
+    let z0 = min(min(q0.z, q1.z), q2.z);
+    let z1 = max(max(q0.z, q1.z), q2.z);
     let lo = min(min(p0, p1), p2);
     let hi = max(max(p0, p1), p2);
     if (!(total > 1e-12)) {
         let m = (p0 + p1 + p2) / 3.0;
-        if (m.x >= 0.0 && m.y >= 0.0 && m.x < width && m.y < height) {
+        if (m.x >= 0.0 && m.y >= 0.0 && m.x < width && m.y < height
+            && owns_texel(u32(m.x), u32(m.y), z0, z1)) {
             add_texel(u32(m.x), u32(m.y), value);
         }
         return;
@@ -539,7 +593,7 @@ fn deposit_triangle(p0: vec2<f32>, p1: vec2<f32>, p2: vec2<f32>, value: vec3<f32
                 continue;
             }
             let a = abs(polygon_area2(cell));
-            if (a > 0.0) {
+            if (a > 0.0 && owns_texel(x, y, z0, z1)) {
                 add_texel(x, y, value * (a / total));
             }
         }
@@ -565,16 +619,19 @@ fn draw_triangle(a: Vertex, b: Vertex, c: Vertex) {
     if (!(a.hit.w > 0.0 && b.hit.w > 0.0 && c.hit.w > 0.0)) {
         return;
     }
-    // light brought to a receiver point hidden from the light is not kept (mirror: the CPU's
-    // hidden_in_map)
+    // light brought to a receiver point hidden from the light, or to the side of a surface
+    // facing away from it, is not kept (mirror: the CPU's hidden_in_map and hit.w = 2)
+    if (a.hit.w > 1.5 || b.hit.w > 1.5 || c.hit.w > 1.5) {
+        return;
+    }
     if (hidden_in_map(a.hit.xyz) || hidden_in_map(b.hit.xyz) || hidden_in_map(c.hit.xyz)) {
         return;
     }
     let transmit = (a.transmit.rgb + b.transmit.rgb + c.transmit.rgb) / 3.0;
-    let p0 = project(u.map, a.hit.xyz).xy;
-    let p1 = project(u.map, b.hit.xyz).xy;
-    let p2 = project(u.map, c.hit.xyz).xy;
-    deposit_triangle(p0, p1, p2, incident * transmit);
+    let q0 = project(u.map, a.hit.xyz);
+    let q1 = project(u.map, b.hit.xyz);
+    let q2 = project(u.map, c.hit.xyz);
+    deposit_triangle(q0, q1, q2, incident * transmit);
 }
 
 @compute @workgroup_size(8, 8)
@@ -631,10 +688,7 @@ fn caustics_at(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
     if (x < -1.0 || y < -1.0 || x > f32(w) || y > f32(h)) {
         return vec3<f32>(0.0);
     }
-    let d = world_ray(u.map, q).dir;
-    let c = abs(dot(n, d) / max(length(d), 1e-20));
-    let slope = min(sqrt(max(1.0 - c * c, 0.0)) / max(c, 0.05), 20.0);
-    let bias = (1.5 + 2.0 * slope) * pixel_size(u.map, q3.z);
+    let bias = depth_bias(q, q3.z, n);
     let fx = floor(x);
     let fy = floor(y);
     let tx = x - fx;
@@ -746,6 +800,10 @@ fn receiver_irradiance(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
     if (!(facing > 0.0) || shadowed(p, n)) {
         return vec3<f32>(0.0);
     }
+    // an outer face of the container: no water between it and the light, the maps not read
+    if (outer_face(p, n)) {
+        return inc.e * facing;
+    }
     let direct = inc.e * facing * (1.0 - water_cover(p));
     return direct + caustics_at(p, n);
 }
@@ -811,8 +869,8 @@ fn cs_frame(@builtin(global_invocation_id) id: vec3<u32>) {
     let receiver = textureLoad(camera_position, p, 0);
     var c: vec4<f32>;
     // the water where it lies in front of the receiver (an opaque wall may hide it)
-    if (nd.w > 0.0 && !(receiver.w > 0.0 && receiver.w < nd.w)) {
-        let point = ray.origin + ray.dir * nd.w;
+    let point = ray.origin + ray.dir * nd.w;
+    if (nd.w > 0.0 && !(receiver.w > 0.0 && receiver.w < nd.w) && holds_water(point)) {
         c = vec4<f32>(water_pixel(point, dn, unit_or(nd.xyz, -dn)), 1.0);
     } else {
         let g = textureLoad(camera_position, p, 0);

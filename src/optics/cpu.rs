@@ -52,8 +52,13 @@ pub struct Caustics {
     /// Water triangles whose refracted rays missed the receiver.
     pub missed: usize,
     /// Water triangles whose refracted rays reached receiver points hidden from the light (their
-    /// flux is not kept: see `caustics_cpu`).
+    /// flux is not kept: see `caustics_cpu`), or whose caustics triangle covers no texel of its
+    /// own surface.
     pub hidden: usize,
+    /// Flux that reached the receiver where the light's map cannot hold it: at points hidden
+    /// from the light, on the far sides of surfaces, and over texels that show another surface
+    /// ([`deposit_owned`]). `transmitted + dropped` is all the flux the caustics triangles carried.
+    pub dropped: Vec3,
 }
 
 /// World point and view depth of a screen pixel seen with `depth`.
@@ -115,19 +120,68 @@ fn polygon_area2(p: &[Vec2; 8], n: usize) -> f32 {
     (0..n).map(|i| p[i].perp_dot(p[(i + 1) % n])).sum()
 }
 
-/// Adds `value` (a flux) to the map texels a triangle (in pixel coordinates) overlaps, each in
-/// proportion to the exact area of the overlap: box-filtered rasterisation. Unlike drawing the
-/// irradiance `value / S_c` at texel centres (the paper's hardware rasterisation), it loses no
-/// flux to triangles smaller than a texel, so the map conserves flux exactly, and a uniform
-/// tiling of triangles still gives a uniform map. A degenerate triangle gives its flux to the
-/// texel of its centroid. `deposit_triangle` in the WGSL.
-pub fn deposit(map: &mut [[f32; 4]], width: u32, height: u32, p: [Vec2; 3], value: Vec3) {
-    let mut add = |x: u32, y: u32, v: Vec3| {
-        let t = &mut map[(y * width + x) as usize];
-        t[0] += v.x;
-        t[1] += v.y;
-        t[2] += v.z;
-    };
+fn add_texel(map: &mut [[f32; 4]], width: u32, x: u32, y: u32, v: Vec3) {
+    let t = &mut map[(y * width + x) as usize];
+    t[0] += v.x;
+    t[1] += v.y;
+    t[2] += v.z;
+}
+
+/// Adds `value` (a flux) to the caustics map by box-filtered rasterisation ([`rasterise`]),
+/// into the texels that show the caustics triangle's own surface (issue 41): the
+/// triangle `q` is in the map's pixel coordinates with its view depth in `z`; a texel takes its
+/// share only where the receiver the light sees there (`geometry`, `normals`) lies within the
+/// triangle's depths, widened by the texel's slope-scaled bias ([`depth_bias`]). A caustics
+/// triangle on the floor behind a wall's edge, seen from the light, overlaps texels of the
+/// wall's top or outer face, far nearer the light; their shares are dropped like the light that
+/// reaches points hidden from the light (`Caustics::dropped`) instead of lighting the wall.
+/// The depth range, not the triangle's plane: a triangle across a corner (a vertex on the floor,
+/// two on a wall) has a chord for a plane, and the plane test dropped a quarter of such
+/// triangles' flux on the column's splash frame (the range: 4-6 %, the texels at the seams).
+/// Returns the share of `value` deposited. `deposit_triangle` in the WGSL.
+pub fn deposit_owned(
+    map: &mut [[f32; 4]],
+    view: &View,
+    geometry: &[[f32; 4]],
+    normals: &[[f32; 4]],
+    q: [Vec3; 3],
+    value: Vec3,
+) -> f32 {
+    let (w, h) = (view.width, view.height);
+    let zmin = q[0].z.min(q[1].z).min(q[2].z);
+    let zmax = q[0].z.max(q[1].z).max(q[2].z);
+    let mut deposited = 0.0;
+    rasterise(w, h, q.map(|v| v.truncate()), |x, y, share| {
+        let i = (y * w + x) as usize;
+        let g = geometry[i][3];
+        let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+        let bias = depth_bias(view, centre, g, Vec4::from(normals[i]).truncate());
+        if g > 0.0 && g >= zmin - bias && g <= zmax + bias {
+            add_texel(map, w, x, y, value * share);
+            deposited += share;
+        }
+    });
+    deposited
+}
+
+/// The depth a lookup in a light's map allows between a point and the surface a texel shows:
+/// 1.5 texels plus twice the surface's depth change across a texel (slope-scaled, capped at 20),
+/// for a surface of normal `n` seen at pixel `q` and depth `z`. `depth_bias` in the WGSL.
+pub(crate) fn depth_bias(v: &View, q: Vec2, z: f32, n: Vec3) -> f32 {
+    let (_, d) = v.world_ray(q);
+    let c = (n.dot(d) / d.length().max(1e-20)).abs();
+    let slope = ((1.0 - c * c).max(0.0).sqrt() / c.max(0.05)).min(20.0);
+    (1.5 + 2.0 * slope) * pixel_size(v, z)
+}
+
+/// Calls `texel(x, y, share)` for each texel of a `width x height` map that the triangle `p`
+/// (pixel coordinates) overlaps, with the exact area of the overlap as a share of the
+/// triangle's: box-filtered rasterisation. Unlike drawing the irradiance `value / S_c` at texel
+/// centres (the paper's hardware rasterisation), a deposit this way loses no flux to triangles
+/// smaller than a texel, so the map conserves flux exactly, and a uniform tiling of triangles
+/// still gives a uniform map. A degenerate triangle gives all of it to the texel of its
+/// centroid.
+fn rasterise(width: u32, height: u32, p: [Vec2; 3], mut texel: impl FnMut(u32, u32, f32)) {
     if !(p[0].is_finite() && p[1].is_finite() && p[2].is_finite()) {
         return;
     }
@@ -137,7 +191,7 @@ pub fn deposit(map: &mut [[f32; 4]], width: u32, height: u32, p: [Vec2; 3], valu
     if !(total > 1e-12) {
         let m = (p[0] + p[1] + p[2]) / 3.0;
         if m.x >= 0.0 && m.y >= 0.0 && m.x < width as f32 && m.y < height as f32 {
-            add(m.x as u32, m.y as u32, value);
+            texel(m.x as u32, m.y as u32, 1.0);
         }
         return;
     }
@@ -168,7 +222,7 @@ pub fn deposit(map: &mut [[f32; 4]], width: u32, height: u32, p: [Vec2; 3], valu
             }
             let a = polygon_area2(&cell, m).abs();
             if a > 0.0 {
-                add(x, y, value * (a / total));
+                texel(x, y, a / total);
             }
         }
     }
@@ -212,6 +266,10 @@ pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, 
             };
             let (x, y) = (i as u32 % sw, i as u32 / sw);
             let s = point_at(&screen, x, y, depth);
+            // the water outside its container (through a wall) sends no light (issue 41)
+            if !stage.holds_water(s) {
+                return CausticVertex::default();
+            }
             let (inc, _) = stage.incoming(s);
             let n = unit_or(n_acc, -inc);
             let cos_i = -n.dot(inc);
@@ -272,6 +330,7 @@ pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, 
         discontinuous: 0,
         missed: 0,
         hidden: 0,
+        dropped: Vec3::ZERO,
     };
     let limit = stage.scene.optics.discontinuity;
     for y in 0..sh.saturating_sub(1) {
@@ -300,12 +359,19 @@ pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, 
                             c.hit.w > 1.5 || hidden_in_map(&map, &out.geometry, c.hit.truncate())
                         }) {
                             out.hidden += 1;
+                            out.dropped += f;
                             continue;
                         }
-                        out.transmitted += f;
-                        out.triangles += 1;
-                        let p = v.map(|c| map.project(c.hit.truncate()).truncate());
-                        deposit(&mut flux, mw, mh, p, f);
+                        let q = v.map(|c| map.project(c.hit.truncate()));
+                        let share =
+                            deposit_owned(&mut flux, &map, &out.geometry, &out.normals, q, f);
+                        out.transmitted += f * share;
+                        out.dropped += f * (1.0 - share);
+                        if share > 0.0 {
+                            out.triangles += 1;
+                        } else {
+                            out.hidden += 1;
+                        }
                     }
                 }
             }
@@ -409,10 +475,7 @@ impl Caustics {
         if x < -1.0 || y < -1.0 || x > w as f32 || y > h as f32 {
             return Vec3::ZERO;
         }
-        let (_, d) = v.world_ray(Vec2::new(q.x, q.y));
-        let c = (n.dot(d) / d.length().max(1e-20)).abs();
-        let slope = ((1.0 - c * c).max(0.0).sqrt() / c.max(0.05)).min(20.0);
-        let bias = (1.5 + 2.0 * slope) * pixel_size(v, q.z);
+        let bias = depth_bias(v, Vec2::new(q.x, q.y), q.z, n);
         let (fx, fy) = (x.floor(), y.floor());
         let (tx, ty) = (x - fx, y - fy);
         let (mut sum, mut weight) = (Vec3::ZERO, 0.0);
@@ -540,6 +603,17 @@ pub fn receiver_irradiance(stage: &Stage, c: &Caustics, p: Vec3, n: Vec3) -> Vec
     if !(facing > 0.0) || stage.light_blocked(p + n * eps, eps) {
         return Vec3::ZERO;
     }
+    // an outer face of the container: the light reaching it crosses no water (see
+    // `Container::outer_face`), and the light's maps, whose texels there may show the water or
+    // the floor behind the wall's edge, are not read (issue 41: dark streaks of the water's
+    // cover and the caustics of the floor on the tank's sunlit outer faces)
+    if stage
+        .receiver
+        .container
+        .is_some_and(|box_| box_.outer_face(p, n))
+    {
+        return e * facing;
+    }
     let direct = e * facing * (1.0 - c.water_cover(p));
     direct + c.irradiance_at(p, n)
 }
@@ -596,8 +670,12 @@ pub fn frame_of(
             // the water where it lies in front of the receiver (an opaque wall may hide it)
             let len = d.length();
             let receiver = stage.receiver.intersect(o, dn, 0.0);
+            // and inside its container (what reaches through a wall is not water: issue 41)
             match water_at(&water, i) {
-                Some((n_acc, depth)) if receiver.is_none_or(|h| h.t / len >= depth) => {
+                Some((n_acc, depth))
+                    if receiver.is_none_or(|h| h.t / len >= depth)
+                        && stage.holds_water(o + d * depth) =>
+                {
                     let p = o + d * depth;
                     water_pixel(stage, caustics, p, dn, unit_or(n_acc, -dn)).extend(1.0)
                 }

@@ -62,7 +62,7 @@ impl RawView {
     }
 }
 
-/// The optics uniforms (`Uniforms` in optics.wgsl, 880 bytes).
+/// The optics uniforms (`Uniforms` in optics.wgsl, 912 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct RawOptics {
@@ -84,6 +84,9 @@ pub struct RawOptics {
     /// x: the receiver's triangle count when rays meet it exactly (at most
     /// [`EXACT_TRIANGLES`]), 0 when the geometry-map search finds the hits.
     pub exact: [f32; 4],
+    /// The receiver's container (`w = 1`; 0: none): its floor corner and opposite corner.
+    pub container_min: [f32; 4],
+    pub container_max: [f32; 4],
 }
 
 /// Receivers of at most this many triangles (a plane, an open box, a small mesh) are met by
@@ -162,6 +165,14 @@ fn raw_optics(stage: &Stage, camera: &View) -> RawOptics {
             0.0,
             0.0,
         ],
+        container_min: match stage.receiver.container {
+            Some(c) => v4(c.min, 1.0),
+            None => [0.0; 4],
+        },
+        container_max: match stage.receiver.container {
+            Some(c) => v4(c.max, 0.0),
+            None => [0.0; 4],
+        },
     }
 }
 

@@ -63,7 +63,7 @@ pub use cpu::{
     Caustics, FrameImage, WaterSurface, caustics_cpu, caustics_of, frame_cpu, frame_of,
     receiver_irradiance,
 };
-pub use receiver::{Receiver, ReceiverGeometry, ReceiverKind};
+pub use receiver::{Container, Receiver, ReceiverGeometry, ReceiverKind};
 
 /// Errors of the optics stage.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -596,6 +596,13 @@ impl Stage {
                 LightKind::Point => h.t < (self.scene.light.position - p).length(),
             },
         }
+    }
+
+    /// Whether the water point `p` is inside the receiver's container (always, for a receiver
+    /// that is no container). `holds_water` in the WGSL.
+    #[must_use]
+    pub fn holds_water(&self, p: Vec3) -> bool {
+        self.receiver.container.is_none_or(|c| c.holds(p))
     }
 
     /// The receiver's diffuse reflectance `f_r` at `p` with normal `n` (a checkerboard when

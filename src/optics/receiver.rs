@@ -102,7 +102,50 @@ impl Receiver {
                 read_obj(path)?
             }
         };
-        ReceiverGeometry::new(triangles)
+        let mut geometry = ReceiverGeometry::new(triangles)?;
+        if matches!(self.kind, ReceiverKind::Auto | ReceiverKind::OpenBox) {
+            let (lo, hi) = geometry.bounds();
+            geometry.container = Some(Container { min: lo, max: hi });
+        }
+        Ok(geometry)
+    }
+}
+
+/// The inside of a receiver that holds the water (issue 41): the open box's prism over its floor
+/// and between its walls, open upwards (a splash above the rim is still in it). The water is
+/// clipped to it: what of the water's surface lies outside (a splat disk reaching through a
+/// wall, the raw particles' surface poking past a face) is neither drawn nor casts shadow nor
+/// bends light. Its faces are the walls': zero thickness, so without the clip the water inside
+/// showed through a wall's outer face and shaded it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Container {
+    /// The floor's corner (`min.y` is the floor).
+    pub min: Vec3,
+    /// The opposite corner (`max.y`, the walls' top, does not bound the prism).
+    pub max: Vec3,
+}
+
+impl Container {
+    /// Whether the water point `p` is inside: over the floor and between the walls (inclusive).
+    /// NaN is outside.
+    #[must_use]
+    pub fn holds(&self, p: Vec3) -> bool {
+        p.x >= self.min.x
+            && p.x <= self.max.x
+            && p.z >= self.min.z
+            && p.z <= self.max.z
+            && p.y >= self.min.y
+    }
+
+    /// Whether the receiver point `p` with normal `n` is on an outer face: its side of the face
+    /// (a step along `n`) lies outside the prism. The light that reaches such a point from the
+    /// side it faces never crosses the prism (the outer faces of a box lie on its hull: the
+    /// ray from a point of the +x face towards a light with `l.x > 0` only moves away from the
+    /// box), so no water, which is all inside, can shade or light it.
+    #[must_use]
+    pub fn outer_face(&self, p: Vec3, n: Vec3) -> bool {
+        let step = 1e-4 * (self.max - self.min).max_element();
+        !self.holds(p + n * step)
     }
 }
 
@@ -221,6 +264,9 @@ pub struct ReceiverGeometry {
     bvh: CwBvh,
     tris: Vec<Triangle>,
     bounds: (Vec3, Vec3),
+    /// The inside that holds the water, for an open box (`Auto`, `OpenBox`); `None` for a plane or
+    /// a mesh, whose water is not clipped.
+    pub container: Option<Container>,
 }
 
 impl std::fmt::Debug for ReceiverGeometry {
@@ -285,6 +331,7 @@ impl ReceiverGeometry {
             bvh,
             tris,
             bounds,
+            container: None,
         })
     }
 
