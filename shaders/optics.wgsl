@@ -375,17 +375,43 @@ fn water_at(colour: vec4<f32>, normal_depth: vec4<f32>) -> vec4<f32> {
     return nd;
 }
 
-// Mirror: Stage::holds_water and Container::holds (NaN is outside).
+// Mirror: ReceiverGeometry::inside (the parity of the crossings along PARITY_DIR, every
+// triangle tested as intersect_receiver does, at most 64 counted).
+fn inside_mesh(p: vec3<f32>) -> bool {
+    let lo = u.container_min.xyz;
+    let hi = u.container_max.xyz;
+    if (any(p < lo) || any(p > hi) || !(abs(p.x) < 3.0e38 && abs(p.y) < 3.0e38 && abs(p.z) < 3.0e38)) {
+        return false;
+    }
+    let d = vec3<f32>(0.3112658, 0.8660254, 0.3911472);
+    let eps = 1e-6 * max(hi.x - lo.x, max(hi.y - lo.y, hi.z - lo.z));
+    var t = 0.0;
+    var crossings = 0u;
+    for (; crossings < 64u; crossings++) {
+        let h = intersect_receiver(p, d, t).hit;
+        if (h.w < 0.0) {
+            break;
+        }
+        t = h.w + eps;
+    }
+    return crossings % 2u == 1u;
+}
+
+// Mirror: Stage::holds_water and ReceiverGeometry::holds (NaN is outside): w = 1 an open box's
+// prism, w = 2 a closed mesh.
 fn holds_water(p: vec3<f32>) -> bool {
     if (!(u.container_min.w > 0.0)) {
         return true;
+    }
+    if (u.container_min.w > 1.5) {
+        return inside_mesh(p);
     }
     let lo = u.container_min.xyz;
     let hi = u.container_max.xyz;
     return p.x >= lo.x && p.x <= hi.x && p.z >= lo.z && p.z <= hi.z && p.y >= lo.y;
 }
 
-// Mirror: Container::outer_face.
+// Mirror: ReceiverGeometry::outer_face.
 fn outer_face(p: vec3<f32>, n: vec3<f32>) -> bool {
     if (!(u.container_min.w > 0.0)) {
         return false;

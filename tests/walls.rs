@@ -6,23 +6,39 @@
 //! face of a convex container lies on its hull, so nothing of the box or of the water inside it
 //! can stand between it and the light.
 
-use fluid_surfels::optics::{OpticsScene, ReceiverKind, Stage, frame_of};
+use fluid_surfels::gpu::GpuContext;
+use fluid_surfels::optics::gpu::OpticsGpu;
+use fluid_surfels::optics::{Container, OpticsScene, ReceiverKind, Stage, frame_of};
 use fluid_surfels::splat::{Camera, Light, SplatParams, View};
 use glam::{Vec2, Vec3};
+
+/// The GPU context and the optics' compiled pipelines, made once per test (compiling the
+/// optics' shaders takes lavapipe about a second).
+fn gpu_optics(what: &str) -> Option<(GpuContext, OpticsGpu)> {
+    let ctx = fluid_surfels::gpu::context_or_skip(what).unwrap()?;
+    let optics = OpticsGpu::new(&ctx.device).unwrap();
+    Some((ctx, optics))
+}
 
 /// Where the ray `o + t d` first meets the open box `lo..hi` (floor and four walls, no lid), when
 /// that is an outer face: the point and the face's outward normal. `None` when the ray misses
 /// the box, meets an inner face first, or lands within `edge` of a face's border (where the
 /// pixel's centre may fall on either face).
 fn outer_face_hit(lo: Vec3, hi: Vec3, o: Vec3, d: Vec3, edge: f32) -> Option<(Vec3, Vec3)> {
+    face_hit(lo, hi, o, d, edge, false)
+}
+
+/// [`outer_face_hit`] of the open box, or of the closed box (`lid`).
+fn face_hit(lo: Vec3, hi: Vec3, o: Vec3, d: Vec3, edge: f32, lid: bool) -> Option<(Vec3, Vec3)> {
     let mut best: Option<(f32, Vec3, Vec3, bool)> = None;
-    // (axis, plane, outward normal, the two other axes' ranges)
+    // (axis, plane, outward normal)
     let faces = [
         (1, lo.y, Vec3::NEG_Y),
         (0, lo.x, Vec3::NEG_X),
         (0, hi.x, Vec3::X),
         (2, lo.z, Vec3::NEG_Z),
         (2, hi.z, Vec3::Z),
+        (1, if lid { hi.y } else { f32::NAN }, Vec3::Y),
     ];
     for (axis, plane, out) in faces {
         if d[axis] == 0.0 {
@@ -143,11 +159,9 @@ fn column_views(scene: &OpticsScene) -> Vec<(&'static str, Camera)> {
 /// The same two sides for any box under the light: eyes off the corner between the two outer
 /// faces the light falls on (and the opposite corner), below the rim.
 fn box_views(stage: &Stage) -> Vec<(&'static str, Camera)> {
-    let c = stage
-        .receiver
-        .container
-        .expect("an automatic pool is a container");
-    let (lo, hi) = (c.min, c.max);
+    let Some(Container::OpenBox { min: lo, max: hi }) = stage.receiver.container else {
+        panic!("an automatic pool is an open box");
+    };
     let ext = hi - lo;
     let l = stage.scene.light.direction;
     let target = Vec3::new(
@@ -184,7 +198,7 @@ fn check_views(
     surfels: &[fluid_surfels::splat::Surfel],
     views: &[(&'static str, Camera)],
     size: (u32, u32),
-    gpu: Option<&fluid_surfels::gpu::GpuContext>,
+    gpu: Option<&(GpuContext, OpticsGpu)>,
 ) -> Vec<String> {
     let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("walls");
     std::fs::create_dir_all(&out).unwrap();
@@ -193,10 +207,12 @@ fn check_views(
         stage.camera = *camera;
         let cpu = frame_of(stage, &surfels, caustics, size).unwrap();
         let mut results = vec![("cpu", cpu.image, cpu.linear)];
-        if let Some(ctx) = gpu {
-            let (g, _) =
-                fluid_surfels::optics::gpu::render_gpu(ctx, stage, surfels, Some(size)).unwrap();
-            let (image, linear) = g.frame.unwrap();
+        if let Some((ctx, optics)) = gpu {
+            let prepared = optics
+                .prepare(&ctx.device, &ctx.queue, stage, surfels, Some(size))
+                .unwrap();
+            fluid_surfels::optics::gpu::run_timed(ctx, optics, &prepared).unwrap();
+            let (image, linear) = prepared.read(ctx).unwrap().frame.unwrap();
             results.push(("gpu", image, linear));
         }
         for (backend, image, linear) in results {
@@ -230,7 +246,7 @@ fn check_views(
 fn column_outer_walls_show_exactly_the_direct_light() {
     use fluid_surfels::pipeline::{Pipeline, PipelineParams, Through, column_frame};
     use fluid_surfels::scenes::{ColumnParams, ColumnSim, column_pool};
-    let gpu = fluid_surfels::gpu::context_or_skip("column_outer_walls").unwrap();
+    let gpu = gpu_optics("column_outer_walls");
     let mut sim = ColumnSim::new(ColumnParams::default()).unwrap();
     let tank = ColumnParams::default().tank;
     let mut params = PipelineParams {
@@ -263,7 +279,7 @@ fn column_outer_walls_show_exactly_the_direct_light() {
 #[test]
 fn real_files_outer_walls_show_exactly_the_direct_light() {
     use fluid_surfels::pipeline::{Pipeline, PipelineParams, SurfelSource, Through};
-    let gpu = fluid_surfels::gpu::context_or_skip("real_files_outer_walls").unwrap();
+    let gpu = gpu_optics("real_files_outer_walls");
     let mut failures = Vec::new();
     for file in [
         "dam_break_frame_23_24389_particles.bgeo",
@@ -372,5 +388,117 @@ fn caustics_stay_off_the_outer_faces_texels() {
         let (g, _) =
             fluid_surfels::optics::gpu::render_gpu(&ctx, stage, &f.render_surfels, None).unwrap();
         report("gpu", &g.flux);
+    }
+}
+
+/// A closed mesh holds the water too: a water slab twice as wide as a closed cube (a mesh read
+/// from OBJ), seen from outside, is clipped at the cube's faces: no pixel shows water, and every
+/// pixel of the cube shows the analytic light (no shadow of the water outside, no caustics on
+/// the outside), CPU and GPU (whose exact rays test every triangle). Without the clip the slab's
+/// parts outside the cube were drawn and shaded the cube. An open mesh (the cube without its
+/// top, as OBJ) is no container.
+#[test]
+fn a_closed_mesh_holds_its_water() {
+    use fluid_surfels::scenes::height_field;
+    let gpu = fluid_surfels::gpu::context_or_skip("a_closed_mesh_holds_its_water").unwrap();
+    let (lo, hi) = (Vec3::new(-0.3, 0.0, -0.3), Vec3::new(0.3, 0.6, 0.3));
+    let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("walls");
+    std::fs::create_dir_all(&out).unwrap();
+    let corner = |k: usize| {
+        Vec3::new(
+            if k & 1 == 0 { lo.x } else { hi.x },
+            if k & 2 == 0 { lo.y } else { hi.y },
+            if k & 4 == 0 { lo.z } else { hi.z },
+        )
+    };
+    let mut obj: String = (0..8)
+        .map(|k| {
+            let c = corner(k);
+            format!("v {} {} {}\n", c.x, c.y, c.z)
+        })
+        .collect();
+    // the six faces as quads (1-based corners), the top one last
+    for f in [
+        [1, 2, 6, 5],
+        [1, 3, 4, 2],
+        [5, 6, 8, 7],
+        [1, 5, 7, 3],
+        [2, 4, 8, 6],
+        [3, 7, 8, 4],
+    ] {
+        obj += &format!("f {} {} {} {}\n", f[0], f[1], f[2], f[3]);
+    }
+    let cube = out.join("closed_cube.obj");
+    std::fs::write(&cube, &obj).unwrap();
+    let open = out.join("open_cube.obj");
+    std::fs::write(&open, obj.rsplit_once("f ").unwrap().0).unwrap();
+    let mut scene = OpticsScene::default();
+    scene.light.direction = Vec3::new(0.5, 1.0, 0.3);
+    scene.receiver.kind = ReceiverKind::Mesh;
+    scene.receiver.path = Some(open);
+    scene.receiver.checker = 0.1;
+    let surfels = height_field(0.6, 0.02, |_, _| 0.3);
+    assert_eq!(
+        Stage::new(&scene, &surfels).unwrap().receiver.container,
+        None
+    );
+    scene.receiver.path = Some(cube);
+    scene.camera = Some(Camera {
+        eye: Vec3::new(1.4, 1.1, 1.7),
+        target: Vec3::new(0.0, 0.2, 0.0),
+        near: 0.05,
+        far: 20.0,
+        ..Default::default()
+    });
+    let size = (200u32, 150u32);
+    let stage = Stage::new(&scene, &surfels).unwrap();
+    assert_eq!(stage.receiver.container, Some(Container::ClosedMesh));
+    assert!(stage.holds_water(Vec3::new(0.1, 0.3, -0.2)));
+    assert!(!stage.holds_water(Vec3::new(0.4, 0.3, 0.0)));
+    assert!(!stage.holds_water(Vec3::NAN));
+    let c = fluid_surfels::optics::caustics_cpu(&stage, &surfels).unwrap();
+    let cpu = frame_of(&stage, &surfels.as_slice(), &c, size).unwrap();
+    cpu.image.save(out.join("closed_cube_cpu.png")).unwrap();
+    let mut results = vec![("cpu", cpu.linear)];
+    if let Some(ctx) = gpu {
+        let (g, _) =
+            fluid_surfels::optics::gpu::render_gpu(&ctx, &stage, &surfels, Some(size)).unwrap();
+        results.push(("gpu", g.frame.unwrap().1));
+    }
+    let view = View::new(
+        &stage.camera,
+        &Light::default(),
+        &SplatParams::default(),
+        size.0,
+        size.1,
+    )
+    .unwrap();
+    let l = scene.light.direction.normalize();
+    for (backend, linear) in results {
+        let water = linear.iter().filter(|p| p[3] > 0.0).count();
+        let (mut checked, mut off) = (0, 0);
+        for (i, px) in linear.iter().enumerate() {
+            let (x, y) = ((i as u32 % size.0) as f32, (i as u32 / size.0) as f32);
+            let (o, d) = view.world_ray(Vec2::new(x + 0.5, y + 0.5));
+            let Some((p, n)) = face_hit(lo, hi, o, d.normalize(), 1e-4, true) else {
+                continue;
+            };
+            if on_checker_line(&scene, p, n, 1e-4) {
+                continue;
+            }
+            checked += 1;
+            let expected =
+                stage.albedo(p, n) * scene.light.colour * n.dot(l).max(0.0) + scene.light.ambient;
+            let got = Vec3::new(px[0], px[1], px[2]);
+            if ((got - expected).abs() / expected).max_element() > 0.01 {
+                off += 1;
+            }
+        }
+        println!(
+            "closed cube, {backend}: {water} water pixels, {checked} cube pixels, {off} off by more than 1 %"
+        );
+        assert_eq!(water, 0, "{backend}: water drawn outside the closed mesh");
+        assert!(checked > 3000, "{checked}");
+        assert_eq!(off, 0, "{backend}");
     }
 }

@@ -604,14 +604,10 @@ pub fn receiver_irradiance(stage: &Stage, c: &Caustics, p: Vec3, n: Vec3) -> Vec
         return Vec3::ZERO;
     }
     // an outer face of the container: the light reaching it crosses no water (see
-    // `Container::outer_face`), and the light's maps, whose texels there may show the water or
+    // `ReceiverGeometry::outer_face`), and the light's maps, whose texels there may show the water or
     // the floor behind the wall's edge, are not read (issue 41: dark streaks of the water's
     // cover and the caustics of the floor on the tank's sunlit outer faces)
-    if stage
-        .receiver
-        .container
-        .is_some_and(|box_| box_.outer_face(p, n))
-    {
+    if stage.receiver.outer_face(p, n) {
         return e * facing;
     }
     let direct = e * facing * (1.0 - c.water_cover(p));

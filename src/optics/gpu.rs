@@ -16,7 +16,7 @@ use serde::Serialize;
 use wgpu::util::DeviceExt;
 
 use crate::gpu::{self, GpuContext, GpuError, entry, texture_2d, texture_descriptor};
-use crate::optics::{EnvironmentKind, LightKind, OpticsError, Stage, encode};
+use crate::optics::{Container, EnvironmentKind, LightKind, OpticsError, Stage, encode};
 use crate::raycast::Caster;
 use crate::raycast::gpu::GpuCaster;
 use crate::splat::gpu::{SplatRenderer, SurfelBuffer};
@@ -84,7 +84,9 @@ pub struct RawOptics {
     /// x: the receiver's triangle count when rays meet it exactly (at most
     /// [`EXACT_TRIANGLES`]), 0 when the geometry-map search finds the hits.
     pub exact: [f32; 4],
-    /// The receiver's container (`w = 1`; 0: none): its floor corner and opposite corner.
+    /// The receiver's container: `w = 1` an open box (its floor corner and opposite corner),
+    /// `w = 2` a closed mesh (its bounds; met with exact rays only: at most
+    /// [`EXACT_TRIANGLES`]), 0 none.
     pub container_min: [f32; 4],
     pub container_max: [f32; 4],
 }
@@ -166,11 +168,15 @@ fn raw_optics(stage: &Stage, camera: &View) -> RawOptics {
             0.0,
         ],
         container_min: match stage.receiver.container {
-            Some(c) => v4(c.min, 1.0),
-            None => [0.0; 4],
+            Some(Container::OpenBox { min, .. }) => v4(min, 1.0),
+            Some(Container::ClosedMesh) if stage.receiver.triangles.len() <= EXACT_TRIANGLES => {
+                v4(stage.receiver.bounds().0, 2.0)
+            }
+            _ => [0.0; 4],
         },
         container_max: match stage.receiver.container {
-            Some(c) => v4(c.max, 0.0),
+            Some(Container::OpenBox { max, .. }) => v4(max, 0.0),
+            Some(Container::ClosedMesh) => v4(stage.receiver.bounds().1, 0.0),
             None => [0.0; 4],
         },
     }

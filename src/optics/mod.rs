@@ -602,7 +602,7 @@ impl Stage {
     /// that is no container). `holds_water` in the WGSL.
     #[must_use]
     pub fn holds_water(&self, p: Vec3) -> bool {
-        self.receiver.container.is_none_or(|c| c.holds(p))
+        self.receiver.holds(p)
     }
 
     /// The receiver's diffuse reflectance `f_r` at `p` with normal `n` (a checkerboard when

@@ -28,7 +28,8 @@ pub enum ReceiverKind {
     Plane,
     /// An open box: floor at `min.y`, four walls up to `max.y`, no lid.
     OpenBox,
-    /// A triangle mesh from a Wavefront OBJ file (`path`; `v` and `f` lines, polygons fanned).
+    /// A triangle mesh from a Wavefront OBJ file (`path`; `v` and `f` lines, polygons fanned);
+    /// a closed one (every edge shared by two triangles) holds the water (`Container`).
     Mesh,
 }
 
@@ -103,51 +104,63 @@ impl Receiver {
             }
         };
         let mut geometry = ReceiverGeometry::new(triangles)?;
-        if matches!(self.kind, ReceiverKind::Auto | ReceiverKind::OpenBox) {
-            let (lo, hi) = geometry.bounds();
-            geometry.container = Some(Container { min: lo, max: hi });
-        }
+        geometry.container = match self.kind {
+            ReceiverKind::Auto | ReceiverKind::OpenBox => {
+                let (min, max) = geometry.bounds();
+                Some(Container::OpenBox { min, max })
+            }
+            ReceiverKind::Mesh if is_closed(&geometry.triangles) => Some(Container::ClosedMesh),
+            ReceiverKind::Mesh | ReceiverKind::Plane => None,
+        };
         Ok(geometry)
     }
 }
 
-/// The inside of a receiver that holds the water (issue 41): the open box's prism over its floor
-/// and between its walls, open upwards (a splash above the rim is still in it). The water is
-/// clipped to it: what of the water's surface lies outside (a splat disk reaching through a
-/// wall, the raw particles' surface poking past a face) is neither drawn nor casts shadow nor
-/// bends light. Its faces are the walls': zero thickness, so without the clip the water inside
-/// showed through a wall's outer face and shaded it.
+/// The inside of a receiver that holds the water (issue 41). The water is clipped to it: what of
+/// the water's surface lies outside (a splat disk reaching through a wall, the raw particles'
+/// surface poking past a face) is neither drawn nor casts shadow nor bends light. Its faces have
+/// zero thickness, so without the clip the water inside showed through a wall's outer face and
+/// shaded it.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Container {
-    /// The floor's corner (`min.y` is the floor).
-    pub min: Vec3,
-    /// The opposite corner (`max.y`, the walls' top, does not bound the prism).
-    pub max: Vec3,
+pub enum Container {
+    /// The open box's prism over its floor and between its walls, open upwards (a splash above
+    /// the rim is still in it): `min` is the floor's corner; `max.y`, the walls' top, does not
+    /// bound it.
+    OpenBox { min: Vec3, max: Vec3 },
+    /// A closed mesh (every edge shared by two triangles): its inside, by the parity of a ray's
+    /// crossings.
+    ClosedMesh,
 }
 
 impl Container {
-    /// Whether the water point `p` is inside: over the floor and between the walls (inclusive).
-    /// NaN is outside.
+    /// Whether the point `p` is inside the open box's prism (inclusive); NaN is outside.
     #[must_use]
-    pub fn holds(&self, p: Vec3) -> bool {
-        p.x >= self.min.x
-            && p.x <= self.max.x
-            && p.z >= self.min.z
-            && p.z <= self.max.z
-            && p.y >= self.min.y
-    }
-
-    /// Whether the receiver point `p` with normal `n` is on an outer face: its side of the face
-    /// (a step along `n`) lies outside the prism. The light that reaches such a point from the
-    /// side it faces never crosses the prism (the outer faces of a box lie on its hull: the
-    /// ray from a point of the +x face towards a light with `l.x > 0` only moves away from the
-    /// box), so no water, which is all inside, can shade or light it.
-    #[must_use]
-    pub fn outer_face(&self, p: Vec3, n: Vec3) -> bool {
-        let step = 1e-4 * (self.max - self.min).max_element();
-        !self.holds(p + n * step)
+    pub fn box_holds(min: Vec3, max: Vec3, p: Vec3) -> bool {
+        p.x >= min.x && p.x <= max.x && p.z >= min.z && p.z <= max.z && p.y >= min.y
     }
 }
+
+/// Whether a triangle mesh is closed: every edge (between vertices welded by equal positions)
+/// shared by exactly two triangles.
+fn is_closed(triangles: &[[Vec3; 3]]) -> bool {
+    let key = |p: Vec3| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
+    let mut edges: std::collections::HashMap<([u32; 3], [u32; 3]), u32> =
+        std::collections::HashMap::new();
+    for t in triangles {
+        for k in 0..3 {
+            let (a, b) = (key(t[k]), key(t[(k + 1) % 3]));
+            *edges
+                .entry(if a < b { (a, b) } else { (b, a) })
+                .or_default() += 1;
+        }
+    }
+    !edges.is_empty() && edges.values().all(|&n| n == 2)
+}
+
+/// The direction of the parity rays of a closed mesh's inside test: off every axis and diagonal,
+/// so that it rarely runs along an edge (where one crossing can count twice). `PARITY_DIR` in
+/// the WGSL.
+pub const PARITY_DIR: Vec3 = Vec3::new(0.311_265_8, 0.866_025_4, 0.391_147_2);
 
 /// A horizontal rectangle at `a.y` over `a.xz..b.xz`, two triangles whose shared diagonal does not
 /// pass through the middle of the usual symmetric pixel grids (see PLATFORM.md on obvhs).
@@ -339,6 +352,55 @@ impl ReceiverGeometry {
     #[must_use]
     pub fn bounds(&self) -> (Vec3, Vec3) {
         self.bounds
+    }
+
+    /// Whether the water point `p` is inside the container (always, without one).
+    #[must_use]
+    pub fn holds(&self, p: Vec3) -> bool {
+        match self.container {
+            None => true,
+            Some(Container::OpenBox { min, max }) => Container::box_holds(min, max, p),
+            Some(Container::ClosedMesh) => self.inside(p),
+        }
+    }
+
+    /// Whether the receiver point `p` with normal `n` is on an outer face of the container: its
+    /// side of the face (a step along `n`) lies outside. The light that reaches such a point
+    /// crosses no water, which is all inside: for an open box because its outer faces lie on its
+    /// hull (the ray from a point of the +x face towards a light with `l.x > 0` only moves away
+    /// from the box); for a closed mesh because a ray from outside must cross the mesh to reach
+    /// its inside, and a crossing is the receiver's own shadow.
+    #[must_use]
+    pub fn outer_face(&self, p: Vec3, n: Vec3) -> bool {
+        if self.container.is_none() {
+            return false;
+        }
+        let step = 1e-4 * (self.bounds.1 - self.bounds.0).max_element();
+        !self.holds(p + n * step)
+    }
+
+    /// Whether `p` is inside the mesh: an odd number of crossings along [`PARITY_DIR`] (at most
+    /// 64 counted). NaN is outside.
+    fn inside(&self, p: Vec3) -> bool {
+        if !p.is_finite() {
+            return false;
+        }
+        let (lo, hi) = self.bounds;
+        if p.cmplt(lo).any() || p.cmpgt(hi).any() {
+            return false;
+        }
+        let eps = 1e-6 * (hi - lo).max_element();
+        let (mut t, mut crossings) = (0.0, 0u32);
+        while crossings < 64 {
+            match self.intersect(p, PARITY_DIR, t) {
+                Some(h) => {
+                    crossings += 1;
+                    t = h.t + eps;
+                }
+                None => break,
+            }
+        }
+        crossings % 2 == 1
     }
 
     /// The closest hit of the ray `origin + t dir`, `t` in `(t_min, inf)`.
