@@ -57,7 +57,7 @@ pub struct Caustics {
     pub hidden: usize,
     /// Flux that reached the receiver where the light's map cannot hold it: at points hidden
     /// from the light, on the far sides of surfaces, and over texels that show another surface
-    /// ([`deposit_owned`]). `transmitted + dropped` is all the flux the caustics triangles carried.
+    /// (`deposit_owned`). `transmitted + dropped` is all the flux the caustics triangles carried.
     pub dropped: Vec3,
 }
 
