@@ -63,7 +63,7 @@ fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
             fluid_surfels::optics::gpu::SHADER,
             "Uniforms",
             std::mem::size_of::<RawOptics>(),
-            fields!(RawOptics; screen, map, camera, light_dir, light_pos, light_colour, ambient, water, extinction, albedo, env, env_colour, env_horizon, env_zenith, env_ground, exact),
+            fields!(RawOptics; screen, map, camera, light_dir, light_pos, light_colour, ambient, water, extinction, albedo, env, env_colour, env_horizon, env_zenith, env_ground, exact, container_min, container_max),
         ),
         (
             "optics.wgsl",

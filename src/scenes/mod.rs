@@ -7,7 +7,7 @@
 
 pub mod column;
 
-use glam::Vec3;
+use glam::{Vec2, Vec3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -42,6 +42,8 @@ pub enum AnalyticShape {
     Box { min: Vec3, max: Vec3 },
     /// Ball.
     Sphere { centre: Vec3, radius: f32 },
+    /// Solid cylinder of `radius` about the x axis (through the origin), from `x0` to `x1`.
+    Tube { x0: f32, x1: f32, radius: f32 },
 }
 
 impl AnalyticShape {
@@ -51,6 +53,9 @@ impl AnalyticShape {
         match *self {
             Self::Box { min, max } => (p - min).min(max - p).min_element(),
             Self::Sphere { centre, radius } => radius - p.distance(centre),
+            Self::Tube { x0, x1, radius } => (radius - Vec2::new(p.y, p.z).length())
+                .min(p.x - x0)
+                .min(x1 - p.x),
         }
     }
 
@@ -78,6 +83,16 @@ impl AnalyticShape {
                 ][k]
             }
             Self::Sphere { centre, .. } => (p - centre).normalize_or_zero(),
+            Self::Tube { x0, x1, radius } => {
+                let radial = radius - Vec2::new(p.y, p.z).length();
+                if radial <= p.x - x0 && radial <= x1 - p.x {
+                    Vec3::new(0.0, p.y, p.z).normalize_or_zero()
+                } else if p.x - x0 < x1 - p.x {
+                    Vec3::NEG_X
+                } else {
+                    Vec3::X
+                }
+            }
         }
     }
 }
@@ -289,6 +304,84 @@ pub fn sphere(params: &SphereParams) -> Result<Scene, SceneError> {
         s,
         AnalyticShape::Sphere {
             centre: Vec3::ZERO,
+            radius: rs * s,
+        },
+    ))
+}
+
+/// Parameters of [`tube`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TubeParams {
+    /// Tube radius in units of the spacing.
+    pub radius_in_spacings: f32,
+    /// Tube length in units of the spacing.
+    pub length_in_spacings: f32,
+    /// Lattice spacing.
+    pub spacing: f32,
+    /// Each coordinate is displaced uniformly within `±jitter * spacing`.
+    pub jitter: f32,
+    /// Seed of the rotations and the jitter.
+    pub seed: u64,
+}
+
+impl Default for TubeParams {
+    /// Radius 3, length 24 spacings of 0.05: about 650 particles.
+    fn default() -> Self {
+        Self {
+            radius_in_spacings: 3.0,
+            length_in_spacings: 24.0,
+            spacing: 0.05,
+            jitter: 0.0,
+            seed: 3,
+        }
+    }
+}
+
+/// A solid cylinder about the x axis, built like [`sphere`]: coaxial shells of particles at
+/// radii `(k + 1/2) * spacing` (the outermost half a spacing inside the analytic surface), each a
+/// stack of rings half a spacing in from the ends and a spacing apart, a ring of radius `r`
+/// holding `round(2 pi r / spacing)` particles turned by a random angle; the innermost shell of
+/// an integer radius is a line of particles on the axis.
+pub fn tube(params: &TubeParams) -> Result<Scene, SceneError> {
+    check_lattice(params.spacing, params.jitter)?;
+    let (rs, ls) = (params.radius_in_spacings, params.length_in_spacings);
+    for (name, v) in [("radius_in_spacings", rs), ("length_in_spacings", ls)] {
+        if !(v.is_finite() && (1.0..=500.0).contains(&v)) {
+            return Err(SceneError::InvalidParameter {
+                name,
+                reason: format!("must lie in [1, 500], got {v}"),
+            });
+        }
+    }
+    let s = params.spacing;
+    let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
+    let mut positions = Vec::new();
+    let rings = ls.floor() as usize;
+    let shells = (rs - 0.5).floor() as i32;
+    for k in (0..=shells).rev() {
+        let r = rs - 0.5 - k as f32;
+        if r < 0.0 {
+            continue;
+        }
+        let count = ((std::f32::consts::TAU * r).round() as usize).max(1);
+        for i in 0..rings {
+            let x = (i as f32 + 0.5) * s;
+            let turn = rng.random_range(0.0..std::f32::consts::TAU);
+            for j in 0..count {
+                let a = turn + std::f32::consts::TAU * j as f32 / count as f32;
+                let p = Vec3::new(x, r * s * a.cos(), r * s * a.sin());
+                positions.push(p + jitter(&mut rng, params.jitter * s));
+            }
+        }
+    }
+    Ok(finish(
+        "tube",
+        positions,
+        s,
+        AnalyticShape::Tube {
+            x0: 0.0,
+            x1: rings as f32 * s,
             radius: rs * s,
         },
     ))
