@@ -122,6 +122,8 @@ struct Group {
     members: Vec<u32>,
     /// the radius of each point in the grid's cell order (`None`: every point has `h`)
     cell_radii: Option<Vec<f32>>,
+    /// the weight of each point in the grid's cell order (`None`: every point has 1)
+    cell_weights: Option<Vec<f32>>,
 }
 
 impl<'a> ExactDensity<'a> {
@@ -134,12 +136,22 @@ impl<'a> ExactDensity<'a> {
     pub fn of(points: Points<'a>, kernel: Kernel) -> Result<Self, SurfelError> {
         points.check()?;
         let mut groups = Vec::new();
-        match points.radii {
+        let uniform;
+        let radii = match (points.radii, points.weights) {
+            (Some(r), _) => Some(r),
+            (None, Some(_)) => {
+                uniform = vec![points.h; points.len()];
+                Some(uniform.as_slice())
+            }
+            (None, None) => None,
+        };
+        match radii {
             None => groups.push(Group {
                 reach: points.h,
                 grid: CellGrid::new(points.positions, points.h)?,
                 members: (0..points.len() as u32).collect(),
                 cell_radii: None,
+                cell_weights: None,
             }),
             Some(radii) => {
                 // quarter octaves of the radius, so a group's cells are at most 19 % too large
@@ -157,11 +169,18 @@ impl<'a> ExactDensity<'a> {
                         .iter()
                         .map(|&slot| radii[run[slot as usize] as usize])
                         .collect();
+                    let cell_weights = points.weights.map(|w| {
+                        grid.order()
+                            .iter()
+                            .map(|&slot| w[run[slot as usize] as usize])
+                            .collect()
+                    });
                     groups.push(Group {
                         reach,
                         grid,
                         members: run.to_vec(),
                         cell_radii: Some(cell_radii),
+                        cell_weights,
                     });
                 }
             }
@@ -185,9 +204,10 @@ impl<'a> ExactDensity<'a> {
             // as through the point indices, without the indirection
             g.grid.for_each_slot_within(x, g.reach, |slot, q| {
                 let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
+                let w = g.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
                 let (v, dv) = self.kernel.weighted_and_gradient(x - q, r, h);
-                sum += v;
-                grad += dv;
+                sum += w * v;
+                grad += w * dv;
             });
         }
         (sum, grad)
@@ -235,7 +255,8 @@ impl<'a> ExactDensity<'a> {
         for g in &self.groups {
             g.grid.for_each_slot_within(x, g.reach, |slot, q| {
                 let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
-                sum += self.kernel.weighted_r2(q.distance_squared(x), r, h);
+                let w = g.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
+                sum += w * self.kernel.weighted_r2(q.distance_squared(x), r, h);
             });
         }
         sum

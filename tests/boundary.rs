@@ -3,7 +3,7 @@
 //! `scenes::tube`, `scenes::sphere` for drops), how far the surfels lie from that surface, in
 //! spacings (+: outside, the water too big), per surfel source and refinement level.
 
-use fluid_surfels::pipeline::{Pipeline, PipelineParams, SurfelSource, Through};
+use fluid_surfels::pipeline::{Calibration, Pipeline, PipelineParams, SurfelSource, Through};
 use fluid_surfels::scenes::{self, BlockParams, Scene, SphereParams, TubeParams};
 
 /// A shape and the part of it measured: away from a slab's rims and a tube's ends by four
@@ -66,6 +66,7 @@ fn offsets(shape: &Shape, source: SurfelSource, steps: u32) -> Option<(f32, f32,
         ..Default::default()
     };
     params.refine.steps = steps;
+    params.grid.calibration = Calibration::Boundary;
     let mut p = Pipeline::new(params).unwrap();
     let f = p.frame_through(&scene.particles, Through::Surfels).unwrap();
     let analytic = scene.shape.unwrap();
@@ -87,14 +88,17 @@ fn offsets(shape: &Shape, source: SurfelSource, steps: u32) -> Option<(f32, f32,
     Some((median, p95, d.len()))
 }
 
-/// The table of issue 35, measured: every shape through the particle source and the chain at 0
-/// to 3 refinement steps. Asserted now: the paper's three steps put the surface within 0.1
-/// spacings (median) and 0.25 (95th percentile) of the boundary on the larger shapes, 0.2 and
-/// 0.35 on the radius-2 drop and tube. The other levels and the particle source are printed
-/// (issue 35 calibrates them to the same bounds).
+/// The table of issue 35, measured: every shape through the particle source and the chain
+/// (`calibration = "boundary"`) at 0 to 3 refinement steps. Asserted: the chain at every level
+/// within 0.1 spacings (median) and 0.25 (95th percentile) of the boundary, 0.2 and 0.35 on the
+/// radius-2 drop and tube. Measured: within 0.02 (median) and 0.08 (95th percentile) at every
+/// level; with the paper's sums +2.2..+2.6, +0.9..+1.1, +0.30..+0.37 and -0.06..0.00 spacings at
+/// 0 to 3 steps. Printed, not asserted yet: the one-layer slab (its particles are detected as
+/// interior) and the particle source (+0.54..+0.74, not calibrated yet).
 #[test]
 fn the_surface_lies_at_the_fluids_boundary() {
     let shapes = vec![
+        slab(1),
         slab(2),
         slab(4),
         tube(2.0),
@@ -131,11 +135,18 @@ fn the_surface_lies_at_the_fluids_boundary() {
             cell(chain[2]),
             cell(chain[3])
         );
+        if shape.name.contains("1 layer") {
+            // the detector calls a single layer's particles interior (their neighbourhoods'
+            // centres of mass lie on them): not calibrated yet (issue 35)
+            continue;
+        }
         let small = shape.name.ends_with("radius 2s");
         let (median_bound, p95_bound) = if small { (0.2, 0.35) } else { (0.1, 0.25) };
-        match chain[3] {
-            Some((m, p, n)) if m.abs() <= median_bound && p <= p95_bound && n > 20 => {}
-            other => failures.push(format!("{} at 3 steps: {other:?}", shape.name)),
+        for (k, r) in chain.iter().enumerate() {
+            match r {
+                Some((m, p, n)) if m.abs() <= median_bound && *p <= p95_bound && *n > 20 => {}
+                other => failures.push(format!("{} at {k} steps: {other:?}", shape.name)),
+            }
         }
     }
     assert!(failures.is_empty(), "{failures:?}");
@@ -159,4 +170,228 @@ fn tube_shells_sit_half_a_spacing_inside() {
     assert!((least - 0.5).abs() < 1e-4, "{least}");
     // shells at 2.5, 1.5 and 0.5 spacings: 16, 9 and 3 particles a ring, 24 rings
     assert_eq!(scene.particles.len(), (16 + 9 + 3) * 24);
+}
+
+/// The same bounds plus 0.1 spacings on arrangements the constants were not fitted to: shells
+/// and tube rings jittered by 10 % of a spacing, and jittered cubic-lattice spheres (their
+/// surface a staircase), judged against the sphere half a spacing outside their outermost
+/// particles.
+#[test]
+fn the_boundary_holds_on_arrangements_not_fitted() {
+    use fluid_surfels::scenes::AnalyticShape;
+    let jittered = |mut shape: Shape, scene: Scene| {
+        shape.scene = scene;
+        shape.name += ", jittered";
+        shape
+    };
+    let shapes = vec![
+        jittered(
+            drop(3.0),
+            scenes::sphere(&SphereParams {
+                radius_in_spacings: 3.0,
+                jitter: 0.1,
+                seed: 11,
+                ..Default::default()
+            })
+            .unwrap(),
+        ),
+        jittered(
+            drop(5.0),
+            scenes::sphere(&SphereParams {
+                radius_in_spacings: 5.0,
+                jitter: 0.1,
+                seed: 12,
+                ..Default::default()
+            })
+            .unwrap(),
+        ),
+        jittered(
+            tube(3.0),
+            scenes::tube(&TubeParams {
+                radius_in_spacings: 3.0,
+                jitter: 0.1,
+                seed: 13,
+                ..Default::default()
+            })
+            .unwrap(),
+        ),
+    ];
+    let mut lattice = Vec::new();
+    for radius in [4.0, 6.0] {
+        let mut scene = scenes::lattice_sphere(&SphereParams {
+            radius_in_spacings: radius,
+            jitter: 0.1,
+            seed: 14,
+            ..Default::default()
+        })
+        .unwrap();
+        let outermost = scene
+            .particles
+            .positions
+            .iter()
+            .map(|p| p.length())
+            .fold(0.0, f32::max);
+        scene.shape = Some(AnalyticShape::Sphere {
+            centre: glam::Vec3::ZERO,
+            radius: outermost + 0.5 * scene.spacing,
+        });
+        lattice.push((format!("lattice sphere {radius}s"), scene));
+    }
+    let mut failures = Vec::new();
+    for shape in &shapes {
+        let row: Vec<_> = (0..=3)
+            .map(|k| offsets(shape, SurfelSource::Chain, k))
+            .collect();
+        println!("{:28} {row:.2?}", shape.name);
+        for (k, r) in row.iter().enumerate() {
+            match r {
+                Some((m, p, n)) if m.abs() <= 0.2 && *p <= 0.35 && *n > 20 => {}
+                other => failures.push(format!("{} at {k} steps: {other:?}", shape.name)),
+            }
+        }
+    }
+    // the lattice spheres' staircase: each surfel against the outermost particle along its
+    // direction (within half a spacing of the ray from the centre), half a spacing out
+    for (name, scene) in &lattice {
+        let s = scene.spacing;
+        let ps = &scene.particles.positions;
+        for k in 0..=3 {
+            let mut params = PipelineParams {
+                support_radius: Some(scene.support_radius),
+                ..Default::default()
+            };
+            params.refine.steps = k;
+            params.grid.calibration = Calibration::Boundary;
+            let f = Pipeline::new(params)
+                .unwrap()
+                .frame_through(&scene.particles, Through::Surfels)
+                .unwrap();
+            let mut d: Vec<f32> = f
+                .surfels
+                .unwrap()
+                .positions
+                .iter()
+                .filter_map(|q| {
+                    let u = q.normalize_or_zero();
+                    let local = ps
+                        .iter()
+                        .filter(|p| p.dot(u) > 0.0 && (**p - u * p.dot(u)).length() < 0.5 * s)
+                        .map(|p| p.dot(u))
+                        .fold(f32::MIN, f32::max);
+                    (local > f32::MIN).then(|| (q.length() - local - 0.5 * s) / s)
+                })
+                .collect();
+            d.sort_by(f32::total_cmp);
+            let median = d[d.len() / 2];
+            let mut a: Vec<f32> = d.iter().map(|x| x.abs()).collect();
+            a.sort_by(f32::total_cmp);
+            let p95 = a[a.len() * 95 / 100];
+            // printed, not asserted: this local measure of the staircase is itself rough (its
+            // 95th percentile is the steps' corners, 1.3-2.2 spacings)
+            println!(
+                "{name:28} {k} steps: {median:+.2} ({p95:.2}), {} surfels",
+                d.len()
+            );
+        }
+    }
+    assert!(failures.is_empty(), "{failures:?}");
+}
+
+/// A lone particle is a drop of its own volume: a ball of radius 0.62 spacings at every level.
+#[test]
+fn a_lone_particle_is_a_ball_of_its_own_volume() {
+    let s = 0.05;
+    let set = fluid_surfels::ParticleSet::from_positions(vec![glam::Vec3::new(0.1, 0.2, 0.3)]);
+    for steps in 0..=3 {
+        let mut params = PipelineParams {
+            support_radius: Some(2.0 * s),
+            ..Default::default()
+        };
+        params.refine.steps = steps;
+        params.grid.calibration = Calibration::Boundary;
+        let mut p = Pipeline::new(params).unwrap();
+        let f = p.frame_through(&set, Through::Surfels).unwrap();
+        let surfels = f.surfels.expect("a lone particle is drawn");
+        let r: Vec<f32> = surfels
+            .positions
+            .iter()
+            .map(|q| q.distance(glam::Vec3::new(0.1, 0.2, 0.3)) / s)
+            .collect();
+        let mean = r.iter().sum::<f32>() / r.len() as f32;
+        println!("{steps} steps: {} surfels at {mean:.3} spacings", r.len());
+        assert!((mean - 0.62).abs() <= 0.1, "{steps} steps: radius {mean}");
+    }
+}
+
+/// The weights the boundary calibration gives the refined points are summed alike on every CPU
+/// path: the streamed dense grid equals the naive reference, the exact density (the surfels'
+/// projection) equals the grid, weights of 1 change nothing bit for bit, and the sparse grid of
+/// the calibrated chain gives the dense grid's surfels. The GPU density refuses weights with a
+/// typed error until it takes them (issue 37).
+#[test]
+fn weighted_points_sum_alike_on_every_cpu_path() {
+    use fluid_surfels::density::{self, GridSpec, Kernel, Points, Resolution};
+    use fluid_surfels::surfels::ExactDensity;
+    let scene = drop(3.0).scene;
+    let pos = &scene.particles.positions;
+    let h = scene.support_radius;
+    let radii: Vec<f32> = (0..pos.len())
+        .map(|i| h * (0.5 + 0.5 * ((i * 7) % 11) as f32 / 10.0))
+        .collect();
+    let weights: Vec<f32> = (0..pos.len())
+        .map(|i| ((i * 5) % 13) as f32 / 4.0)
+        .collect();
+    let ones = vec![1.0; pos.len()];
+    let plain = Points::with_radii(pos, &radii, h);
+    let points = plain.with_weights(&weights);
+    let spec = GridSpec::around(pos, h, Resolution::LongestAxis(40)).unwrap();
+    let kernel = Kernel::Wyvill;
+    let dense = density::points_grid(points, &spec, kernel, 1 << 30).unwrap();
+    let naive = density::points_naive(points, &spec, kernel).unwrap();
+    let max = naive.max();
+    let worst = dense
+        .values
+        .iter()
+        .zip(&naive.values)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst <= 1e-5 * max, "{worst} of {max}");
+    let exact = ExactDensity::of(points, kernel).unwrap();
+    let [nx, ny, nz] = spec.dims;
+    for (i, j, k) in [
+        (nx / 2, ny / 2, nz / 2),
+        (nx / 3, ny / 2, nz / 4),
+        (5, 7, 9),
+    ] {
+        let v = dense.values[(i + nx * (j + ny * k)) as usize];
+        let e = exact.value(spec.point(i, j, k));
+        assert!((v - e).abs() <= 1e-5 * max, "{v} vs {e}");
+    }
+    let unweighted = density::points_grid(plain, &spec, kernel, 1 << 30).unwrap();
+    let unit = density::points_grid(plain.with_weights(&ones), &spec, kernel, 1 << 30).unwrap();
+    assert_eq!(unweighted.values, unit.values);
+    // the calibrated chain on the sparse grid
+    let surfels = |narrow_band: bool| {
+        let mut params = PipelineParams {
+            support_radius: Some(h),
+            ..Default::default()
+        };
+        params.refine.steps = 2;
+        params.grid.calibration = Calibration::Boundary;
+        params.grid.narrow_band = narrow_band;
+        let mut p = Pipeline::new(params).unwrap();
+        p.frame_through(&scene.particles, Through::Surfels)
+            .unwrap()
+            .surfels
+            .unwrap()
+    };
+    let (a, b) = (surfels(false), surfels(true));
+    assert!(a.len() > 100);
+    assert_eq!(a.positions, b.positions);
+    if let Some(ctx) = fluid_surfels::gpu::context_or_skip("weighted_points").unwrap() {
+        let e = density::gpu::density_grid_gpu(&ctx, points, &spec, kernel).unwrap_err();
+        assert!(e.to_string().contains("weights"), "{e}");
+        // weights of 1 are the unweighted sum, which the GPU takes
+        density::gpu::density_grid_gpu(&ctx, plain.with_weights(&ones), &spec, kernel).unwrap();
+    }
 }

@@ -27,13 +27,14 @@ fn splat_slab(
     for &p in cluster {
         let x = points.positions[p as usize];
         let hj = points.radius(p as usize);
+        let w = points.weight(p as usize);
         for dk in 0..planes {
             let base = dk as usize * plane;
             splat_disk(
                 spec,
                 kernel,
                 x,
-                hj,
+                (hj, w),
                 points.h,
                 k0 + dk,
                 &whole,
@@ -122,15 +123,16 @@ pub(super) fn term(kernel: Kernel, gx: f32, x: Vec3, hj: f32, h: f32, dyz2: f32)
     kernel.weighted_r2(dx * dx + dyz2, hj, h)
 }
 
-/// Adds the kernel of the point `x` (radius `hj`, reference radius `h`) to the grid points of
-/// plane `k` inside `window`; `columns[i]` is [`column`] `i`.
+/// Adds the kernel of the point `x` (radius `hj` and weight `w`, reference radius `h`) to the
+/// grid points of plane `k` inside `window`; `columns[i]` is [`column`] `i`. A weight of 1 adds
+/// exactly the unweighted term.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 pub(super) fn splat_disk(
     spec: &GridSpec,
     kernel: Kernel,
     x: Vec3,
-    hj: f32,
+    (hj, w): (f32, f32),
     h: f32,
     k: u32,
     window: &Window,
@@ -156,7 +158,7 @@ pub(super) fn splat_disk(
         let cells = &mut plane[start..=start + (b - a) as usize];
         let xs = &columns[a as usize..=b as usize];
         for (v, &gx) in cells.iter_mut().zip(xs) {
-            *v += term(kernel, gx, x, hj, h, dyz2);
+            *v += w * term(kernel, gx, x, hj, h, dyz2);
         }
     }
 }
@@ -302,6 +304,7 @@ pub fn points_naive(
     let mut values = vec![0.0f32; spec.cells() as usize];
     for (p, &x) in points.positions.iter().enumerate() {
         let hj = points.radius(p);
+        let w = points.weight(p);
         let lo_index = |v: f32, o: f32| ((v - hj - o) / spec.spacing).ceil().max(0.0) as u32;
         let hi_index = |v: f32, o: f32, n: u32| {
             (((v + hj - o) / spec.spacing).floor().max(-1.0) as i64).min(n as i64 - 1)
@@ -312,7 +315,7 @@ pub fn points_naive(
                     let d = spec.point(i as u32, j as u32, k as u32) - x;
                     // the same operations as the slab splatting: bit-identical sums
                     let dyz2 = d.y * d.y + d.z * d.z;
-                    let v = kernel.weighted_r2(d.x * d.x + dyz2, hj, points.h);
+                    let v = w * kernel.weighted_r2(d.x * d.x + dyz2, hj, points.h);
                     values[i as usize + nx as usize * (j as usize + ny as usize * k as usize)] += v;
                 }
             }

@@ -56,7 +56,15 @@ const BATCH: u32 = 8;
 fn check_inputs(points: &Points<'_>) -> Result<(), GpuError> {
     points
         .check()
-        .map_err(|e| GpuError::Validation(e.to_string()))
+        .map_err(|e| GpuError::Validation(e.to_string()))?;
+    // the chain's boundary weights (issue 35) are summed on the CPU only so far; the GPU chain
+    // of issue 37 takes them into its instances
+    if points.weights.is_some_and(|w| w.iter().any(|&x| x != 1.0)) {
+        return Err(GpuError::Validation(
+            "the GPU density does not take per-point weights yet; fill this grid on the CPU".into(),
+        ));
+    }
+    Ok(())
 }
 
 /// The points as the shaders read them: `(x, y, z, radius)`.

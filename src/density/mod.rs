@@ -228,6 +228,9 @@ pub struct Points<'a> {
     pub positions: &'a [Vec3],
     /// Effective radius of each point; `None`: every point has `h`.
     pub radii: Option<&'a [f32]>,
+    /// A factor on each point's term (`None`: 1), for the chain's surface points, whose weight
+    /// puts the iso-surface at the fluid's boundary (see `crate::pipeline::boundary_weights`).
+    pub weights: Option<&'a [f32]>,
     /// The reference radius: every point's without `radii`, and the radius whose peak `F(0, h)`
     /// iso-values are measured against.
     pub h: f32,
@@ -240,6 +243,7 @@ impl<'a> Points<'a> {
         Self {
             positions,
             radii: None,
+            weights: None,
             h,
         }
     }
@@ -250,7 +254,27 @@ impl<'a> Points<'a> {
         Self {
             positions,
             radii: Some(radii),
+            weights: None,
             h,
+        }
+    }
+
+    /// These points with a factor on each one's term.
+    #[must_use]
+    pub fn with_weights(self, weights: &'a [f32]) -> Self {
+        Self {
+            weights: Some(weights),
+            ..self
+        }
+    }
+
+    /// The factor on point `i`'s term (1 without weights).
+    #[must_use]
+    #[inline]
+    pub fn weight(&self, i: usize) -> f32 {
+        match self.weights {
+            Some(w) => w[i],
+            None => 1.0,
         }
     }
 
@@ -308,6 +332,20 @@ impl<'a> Points<'a> {
             }
             if let Some(&h) = r.iter().find(|h| !(h.is_finite() && **h > 0.0)) {
                 return Err(DensityError::InvalidRadius { h });
+            }
+        }
+        if let Some(w) = self.weights {
+            if w.len() != self.positions.len() {
+                return Err(DensityError::InvalidGrid {
+                    name: "weights",
+                    reason: format!("{} weights for {} points", w.len(), self.positions.len()),
+                });
+            }
+            if let Some(&x) = w.iter().find(|x| !(x.is_finite() && **x >= 0.0)) {
+                return Err(DensityError::InvalidGrid {
+                    name: "weights",
+                    reason: format!("{x} is not a finite weight >= 0"),
+                });
             }
         }
         if let Some(index) = self.positions.iter().position(|p| !p.is_finite()) {

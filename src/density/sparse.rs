@@ -509,13 +509,14 @@ pub fn points_grid_sparse(
                 for &p in candidates.iter() {
                     let x = points.positions[p as usize];
                     let hj = points.radius(p as usize);
+                    let w = points.weight(p as usize);
                     for k in lo[2]..=hi[2] {
                         let s = (k - lo[2]) * plane;
                         splat_disk(
                             spec,
                             kernel,
                             x,
-                            hj,
+                            (hj, w),
                             points.h,
                             o[2] + k as u32,
                             &window,
@@ -673,7 +674,7 @@ pub fn points_grid_sparse(
                         spec,
                         kernel,
                         points.positions[q as usize],
-                        points.radius(q as usize),
+                        (points.radius(q as usize), points.weight(q as usize)),
                         points.h,
                         p[2],
                         &window,

@@ -51,8 +51,13 @@ use crate::surface::{ParticleClass, Surface, SurfaceDetector, SurfaceParams};
 use crate::surfels::{self, SurfelParams, Surfels};
 use crate::{Error, ParticleView};
 
+mod boundary;
 pub mod gpu;
 
+pub use boundary::{
+    BURIED, Fluid, LONE_RADIUS, MAX_WEIGHT, WEIGHT_STEPS, boundary_weights,
+    chain_points_at_boundary,
+};
 pub use gpu::{GpuPipeline, iso_surfels_gpu};
 
 /// Where the surfels that are rendered come from.
@@ -166,6 +171,37 @@ pub struct GridParams {
     /// memory (measured: 19 against 87 MiB on the dam break's chain, as fast as the dense grid
     /// there; 1.3-1.7x faster on `bench density`'s 150k block). Default off.
     pub narrow_band: bool,
+    /// Where the chain's iso-surface lies: `paper` (every point's term as Iwasaki et al. eq. 1
+    /// sums it; the surface 0.3-2.6 spacings outside the fluid below three refinement steps) or
+    /// `boundary` (the refined points weighted so that it lies half a spacing outside the
+    /// outermost particle centres at every level, [`boundary_weights`]). Default `paper` while
+    /// the real files' frames are checked at the boundary (issue 35).
+    pub calibration: Calibration,
+}
+
+/// Where the chain's iso-surface lies ([`GridParams::calibration`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Calibration {
+    /// Every point's term as the paper sums it.
+    #[default]
+    Paper,
+    /// The refined points weighted to put the surface at the fluid's boundary at every level.
+    Boundary,
+}
+
+impl Calibration {
+    /// Every calibration, in the order of the documentation.
+    pub const ALL: [Self; 2] = [Self::Paper, Self::Boundary];
+
+    /// The name used in files and on the command line.
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Paper => "paper",
+            Self::Boundary => "boundary",
+        }
+    }
 }
 
 impl Default for GridParams {
@@ -176,6 +212,7 @@ impl Default for GridParams {
             resolution: None,
             memory_budget: crate::memory::DEFAULT_MEMORY_BUDGET,
             narrow_band: false,
+            calibration: Calibration::Paper,
         }
     }
 }
@@ -692,6 +729,7 @@ impl Pipeline {
         }
         // stage 3 of the EWA renderer: the refined points themselves, or the iso-surface of
         // the source's density grid
+        let mut weights = Vec::new();
         let (positions, radii) = match source {
             SurfelSource::Refined => {
                 let r = refined();
@@ -699,19 +737,35 @@ impl Pipeline {
                     splat::surfels_from(&r.positions, &r.normals, &r.gap_free_radii(), colour);
                 return Ok((render, None));
             }
-            SurfelSource::Chain => {
+            SurfelSource::Chain if self.params.grid.calibration == Calibration::Paper => {
                 let (p, r) = chain_points(particles, surface, refined(), radius);
                 (std::borrow::Cow::Owned(p), r)
+            }
+            SurfelSource::Chain => {
+                let tau = self.params.surfels.iso_fraction * self.params.grid.kernel.peak(radius);
+                let c = boundary::chain_points_at_boundary(
+                    particles.positions,
+                    surface,
+                    refined(),
+                    radius,
+                    self.params.grid.kernel,
+                    tau,
+                )?;
+                weights = c.weights;
+                (std::borrow::Cow::Owned(c.positions), c.radii)
             }
             SurfelSource::Particles => {
                 (std::borrow::Cow::Borrowed(particles.positions), Vec::new())
             }
         };
-        let points = if radii.is_empty() {
+        let mut points = if radii.is_empty() {
             Points::uniform(&positions, radius)
         } else {
             Points::with_radii(&positions, &radii, radius)
         };
+        if !weights.is_empty() {
+            points = points.with_weights(&weights);
+        }
         let buffer = std::mem::take(&mut self.grid_buffer);
         let iso = iso_surfels_in(points, &self.params.grid, &self.params.surfels, buffer)?;
         let render = iso.as_ref().map_or_else(Vec::new, |iso| {

@@ -1,0 +1,276 @@
+//! The chain's surface at the fluid's boundary at every level of refinement (issue 35).
+//!
+//! The chain's density (Iwasaki et al. eq. 1 over the interior particles and the refined
+//! surface points, each with its own kernel radius, [`Points`]) crosses the iso-value `tau` at a
+//! distance from the refined points that grows with their kernel radius `h_k = kernel_factor
+//! r_k`. Why: the refined points of level `k` sample the surface sheet at a spacing about
+//! `r_k`, with an area density `sigma_k ~ 1 / r_k^2`; a point adds `(h_k / h)^3 F(r, h_k)`, so
+//! at a height `z` over the sheet the sheet's density is
+//! `D_k(z) = sigma_k (h_k / h)^3 G(z, h_k) = sigma_k h_k^2 g(z / h_k) / h^3`, with
+//! `G(z, h) = g(z / h) / h` the integral of `F` over a plane at distance `z` and `g` the one of
+//! the unit kernel. With `h_k = 2 r_k` the factor `sigma_k h_k^2` is the same at every level, so
+//! `D_k` is one profile stretched by `h_k`: the iso-surface lies at `z* = alpha h_k`, the same
+//! `alpha` at every level (measured, tests/boundary.rs: 2.5, 1.07, 0.37 and 0.0 spacings too far
+//! out at 0 to 3 steps, `h_k` = 4, 2, 1 and 0.5 spacings). Only at three steps does `z*` happen to
+//! be the half spacing between the outermost particle centres and the fluid's boundary.
+//!
+//! The kernel radius cannot carry the correction: a kernel shorter than the points' spacing makes
+//! beads of the sheet. So each refined point `j` gets a weight `w_j` on its term, chosen so that
+//! the density at its target `t_j = x_j + n_j s / 2` (half a spacing `s` out along its normal,
+//! where the boundary is) equals the iso-value:
+//!
+//! `I(t_j) + sum_i w_i (h_i / h)^3 F(|t_j - x_i|, h_i) = tau`,
+//!
+//! `I` the interior particles' density there. With the weights of neighbouring points alike
+//! (they vary smoothly along a surface) it is solved by Jacobi steps from `w = 1`:
+//! `w_j <- w_j (tau - I(t_j)) / D_sheet(t_j)`, each a Shepard normalisation of the sheet at the
+//! target. The target is local, so the same rule holds on a thin sheet (no interior: both sides'
+//! targets half a spacing off the one layer, one spacing thick), on a drop and a tube (the
+//! curvature is in the sums), and in the bulk. A lone point (no other point reaches it) is a drop
+//! of one particle's volume, a ball of radius `(3 / (4 pi))^(1/3) s = 0.62 s`: its weight puts
+//! its own term at the iso-value there. Weights are kept in `[0, MAX_WEIGHT]`: where the interior
+//! alone passes the iso-value at the target (a concave fold) a point adds nothing.
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use crate::density::{Kernel, Points};
+use crate::neighbours::CellGrid;
+use crate::surfels::{ExactDensity, SurfelError};
+
+/// A point is buried (inside the fluid, not on its boundary) when a particle lies within this
+/// many spacings of its target half a spacing out, farther than that from the point. On a flat
+/// layer the particle a point sits on is half a spacing from its target and excluded (it is
+/// near the point); a neighbour on the same layer is `sqrt(1 + 1/4) = 1.12` spacings from a
+/// particle's target, and a point between particles is nearer them than this; a particle of the
+/// next layer out is half a spacing from the target. 0.6 missed the inner particles of the
+/// radius-2 drop (the outer shell's particles lie 0.71 spacings from their targets), whose
+/// refined points then left a bubble inside it at three steps.
+pub const BURIED: f32 = 0.75;
+
+/// Jacobi steps of the weights (measured on tests/boundary.rs's shapes: the surface moves by
+/// less than 0.01 spacings after the third).
+pub const WEIGHT_STEPS: u32 = 3;
+
+/// The largest weight a refined point gets (a point alone at the tip of a spike).
+pub const MAX_WEIGHT: f32 = 16.0;
+
+/// Radius of a lone particle's ball, in spacings: a ball of one particle's volume `s^3`.
+pub const LONE_RADIUS: f32 = 0.620_350_5;
+
+/// The weights of the chain's points: their own factors ([`Points::weights`]) for the first
+/// `interior` points (the interior particles), then per refined point the weight that puts the iso-surface `tau` half a spacing
+/// `spacing` out along its normal (`normals`, one per refined point) from it; see the module
+/// docs.
+pub fn boundary_weights(
+    points: Points<'_>,
+    interior: usize,
+    normals: &[Vec3],
+    spacing: f32,
+    kernel: Kernel,
+    tau: f32,
+) -> Result<Vec<f32>, SurfelError> {
+    let n = points.len();
+    debug_assert_eq!(n - interior, normals.len());
+    // the points' own factors (1 without), fixed for the interior and kept as a factor on the
+    // refined points' solved weights
+    let base: Vec<f32> = (0..n).map(|i| points.weight(i)).collect();
+    let unit = ExactDensity::of(
+        Points {
+            weights: None,
+            ..points
+        },
+        kernel,
+    )?;
+    let h = points.h;
+    // per refined point: its target half a spacing out and how alone it is, `1 - (the other
+    // points' density at it) / (its own peak)` clamped to [0, 1] (1: no other point reaches
+    // it), so that a point's weight goes over from a lone ball's to a sheet's continuously
+    let targets: Vec<(Vec3, f32)> = (interior..n)
+        .into_par_iter()
+        .map(|j| {
+            let x = points.positions[j];
+            let mut others = 0.0;
+            unit.for_each_reaching(x, |i, d, r| {
+                if i != j {
+                    others += base[i] * kernel.weighted_r2(d.length_squared(), r, h);
+                }
+            });
+            let own = base[j] * kernel.weighted_r2(0.0, points.radius(j), h);
+            let alone = if own > 0.0 {
+                (1.0 - others / own).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            let nj = normals[j - interior].normalize_or_zero();
+            if nj == Vec3::ZERO {
+                (x, 1.0)
+            } else {
+                (x + nj * (0.5 * spacing), alone)
+            }
+        })
+        .collect();
+    // the interior's density at each target, fixed through the steps
+    let inside: Vec<f32> = targets
+        .par_iter()
+        .map(|&(t, _)| {
+            let mut sum = 0.0;
+            unit.for_each_reaching(t, |i, d, r| {
+                if i < interior {
+                    sum += base[i] * kernel.weighted_r2(d.length_squared(), r, h);
+                }
+            });
+            sum
+        })
+        .collect();
+    let mut w = vec![1.0f32; n];
+    for _ in 0..WEIGHT_STEPS {
+        let next: Vec<f32> = (interior..n)
+            .into_par_iter()
+            .map(|j| {
+                let k = j - interior;
+                let (t, alone) = targets[k];
+                let r = points.radius(j);
+                let own = base[j] * kernel.weighted_r2((LONE_RADIUS * spacing).powi(2), r, h);
+                let lone = if own > 0.0 {
+                    (tau / own).min(MAX_WEIGHT)
+                } else {
+                    1.0
+                };
+                if alone >= 1.0 {
+                    return lone;
+                }
+                let mut sheet = 0.0;
+                unit.for_each_reaching(t, |i, d, r| {
+                    if i >= interior {
+                        sheet += base[i] * w[i] * kernel.weighted_r2(d.length_squared(), r, h);
+                    }
+                });
+                let want = (tau - inside[k]).max(0.0);
+                let boundary = if sheet > 0.0 {
+                    (w[j] * want / sheet).clamp(0.0, MAX_WEIGHT)
+                } else {
+                    w[j]
+                };
+                alone * lone + (1.0 - alone) * boundary
+            })
+            .collect();
+        w[interior..].copy_from_slice(&next);
+    }
+    Ok(w.iter().zip(&base).map(|(w, b)| w * b).collect())
+}
+
+/// A particle set's positions under a cell grid for [`Fluid::burial`].
+pub struct Fluid<'a> {
+    positions: &'a [Vec3],
+    grid: CellGrid,
+    spacing: f32,
+}
+
+impl<'a> Fluid<'a> {
+    /// Indexes the particles (spacing `spacing`).
+    pub fn new(positions: &'a [Vec3], spacing: f32) -> Result<Self, SurfelError> {
+        Ok(Self {
+            positions,
+            grid: CellGrid::new(positions, (BURIED + 0.1) * spacing)?,
+            spacing,
+        })
+    }
+
+    /// How buried the point `x` with outward normal `n` is, in [0, 1]: the largest over the
+    /// particles `p` of `near(|p - t|) far(|p - x|)`, `t` the target half a spacing out,
+    /// `near` falling from 1 to 0 and `far` rising from 0 to 1 over [`BURIED`] +- 0.1
+    /// spacings (smoothsteps): a particle beyond the target and not at the point. Continuous in
+    /// the positions, so that particles moved a little change the surface a little (a yes or
+    /// no here made the real files' frames 10 % less stable under a jitter of 1 % of a spacing).
+    #[must_use]
+    pub fn burial(&self, x: Vec3, n: Vec3) -> f32 {
+        let n = n.normalize_or_zero();
+        if n == Vec3::ZERO {
+            return 0.0;
+        }
+        let s = self.spacing;
+        let (lo, hi) = ((BURIED - 0.1) * s, (BURIED + 0.1) * s);
+        let t = x + n * (0.5 * s);
+        let mut b = 0f32;
+        self.grid.for_each_within(t, hi, |p| {
+            let p = self.positions[p as usize];
+            let near = 1.0 - smoothstep(lo, hi, p.distance(t));
+            let far = smoothstep(lo, hi, p.distance(x));
+            b = b.max(near * far);
+        });
+        b
+    }
+}
+
+fn smoothstep(e0: f32, e1: f32, x: f32) -> f32 {
+    let t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// The chain's points with the surface at the fluid's boundary: the interior particles, weight
+/// one, and the buried surface particles (detected as surface but inside the fluid: the inner
+/// particles of a small drop, a slab's second layer; weight their burial) with the support
+/// radius `h`; then the refined points not wholly buried, with their kernel radii and the
+/// weights of [`boundary_weights`] times how little they are buried. Why the buried points go: a target inside the fluid cannot hold the iso-value
+/// without a bubble, and their refined points with weight 1 swelled the small drop
+/// (tests/boundary.rs: +0.3 spacings at one step).
+pub fn chain_points_at_boundary(
+    particles: &[Vec3],
+    surface: &crate::surface::Surface,
+    refined: &crate::refine::Refined,
+    h: f32,
+    kernel: Kernel,
+    tau: f32,
+) -> Result<ChainPoints, SurfelError> {
+    use crate::surface::ParticleClass;
+    let spacing = 0.5 * h;
+    let fluid = Fluid::new(particles, spacing)?;
+    let mut positions = Vec::new();
+    let mut base = Vec::new();
+    for (i, c) in surface.classes.iter().enumerate() {
+        let b = match c {
+            ParticleClass::Interior => 1.0,
+            ParticleClass::Surface => fluid.burial(particles[i], surface.normals[i]),
+            _ => 0.0,
+        };
+        if b > 0.0 {
+            positions.push(particles[i]);
+            base.push(b);
+        }
+    }
+    let interior = positions.len();
+    let mut radii = vec![h; interior];
+    let mut normals = Vec::new();
+    let burial: Vec<f32> = (0..refined.len())
+        .into_par_iter()
+        .map(|j| fluid.burial(refined.positions[j], refined.normals[j]))
+        .collect();
+    for j in (0..refined.len()).filter(|&j| burial[j] < 1.0) {
+        positions.push(refined.positions[j]);
+        radii.push(refined.kernel_radii[j]);
+        normals.push(refined.normals[j]);
+        base.push(1.0 - burial[j]);
+    }
+    let weights = boundary_weights(
+        Points::with_radii(&positions, &radii, h).with_weights(&base),
+        interior,
+        &normals,
+        spacing,
+        kernel,
+        tau,
+    )?;
+    Ok(ChainPoints {
+        positions,
+        radii,
+        weights,
+    })
+}
+
+/// The chain's points for the density grid: positions, kernel radii and weights.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ChainPoints {
+    pub positions: Vec<Vec3>,
+    pub radii: Vec<f32>,
+    pub weights: Vec<f32>,
+}
