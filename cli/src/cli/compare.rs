@@ -6,7 +6,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use fluid_surfels::io::Format;
-use fluid_surfels::pipeline::{Pipeline, PipelineParams, Renderer, SurfelSource, Through};
+use fluid_surfels::pipeline::{
+    Calibration, Pipeline, PipelineParams, Renderer, SurfelSource, Through,
+};
 use fluid_surfels::quality::{self, SurfaceDifference};
 use fluid_surfels::raycast::RayNormals;
 use fluid_surfels::scenes::SceneName;
@@ -52,6 +54,14 @@ pub struct CompareArgs {
     /// Print one JSON object with every method's figures instead of the table.
     #[arg(long)]
     pub json: bool,
+    /// Refinement steps of the chain and refined sources (the `refine.steps` key; default 3,
+    /// the paper's).
+    #[arg(long)]
+    pub steps: Option<u32>,
+    /// Where the chain's iso-surface lies: paper (eq. 1's sums) or boundary (half a spacing
+    /// outside the outermost particles at every level; the `grid.calibration` key).
+    #[arg(long, value_parser = super::names_parser(&Calibration::ALL, Calibration::as_str), default_value = "paper")]
+    pub calibration: Calibration,
 }
 
 /// The methods of the sheet, after the reference: every renderer with every surfel source.
@@ -102,19 +112,23 @@ struct CompareReport {
 
 /// One method through a fresh pipeline, from `camera`.
 fn run_method(
+    args: &CompareArgs,
     set: &fluid_surfels::ParticleSet,
-    radius: f32,
-    camera: Camera,
-    size: (u32, u32),
+    (radius, camera): (f32, Camera),
     (renderer, source): (Renderer, SurfelSource),
     exact: bool,
 ) -> Result<(Render, f64, f64, usize), Error> {
+    let size = args.size;
     let mut params = PipelineParams {
         support_radius: Some(radius),
         renderer,
         source,
         ..Default::default()
     };
+    if let Some(k) = args.steps {
+        params.refine.steps = k;
+    }
+    params.grid.calibration = args.calibration;
     params.scene.optics.image_size = [size.0, size.1];
     if exact {
         params.raycast.normals = RayNormals::Gradient;
@@ -159,10 +173,9 @@ pub fn compare_command(args: &CompareArgs) -> Result<(), Error> {
     )?;
     let bar = super::progress(METHODS.len() as u64 + 1, "renderers");
     let reference = run_method(
+        args,
         &set,
-        radius,
-        camera,
-        args.size,
+        (radius, camera),
         (Renderer::RayCast, SurfelSource::Particles),
         true,
     )?;
@@ -187,7 +200,7 @@ pub fn compare_command(args: &CompareArgs) -> Result<(), Error> {
     preview::label(&mut first, 0, 10, "exact normals, no filter", 1);
     panels.push(first);
     for method in METHODS {
-        let r = run_method(&set, radius, camera, args.size, method, false)?;
+        let r = run_method(args, &set, (radius, camera), method, false)?;
         let m = report_of(method, &r);
         let mut panel = rgb(&r.0);
         preview::label(

@@ -10,7 +10,7 @@ use fluid_surfels::density::Resolution;
 use fluid_surfels::gpu::GpuContext;
 use fluid_surfels::io::{self, Format};
 use fluid_surfels::pipeline::{
-    self, GpuPipeline, Pipeline, PipelineParams, Renderer, SurfelSource, Through,
+    self, Calibration, GpuPipeline, Pipeline, PipelineParams, Renderer, SurfelSource, Through,
 };
 use fluid_surfels::scenes::{self, ColumnParams, ColumnSim, SceneName};
 use fluid_surfels::sequence::{FramePattern, FrameRange};
@@ -145,6 +145,15 @@ pub struct RenderArgs {
     /// Virtual screen of the caustics, WIDTHxHEIGHT (default: 256 on the water's longer side).
     #[arg(long, value_parser = parse_size)]
     pub caustics_resolution: Option<(u32, u32)>,
+    /// Refinement steps of the chain and refined sources (the `refine.steps` key, over a
+    /// --config file's; default 3, the paper's).
+    #[arg(long)]
+    pub steps: Option<u32>,
+    /// Where the chain's iso-surface lies: paper (eq. 1's sums) or boundary (half a spacing
+    /// outside the outermost particles at every level); the `grid.calibration` key, over a
+    /// --config file's.
+    #[arg(long, value_parser = super::names_parser(&Calibration::ALL, Calibration::as_str))]
+    pub calibration: Option<Calibration>,
     /// Also write the surfels the frame renders (positions, normals and a `radius` attribute:
     /// what --surfels reads back) to this particle file, in the coordinates of the rendering
     /// (turned by --up). One frame only, not with --frames.
@@ -273,6 +282,12 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
     }
     p.source = args.source;
     p.renderer = args.renderer;
+    if let Some(k) = args.steps {
+        p.refine.steps = k;
+    }
+    if let Some(c) = args.calibration {
+        p.grid.calibration = c;
+    }
     p.ssfr.filter = args.filter;
     if args.no_narrow_band {
         p.ssfr.narrow_band = false;
