@@ -218,7 +218,7 @@ fn smoothstep(e0: f32, e1: f32, x: f32) -> f32 {
 pub fn chain_points_at_boundary(
     particles: &[Vec3],
     surface: &crate::surface::Surface,
-    refined: &crate::refine::Refined,
+    refined: Sheet<'_>,
     h: f32,
     kernel: Kernel,
     tau: f32,
@@ -226,12 +226,32 @@ pub fn chain_points_at_boundary(
     use crate::surface::ParticleClass;
     let spacing = 0.5 * h;
     let fluid = Fluid::new(particles, spacing)?;
+    // interior particles of a sheet one particle thick (the detector calls them interior: their
+    // neighbourhood's centre of mass lies on them): exposed on both sides of their plane
+    let near = CellGrid::new(particles, h)?;
+    // (normal, share in the sheet): how flat times how exposed, both continuous
+    let thin: Vec<Option<(Vec3, f32)>> = (0..particles.len())
+        .into_par_iter()
+        .map(|i| {
+            (surface.classes[i] == ParticleClass::Interior)
+                .then(|| sheet_normal(particles, &near, i, h))
+                .flatten()
+                .and_then(|(n, flat)| {
+                    let b = fluid
+                        .burial(particles[i], n)
+                        .max(fluid.burial(particles[i], -n));
+                    let share = flat * (1.0 - b);
+                    (share > 0.0).then_some((n, share))
+                })
+        })
+        .collect();
     let mut positions = Vec::new();
     let mut base = Vec::new();
     for (i, c) in surface.classes.iter().enumerate() {
-        let b = match c {
-            ParticleClass::Interior => 1.0,
-            ParticleClass::Surface => fluid.burial(particles[i], surface.normals[i]),
+        let b = match (c, thin[i]) {
+            (ParticleClass::Interior, Some((_, share))) => 1.0 - share,
+            (ParticleClass::Interior, None) => 1.0,
+            (ParticleClass::Surface, _) => fluid.burial(particles[i], surface.normals[i]),
             _ => 0.0,
         };
         if b > 0.0 {
@@ -242,13 +262,21 @@ pub fn chain_points_at_boundary(
     let interior = positions.len();
     let mut radii = vec![h; interior];
     let mut normals = Vec::new();
+    for (i, t) in thin.iter().enumerate() {
+        if let Some((n, share)) = t {
+            positions.push(particles[i]);
+            radii.push(h);
+            normals.push(*n);
+            base.push(*share);
+        }
+    }
     let burial: Vec<f32> = (0..refined.len())
         .into_par_iter()
         .map(|j| fluid.burial(refined.positions[j], refined.normals[j]))
         .collect();
     for j in (0..refined.len()).filter(|&j| burial[j] < 1.0) {
         positions.push(refined.positions[j]);
-        radii.push(refined.kernel_radii[j]);
+        radii.push(refined.radii[j]);
         normals.push(refined.normals[j]);
         base.push(1.0 - burial[j]);
     }
@@ -265,6 +293,117 @@ pub fn chain_points_at_boundary(
         radii,
         weights,
     })
+}
+
+/// The normal of a particle whose neighbourhood (within `h`) is flat, one particle thick, and how
+/// flat it is: the smallest-eigenvalue eigenvector of its covariance, and 1 when that eigenvalue
+/// is under 5 % of the next, 0 over 15 %, a smoothstep between (a single layer: about zero; the
+/// bulk and a layer under the surface: comparable). Continuous, as [`Fluid::burial`] is: a yes
+/// or no here made the double dam break's finished frame 40 % less stable under jitter.
+fn sheet_normal(particles: &[Vec3], near: &CellGrid, i: usize, h: f32) -> Option<(Vec3, f32)> {
+    let x = particles[i];
+    let (mut n, mut mean) = (0.0f32, Vec3::ZERO);
+    near.for_each_within(x, h, |j| {
+        let d = particles[j as usize] - x;
+        if d.length_squared() < h * h {
+            n += 1.0;
+            mean += d;
+        }
+    });
+    if n < 4.0 {
+        return None;
+    }
+    mean /= n;
+    let mut cov = glam::Mat3::ZERO;
+    near.for_each_within(x, h, |j| {
+        let d = particles[j as usize] - x;
+        if d.length_squared() < h * h {
+            let e = d - mean;
+            cov += glam::Mat3::from_cols(e * e.x, e * e.y, e * e.z);
+        }
+    });
+    let (values, vectors) = crate::linalg::symmetric_eigen(cov);
+    if values[1].is_nan() || values[1] <= 0.0 {
+        return None;
+    }
+    let flat = 1.0 - smoothstep(0.05, 0.15, values[0] / values[1]);
+    // the eigenvector's sign is arbitrary; a target on either side of a flat sheet is the same,
+    // but not on a sheet lying on more fluid to one side: point it up (+y), then +x, then +z
+    let n = vectors[0];
+    let n = if n.y.abs() > 1e-3 {
+        n * n.y.signum()
+    } else if n.x.abs() > 1e-3 {
+        n * n.x.signum()
+    } else {
+        n * n.z.signum()
+    };
+    (flat > 0.0).then_some((n, flat))
+}
+
+/// The points of the surface sheet the weights are solved for: the refined points (the chain),
+/// or the surface and isolated particles themselves (the raw-particle source).
+#[derive(Clone, Copy, Debug)]
+pub struct Sheet<'a> {
+    pub positions: &'a [Vec3],
+    /// Outward normals (zero: none, a lone point).
+    pub normals: &'a [Vec3],
+    /// Kernel radii.
+    pub radii: &'a [f32],
+}
+
+impl<'a> Sheet<'a> {
+    /// The refined points with their kernel radii.
+    #[must_use]
+    pub fn refined(r: &'a crate::refine::Refined) -> Self {
+        Self {
+            positions: &r.positions,
+            normals: &r.normals,
+            radii: &r.kernel_radii,
+        }
+    }
+
+    /// Number of points.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    /// True when there is none.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+}
+
+/// The raw-particle source's points with the surface at the fluid's boundary: the same rule as
+/// the chain's ([`chain_points_at_boundary`]) with the surface and isolated particles, each with
+/// the support radius `h`, as the sheet (the chain at level 0 with the particles' own kernel).
+pub fn particle_points_at_boundary(
+    particles: &[Vec3],
+    surface: &crate::surface::Surface,
+    h: f32,
+    kernel: Kernel,
+    tau: f32,
+) -> Result<ChainPoints, SurfelError> {
+    use crate::surface::ParticleClass;
+    let outer: Vec<usize> = (0..particles.len())
+        .filter(|&i| surface.classes[i] != ParticleClass::Interior)
+        .collect();
+    let positions: Vec<Vec3> = outer.iter().map(|&i| particles[i]).collect();
+    let normals: Vec<Vec3> = outer.iter().map(|&i| surface.normals[i]).collect();
+    let radii = vec![h; outer.len()];
+    chain_points_at_boundary(
+        particles,
+        surface,
+        Sheet {
+            positions: &positions,
+            normals: &normals,
+            radii: &radii,
+        },
+        h,
+        kernel,
+        tau,
+    )
 }
 
 /// The chain's points for the density grid: positions, kernel radii and weights.

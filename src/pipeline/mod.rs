@@ -746,7 +746,19 @@ impl Pipeline {
                 let c = boundary::chain_points_at_boundary(
                     particles.positions,
                     surface,
-                    refined(),
+                    boundary::Sheet::refined(refined()),
+                    radius,
+                    self.params.grid.kernel,
+                    tau,
+                )?;
+                weights = c.weights;
+                (std::borrow::Cow::Owned(c.positions), c.radii)
+            }
+            SurfelSource::Particles if self.params.grid.calibration == Calibration::Boundary => {
+                let tau = self.params.surfels.iso_fraction * self.params.grid.kernel.peak(radius);
+                let c = boundary::particle_points_at_boundary(
+                    particles.positions,
+                    surface,
                     radius,
                     self.params.grid.kernel,
                     tau,
