@@ -349,3 +349,25 @@ def test_the_lnm_detection_method_equals_detect_method_lnm(cli, tmp_path):
     np.testing.assert_array_equal(pos[band.classes == fs.SURFACE], written)
     in_band = band.classes != fs.INTERIOR
     assert in_band[com.classes == fs.SURFACE].all() and 0 < len(written) < len(pos)
+
+
+# a single layer has a third of a bulk's neighbours, which the pipeline rightly warns of
+@pytest.mark.filterwarnings("ignore:support radius")
+def test_the_boundary_calibration_keeps_a_sheets_thickness_at_every_level():
+    """A single layer of particles (spacing 0.05) is one spacing thick at every refinement level
+    with grid={"calibration": "boundary"}; with the paper's sums it is 2.5 spacings thick or more
+    (issue 35)."""
+    s = 0.05
+    i, k = np.meshgrid(np.arange(20), np.arange(20))
+    sheet = np.stack([i.ravel() * s, np.zeros(i.size), k.ravel() * s], axis=1).astype(np.float32)
+
+    def thickness(steps, calibration):
+        p = fs.Pipeline(support_radius=2 * s, refine={"steps": steps}, grid={"calibration": calibration})
+        q = p.frame(sheet, through="surfels").surfels.positions
+        middle = (np.abs(q[:, 0] - 0.475) < 0.2) & (np.abs(q[:, 2] - 0.475) < 0.2)
+        y = q[middle, 1]
+        return (np.median(y[y > 0]) - np.median(y[y < 0])) / s
+
+    for steps in range(4):
+        assert abs(thickness(steps, "boundary") - 1.0) <= 0.2, steps
+    assert thickness(3, "paper") > 2.0
