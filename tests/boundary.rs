@@ -479,3 +479,28 @@ fn the_calibration_does_not_depend_on_the_thread_count() {
         }
     }
 }
+
+/// Past three steps the refined points' kernel (twice the final radius) is shorter than the half
+/// spacing the surface must lie outside them: the calibrated chain refuses with a clear error
+/// instead of drawing the water too small; three steps pass.
+#[test]
+fn deeper_levels_are_refused_with_a_clear_error() {
+    let scene = drop(3.0).scene;
+    let run = |steps: u32| {
+        let mut params = PipelineParams {
+            support_radius: Some(scene.support_radius),
+            ..Default::default()
+        };
+        params.refine.steps = steps;
+        params.grid.calibration = Calibration::Boundary;
+        Pipeline::new(params)
+            .unwrap()
+            .frame_through(&scene.particles, Through::Surfels)
+    };
+    assert!(run(3).is_ok());
+    let e = run(4).unwrap_err().to_string();
+    assert!(
+        e.contains("refine.steps") && e.contains("at most 3 steps"),
+        "{e}"
+    );
+}

@@ -742,6 +742,21 @@ impl Pipeline {
                 (std::borrow::Cow::Owned(p), r)
             }
             SurfelSource::Chain => {
+                // the surface can lie no farther from a refined point than its kernel reaches:
+                // past 3 steps (with the default kernel factor 2) that is short of the half
+                // spacing the boundary lies out
+                let r = refined();
+                let reach = self.params.refine.kernel_factor * r.final_radius;
+                if reach < 0.5 * (0.5 * radius) * (1.0 - 1e-4) {
+                    return Err(Error::InvalidArgument {
+                        argument: "refine.steps",
+                        reason: format!(
+                            "{} steps with grid.calibration = \"boundary\": the refined points' kernel reaches {reach} (kernel_factor x final radius), short of the half spacing {} the surface lies outside them; use at most 3 steps, a larger refine.kernel_factor, or calibration = \"paper\"",
+                            self.params.refine.steps,
+                            0.25 * radius
+                        ),
+                    });
+                }
                 let tau = self.params.surfels.iso_fraction * self.params.grid.kernel.peak(radius);
                 let c = boundary::chain_points_at_boundary(
                     particles.positions,
