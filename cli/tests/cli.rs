@@ -1285,6 +1285,32 @@ fn compare_reports_every_method_against_the_reference() {
     // the sheet is not replaced without --force, and a bad size is refused by the parser
     let e = stderr_of(&run(&[]));
     assert!(e.contains("--force"), "{e}");
+    // --levels adds the chain at 0 to 3 steps (here at the fluid's boundary): a 4x4 sheet
+    let report = json_of(&run(&[
+        "--levels",
+        "--calibration",
+        "boundary",
+        "--force",
+        "--json",
+    ]));
+    let sources: Vec<&str> = report["methods"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| m["source"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        sources[11..],
+        [
+            "chain, 0 steps",
+            "chain, 1 step",
+            "chain, 2 steps",
+            "chain, 3 steps"
+        ],
+        "{sources:?}"
+    );
+    let sheet = image::open(&out).unwrap();
+    assert_eq!((sheet.width(), sheet.height()), (4 * 64, 4 * 48));
     let e = stderr_of(
         &bin()
             .args([

@@ -62,7 +62,19 @@ pub struct CompareArgs {
     /// outside the outermost particles at every level; the `grid.calibration` key).
     #[arg(long, value_parser = super::names_parser(&Calibration::ALL, Calibration::as_str), default_value = "paper")]
     pub calibration: Calibration,
+    /// Add the chain (EWA) at 0, 1, 2 and 3 refinement steps to the sheet, to compare the levels
+    /// of detail (with --calibration boundary each at the fluid's boundary).
+    #[arg(long)]
+    pub levels: bool,
 }
+
+/// The sources' names of the chain at each level of `--levels`.
+const LEVELS: [&str; 4] = [
+    "chain, 0 steps",
+    "chain, 1 step",
+    "chain, 2 steps",
+    "chain, 3 steps",
+];
 
 /// The methods of the sheet, after the reference: every renderer with every surfel source.
 const METHODS: [(Renderer, SurfelSource); 11] = [
@@ -117,6 +129,7 @@ fn run_method(
     (radius, camera): (f32, Camera),
     (renderer, source): (Renderer, SurfelSource),
     exact: bool,
+    steps: Option<u32>,
 ) -> Result<(Render, f64, f64, usize), Error> {
     let size = args.size;
     let mut params = PipelineParams {
@@ -125,7 +138,7 @@ fn run_method(
         source,
         ..Default::default()
     };
-    if let Some(k) = args.steps {
+    if let Some(k) = steps.or(args.steps) {
         params.refine.steps = k;
     }
     params.grid.calibration = args.calibration;
@@ -171,13 +184,15 @@ pub fn compare_command(args: &CompareArgs) -> Result<(), Error> {
         args.size.0,
         args.size.1,
     )?;
-    let bar = super::progress(METHODS.len() as u64 + 1, "renderers");
+    let extra = if args.levels { LEVELS.len() } else { 0 };
+    let bar = super::progress((METHODS.len() + extra) as u64 + 1, "renderers");
     let reference = run_method(
         args,
         &set,
         (radius, camera),
         (Renderer::RayCast, SurfelSource::Particles),
         true,
+        None,
     )?;
     bar.inc(1);
     let report_of = |(renderer, source): (Renderer, SurfelSource),
@@ -199,9 +214,21 @@ pub fn compare_command(args: &CompareArgs) -> Result<(), Error> {
     preview::label(&mut first, 0, 0, "reference: ray-cast particles", 1);
     preview::label(&mut first, 0, 10, "exact normals, no filter", 1);
     panels.push(first);
-    for method in METHODS {
-        let r = run_method(args, &set, (radius, camera), method, false)?;
-        let m = report_of(method, &r);
+    let levels = if args.levels {
+        0..LEVELS.len() as u32
+    } else {
+        0..0
+    };
+    let runs = METHODS
+        .iter()
+        .map(|&m| (m, None))
+        .chain(levels.map(|k| ((Renderer::Ewa, SurfelSource::Chain), Some(k))));
+    for (method, steps) in runs {
+        let r = run_method(args, &set, (radius, camera), method, false, steps)?;
+        let mut m = report_of(method, &r);
+        if let Some(k) = steps {
+            m.source = LEVELS[k as usize];
+        }
         let mut panel = rgb(&r.0);
         preview::label(
             &mut panel,
@@ -245,6 +272,13 @@ pub fn compare_command(args: &CompareArgs) -> Result<(), Error> {
         super::print_json(&report);
         return Ok(());
     }
+    print_table(&report);
+    println!("  wrote {}", report.output);
+    Ok(())
+}
+
+/// The report as the table on stdout.
+fn print_table(report: &CompareReport) {
     println!(
         "{}: {} particles, support radius {}, spacing {:.4}; {}x{} per panel; against the ray-cast reference ({:.0} ms, {} pixels):",
         report.source,
@@ -257,7 +291,7 @@ pub fn compare_command(args: &CompareArgs) -> Result<(), Error> {
         report.reference.covered_pixels
     );
     println!(
-        "  {:<15} {:<10} {:>9} {:>10} {:>9} {:>12} {:>11} {:>12} {:>11} {:>9}",
+        "  {:<15} {:<15} {:>9} {:>10} {:>9} {:>12} {:>11} {:>12} {:>11} {:>9}",
         "renderer",
         "source",
         "ms",
@@ -272,7 +306,7 @@ pub fn compare_command(args: &CompareArgs) -> Result<(), Error> {
     for m in &report.methods {
         let d = &m.against_reference;
         println!(
-            "  {:<15} {:<10} {:>9.1} {:>10.1} {:>9} {:>9.3} sp {:>8.3} sp {:>8.2} deg {:>7.2} deg {:>7.2} %",
+            "  {:<15} {:<15} {:>9.1} {:>10.1} {:>9} {:>9.3} sp {:>8.3} sp {:>8.2} deg {:>7.2} deg {:>7.2} %",
             m.renderer,
             m.source,
             m.ms,
@@ -285,6 +319,4 @@ pub fn compare_command(args: &CompareArgs) -> Result<(), Error> {
             100.0 * d.coverage_difference
         );
     }
-    println!("  wrote {}", report.output);
-    Ok(())
 }
