@@ -70,17 +70,23 @@ fn on_checker_line(scene: &OpticsScene, p: Vec3, n: Vec3, eps: f32) -> bool {
     if c <= 0.0 {
         return false;
     }
-    let a = n.abs();
-    let q = if a.y >= a.x && a.y >= a.z {
-        Vec2::new(p.x, p.z)
-    } else if a.x >= a.z {
-        Vec2::new(p.y, p.z)
-    } else {
-        Vec2::new(p.x, p.y)
-    };
-    let f = (q / c).fract().abs();
+    let f = (fluid_surfels::optics::checker_coordinates(p, n) / c)
+        .fract()
+        .abs();
     let near = |x: f32| x * c < eps || (1.0 - x) * c < eps;
     near(f.x) || near(f.y)
+}
+
+/// The camera's view of a stage at `size`, whose pixel rays the labels follow.
+fn camera_view(stage: &Stage, size: (u32, u32)) -> View {
+    View::new(
+        &stage.camera,
+        &Light::default(),
+        &SplatParams::default(),
+        size.0,
+        size.1,
+    )
+    .unwrap()
 }
 
 /// The outer-face pixels of one frame: how many were checked, how many were more than 1 % off
@@ -100,14 +106,7 @@ fn check_outer_faces(stage: &Stage, linear: &[[f32; 4]], size: (u32, u32)) -> Ou
         ReceiverKind::OpenBox => (scene.receiver.min, scene.receiver.max),
         _ => stage.receiver.bounds(),
     };
-    let view = View::new(
-        &stage.camera,
-        &Light::default(),
-        &SplatParams::default(),
-        size.0,
-        size.1,
-    )
-    .unwrap();
+    let view = camera_view(stage, size);
     let l = scene.light.direction.normalize();
     let e = scene.light.colour;
     let edge = 1e-4 * (hi - lo).length();
@@ -465,14 +464,7 @@ fn a_closed_mesh_holds_its_water() {
             fluid_surfels::optics::gpu::render_gpu(&ctx, &stage, &surfels, Some(size)).unwrap();
         results.push(("gpu", g.frame.unwrap().1));
     }
-    let view = View::new(
-        &stage.camera,
-        &Light::default(),
-        &SplatParams::default(),
-        size.0,
-        size.1,
-    )
-    .unwrap();
+    let view = camera_view(&stage, size);
     let l = scene.light.direction.normalize();
     for (backend, linear) in results {
         let water = linear.iter().filter(|p| p[3] > 0.0).count();

@@ -613,17 +613,23 @@ impl Stage {
         if r.checker <= 0.0 {
             return r.albedo;
         }
-        let a = n.abs();
-        let q = if a.y >= a.x && a.y >= a.z {
-            Vec2::new(p.x, p.z)
-        } else if a.x >= a.z {
-            Vec2::new(p.y, p.z)
-        } else {
-            Vec2::new(p.x, p.y)
-        };
-        let cell = (q / r.checker).floor();
+        let cell = (checker_coordinates(p, n) / r.checker).floor();
         let odd = (cell.x + cell.y).rem_euclid(2.0) >= 0.5;
         if odd { r.albedo * 0.55 } else { r.albedo }
+    }
+}
+
+/// The receiver's checkerboard coordinates of `p` on a surface of normal `n`: the two axes across
+/// the normal's dominant one (`receiver_albedo` in the WGSL picks them the same way).
+#[must_use]
+pub fn checker_coordinates(p: Vec3, n: Vec3) -> Vec2 {
+    let a = n.abs();
+    if a.y >= a.x && a.y >= a.z {
+        Vec2::new(p.x, p.z)
+    } else if a.x >= a.z {
+        Vec2::new(p.y, p.z)
+    } else {
+        Vec2::new(p.x, p.y)
     }
 }
 
