@@ -308,13 +308,39 @@ impl OpticsGpu {
         self.prepare_water(device, queue, stage, GpuWater::Surfels(surfels), size)
     }
 
+    /// The targets and uniforms of a geometry map of the receiver seen in `v` (its size).
+    fn geometry_target(&self, device: &wgpu::Device, label: &str, v: &View) -> GeometryTarget {
+        let (w, h) = (v.width, v.height);
+        let attach = wgpu::TextureUsages::RENDER_ATTACHMENT;
+        let sampled = wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC;
+        let texture = |format, usage| texture_2d(device, label, (w, h), format, usage);
+        let uniforms = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: bytemuck::bytes_of(&RawGeometry::of(v)),
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        });
+        let position = texture(FLOAT, attach | sampled);
+        let normal = texture(FLOAT, attach | sampled);
+        let depth = texture(DEPTH, attach);
+        GeometryTarget {
+            views: [&position, &normal, &depth].map(|t| t.create_view(&Default::default())),
+            position,
+            normal,
+            bind: device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(label),
+                layout: &self.geometry_layout,
+                entries: &[wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: uniforms.as_entire_binding(),
+                }],
+            }),
+            uniforms,
+        }
+    }
+
     /// [`Self::prepare`] with the water drawn from `water`: splatted surfels, or rays cast to
     /// the iso-surface of a caster's points (the light's view and the camera's, each cast on
     /// the GPU into the textures the optics read).
-    #[allow(
-        clippy::too_many_lines,
-        reason = "issue 38: still to split into named phases"
-    )]
     pub fn prepare_water(
         &self,
         device: &wgpu::Device,
@@ -328,19 +354,14 @@ impl OpticsGpu {
         let screen = stage.views.screen;
         let map = stage.views.map;
         let (fw, fh) = size.unwrap_or((1, 1));
-        for (w, h) in [
-            (screen.width, screen.height),
-            (map.width, map.height),
-            (fw, fh),
-        ] {
-            if w > limit || h > limit {
-                return Err(OpticsError::InvalidParameter {
-                    name: "resolution",
-                    reason: format!("{w}x{h} exceeds this device's limit of {limit}"),
-                }
-                .into());
-            }
-        }
+        check_sizes(
+            limit,
+            [
+                (screen.width, screen.height),
+                (map.width, map.height),
+                (fw, fh),
+            ],
+        )?;
         let camera = View::new(
             &stage.camera,
             &Light::default(),
@@ -350,33 +371,8 @@ impl OpticsGpu {
         )?;
         let texture = |label, w, h, format, usage| texture_2d(device, label, (w, h), format, usage);
         let attach = wgpu::TextureUsages::RENDER_ATTACHMENT;
-        let sampled = wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC;
-        let geometry_target = |label, w, h, v: &View| {
-            let uniforms = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: bytemuck::bytes_of(&RawGeometry::of(v)),
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            });
-            let position = texture(label, w, h, FLOAT, attach | sampled);
-            let normal = texture(label, w, h, FLOAT, attach | sampled);
-            let depth = texture(label, w, h, DEPTH, attach);
-            GeometryTarget {
-                views: [&position, &normal, &depth].map(|t| t.create_view(&Default::default())),
-                position,
-                normal,
-                bind: device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some(label),
-                    layout: &self.geometry_layout,
-                    entries: &[wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: uniforms.as_entire_binding(),
-                    }],
-                }),
-                uniforms,
-            }
-        };
-        let map_geometry = geometry_target("light geometry map", map.width, map.height, &map);
-        let camera_geometry = geometry_target("camera geometry map", fw, fh, &camera);
+        let map_geometry = self.geometry_target(device, "light geometry map", &map);
+        let camera_geometry = self.geometry_target(device, "camera geometry map", &camera);
         let rgba8 = wgpu::TextureFormat::Rgba8Unorm;
         let light_image = texture(
             "light splat image",
@@ -386,59 +382,8 @@ impl OpticsGpu {
             attach,
         );
         let camera_image = texture("camera splat image", fw, fh, rgba8, attach);
-        let water = match water {
-            GpuWater::Surfels(surfels) => {
-                let mut buffer = SplatRenderer::upload(device, &[]);
-                buffer.write(device, queue, surfels);
-                Water::Splats {
-                    surfels: buffer,
-                    light: SplatRenderer::new(
-                        device,
-                        wgpu::TextureFormat::Rgba8Unorm,
-                        screen.width,
-                        screen.height,
-                    )?,
-                    camera: SplatRenderer::new(device, wgpu::TextureFormat::Rgba8Unorm, fw, fh)?,
-                }
-            }
-            GpuWater::Cast(caster) => {
-                let mut light = GpuCaster::new(device, screen.width, screen.height)?;
-                light.prepare(device, caster, &screen)?;
-                let mut cast = GpuCaster::new(device, fw, fh)?;
-                cast.prepare(device, caster, &camera)?;
-                Water::Cast {
-                    light,
-                    camera: cast,
-                }
-            }
-            GpuWater::Screen(screen_space) => {
-                let mut light = crate::ssfr::gpu::GpuSsfr::new(device)?;
-                light.prepare(device, screen_space, &screen)?;
-                let mut view = crate::ssfr::gpu::GpuSsfr::new(device)?;
-                view.prepare(device, screen_space, &camera)?;
-                Water::Screen {
-                    light,
-                    camera: view,
-                }
-            }
-        };
-        // the environment image (or one texel)
-        let none = [[0.0f32; 4]];
-        let (ew, eh, env_pixels): (u32, u32, &[[f32; 4]]) = match &stage.scene.environment.pixels {
-            Some((w, h, p)) if *w <= limit && *h <= limit => (*w, *h, p.as_slice()),
-            _ => (1, 1, &none),
-        };
-        let environment = device.create_texture_with_data(
-            queue,
-            &texture_descriptor(
-                "environment",
-                (ew, eh),
-                FLOAT,
-                wgpu::TextureUsages::TEXTURE_BINDING,
-            ),
-            wgpu::util::TextureDataOrder::LayerMajor,
-            bytemuck::cast_slice(env_pixels),
-        );
+        let water = water_passes(device, queue, water, &screen, &camera)?;
+        let environment = environment_texture(device, queue, stage, limit);
         // the receiver, flat normals per vertex
         let receiver = receiver_vertices(stage);
         let receiver_vertices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -549,6 +494,93 @@ struct GeometryTarget {
     views: [wgpu::TextureView; 3],
     uniforms: wgpu::Buffer,
     bind: wgpu::BindGroup,
+}
+
+/// Refuses a screen, map or frame larger than the device's textures.
+fn check_sizes(limit: u32, sizes: [(u32, u32); 3]) -> Result<(), GpuError> {
+    for (w, h) in sizes {
+        if w > limit || h > limit {
+            return Err(OpticsError::InvalidParameter {
+                name: "resolution",
+                reason: format!("{w}x{h} exceeds this device's limit of {limit}"),
+            }
+            .into());
+        }
+    }
+    Ok(())
+}
+
+/// The water's passes from the light's screen and from the camera, for each kind of water.
+fn water_passes(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    water: GpuWater<'_>,
+    screen: &View,
+    camera: &View,
+) -> Result<Water, GpuError> {
+    let (fw, fh) = (camera.width, camera.height);
+    Ok(match water {
+        GpuWater::Surfels(surfels) => {
+            let mut buffer = SplatRenderer::upload(device, &[]);
+            buffer.write(device, queue, surfels);
+            Water::Splats {
+                surfels: buffer,
+                light: SplatRenderer::new(
+                    device,
+                    wgpu::TextureFormat::Rgba8Unorm,
+                    screen.width,
+                    screen.height,
+                )?,
+                camera: SplatRenderer::new(device, wgpu::TextureFormat::Rgba8Unorm, fw, fh)?,
+            }
+        }
+        GpuWater::Cast(caster) => {
+            let mut light = GpuCaster::new(device, screen.width, screen.height)?;
+            light.prepare(device, caster, screen)?;
+            let mut cast = GpuCaster::new(device, fw, fh)?;
+            cast.prepare(device, caster, camera)?;
+            Water::Cast {
+                light,
+                camera: cast,
+            }
+        }
+        GpuWater::Screen(screen_space) => {
+            let mut light = crate::ssfr::gpu::GpuSsfr::new(device)?;
+            light.prepare(device, screen_space, screen)?;
+            let mut view = crate::ssfr::gpu::GpuSsfr::new(device)?;
+            view.prepare(device, screen_space, camera)?;
+            Water::Screen {
+                light,
+                camera: view,
+            }
+        }
+    })
+}
+
+/// The environment image as a texture (one texel without an image, or with one larger than
+/// the device's textures).
+fn environment_texture(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    stage: &Stage,
+    limit: u32,
+) -> wgpu::Texture {
+    let none = [[0.0f32; 4]];
+    let (ew, eh, env_pixels): (u32, u32, &[[f32; 4]]) = match &stage.scene.environment.pixels {
+        Some((w, h, p)) if *w <= limit && *h <= limit => (*w, *h, p.as_slice()),
+        _ => (1, 1, &none),
+    };
+    device.create_texture_with_data(
+        queue,
+        &texture_descriptor(
+            "environment",
+            (ew, eh),
+            FLOAT,
+            wgpu::TextureUsages::TEXTURE_BINDING,
+        ),
+        wgpu::util::TextureDataOrder::LayerMajor,
+        bytemuck::cast_slice(env_pixels),
+    )
 }
 
 /// What the GPU optics draw the water from.
