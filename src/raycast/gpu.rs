@@ -373,10 +373,6 @@ impl GpuCaster {
         Ok(())
     }
 
-    #[allow(
-        clippy::too_many_lines,
-        reason = "issue 38: still to split into named phases"
-    )]
     fn upload(
         &self,
         device: &wgpu::Device,
@@ -399,62 +395,8 @@ impl GpuCaster {
         let reach = points.max_radius();
         let pca_reach = params.pca_radius * reach;
         let grids = grids_of(caster, pca_reach);
-        // every grid's starts, then every grid's items, in one buffer
-        let mut cells: Vec<u32> = Vec::new();
-        let mut raw_grids = RawGrids {
-            grid: [RawGrid::default(); MAX_GRIDS],
-        };
-        for (g, raw) in grids.iter().zip(&mut raw_grids.grid) {
-            raw.g = g.origin.extend(g.cell).to_array();
-            raw.dims = [g.dims[0], g.dims[1], g.dims[2], cells.len() as u32];
-            cells.extend_from_slice(&g.starts);
-        }
-        for (g, raw) in grids.iter().zip(&mut raw_grids.grid) {
-            raw.at = [cells.len() as u32, 0, 0, 0];
-            cells.extend_from_slice(&g.items);
-        }
-        let (_, inv_view, _) = v.matrices();
-        let half = v.half_extent();
-        let absorb = Vec3::from(params.absorption) / points.h;
-        let raw = RawCastParams {
-            inv_view: inv_view.to_cols_array_2d(),
-            screen: [v.width as f32, v.height as f32, half.x, half.y],
-            a: [u32::from(v.is_orthographic()), tw as u32, v.width, v.height],
-            b: [
-                caster.iso(),
-                params.step * points.min_radius(),
-                points.h,
-                params.pca_radius,
-            ],
-            c: [
-                params.bisection_steps,
-                match params.normals {
-                    RayNormals::Blended => 0,
-                    RayNormals::Gradient => 1,
-                    RayNormals::Pca => 2,
-                },
-                match caster.density().kernel() {
-                    Kernel::Wyvill => 0,
-                    Kernel::CubicSpline => 1,
-                },
-                params.bilateral_radius_px,
-            ],
-            d: [
-                params.blend_d,
-                params.blend_k,
-                params.blend_max,
-                params.bilateral_sigma_px,
-            ],
-            e: [
-                params.bilateral_sigma_depth * points.h,
-                reach,
-                pca_reach,
-                0.0,
-            ],
-            g: [grids.len() as u32 - 1, grids.len() as u32 - 1, 0, 0],
-            base: crate::splat::WATER,
-            absorb: absorb.extend(0.0).to_array(),
-        };
+        let (cells, raw_grids) = pack_grids(&grids);
+        let raw = raw_params(caster, v, tw, (reach, pca_reach), grids.len());
         // storage bindings may not be empty: one unused element each at least
         let storage = |label, bytes: &[u8]| {
             let mut contents = bytes.to_vec();
@@ -480,37 +422,7 @@ impl GpuCaster {
             storage("raycast tile items", bytemuck::cast_slice(&tile_items)),
             storage("raycast cells", bytemuck::cast_slice(&cells)),
         ];
-        // An upper bound on the iterations any pixel needs (its tile's spheres, then every
-        // sample of the march from entry to exit, the bisections, the gradient and the PCA
-        // sums, each sum one iteration per row and per point).
-        let most_in_tile = tiles.iter().map(|t| t.len() as u64).max().unwrap_or(0);
-        let (lo, hi) = (0..points.len()).fold(
-            (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
-            |(lo, hi), j| {
-                let r = Vec3::splat(points.radius(j));
-                (
-                    lo.min(points.positions[j] - r),
-                    hi.max(points.positions[j] + r),
-                )
-            },
-        );
-        let span = if points.is_empty() {
-            0.0
-        } else {
-            (hi - lo).length()
-        };
-        let march = (f64::from(span) / f64::from(raw.b[1])).ceil() as u64 + 4;
-        let (pca_grid, density_grids) = grids.split_last().expect("the PCA grid is last");
-        let per_sum = density_grids
-            .iter()
-            .map(|g| g.most_visited() + 9)
-            .sum::<u64>()
-            + 2;
-        let most = most_in_tile
-            + 2
-            + (march + u64::from(params.bisection_steps) + 1) * per_sum
-            + pca_grid.most_visited()
-            + 11;
+        let most = iteration_bound(caster, &tiles, &grids, raw.b[1]);
         let runs = most.div_ceil(u64::from(BUDGET)) + 1;
         let bind = |pipeline: &wgpu::ComputePipeline,
                     entries: &[(u32, wgpu::BindingResource<'_>)]| {
@@ -716,4 +628,114 @@ pub fn render_view_gpu(
         return Err(GpuError::Validation(e.to_string()).into());
     }
     Ok(gpu.read(ctx)?)
+}
+
+/// Every grid's starts, then every grid's items, in one buffer, and the grids' uniforms that
+/// point into it.
+fn pack_grids(grids: &[CsrGrid]) -> (Vec<u32>, RawGrids) {
+    let mut cells: Vec<u32> = Vec::new();
+    let mut raw_grids = RawGrids {
+        grid: [RawGrid::default(); MAX_GRIDS],
+    };
+    for (g, raw) in grids.iter().zip(&mut raw_grids.grid) {
+        raw.g = g.origin.extend(g.cell).to_array();
+        raw.dims = [g.dims[0], g.dims[1], g.dims[2], cells.len() as u32];
+        cells.extend_from_slice(&g.starts);
+    }
+    for (g, raw) in grids.iter().zip(&mut raw_grids.grid) {
+        raw.at = [cells.len() as u32, 0, 0, 0];
+        cells.extend_from_slice(&g.items);
+    }
+    (cells, raw_grids)
+}
+
+/// The cast's uniforms for the view `v` (`tw` tiles across), the points' largest radius and the
+/// PCA's reach, and `grids` grids (the PCA's last).
+fn raw_params(
+    caster: &Caster<'_>,
+    v: &View,
+    tw: usize,
+    (reach, pca_reach): (f32, f32),
+    grids: usize,
+) -> RawCastParams {
+    let points = caster.density().points();
+    let params = &caster.params;
+    let (_, inv_view, _) = v.matrices();
+    let half = v.half_extent();
+    let absorb = Vec3::from(params.absorption) / points.h;
+    RawCastParams {
+        inv_view: inv_view.to_cols_array_2d(),
+        screen: [v.width as f32, v.height as f32, half.x, half.y],
+        a: [u32::from(v.is_orthographic()), tw as u32, v.width, v.height],
+        b: [
+            caster.iso(),
+            params.step * points.min_radius(),
+            points.h,
+            params.pca_radius,
+        ],
+        c: [
+            params.bisection_steps,
+            match params.normals {
+                RayNormals::Blended => 0,
+                RayNormals::Gradient => 1,
+                RayNormals::Pca => 2,
+            },
+            match caster.density().kernel() {
+                Kernel::Wyvill => 0,
+                Kernel::CubicSpline => 1,
+            },
+            params.bilateral_radius_px,
+        ],
+        d: [
+            params.blend_d,
+            params.blend_k,
+            params.blend_max,
+            params.bilateral_sigma_px,
+        ],
+        e: [
+            params.bilateral_sigma_depth * points.h,
+            reach,
+            pca_reach,
+            0.0,
+        ],
+        g: [grids as u32 - 1, grids as u32 - 1, 0, 0],
+        base: crate::splat::WATER,
+        absorb: absorb.extend(0.0).to_array(),
+    }
+}
+
+/// An upper bound on the iterations any pixel needs (its tile's spheres, then every sample of the
+/// march from entry to exit at `step`, the bisections, the gradient and the PCA sums, each sum
+/// one iteration per row and per point).
+fn iteration_bound(caster: &Caster<'_>, tiles: &[Vec<u32>], grids: &[CsrGrid], step: f32) -> u64 {
+    let points = caster.density().points();
+    let params = &caster.params;
+    let most_in_tile = tiles.iter().map(|t| t.len() as u64).max().unwrap_or(0);
+    let (lo, hi) = (0..points.len()).fold(
+        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+        |(lo, hi), j| {
+            let r = Vec3::splat(points.radius(j));
+            (
+                lo.min(points.positions[j] - r),
+                hi.max(points.positions[j] + r),
+            )
+        },
+    );
+    let span = if points.is_empty() {
+        0.0
+    } else {
+        (hi - lo).length()
+    };
+    let march = (f64::from(span) / f64::from(step)).ceil() as u64 + 4;
+    let (pca_grid, density_grids) = grids.split_last().expect("the PCA grid is last");
+    let per_sum = density_grids
+        .iter()
+        .map(|g| g.most_visited() + 9)
+        .sum::<u64>()
+        + 2;
+    most_in_tile
+        + 2
+        + (march + u64::from(params.bisection_steps) + 1) * per_sum
+        + pca_grid.most_visited()
+        + 11
 }
