@@ -138,6 +138,24 @@ fn check_outer_faces(stage: &Stage, linear: &[[f32; 4]], size: (u32, u32)) -> Ou
     r
 }
 
+/// The column scene's pipeline (its tank as the pool, a tiny finished frame: the tests render
+/// their own views) and its simulation at frame 0.
+fn column_pipeline() -> (
+    fluid_surfels::pipeline::Pipeline,
+    fluid_surfels::scenes::ColumnSim,
+) {
+    use fluid_surfels::pipeline::{Pipeline, PipelineParams};
+    use fluid_surfels::scenes::{ColumnParams, ColumnSim, column_pool};
+    let sim = ColumnSim::new(ColumnParams::default()).unwrap();
+    let mut params = PipelineParams {
+        support_radius: Some(sim.support_radius()),
+        scene: column_pool(ColumnParams::default().tank),
+        ..Default::default()
+    };
+    params.scene.optics.image_size = [16, 16];
+    (Pipeline::new(params).unwrap(), sim)
+}
+
 /// The views of the issue: the scene's own camera, the lit side (the +x and +z outer faces) and
 /// the unlit side (-x and -z), from below the rim.
 fn column_views(scene: &OpticsScene) -> Vec<(&'static str, Camera)> {
@@ -243,19 +261,10 @@ fn check_views(
 /// 311 of 84,603 in the unlit view (all water); frame 40, 761 and 44.
 #[test]
 fn column_outer_walls_show_exactly_the_direct_light() {
-    use fluid_surfels::pipeline::{Pipeline, PipelineParams, Through, column_frame};
-    use fluid_surfels::scenes::{ColumnParams, ColumnSim, column_pool};
+    use fluid_surfels::pipeline::{Through, column_frame};
     let gpu = gpu_optics("column_outer_walls");
-    let mut sim = ColumnSim::new(ColumnParams::default()).unwrap();
-    let tank = ColumnParams::default().tank;
-    let mut params = PipelineParams {
-        support_radius: Some(sim.support_radius()),
-        scene: column_pool(tank),
-        ..Default::default()
-    };
-    params.scene.optics.image_size = [16, 16];
-    let views = column_views(&params.scene);
-    let mut p = Pipeline::new(params).unwrap();
+    let (mut p, mut sim) = column_pipeline();
+    let views = column_views(&p.params().scene);
     let mut failures = Vec::new();
     for frame in [0, 14, 40, 100] {
         let f = column_frame(&mut p, &mut sim, frame, Through::Frame, |_| {}).unwrap();
@@ -323,18 +332,10 @@ fn real_files_outer_walls_show_exactly_the_direct_light() {
 /// drops). The test costs the map 0.15 % of its flux on this frame (texels at seams).
 #[test]
 fn caustics_stay_off_the_outer_faces_texels() {
-    use fluid_surfels::pipeline::{Pipeline, PipelineParams, Through, column_frame};
-    use fluid_surfels::scenes::{ColumnParams, ColumnSim, column_pool};
+    use fluid_surfels::pipeline::{Through, column_frame};
+    use fluid_surfels::scenes::ColumnParams;
     let gpu = fluid_surfels::gpu::context_or_skip("caustics_stay_off_the_outer_faces").unwrap();
-    let mut sim = ColumnSim::new(ColumnParams::default()).unwrap();
-    let tank = ColumnParams::default().tank;
-    let mut params = PipelineParams {
-        support_radius: Some(sim.support_radius()),
-        scene: column_pool(tank),
-        ..Default::default()
-    };
-    params.scene.optics.image_size = [16, 16];
-    let mut p = Pipeline::new(params).unwrap();
+    let (mut p, mut sim) = column_pipeline();
     let f = column_frame(
         &mut p,
         &mut sim,

@@ -48,8 +48,9 @@ use crate::surfels::{ExactDensity, SurfelError};
 /// refined points then left a bubble inside it at three steps.
 pub const BURIED: f32 = 0.75;
 
-/// Jacobi steps of the weights (measured on tests/boundary.rs's shapes: the surface moves by
-/// less than 0.01 spacings after the third).
+/// Jacobi steps of the weights (measured: 8 steps instead of 3 moved the radius-2 drop's and
+/// tube's surfaces by at most 0.01 spacings in tests/boundary.rs, and the real files' frames
+/// under jitter by 0.02 points).
 pub const WEIGHT_STEPS: u32 = 3;
 
 /// The largest weight a refined point gets (a point alone at the tip of a spike).
@@ -160,7 +161,8 @@ pub fn boundary_weights(
     Ok(w.iter().zip(&base).map(|(w, b)| w * b).collect())
 }
 
-/// A particle set's positions under a cell grid for [`Fluid::burial`].
+/// A particle set's positions under one cell grid (cells of two spacings, the support radius)
+/// for [`Fluid::burial`] and [`Fluid::flat_normal`].
 pub struct Fluid<'a> {
     positions: &'a [Vec3],
     grid: CellGrid,
@@ -172,17 +174,60 @@ impl<'a> Fluid<'a> {
     pub fn new(positions: &'a [Vec3], spacing: f32) -> Result<Self, SurfelError> {
         Ok(Self {
             positions,
-            grid: CellGrid::new(positions, (BURIED + 0.1) * spacing)?,
+            grid: CellGrid::new(positions, 2.0 * spacing)?,
             spacing,
         })
+    }
+
+    /// The normal of particle `i` when its neighbourhood (within two spacings) is flat, one
+    /// particle thick, and how flat it is: the smallest-eigenvalue eigenvector of the
+    /// neighbourhood's covariance, and 1 when that eigenvalue is under 5 % of the next, 0 over
+    /// 15 %, a smoothstep between (a single layer: about zero; the bulk and a layer under the
+    /// surface: comparable). The normal points up (+y), else +x, else +z: the eigenvector's sign
+    /// is arbitrary, and a sheet lying on more fluid to one side has different targets on its
+    /// two sides.
+    #[must_use]
+    pub fn flat_normal(&self, i: usize) -> Option<(Vec3, f32)> {
+        let h = 2.0 * self.spacing;
+        let x = self.positions[i];
+        // one pass: the count, the sum and the sum of outer products of the offsets
+        let (mut n, mut sum, mut outer) = (0.0f32, Vec3::ZERO, glam::Mat3::ZERO);
+        self.grid.for_each_within(x, h, |j| {
+            let d = self.positions[j as usize] - x;
+            if d.length_squared() < h * h {
+                n += 1.0;
+                sum += d;
+                outer += glam::Mat3::from_cols(d * d.x, d * d.y, d * d.z);
+            }
+        });
+        if n < 4.0 {
+            return None;
+        }
+        let mean = sum / n;
+        let cov = outer - glam::Mat3::from_cols(mean * mean.x, mean * mean.y, mean * mean.z) * n;
+        let (values, vectors) = crate::linalg::symmetric_eigen(cov);
+        if values[1].is_nan() || values[1] <= 0.0 {
+            return None;
+        }
+        let flat = 1.0 - smoothstep(0.05, 0.15, values[0] / values[1]);
+        let v = vectors[0];
+        let up = if v.y.abs() > 1e-3 {
+            v.y
+        } else if v.x.abs() > 1e-3 {
+            v.x
+        } else {
+            v.z
+        };
+        (flat > 0.0).then_some((v * up.signum(), flat))
     }
 
     /// How buried the point `x` with outward normal `n` is, in [0, 1]: the largest over the
     /// particles `p` of `near(|p - t|) far(|p - x|)`, `t` the target half a spacing out,
     /// `near` falling from 1 to 0 and `far` rising from 0 to 1 over [`BURIED`] +- 0.1
     /// spacings (smoothsteps): a particle beyond the target and not at the point. Continuous in
-    /// the positions, so that particles moved a little change the surface a little (a yes or
-    /// no here made the real files' frames 10 % less stable under a jitter of 1 % of a spacing).
+    /// the positions, so that particles moved a little change the surface a little: with a yes
+    /// or no here the double dam break's finished frame changed by 1.03 % under a jitter of 1 %
+    /// of a spacing, continuous by 0.95 % (the paper's sums: 0.93 %).
     #[must_use]
     pub fn burial(&self, x: Vec3, n: Vec3) -> f32 {
         let n = n.normalize_or_zero();
@@ -227,14 +272,13 @@ pub fn chain_points_at_boundary(
     let spacing = 0.5 * h;
     let fluid = Fluid::new(particles, spacing)?;
     // interior particles of a sheet one particle thick (the detector calls them interior: their
-    // neighbourhood's centre of mass lies on them): exposed on both sides of their plane
-    let near = CellGrid::new(particles, h)?;
+    // neighbourhood's centre of mass lies on them): exposed on both sides of their plane;
     // (normal, share in the sheet): how flat times how exposed, both continuous
     let thin: Vec<Option<(Vec3, f32)>> = (0..particles.len())
         .into_par_iter()
         .map(|i| {
             (surface.classes[i] == ParticleClass::Interior)
-                .then(|| sheet_normal(particles, &near, i, h))
+                .then(|| fluid.flat_normal(i))
                 .flatten()
                 .and_then(|(n, flat)| {
                     let b = fluid
@@ -293,51 +337,6 @@ pub fn chain_points_at_boundary(
         radii,
         weights,
     })
-}
-
-/// The normal of a particle whose neighbourhood (within `h`) is flat, one particle thick, and how
-/// flat it is: the smallest-eigenvalue eigenvector of its covariance, and 1 when that eigenvalue
-/// is under 5 % of the next, 0 over 15 %, a smoothstep between (a single layer: about zero; the
-/// bulk and a layer under the surface: comparable). Continuous, as [`Fluid::burial`] is: a yes
-/// or no here made the double dam break's finished frame 40 % less stable under jitter.
-fn sheet_normal(particles: &[Vec3], near: &CellGrid, i: usize, h: f32) -> Option<(Vec3, f32)> {
-    let x = particles[i];
-    let (mut n, mut mean) = (0.0f32, Vec3::ZERO);
-    near.for_each_within(x, h, |j| {
-        let d = particles[j as usize] - x;
-        if d.length_squared() < h * h {
-            n += 1.0;
-            mean += d;
-        }
-    });
-    if n < 4.0 {
-        return None;
-    }
-    mean /= n;
-    let mut cov = glam::Mat3::ZERO;
-    near.for_each_within(x, h, |j| {
-        let d = particles[j as usize] - x;
-        if d.length_squared() < h * h {
-            let e = d - mean;
-            cov += glam::Mat3::from_cols(e * e.x, e * e.y, e * e.z);
-        }
-    });
-    let (values, vectors) = crate::linalg::symmetric_eigen(cov);
-    if values[1].is_nan() || values[1] <= 0.0 {
-        return None;
-    }
-    let flat = 1.0 - smoothstep(0.05, 0.15, values[0] / values[1]);
-    // the eigenvector's sign is arbitrary; a target on either side of a flat sheet is the same,
-    // but not on a sheet lying on more fluid to one side: point it up (+y), then +x, then +z
-    let n = vectors[0];
-    let n = if n.y.abs() > 1e-3 {
-        n * n.y.signum()
-    } else if n.x.abs() > 1e-3 {
-        n * n.x.signum()
-    } else {
-        n * n.z.signum()
-    };
-    (flat > 0.0).then_some((n, flat))
 }
 
 /// The points of the surface sheet the weights are solved for: the refined points (the chain),

@@ -757,26 +757,24 @@ impl Pipeline {
                         ),
                     });
                 }
-                let tau = self.params.surfels.iso_fraction * self.params.grid.kernel.peak(radius);
                 let c = boundary::chain_points_at_boundary(
                     particles.positions,
                     surface,
                     boundary::Sheet::refined(refined()),
                     radius,
                     self.params.grid.kernel,
-                    tau,
+                    self.iso_value(radius),
                 )?;
                 weights = c.weights;
                 (std::borrow::Cow::Owned(c.positions), c.radii)
             }
             SurfelSource::Particles if self.params.grid.calibration == Calibration::Boundary => {
-                let tau = self.params.surfels.iso_fraction * self.params.grid.kernel.peak(radius);
                 let c = boundary::particle_points_at_boundary(
                     particles.positions,
                     surface,
                     radius,
                     self.params.grid.kernel,
-                    tau,
+                    self.iso_value(radius),
                 )?;
                 weights = c.weights;
                 (std::borrow::Cow::Owned(c.positions), c.radii)
@@ -804,6 +802,12 @@ impl Pipeline {
             )
         });
         Ok((render, Some(iso)))
+    }
+
+    /// The absolute iso-value of the density grid for the support radius `radius`:
+    /// `iso_fraction` of one point's peak, as the surfel extraction takes it.
+    fn iso_value(&self, radius: f32) -> f32 {
+        self.params.surfels.iso_fraction * self.params.grid.kernel.peak(radius)
     }
 
     /// The surfels `source` draws for a frame this pipeline made from `particles` (its surface
