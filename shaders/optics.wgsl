@@ -565,7 +565,8 @@ fn owns_texel(x: u32, y: u32, z0: f32, z1: f32) -> bool {
     let g = textureLoad(map_position, t, 0).w;
     let n = textureLoad(map_normal, t, 0).xyz;
     let bias = depth_bias(vec2<f32>(f32(x) + 0.5, f32(y) + 0.5), g, n);
-    return g > 0.0 && g >= z0 - bias && g <= z1 + bias;
+    return g > 0.0 && g >= z0 - bias && g <= z1 + bias
+        && !outer_face(textureLoad(map_position, t, 0).xyz, n);
 }
 
 // Mirror: deposit_owned in src/optics/cpu.rs (box-filtered, flux-conserving rasterisation into

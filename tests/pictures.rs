@@ -112,8 +112,10 @@ fn shuffled_and_jittered(set: &ParticleSet, amount: f32, seed: u64) -> ParticleS
     let mut order: Vec<usize> = (0..set.len()).collect();
     order.shuffle(&mut rng);
     let mut s = set.select(&order);
-    for p in &mut s.positions {
-        *p += Vec3::from_array([(); 3].map(|()| rng.random_range(-amount..amount)));
+    if amount > 0.0 {
+        for p in &mut s.positions {
+            *p += Vec3::from_array([(); 3].map(|()| rng.random_range(-amount..amount)));
+        }
     }
     s
 }
@@ -146,6 +148,35 @@ fn frames_are_stable_when_particles_are_reordered_and_jittered() {
             }
             assert!(diff <= 0.01, "{name} {through:?}: {diff}");
         }
+    }
+}
+
+/// The same particles in another order make the same frame: the refinement takes the surface
+/// particles in an order of their positions (`pipeline::refined_indices`), so its collision
+/// handling, first come first served, no longer depends on the file's order (before: the dam
+/// break's finished frame changed by 0.51 %, the double dam break's by 0.38 %). Fresh pipelines:
+/// the hysteresis of a sequence follows the particles' indices (or ids), which a reordering
+/// without ids breaks.
+#[test]
+fn frames_do_not_depend_on_the_particles_order() {
+    for name in [DOUBLE_DAM_BREAK, DAM_BREAK] {
+        let set = read(name);
+        let shuffled = shuffled_and_jittered(&set, 0.0, 5);
+        let frame = |set: &ParticleSet| {
+            let mut pipeline = Pipeline::new(params(SurfelSource::Chain, [160, 120])).unwrap();
+            let f = pipeline.frame_through(set, Through::Frame).unwrap();
+            (f.refined.unwrap().len(), f.finished.unwrap().image)
+        };
+        let (a, b) = (frame(&set), frame(&shuffled));
+        let diff = quality::mean_abs_diff(&a.1, &b.1);
+        println!(
+            "{name}: {} and {} refined points, mean abs difference {:.4} %",
+            a.0,
+            b.0,
+            100.0 * diff
+        );
+        assert_eq!(a.0, b.0, "{name}: refined points");
+        assert!(diff <= 1e-4, "{name}: {diff}");
     }
 }
 

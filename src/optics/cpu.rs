@@ -8,7 +8,9 @@ use glam::{Vec2, Vec3, Vec4};
 use image::RgbaImage;
 use rayon::prelude::*;
 
-use super::{OpticsError, Stage, encode, fresnel_reflectance, refract, texel_area};
+use super::{
+    OpticsError, ReceiverGeometry, Stage, encode, fresnel_reflectance, refract, texel_area,
+};
 use crate::splat::{Light, Render, Surfel, View, render_view_cpu};
 
 /// One pixel of the virtual screen: the water point, its depth from the light, where its
@@ -138,12 +140,17 @@ fn add_texel(map: &mut [[f32; 4]], width: u32, x: u32, y: u32, v: Vec3) {
 /// The depth range, not the triangle's plane: a triangle across a corner (a vertex on the floor,
 /// two on a wall) has a chord for a plane, and the plane test dropped a quarter of such
 /// triangles' flux on the column's splash frame (the range: 4-6 %, the texels at the seams).
+/// Nor does a texel of a container's outer face take any (`receiver`'s
+/// [`ReceiverGeometry::outer_face`]): the light that reaches it crosses no water, so a triangle
+/// whose depth range spans such a texel (a vertex on the floor, one on the wall's rim) brings it
+/// light that belongs elsewhere (measured on the column's splash frame with the surface at the
+/// fluid's boundary: 4 texels, up to 0.04 % of a texel's direct light).
 /// Returns the share of `value` deposited. `deposit_triangle` in the WGSL.
 pub fn deposit_owned(
     map: &mut [[f32; 4]],
     view: &View,
-    geometry: &[[f32; 4]],
-    normals: &[[f32; 4]],
+    receiver: &ReceiverGeometry,
+    (geometry, normals): (&[[f32; 4]], &[[f32; 4]]),
     q: [Vec3; 3],
     value: Vec3,
 ) -> f32 {
@@ -155,8 +162,13 @@ pub fn deposit_owned(
         let i = (y * w + x) as usize;
         let g = geometry[i][3];
         let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
-        let bias = depth_bias(view, centre, g, Vec4::from(normals[i]).truncate());
-        if g > 0.0 && g >= zmin - bias && g <= zmax + bias {
+        let n = Vec4::from(normals[i]).truncate();
+        let bias = depth_bias(view, centre, g, n);
+        if g > 0.0
+            && g >= zmin - bias
+            && g <= zmax + bias
+            && !receiver.outer_face(Vec4::from(geometry[i]).truncate(), n)
+        {
             add_texel(map, w, x, y, value * share);
             deposited += share;
         }
@@ -363,8 +375,14 @@ pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, 
                             continue;
                         }
                         let q = v.map(|c| map.project(c.hit.truncate()));
-                        let share =
-                            deposit_owned(&mut flux, &map, &out.geometry, &out.normals, q, f);
+                        let share = deposit_owned(
+                            &mut flux,
+                            &map,
+                            &stage.receiver,
+                            (&out.geometry, &out.normals),
+                            q,
+                            f,
+                        );
                         out.transmitted += f * share;
                         out.dropped += f * (1.0 - share);
                         if share > 0.0 {

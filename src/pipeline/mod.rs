@@ -55,8 +55,8 @@ mod boundary;
 pub mod gpu;
 
 pub use boundary::{
-    BURIED, Fluid, LONE_RADIUS, MAX_WEIGHT, WEIGHT_STEPS, boundary_weights,
-    chain_points_at_boundary,
+    BAND, BURIED, ChainPoints, Fluid, LONE_RADIUS, MAX_WEIGHT, Sheet, WEIGHT_STEPS,
+    boundary_weights, chain_points_at_boundary, particle_points_at_boundary,
 };
 pub use gpu::{GpuPipeline, iso_surfels_gpu};
 
@@ -174,8 +174,7 @@ pub struct GridParams {
     /// Where the chain's iso-surface lies: `paper` (every point's term as Iwasaki et al. eq. 1
     /// sums it; the surface 0.3-2.6 spacings outside the fluid below three refinement steps) or
     /// `boundary` (the refined points weighted so that it lies half a spacing outside the
-    /// outermost particle centres at every level, [`boundary_weights`]). Default `paper` while
-    /// the real files' frames are checked at the boundary (issue 35).
+    /// outermost particle centres at every level, [`boundary_weights`]). Default `boundary`.
     pub calibration: Calibration,
 }
 
@@ -420,7 +419,8 @@ pub struct Frame {
     pub mean_neighbours: f32,
     /// Classes, offsets and normals of every particle; flips since the previous frame.
     pub surface: Surface,
-    /// Indices of the particles that were refined (surface and isolated ones, in order).
+    /// Indices of the particles that were refined (surface and isolated ones, in the spatial
+    /// order of [`refined_indices`]; the refined points' first ones follow it).
     pub surface_indices: Vec<u32>,
     /// The refined surface (through [`Through::Refine`] and after).
     pub refined: Option<Refined>,
@@ -640,7 +640,7 @@ impl Pipeline {
             surface = crate::lnm::band_surface(&band, particles.positions, &surface);
         }
         timings.detect_ms = ms(t);
-        let surface_indices = refined_indices(&surface);
+        let surface_indices = refined_indices(&surface, particles.positions);
         let mut frame = Frame {
             radius,
             mean_neighbours: nb.mean_count(),
@@ -1180,12 +1180,56 @@ fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
 
-/// Indices of the particles the upsampling refines: surface and isolated ones, in order.
+/// Indices of the particles the upsampling refines: surface and isolated ones, in an order of
+/// their positions alone (Morton order of the positions quantised to 2^10 steps per axis over
+/// their bounding box, ties by the exact coordinates, then by index), so that the same particles
+/// in another order are refined alike: the upsampling's collision handling (Solenthaler et al.
+/// §3.3) accepts candidates first come, first served, and the input order would otherwise decide
+/// which of two colliding children stays. Spatial order also keeps neighbours near in memory.
 #[must_use]
-pub fn refined_indices(surface: &Surface) -> Vec<u32> {
-    (0..surface.classes.len() as u32)
+pub fn refined_indices(surface: &Surface, positions: &[Vec3]) -> Vec<u32> {
+    let mut indices: Vec<u32> = (0..surface.classes.len() as u32)
         .filter(|&i| surface.classes[i as usize] != ParticleClass::Interior)
-        .collect()
+        .collect();
+    let (lo, hi) = indices.iter().fold(
+        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+        |(lo, hi), &i| {
+            let p = positions[i as usize];
+            (lo.min(p), hi.max(p))
+        },
+    );
+    let scale = 1023.0 / (hi - lo).max_element().max(f32::MIN_POSITIVE);
+    let key = |i: u32| {
+        let q = ((positions[i as usize] - lo) * scale).clamp(Vec3::ZERO, Vec3::splat(1023.0));
+        morton3(q.x as u32, q.y as u32, q.z as u32)
+    };
+    let mut keyed: Vec<(u32, u32)> = indices.iter().map(|&i| (key(i), i)).collect();
+    rayon::slice::ParallelSliceMut::par_sort_unstable_by(
+        keyed.as_mut_slice(),
+        |&(ka, a), &(kb, b)| {
+            let (pa, pb) = (positions[a as usize], positions[b as usize]);
+            ka.cmp(&kb)
+                .then(pa.x.total_cmp(&pb.x))
+                .then(pa.y.total_cmp(&pb.y))
+                .then(pa.z.total_cmp(&pb.z))
+                .then(a.cmp(&b))
+        },
+    );
+    indices.clear();
+    indices.extend(keyed.iter().map(|&(_, i)| i));
+    indices
+}
+
+/// The Morton code of three 10-bit coordinates (their bits interleaved, x lowest).
+fn morton3(x: u32, y: u32, z: u32) -> u32 {
+    let spread = |v: u32| {
+        let mut v = v & 0x3ff;
+        v = (v | (v << 16)) & 0x0300_00ff;
+        v = (v | (v << 8)) & 0x0300_f00f;
+        v = (v | (v << 4)) & 0x030c_30c3;
+        (v | (v << 2)) & 0x0924_9249
+    };
+    spread(x) | (spread(y) << 1) | (spread(z) << 2)
 }
 
 /// Positions and normals of the given particles (isolated ones keep a zero normal, and the

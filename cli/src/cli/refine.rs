@@ -93,7 +93,11 @@ fn detection_pipeline(radius: f32) -> Result<Pipeline, Error> {
 
 /// The surface and isolated particles with their normals (the pipeline's refinement input).
 pub fn surface_of(particles: &ParticleSet, surface: &Surface) -> (Vec<Vec3>, Vec<Vec3>) {
-    pipeline::gather(particles, surface, &pipeline::refined_indices(surface))
+    pipeline::gather(
+        particles,
+        surface,
+        &pipeline::refined_indices(surface, &particles.positions),
+    )
 }
 
 fn params(args: &RefineArgs, radius: f32) -> RefineParams {
