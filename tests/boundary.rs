@@ -504,3 +504,77 @@ fn deeper_levels_are_refused_with_a_clear_error() {
         "{e}"
     );
 }
+
+/// The two real files (the dam break BGEO, the double dam break VTK) at 1, 2 and 3 refinement
+/// steps, shaded splats from one camera (400x400, white background): with the boundary
+/// calibration the levels agree far better than with the paper's sums, and the silhouette
+/// stays closed. The goals (32 dB between any two levels, enclosed holes at most 0.1 %)
+/// are not met; measured at a74f80d: 25.1-27.1 dB (dam break) and 27.0-28.4 dB (double dam
+/// break) with the calibration, 19.4-22.8 and 18.0-22.5 with the paper's sums; enclosed holes
+/// 0.17-0.39 % on the dam break (background between the splash's drops and sheets; the paper's
+/// 0.07-0.15 %), at most 0.03 % on the double dam break. The bounds keep these from falling.
+#[test]
+fn the_real_files_levels_agree_at_the_boundary() {
+    use fluid_surfels::{io, quality, splat};
+    let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    for (name, psnr_bound, holes_bound) in [
+        ("dam_break_frame_23_24389_particles.bgeo", 24.5, 0.005),
+        ("double_dam_break_frame_26_4732_particles.vtk", 26.0, 0.001),
+    ] {
+        let set = io::read_particles(&data.join(name), None).unwrap();
+        let mut db = Vec::new();
+        for calibration in Calibration::ALL {
+            let mut camera = None;
+            let mut images = Vec::new();
+            for steps in [3, 2, 1] {
+                let mut p = PipelineParams {
+                    source: SurfelSource::Chain,
+                    ..Default::default()
+                };
+                p.scene.optics.image_size = [400, 400];
+                p.splat.background = [1.0; 4];
+                p.grid.calibration = calibration;
+                p.refine.steps = steps;
+                let mut pipeline = Pipeline::new(p).unwrap();
+                if let Some(c) = camera {
+                    pipeline.set_camera(c);
+                }
+                let r = pipeline
+                    .frame_through(&set, Through::Splats)
+                    .unwrap()
+                    .splats
+                    .unwrap();
+                camera = pipeline.camera();
+                let covered: Vec<bool> = r.colour.iter().map(|c| c[3] > 0.0).collect();
+                let h = quality::holes(&covered, 400, 400, 3);
+                println!(
+                    "{name} {} {steps} steps: enclosed holes {:.3} %",
+                    calibration.as_str(),
+                    100.0 * h.enclosed_fraction()
+                );
+                if calibration == Calibration::Boundary {
+                    assert!(
+                        h.enclosed_fraction() <= holes_bound,
+                        "{name} {steps}: {h:?}"
+                    );
+                }
+                images.push(r.image);
+            }
+            let pairs = [(0, 1), (0, 2), (1, 2)].map(|(a, b)| splat::psnr(&images[a], &images[b]));
+            println!(
+                "{name} {}: 3-2 {:.1} dB, 3-1 {:.1} dB, 2-1 {:.1} dB",
+                calibration.as_str(),
+                pairs[0],
+                pairs[1],
+                pairs[2]
+            );
+            db.push(pairs.iter().copied().fold(f64::INFINITY, f64::min));
+        }
+        let (paper, boundary) = (db[0], db[1]);
+        assert!(boundary >= psnr_bound, "{name}: {boundary} dB");
+        assert!(
+            boundary >= paper + 3.0,
+            "{name}: {boundary} against {paper} dB"
+        );
+    }
+}
