@@ -20,8 +20,10 @@ use super::{OpticsError, invalid};
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ReceiverKind {
-    /// An open box (pool) around the water: floor just below it, walls a margin outside it,
-    /// as high as half the water's height.
+    /// An open box (pool) around the water, its walls up to 1.2x the water's level. Built by a
+    /// [`crate::optics::Stage`] alone: floor and walls 2 % of the water's size outside it; a
+    /// [`crate::pipeline::Pipeline`] fits them a quarter spacing inside the water's surface,
+    /// where a simulation's walls are, so that the water meets them.
     #[default]
     Auto,
     /// A horizontal rectangle at `min.y` spanning `min.xz..max.xz`.

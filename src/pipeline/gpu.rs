@@ -224,7 +224,7 @@ impl GpuPipeline {
         frame: &Frame,
     ) -> Result<(), Error> {
         let surfels = &frame.render_surfels;
-        let scene = self.cpu.fitted_scene(surfels)?;
+        let scene = self.cpu.fitted_scene(surfels, frame.radius)?;
         let stage = Stage::new(&scene, surfels)?;
         // ray casting and screen space draw the light's and the camera's views from the
         // surfels' points

@@ -60,10 +60,10 @@ pub struct CompareArgs {
     pub steps: Option<u32>,
     /// Where the chain's iso-surface lies: paper (eq. 1's sums) or boundary (half a spacing
     /// outside the outermost particles at every level; the `grid.calibration` key).
-    #[arg(long, value_parser = super::names_parser(&Calibration::ALL, Calibration::as_str), default_value = "paper")]
+    #[arg(long, value_parser = super::names_parser(&Calibration::ALL, Calibration::as_str), default_value = "boundary")]
     pub calibration: Calibration,
     /// Add the chain (EWA) at 0, 1, 2 and 3 refinement steps to the sheet, to compare the levels
-    /// of detail (with --calibration boundary each at the fluid's boundary).
+    /// of detail (with the default calibration, boundary, each at the fluid's boundary).
     #[arg(long)]
     pub levels: bool,
 }
