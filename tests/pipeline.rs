@@ -222,6 +222,13 @@ fn chain_and_particle_surfels_lie_on_the_sphere() {
             let frame = p.frame_through(&scene.particles, Through::Surfels).unwrap();
             let s = frame.surfels.as_ref().unwrap();
             assert_eq!(frame.grid.as_ref().unwrap().spec().spacing, cell);
+            // the weighting is timed as a stage of its own
+            assert_eq!(
+                frame.timings.calibration_ms > 0.0,
+                calibration == pipeline::Calibration::Boundary,
+                "{:?}",
+                frame.timings
+            );
             let (rms, max) = sphere_error(s, radius, scene.spacing);
             println!(
                 "{} {}: {} surfels, rms distance to the sphere {rms:.3} spacings, largest {max:.3}",

@@ -388,6 +388,9 @@ pub struct FrameTimings {
     pub neighbours_ms: f64,
     pub detect_ms: f64,
     pub refine_ms: f64,
+    /// The chain's points weighted so that the surface lies at the fluid's boundary
+    /// ([`Calibration::Boundary`]).
+    pub calibration_ms: f64,
     pub density_ms: f64,
     pub surfels_ms: f64,
     pub splats_ms: f64,
@@ -672,7 +675,7 @@ impl Pipeline {
             return Ok(frame);
         }
         // stage 3: density grid and iso-surface surfels
-        let (render, iso) = self.source_stage(
+        let (render, iso, calibration_ms) = self.source_stage(
             self.params.source,
             particles,
             &frame.surface,
@@ -680,6 +683,7 @@ impl Pipeline {
             radius,
         )?;
         frame.render_surfels = render;
+        frame.timings.calibration_ms = calibration_ms;
         match iso {
             Some(Some(iso)) => {
                 frame.timings.density_ms = iso.density_ms;
@@ -702,7 +706,9 @@ impl Pipeline {
     /// Stage 3 for `source` and the pipeline's renderer, from a frame's surface and refined
     /// points: the surfels to draw (spheres of the source's points for the peer renderers), and
     /// for the density sources with the EWA renderer the grid stage's result (`Some(None)`: no
-    /// point to make a grid of).
+    /// point to make a grid of), and the milliseconds spent weighting the points for the
+    /// boundary calibration.
+    #[allow(clippy::type_complexity)]
     fn source_stage(
         &mut self,
         source: SurfelSource,
@@ -710,7 +716,7 @@ impl Pipeline {
         surface: &Surface,
         refined: Option<&Refined>,
         radius: f32,
-    ) -> Result<(Vec<Surfel>, Option<Option<IsoSurfels>>), Error> {
+    ) -> Result<(Vec<Surfel>, Option<Option<IsoSurfels>>, f64), Error> {
         let colour = splat::WATER;
         let refined = || refined.expect("refined above");
         if self.params.renderer != Renderer::Ewa {
@@ -725,17 +731,19 @@ impl Pipeline {
             return Ok((
                 splat::spheres_from(&positions, &radii, radius, colour),
                 None,
+                0.0,
             ));
         }
         // stage 3 of the EWA renderer: the refined points themselves, or the iso-surface of
         // the source's density grid
         let mut weights = Vec::new();
+        let t = Instant::now();
         let (positions, radii) = match source {
             SurfelSource::Refined => {
                 let r = refined();
                 let render =
                     splat::surfels_from(&r.positions, &r.normals, &r.gap_free_radii(), colour);
-                return Ok((render, None));
+                return Ok((render, None, 0.0));
             }
             SurfelSource::Chain if self.params.grid.calibration == Calibration::Paper => {
                 let (p, r) = chain_points(particles, surface, refined(), radius);
@@ -783,6 +791,7 @@ impl Pipeline {
                 (std::borrow::Cow::Borrowed(particles.positions), Vec::new())
             }
         };
+        let calibration_ms = if weights.is_empty() { 0.0 } else { ms(t) };
         let mut points = if radii.is_empty() {
             Points::uniform(&positions, radius)
         } else {
@@ -801,7 +810,7 @@ impl Pipeline {
                 colour,
             )
         });
-        Ok((render, Some(iso)))
+        Ok((render, Some(iso), calibration_ms))
     }
 
     /// The absolute iso-value of the density grid for the support radius `radius`:
@@ -826,7 +835,7 @@ impl Pipeline {
                 reason: "the chain and refined sources need a frame made through refinement".into(),
             });
         }
-        let (render, iso) = self.source_stage(
+        let (render, iso, _) = self.source_stage(
             source,
             particles.into(),
             &frame.surface,

@@ -287,11 +287,12 @@ fn print_summary(sim: &ColumnSim, frame: &Frame, [chain_ms, sources_ms, write_ms
         println!("  warning            {w}");
     }
     println!(
-        "  time (ms)          chain on the last frame {:.0}: neighbours {:.1}, detection {:.1}, refinement {:.1}, density {:.1}, surfels {:.1}, splats {:.1}, caustics {:.1}, image {:.1}",
+        "  time (ms)          chain on the last frame {:.0}: neighbours {:.1}, detection {:.1}, refinement {:.1}, calibration {:.1}, density {:.1}, surfels {:.1}, splats {:.1}, caustics {:.1}, image {:.1}",
         tm.total_ms,
         tm.neighbours_ms,
         tm.detect_ms,
         tm.refine_ms,
+        tm.calibration_ms,
         tm.density_ms,
         tm.surfels_ms,
         tm.splats_ms,

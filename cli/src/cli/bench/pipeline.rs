@@ -98,10 +98,11 @@ pub fn bench_pipeline(args: &BenchPipelineArgs) -> Result<(), Error> {
             report.median_ms, report.fastest_ms, report.repeat, report.goal_ms
         );
         println!(
-            "  neighbours {:.1}, detection {:.1}, refinement {:.1}, density {:.1}, surfels {:.1}, caustics {:.1}, image {:.1}",
+            "  neighbours {:.1}, detection {:.1}, refinement {:.1}, calibration {:.1}, density {:.1}, surfels {:.1}, caustics {:.1}, image {:.1}",
             t.neighbours_ms,
             t.detect_ms,
             t.refine_ms,
+            t.calibration_ms,
             t.density_ms,
             t.surfels_ms,
             t.caustics_ms,
