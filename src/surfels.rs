@@ -213,6 +213,26 @@ impl<'a> ExactDensity<'a> {
         (sum, grad)
     }
 
+    /// Sums the points with `weights` (one per point, in the points' order) from now on, in
+    /// [`Self::value`] and [`Self::value_and_gradient`] (not in [`Self::points`]): the index
+    /// kept, only the weights' copies in the grids' cell order made anew, for sums that change
+    /// their weights step by step (the boundary calibration's Jacobi steps).
+    ///
+    /// # Panics
+    /// When `weights` has another length than the points.
+    pub fn reweight(&mut self, weights: &[f32]) {
+        assert_eq!(weights.len(), self.points.len(), "one weight per point");
+        for g in &mut self.groups {
+            let w: Vec<f32> = g
+                .grid
+                .order()
+                .iter()
+                .map(|&slot| weights[g.members[slot as usize] as usize])
+                .collect();
+            g.cell_weights = Some(w);
+        }
+    }
+
     /// Calls `visit(j, x - x_j, r_j)` for every point `j` whose own radius `r_j` reaches `x`
     /// (the points the density at `x` sums).
     pub fn for_each_reaching(&self, x: Vec3, mut visit: impl FnMut(usize, Vec3, f32)) {
