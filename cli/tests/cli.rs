@@ -606,6 +606,74 @@ fn surfels_command_writes_surfels_on_cpu_and_gpu() {
     }
 }
 
+/// `surfels --steps N` (and `--source`, `--calibration`): the library pipeline's surfels (issue
+/// 35), the same count as `Pipeline` with those parameters gives; `--gpu` and `--h`, which
+/// only the raw density grid takes, are refused with them.
+#[test]
+fn surfels_takes_the_chains_steps_source_and_calibration() {
+    use fluid_surfels::pipeline::{Calibration, Pipeline, PipelineParams, SurfelSource, Through};
+    let set = ddb_set();
+    let radius = fluid_surfels::neighbours::support_radius(&set.positions).unwrap();
+    let input = data("double_dam_break_frame_26_4732_particles.vtk");
+    for (args, source, steps, calibration) in [
+        (
+            vec!["--steps", "1"],
+            SurfelSource::Chain,
+            1,
+            Calibration::Boundary,
+        ),
+        (
+            vec!["--source", "particles", "--calibration", "paper"],
+            SurfelSource::Particles,
+            3,
+            Calibration::Paper,
+        ),
+    ] {
+        let v = json_of(
+            &bin()
+                .args(["surfels", "--json", "--input", &input])
+                .args(&args)
+                .output()
+                .unwrap(),
+        );
+        let mut p = PipelineParams {
+            support_radius: Some(radius),
+            source,
+            ..PipelineParams::default()
+        };
+        p.refine.steps = steps;
+        p.grid.calibration = calibration;
+        let frame = Pipeline::new(p)
+            .unwrap()
+            .frame_through(&set, Through::Surfels)
+            .unwrap();
+        let n = frame.surfels.unwrap().len() as u64;
+        assert!(n > 1000, "{v}");
+        assert_eq!(v["surfels"].as_u64(), Some(n), "{args:?}: {v}");
+        assert_eq!(v["pipeline"]["source"], source.as_str(), "{v}");
+        assert_eq!(v["pipeline"]["calibration"], calibration.as_str(), "{v}");
+        if source == SurfelSource::Chain {
+            assert_eq!(v["pipeline"]["steps"], steps, "{v}");
+        }
+    }
+    for bad in [
+        &["--steps", "2", "--gpu"][..],
+        &["--source", "chain", "--h", "0.1"],
+    ] {
+        let err = stderr_of(
+            &bin()
+                .args(["surfels", "--input", &input])
+                .args(bad)
+                .output()
+                .unwrap(),
+        );
+        assert!(
+            err.contains("cannot be used with") && !err.contains("panicked"),
+            "{err}"
+        );
+    }
+}
+
 #[test]
 fn render_draws_particles_and_users_surfels_and_refuses_bad_input() {
     let dir = tempfile::tempdir().unwrap();

@@ -5,7 +5,9 @@ use std::path::{Path, PathBuf};
 use fluid_surfels::Error;
 use fluid_surfels::density::{GridSpec, Points, Resolution};
 use fluid_surfels::io;
-use fluid_surfels::pipeline::{self, GridParams};
+use fluid_surfels::pipeline::{
+    self, Calibration, GridParams, Pipeline, PipelineParams, SurfelSource, Through,
+};
 use fluid_surfels::preview;
 use fluid_surfels::sequence::FramePattern;
 use fluid_surfels::surfels::{SurfelParams, Surfels};
@@ -21,9 +23,25 @@ pub struct SurfelsArgs {
     pub source: super::SourceArgs,
     #[command(flatten)]
     pub outputs: super::OutputArgs,
-    /// Grid points along the longest axis of the particles' padded box.
-    #[arg(long, default_value_t = 128)]
-    pub resolution: u32,
+    /// Grid points along the longest axis of the particles' padded box (default 128; with
+    /// --source, the pipeline's cell: a third of the smallest kernel radius).
+    #[arg(long)]
+    pub resolution: Option<u32>,
+    /// The surfels of the library's pipeline (CPU) from this source instead of the raw
+    /// particles' density grid with eq. 1's sums: `chain` (detection, upsampling, the density
+    /// grid of the refined surface and the interior) or `particles` (the particles' own density
+    /// grid), each with the surface at the fluid's boundary unless --calibration paper.
+    #[arg(long = "source", value_parser = super::names_parser(&[SurfelSource::Chain, SurfelSource::Particles], SurfelSource::as_str), conflicts_with_all = ["gpu", "h"])]
+    pub surfel_source: Option<SurfelSource>,
+    /// Refinement steps of the chain (the `refine.steps` key; default 3, the paper's); implies
+    /// --source chain.
+    #[arg(long, conflicts_with_all = ["gpu", "h"])]
+    pub steps: Option<u32>,
+    /// Where the pipeline's surface lies: boundary (half a spacing outside the outermost
+    /// particles at every level; the default) or paper (eq. 1's sums); the `grid.calibration`
+    /// key; implies --source chain.
+    #[arg(long, value_parser = super::names_parser(&Calibration::ALL, Calibration::as_str), conflicts_with_all = ["gpu", "h"])]
+    pub calibration: Option<Calibration>,
     /// Iso-value as a fraction of one particle's peak density (default 0.75).
     #[arg(long)]
     pub iso: Option<f32>,
@@ -53,8 +71,90 @@ struct SurfelsReport {
     path: &'static str,
     density_ms: f64,
     extract_ms: f64,
+    /// With --source: the source, the refinement steps and the calibration.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pipeline: Option<PipelineReport>,
     outputs: Vec<String>,
 }
+
+#[derive(Serialize)]
+struct PipelineReport {
+    source: &'static str,
+    steps: u32,
+    calibration: &'static str,
+    refined_points: usize,
+}
+
+impl SurfelsArgs {
+    /// The source to run the pipeline from (`--steps` or `--calibration` alone: the chain), if
+    /// any.
+    fn pipeline_source(&self) -> Option<SurfelSource> {
+        self.surfel_source.or_else(|| {
+            (self.steps.is_some() || self.calibration.is_some()).then_some(SurfelSource::Chain)
+        })
+    }
+
+    /// The pipeline's parameters for these arguments and the support radius `radius`.
+    fn pipeline_params(&self, source: SurfelSource, radius: f32, iso: f32) -> PipelineParams {
+        let mut p = PipelineParams {
+            support_radius: Some(radius),
+            source,
+            ..PipelineParams::default()
+        };
+        if let Some(k) = self.steps {
+            p.refine.steps = k;
+        }
+        if let Some(c) = self.calibration {
+            p.grid.calibration = c;
+        }
+        if let Some(r) = self.resolution {
+            p.grid.resolution = Some(Resolution::LongestAxis(r));
+        }
+        p.grid.memory_budget = super::memory_budget();
+        p.surfels.iso_fraction = iso;
+        p
+    }
+}
+
+/// The surfels of `pipeline` for one frame's particles, with the grid, the ms of the density
+/// grid and of the extraction, and what the report says of the pipeline.
+fn pipeline_surfels(
+    pipeline: &mut Pipeline,
+    positions: &[Vec3],
+) -> Result<(Surfels, GridSpec, f64, f64, PipelineReport), Error> {
+    let set = fluid_surfels::ParticleSet::from_positions(positions.to_vec());
+    let frame = pipeline.frame_through(&set, Through::Surfels)?;
+    for w in &frame.warnings {
+        eprintln!("warning: {w}");
+    }
+    let spec = *frame
+        .grid
+        .as_ref()
+        .ok_or(fluid_surfels::density::DensityError::Empty)?
+        .spec();
+    let p = pipeline.params();
+    let report = PipelineReport {
+        source: p.source.as_str(),
+        steps: if p.source == SurfelSource::Chain {
+            p.refine.steps
+        } else {
+            0
+        },
+        calibration: p.grid.calibration.as_str(),
+        refined_points: frame.refined.as_ref().map_or(0, |r| r.len()),
+    };
+    let t = frame.timings;
+    Ok((
+        frame.surfels.unwrap_or_default(),
+        spec,
+        t.calibration_ms + t.density_ms,
+        t.surfels_ms,
+        report,
+    ))
+}
+
+/// Grid points along the longest axis of the raw density grid without `--resolution`.
+const DEFAULT_RESOLUTION: u32 = 128;
 
 /// Surfels of a particle set, with the grid used and the time of each phase.
 pub fn surfels_of(
@@ -146,8 +246,23 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
     } else {
         None
     };
-    let (s, spec, density_ms, extract_ms) =
-        surfels_with(gpu.as_ref(), &positions, h, args.resolution, iso)?;
+    let (s, spec, density_ms, extract_ms, pipeline) = match args.pipeline_source() {
+        Some(source) => {
+            let mut p = Pipeline::new(args.pipeline_params(source, radius, iso))?;
+            let (s, spec, d, e, r) = pipeline_surfels(&mut p, &positions)?;
+            (s, spec, d, e, Some(r))
+        }
+        None => {
+            let (s, spec, d, e) = surfels_with(
+                gpu.as_ref(),
+                &positions,
+                h,
+                args.resolution.unwrap_or(DEFAULT_RESOLUTION),
+                iso,
+            )?;
+            (s, spec, d, e, None)
+        }
+    };
     let outputs = write(
         &s,
         (out.as_deref(), out_args.out_format),
@@ -165,6 +280,7 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
         path: if args.gpu { "gpu" } else { "cpu" },
         density_ms,
         extract_ms,
+        pipeline,
         outputs,
     };
     if out_args.json {
@@ -174,6 +290,12 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
             "{}: {} particles, h {}, grid {:?} (spacing {:.5}), iso {:.4}",
             report.source, report.particles, h, report.grid, report.spacing, report.iso
         );
+        if let Some(p) = &report.pipeline {
+            println!(
+                "  the pipeline's {} source, {} refinement steps ({} points), calibration {}",
+                p.source, p.steps, p.refined_points, p.calibration
+            );
+        }
         println!(
             "  {} surfels; ms: density {:.1} ({}), extraction {:.1} (cpu)",
             report.surfels, density_ms, report.path, extract_ms
@@ -195,11 +317,27 @@ fn surfels_sequence(args: &SurfelsArgs, pattern: &FramePattern, iso: f32) -> Res
         radius,
     } = super::prepare_sequence(src, o, pattern, "surfels")?;
     let h = args.h.unwrap_or(radius);
+    let source = args.pipeline_source();
     let run = sequence.run(
-        || Ok(()),
-        |_, f| {
+        // one pipeline per job: its hysteresis runs over the job's frames
+        || {
+            source
+                .map(|s| Pipeline::new(args.pipeline_params(s, radius, iso)))
+                .transpose()
+        },
+        |pipeline, f| {
             let particles = super::read_particles(&pattern.path(f), src.format)?;
-            let (s, _, d, e) = surfels_of(&particles.positions, h, args.resolution, iso)?;
+            let (s, d, e) = match pipeline {
+                Some(p) => {
+                    let (s, _, d, e, _) = pipeline_surfels(p, &particles.positions)?;
+                    (s, d, e)
+                }
+                None => {
+                    let resolution = args.resolution.unwrap_or(DEFAULT_RESOLUTION);
+                    let (s, _, d, e) = surfels_of(&particles.positions, h, resolution, iso)?;
+                    (s, d, e)
+                }
+            };
             write(
                 &s,
                 (out.as_ref().map(|x| x.path(f)).as_deref(), o.out_format),
