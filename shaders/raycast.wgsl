@@ -70,6 +70,9 @@ struct Grids {
 @group(0) @binding(3) var<storage, read> tile_items: array<u32>;
 // every grid's starts and items
 @group(0) @binding(4) var<storage, read> cells: array<u32>;
+// Each point's factor on its density term (the boundary calibration's weights; 1 without).
+// Mirror: Points::weight.
+@group(0) @binding(16) var<storage, read> weights: array<f32>;
 @group(0) @binding(12) var<uniform> grids: Grids;
 // per pixel: unfiltered normal and hit depth (w < 0: no hit)
 @group(0) @binding(6) var<storage, read_write> hits: array<vec4<f32>>;
@@ -455,7 +458,8 @@ fn cs_step(@builtin(global_invocation_id) id: vec3<u32>) {
         }
         if (s < s_end) {
             // one point of the sum
-            let q = points[cells[s]];
+            let c = cells[s];
+            let q = points[c];
             s += 1u;
             if (phase == PCA) {
                 let e = q.xyz - x;
@@ -474,9 +478,9 @@ fn cs_step(@builtin(global_invocation_id) id: vec3<u32>) {
                 let r2 = dot(e, e);
                 if (r2 < q.w * q.w) {
                     if (phase == GRADIENT) {
-                        acc += vec4<f32>(kernel_gradient(e, q.w), 0.0);
+                        acc += vec4<f32>(weights[c] * kernel_gradient(e, q.w), 0.0);
                     } else {
-                        acc.x += kernel_r2(r2, q.w);
+                        acc.x += weights[c] * kernel_r2(r2, q.w);
                     }
                 }
             }

@@ -514,10 +514,17 @@ fn gpu_pipeline_with_the_peer_renderers_equals_the_cpu_pipeline() {
         }
         let cpu_image = &frame.finished.as_ref().unwrap().image;
         let db = splat::psnr(cpu_image, &image);
+        // the CPU's shaded picture of the frame's spheres and their weights (the ray caster's
+        // density: the boundary calibration's weights) from the camera the sequence keeps
+        let camera = cpu.camera().unwrap();
         let cpu_splats = cpu
-            .frame_of_surfels(frame.render_surfels.clone(), Through::Splats)
+            .draw(
+                (&frame.render_surfels, &frame.render_weights),
+                &camera,
+                size,
+            )
             .unwrap();
-        let cpu_splats = &cpu_splats.splats.as_ref().unwrap().image;
+        let cpu_splats = &cpu_splats.image;
         let target = gpu::texture_2d(
             &ctx.device,
             "splats",
@@ -691,7 +698,11 @@ fn pipeline_draw_is_the_shaded_splats_on_either_backend() {
             .unwrap();
         let camera = frame.camera.unwrap();
         let cpu = pipeline
-            .draw(&frame.render_surfels, &camera, (96, 72))
+            .draw(
+                (&frame.render_surfels, &frame.render_weights),
+                &camera,
+                (96, 72),
+            )
             .unwrap();
         assert_eq!(
             cpu.image,
@@ -699,7 +710,12 @@ fn pipeline_draw_is_the_shaded_splats_on_either_backend() {
             "{renderer:?}"
         );
         let gpu = pipeline
-            .draw_gpu(&ctx, &frame.render_surfels, &camera, (96, 72))
+            .draw_gpu(
+                &ctx,
+                (&frame.render_surfels, &frame.render_weights),
+                &camera,
+                (96, 72),
+            )
             .unwrap();
         let db = splat::psnr(&cpu.image, &gpu.image);
         assert!(db >= 45.0, "{renderer:?}: GPU {db:.1} dB from the CPU");

@@ -432,10 +432,15 @@ fn the_pipeline_casts_rays_for_the_splats_and_the_optics() {
         frame.grid.is_none() && frame.surfels.is_none(),
         "ray casting needs no grid"
     );
-    assert_eq!(frame.render_surfels.len(), set.len());
+    // the particles weighted so that the surface lies at the fluid's boundary (the default
+    // calibration): a weight per sphere
+    assert!(!frame.render_surfels.is_empty());
+    assert_eq!(frame.render_weights.len(), frame.render_surfels.len());
     let splats = frame.splats.as_ref().unwrap();
     let (positions, radii) = pipeline::sphere_points(&frame.render_surfels);
-    let caster = pipeline.caster(&positions, &radii).unwrap();
+    let caster = pipeline
+        .caster(&positions, &radii, &frame.render_weights)
+        .unwrap();
     let expected = raycast::render_cpu(
         &caster,
         &frame.camera.unwrap(),
@@ -547,7 +552,7 @@ fn gpu_and_cpu_ray_casts_agree_on_the_chains_points() {
     let mut p = Pipeline::new(params).unwrap();
     let frame = p.frame_through(sim.particles(), Through::Surfels).unwrap();
     let (positions, radii) = pipeline::sphere_points(&frame.render_surfels);
-    let caster = p.caster(&positions, &radii).unwrap();
+    let caster = p.caster(&positions, &radii, &frame.render_weights).unwrap();
     let (lo, hi) = fluid_surfels::splat::bounds(&frame.render_surfels).unwrap();
     let (cpu, gpu) = cast_both(&ctx, &caster, &Camera::framing(lo, hi));
     let (c, g) = (cpu.render.covered_pixels(), gpu.render.covered_pixels());

@@ -233,7 +233,7 @@ impl GpuPipeline {
         let water = match self.cpu.params().renderer {
             super::Renderer::RayCast => {
                 (positions, radii) = super::sphere_points(surfels);
-                caster = self.cpu.caster(&positions, &radii)?;
+                caster = self.cpu.caster(&positions, &radii, &frame.render_weights)?;
                 GpuWater::Cast(&caster)
             }
             super::Renderer::Ssfr => {
@@ -333,7 +333,7 @@ impl GpuPipeline {
         if self.cpu.params().renderer == super::Renderer::RayCast {
             // cast into the caster's textures, shaded by the splats' shading pass
             let (positions, radii) = super::sphere_points(&frame.render_surfels);
-            let caster = self.cpu.caster(&positions, &radii)?;
+            let caster = self.cpu.caster(&positions, &radii, &frame.render_weights)?;
             let cast = match &mut self.caster {
                 Some(c) if c.size() == self.size => c,
                 slot => slot.insert(GpuCaster::new(device, w, h)?),
@@ -475,14 +475,14 @@ impl Pipeline {
     pub fn draw_gpu(
         &self,
         ctx: &GpuContext,
-        surfels: &[crate::splat::Surfel],
+        (surfels, weights): (&[crate::splat::Surfel], &[f32]),
         camera: &crate::splat::Camera,
         (w, h): (u32, u32),
     ) -> Result<crate::splat::Render, Error> {
         let light = Light::default();
         let params = self.splat_params();
         let points = self.peer_points(surfels);
-        Ok(match self.peer_renderers(points.as_ref())? {
+        Ok(match self.peer_renderers(points.as_ref(), weights)? {
             (_, Some(screen)) => {
                 let view = View::new(camera, &light, &params, w, h)?;
                 crate::ssfr::gpu::render_view_gpu(ctx, &screen, &view)?.render

@@ -435,6 +435,9 @@ pub struct Frame {
     /// The surfels that are rendered, whatever their source (the spheres of
     /// [`Renderer::ParticleSplat`]).
     pub render_surfels: Vec<Surfel>,
+    /// The weights of [`Frame::render_surfels`]' spheres in the ray caster's density (the
+    /// boundary calibration, [`boundary_weights`]; empty: every one 1).
+    pub render_weights: Vec<f32>,
     /// The camera the frame is seen from.
     pub camera: Option<Camera>,
     /// The shaded EWA splats (only when run [`Through::Splats`]: the finished frame splats the
@@ -653,6 +656,7 @@ impl Pipeline {
             grid: None,
             surfels: None,
             render_surfels: Vec::new(),
+            render_weights: Vec::new(),
             camera: None,
             splats: None,
             finished: None,
@@ -675,7 +679,12 @@ impl Pipeline {
             return Ok(frame);
         }
         // stage 3: density grid and iso-surface surfels
-        let (render, iso, calibration_ms) = self.source_stage(
+        let SourceStage {
+            render,
+            iso,
+            calibration_ms,
+            weights,
+        } = self.source_stage(
             self.params.source,
             particles,
             &frame.surface,
@@ -683,6 +692,7 @@ impl Pipeline {
             radius,
         )?;
         frame.render_surfels = render;
+        frame.render_weights = weights;
         frame.timings.calibration_ms = calibration_ms;
         match iso {
             Some(Some(iso)) => {
@@ -707,8 +717,8 @@ impl Pipeline {
     /// points: the surfels to draw (spheres of the source's points for the peer renderers), and
     /// for the density sources with the EWA renderer the grid stage's result (`Some(None)`: no
     /// point to make a grid of), and the milliseconds spent weighting the points for the
-    /// boundary calibration.
-    #[allow(clippy::type_complexity)]
+    /// boundary calibration. The ray caster draws the iso-surface of the source's points: with
+    /// the boundary calibration those of the density grid, weighted alike.
     fn source_stage(
         &mut self,
         source: SurfelSource,
@@ -716,9 +726,22 @@ impl Pipeline {
         surface: &Surface,
         refined: Option<&Refined>,
         radius: f32,
-    ) -> Result<(Vec<Surfel>, Option<Option<IsoSurfels>>, f64), Error> {
+    ) -> Result<SourceStage, Error> {
         let colour = splat::WATER;
+        let given = refined;
         let refined = || refined.expect("refined above");
+        let boundary = self.params.grid.calibration == Calibration::Boundary;
+        if self.params.renderer == Renderer::RayCast && boundary && source != SurfelSource::Refined
+        {
+            let t = Instant::now();
+            let c = self.points_at_boundary(source, particles, surface, given, radius)?;
+            return Ok(SourceStage {
+                render: splat::spheres_from(&c.positions, &c.radii, radius, colour),
+                iso: None,
+                calibration_ms: ms(t),
+                weights: c.weights,
+            });
+        }
         if self.params.renderer != Renderer::Ewa {
             let (positions, radii) = match source {
                 SurfelSource::Chain => chain_points(particles, surface, refined(), radius),
@@ -728,11 +751,12 @@ impl Pipeline {
                     (r.positions.clone(), r.kernel_radii.clone())
                 }
             };
-            return Ok((
-                splat::spheres_from(&positions, &radii, radius, colour),
-                None,
-                0.0,
-            ));
+            return Ok(SourceStage {
+                render: splat::spheres_from(&positions, &radii, radius, colour),
+                iso: None,
+                calibration_ms: 0.0,
+                weights: Vec::new(),
+            });
         }
         // stage 3 of the EWA renderer: the refined points themselves, or the iso-surface of
         // the source's density grid
@@ -743,49 +767,21 @@ impl Pipeline {
                 let r = refined();
                 let render =
                     splat::surfels_from(&r.positions, &r.normals, &r.gap_free_radii(), colour);
-                return Ok((render, None, 0.0));
+                return Ok(SourceStage {
+                    render,
+                    iso: None,
+                    calibration_ms: 0.0,
+                    weights: Vec::new(),
+                });
             }
-            SurfelSource::Chain if self.params.grid.calibration == Calibration::Paper => {
-                let (p, r) = chain_points(particles, surface, refined(), radius);
-                (std::borrow::Cow::Owned(p), r)
+            SurfelSource::Chain | SurfelSource::Particles if boundary => {
+                let c = self.points_at_boundary(source, particles, surface, given, radius)?;
+                weights = c.weights;
+                (std::borrow::Cow::Owned(c.positions), c.radii)
             }
             SurfelSource::Chain => {
-                // the surface can lie no farther from a refined point than its kernel reaches:
-                // past 3 steps (with the default kernel factor 2) that is short of the half
-                // spacing the boundary lies out
-                let r = refined();
-                let reach = self.params.refine.kernel_factor * r.final_radius;
-                if reach < 0.5 * (0.5 * radius) * (1.0 - 1e-4) {
-                    return Err(Error::InvalidArgument {
-                        argument: "refine.steps",
-                        reason: format!(
-                            "{} steps with grid.calibration = \"boundary\": the refined points' kernel reaches {reach} (kernel_factor x final radius), short of the half spacing {} the surface lies outside them; use at most 3 steps, a larger refine.kernel_factor, or calibration = \"paper\"",
-                            self.params.refine.steps,
-                            0.25 * radius
-                        ),
-                    });
-                }
-                let c = boundary::chain_points_at_boundary(
-                    particles.positions,
-                    surface,
-                    boundary::Sheet::refined(refined()),
-                    radius,
-                    self.params.grid.kernel,
-                    self.iso_value(radius),
-                )?;
-                weights = c.weights;
-                (std::borrow::Cow::Owned(c.positions), c.radii)
-            }
-            SurfelSource::Particles if self.params.grid.calibration == Calibration::Boundary => {
-                let c = boundary::particle_points_at_boundary(
-                    particles.positions,
-                    surface,
-                    radius,
-                    self.params.grid.kernel,
-                    self.iso_value(radius),
-                )?;
-                weights = c.weights;
-                (std::borrow::Cow::Owned(c.positions), c.radii)
+                let (p, r) = chain_points(particles, surface, refined(), radius);
+                (std::borrow::Cow::Owned(p), r)
             }
             SurfelSource::Particles => {
                 (std::borrow::Cow::Borrowed(particles.positions), Vec::new())
@@ -810,7 +806,57 @@ impl Pipeline {
                 colour,
             )
         });
-        Ok((render, Some(iso), calibration_ms))
+        Ok(SourceStage {
+            render,
+            iso: Some(iso),
+            calibration_ms,
+            weights: Vec::new(),
+        })
+    }
+
+    /// The points of `source` (the chain or the raw particles) with the surface at the fluid's
+    /// boundary ([`chain_points_at_boundary`], [`particle_points_at_boundary`]): positions,
+    /// kernel radii and weights. The chain past 3 steps is refused: the surface can lie no
+    /// farther from a refined point than its kernel reaches, and past 3 steps (with the default
+    /// kernel factor 2) that is short of the half spacing the boundary lies out.
+    fn points_at_boundary(
+        &self,
+        source: SurfelSource,
+        particles: ParticleView<'_>,
+        surface: &Surface,
+        refined: Option<&Refined>,
+        radius: f32,
+    ) -> Result<boundary::ChainPoints, Error> {
+        let (kernel, tau) = (self.params.grid.kernel, self.iso_value(radius));
+        if source == SurfelSource::Particles {
+            return Ok(boundary::particle_points_at_boundary(
+                particles.positions,
+                surface,
+                radius,
+                kernel,
+                tau,
+            )?);
+        }
+        let r = refined.expect("refined above");
+        let reach = self.params.refine.kernel_factor * r.final_radius;
+        if reach < 0.5 * (0.5 * radius) * (1.0 - 1e-4) {
+            return Err(Error::InvalidArgument {
+                argument: "refine.steps",
+                reason: format!(
+                    "{} steps with grid.calibration = \"boundary\": the refined points' kernel reaches {reach} (kernel_factor x final radius), short of the half spacing {} the surface lies outside them; use at most 3 steps, a larger refine.kernel_factor, or calibration = \"paper\"",
+                    self.params.refine.steps,
+                    0.25 * radius
+                ),
+            });
+        }
+        Ok(boundary::chain_points_at_boundary(
+            particles.positions,
+            surface,
+            boundary::Sheet::refined(r),
+            radius,
+            kernel,
+            tau,
+        )?)
     }
 
     /// The absolute iso-value of the density grid for the support radius `radius`:
@@ -835,7 +881,7 @@ impl Pipeline {
                 reason: "the chain and refined sources need a frame made through refinement".into(),
             });
         }
-        let (render, iso, _) = self.source_stage(
+        let SourceStage { render, iso, .. } = self.source_stage(
             source,
             particles.into(),
             &frame.surface,
@@ -868,6 +914,7 @@ impl Pipeline {
             grid: None,
             surfels: None,
             render_surfels: surfels,
+            render_weights: Vec::new(),
             camera: None,
             splats: None,
             finished: None,
@@ -914,6 +961,7 @@ impl Pipeline {
     fn peer_renderers<'a>(
         &self,
         points: Option<&'a (Vec<Vec3>, Vec<f32>)>,
+        weights: &'a [f32],
     ) -> Result<
         (
             Option<crate::raycast::Caster<'a>>,
@@ -925,7 +973,7 @@ impl Pipeline {
             return Ok((None, None));
         };
         Ok(match self.params.renderer {
-            Renderer::RayCast => (Some(self.caster(p, r)?), None),
+            Renderer::RayCast => (Some(self.caster(p, r, weights)?), None),
             Renderer::Ssfr => (None, Some(self.screen_space(p, r)?)),
             Renderer::Ewa | Renderer::ParticleSplat => (None, None),
         })
@@ -936,7 +984,7 @@ impl Pipeline {
         let surfels = &frame.render_surfels;
         let [w, h] = self.params.scene.optics.image_size;
         let points = self.peer_points(surfels);
-        let (caster, screen) = self.peer_renderers(points.as_ref())?;
+        let (caster, screen) = self.peer_renderers(points.as_ref(), &frame.render_weights)?;
         let water: &dyn optics::WaterSurface = match (&caster, &screen) {
             (Some(c), _) => c,
             (_, Some(s)) => s,
@@ -974,19 +1022,20 @@ impl Pipeline {
         Ok(())
     }
 
-    /// The shaded picture of `surfels` (a frame's [`Frame::render_surfels`]) seen by `camera`,
-    /// `size` pixels, drawn on the CPU by the pipeline's renderer with its parameters (the
-    /// default light): EWA or particle splats, rays cast to the points' iso-surface, or the
-    /// screen-space surface. [`Pipeline::draw_gpu`] is its twin on a GPU; the shaded splats of
-    /// [`Through::Splats`] are this picture at the image size.
+    /// The shaded picture of `surfels` (a frame's [`Frame::render_surfels`], with its
+    /// [`Frame::render_weights`]) seen by `camera`, `size` pixels, drawn on the CPU by the
+    /// pipeline's renderer with its parameters (the default light): EWA or particle splats, rays
+    /// cast to the points' iso-surface, or the screen-space surface. [`Pipeline::draw_gpu`] is
+    /// its twin on a GPU; the shaded splats of [`Through::Splats`] are this picture at the image
+    /// size.
     pub fn draw(
         &self,
-        surfels: &[Surfel],
+        (surfels, weights): (&[Surfel], &[f32]),
         camera: &Camera,
         size: (u32, u32),
     ) -> Result<Render, Error> {
         let points = self.peer_points(surfels);
-        let (caster, screen) = self.peer_renderers(points.as_ref())?;
+        let (caster, screen) = self.peer_renderers(points.as_ref(), weights)?;
         self.draw_with(caster.as_ref(), screen.as_ref(), surfels, camera, size)
     }
 
@@ -1026,9 +1075,13 @@ impl Pipeline {
         &self,
         positions: &'a [Vec3],
         radii: &'a [f32],
+        weights: &'a [f32],
     ) -> Result<crate::raycast::Caster<'a>, Error> {
         let reference = self.reference_radius(radii);
-        let points = Points::with_radii(positions, radii, reference);
+        let mut points = Points::with_radii(positions, radii, reference);
+        if !weights.is_empty() {
+            points = points.with_weights(weights);
+        }
         Ok(crate::raycast::Caster::new(
             points,
             self.params.grid.kernel,
@@ -1339,6 +1392,19 @@ pub fn sphere_points(spheres: &[Surfel]) -> (Vec<Vec3>, Vec<f32>) {
         .iter()
         .map(|s| (Vec3::from(s.position), s.radius))
         .unzip()
+}
+
+/// What [`Pipeline::source_stage`] makes of a frame.
+struct SourceStage {
+    /// The surfels to draw (spheres of the source's points for the peer renderers).
+    render: Vec<Surfel>,
+    /// The grid stage's result for the density sources with the EWA renderer (`Some(None)`: no
+    /// point to make a grid of).
+    iso: Option<Option<IsoSurfels>>,
+    /// Milliseconds spent weighting the points for the boundary calibration.
+    calibration_ms: f64,
+    /// The weights of the ray caster's spheres (empty: every one 1).
+    weights: Vec<f32>,
 }
 
 /// What [`iso_surfels`] returns.

@@ -392,6 +392,8 @@ impl GpuCaster {
         let point_data: Vec<[f32; 4]> = (0..points.len())
             .map(|j| points.positions[j].extend(points.radius(j)).to_array())
             .collect();
+        // each point's factor on its term (the boundary calibration's weights; 1 without)
+        let weights: Vec<f32> = (0..points.len()).map(|j| points.weight(j)).collect();
         let reach = points.max_radius();
         let pca_reach = params.pca_radius * reach;
         let grids = grids_of(caster, pca_reach);
@@ -421,6 +423,7 @@ impl GpuCaster {
             storage("raycast tile starts", bytemuck::cast_slice(&tile_start)),
             storage("raycast tile items", bytemuck::cast_slice(&tile_items)),
             storage("raycast cells", bytemuck::cast_slice(&cells)),
+            storage("raycast weights", bytemuck::cast_slice(&weights)),
         ];
         let most = iteration_bound(caster, &tiles, &grids, raw.b[1]);
         let runs = most.div_ceil(u64::from(BUDGET)) + 1;
@@ -495,6 +498,7 @@ impl GpuCaster {
                         (10, whole(&band)),
                         (11, whole(&self.unfinished)),
                         (12, whole(&grid_uniforms)),
+                        (16, whole(&inputs[4])),
                     ],
                 ),
                 groups,

@@ -556,8 +556,10 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     let ctx = choose_gpu(args.cpu, args.gpu)?;
     let t = Instant::now();
     let render = match ctx.as_ref() {
-        Some(ctx) => pipeline.draw_gpu(ctx, surfels, &camera, args.size)?,
-        None => pipeline.draw(surfels, &camera, args.size)?,
+        Some(ctx) => {
+            pipeline.draw_gpu(ctx, (surfels, &frame.render_weights), &camera, args.size)?
+        }
+        None => pipeline.draw((surfels, &frame.render_weights), &camera, args.size)?,
     };
     let render_ms = ms(t);
     let covered: Vec<bool> = render.colour.iter().map(|c| c[3] > 0.0).collect();

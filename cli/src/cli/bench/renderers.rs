@@ -99,7 +99,7 @@ pub fn bench_renderers(args: &BenchRenderersArgs) -> Result<(), Error> {
         let params = pipeline.splat_params();
         let (points, radii) = pipeline::sphere_points(surfels);
         let caster = (renderer == Renderer::RayCast)
-            .then(|| pipeline.caster(&points, &radii))
+            .then(|| pipeline.caster(&points, &radii, &frame.render_weights))
             .transpose()?;
         let screen = (renderer == Renderer::Ssfr)
             .then(|| pipeline.screen_space(&points, &radii))
