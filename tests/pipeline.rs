@@ -1206,3 +1206,47 @@ fn import_cycles_only_shrink() {
         "{gone:?} left every cycle: take them off STILL_IN_A_CYCLE"
     );
 }
+
+/// The refinement's input order is one of the positions alone (`pipeline::refined_indices`):
+/// the same particles shuffled give the same sequence of positions, so the upsampling's first
+/// come, first served collision handling keeps the same children; one particle alone works too.
+#[test]
+fn the_refinement_order_follows_the_positions_not_the_indices() {
+    let scene = scenes::sphere(&scenes::SphereParams {
+        radius_in_spacings: 4.0,
+        ..Default::default()
+    })
+    .unwrap();
+    let set = scene.particles;
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut order: Vec<usize> = (0..set.len()).collect();
+    order.shuffle(&mut rng);
+    let shuffled = set.select(&order);
+    let sequence = |set: &ParticleSet| -> Vec<Vec3> {
+        let mut p = Pipeline::new(PipelineParams {
+            support_radius: Some(scene.support_radius),
+            ..Default::default()
+        })
+        .unwrap();
+        let frame = p.frame_through(set, Through::Surface).unwrap();
+        let idx = pipeline::refined_indices(&frame.surface, &set.positions);
+        assert_eq!(idx, frame.surface_indices);
+        idx.iter().map(|&i| set.positions[i as usize]).collect()
+    };
+    let (a, b) = (sequence(&set), sequence(&shuffled));
+    assert!(a.len() > 100, "{}", a.len());
+    assert_eq!(a, b);
+    // a lone particle: its own index, no NaN key
+    let lone = ParticleSet::from_positions(vec![Vec3::new(1.0, 2.0, 3.0)]);
+    let frame = Pipeline::new(PipelineParams {
+        support_radius: Some(0.1),
+        ..Default::default()
+    })
+    .unwrap()
+    .frame_through(&lone, Through::Surface)
+    .unwrap();
+    assert_eq!(
+        pipeline::refined_indices(&frame.surface, &lone.positions),
+        vec![0]
+    );
+}

@@ -1307,7 +1307,9 @@ pub fn refined_indices(surface: &Surface, positions: &[Vec3]) -> Vec<u32> {
             (lo.min(p), hi.max(p))
         },
     );
-    let scale = 1023.0 / (hi - lo).max_element().max(f32::MIN_POSITIVE);
+    // one point (or all at one place): every key 0, the coordinates decide
+    let extent = (hi - lo).max_element();
+    let scale = if extent > 0.0 { 1023.0 / extent } else { 0.0 };
     let key = |i: u32| {
         let q = ((positions[i as usize] - lo) * scale).clamp(Vec3::ZERO, Vec3::splat(1023.0));
         morton3(q.x as u32, q.y as u32, q.z as u32)
