@@ -566,6 +566,8 @@ fn owns_texel(x: u32, y: u32, z0: f32, z1: f32) -> bool {
     let n = textureLoad(map_normal, t, 0).xyz;
     let bias = depth_bias(vec2<f32>(f32(x) + 0.5, f32(y) + 0.5), g, n);
     return g > 0.0 && g >= z0 - bias && g <= z1 + bias
+        // (only for texels that pass the depth test: && short-circuits; the CPU keeps the flag
+        // per texel of its geometry map, which the GPU's geometry pass cannot compute)
         && !outer_face(textureLoad(map_position, t, 0).xyz, n);
 }
 

@@ -185,9 +185,12 @@ fn tube_shells_sit_half_a_spacing_inside() {
 }
 
 /// The same bounds plus 0.1 spacings on arrangements the constants were not fitted to: shells
-/// and tube rings jittered by 10 % of a spacing, and jittered cubic-lattice spheres (their
-/// surface a staircase), judged against the sphere half a spacing outside their outermost
-/// particles.
+/// and tube rings jittered by 10 % of a spacing (median 0.2, 95th percentile 0.35), and
+/// jittered cubic-lattice spheres (their surface a staircase), judged against the outermost
+/// particle along each surfel's direction, half a spacing out. Those meet the median's 0.2 at
+/// 1-3 steps (measured +0.07..+0.20) but not at level 0 (+0.28 and +0.33: the raw particles'
+/// kernels round the staircase's corners outwards), bounded at 0.4 there; their 95th
+/// percentile is the staircase's corners (1.3-2.2 spacings), printed only.
 #[test]
 fn the_boundary_holds_on_arrangements_not_fitted() {
     use fluid_surfels::scenes::AnalyticShape;
@@ -298,12 +301,17 @@ fn the_boundary_holds_on_arrangements_not_fitted() {
             let mut a: Vec<f32> = d.iter().map(|x| x.abs()).collect();
             a.sort_by(f32::total_cmp);
             let p95 = a[a.len() * 95 / 100];
-            // printed, not asserted: this local measure of the staircase is itself rough (its
-            // 95th percentile is the steps' corners, 1.3-2.2 spacings)
             println!(
                 "{name:28} {k} steps: {median:+.2} ({p95:.2}), {} surfels",
                 d.len()
             );
+            let bound = if k == 0 { 0.4 } else { 0.2 };
+            if !(median.abs() <= bound && d.len() > 100) {
+                failures.push(format!(
+                    "{name} at {k} steps: median {median}, {} surfels",
+                    d.len()
+                ));
+            }
         }
     }
     assert!(failures.is_empty(), "{failures:?}");

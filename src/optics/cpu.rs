@@ -8,9 +8,7 @@ use glam::{Vec2, Vec3, Vec4};
 use image::RgbaImage;
 use rayon::prelude::*;
 
-use super::{
-    OpticsError, ReceiverGeometry, Stage, encode, fresnel_reflectance, refract, texel_area,
-};
+use super::{OpticsError, Stage, encode, fresnel_reflectance, refract, texel_area};
 use crate::splat::{Light, Render, Surfel, View, render_view_cpu};
 
 /// One pixel of the virtual screen: the water point, its depth from the light, where its
@@ -41,7 +39,8 @@ pub struct Caustics {
     pub irradiance: Vec<[f32; 4]>,
     /// Per map texel: receiver point (xyz) and depth (`w`, 0: no receiver), the geometry map.
     pub geometry: Vec<[f32; 4]>,
-    /// Per map texel: receiver normal facing the light.
+    /// Per map texel: receiver normal facing the light (xyz); `w` 1 where it is a container's
+    /// outer face ([`super::ReceiverGeometry::outer_face`], which the deposit keeps flux off), else 0.
     pub normals: Vec<[f32; 4]>,
     /// Flux through the water triangles, before transmission.
     pub incident: Vec3,
@@ -140,8 +139,8 @@ fn add_texel(map: &mut [[f32; 4]], width: u32, x: u32, y: u32, v: Vec3) {
 /// The depth range, not the triangle's plane: a triangle across a corner (a vertex on the floor,
 /// two on a wall) has a chord for a plane, and the plane test dropped a quarter of such
 /// triangles' flux on the column's splash frame (the range: 4-6 %, the texels at the seams).
-/// Nor does a texel of a container's outer face take any (`receiver`'s
-/// [`ReceiverGeometry::outer_face`]): the light that reaches it crosses no water, so a triangle
+/// Nor does a texel of a container's outer face take any (`normals`' `w` 1, from
+/// [`super::ReceiverGeometry::outer_face`] once per texel): the light that reaches it crosses no water, so a triangle
 /// whose depth range spans such a texel (a vertex on the floor, one on the wall's rim) brings it
 /// light that belongs elsewhere (measured on the column's splash frame with the surface at the
 /// fluid's boundary: 4 texels, up to 0.04 % of a texel's direct light).
@@ -149,7 +148,6 @@ fn add_texel(map: &mut [[f32; 4]], width: u32, x: u32, y: u32, v: Vec3) {
 pub fn deposit_owned(
     map: &mut [[f32; 4]],
     view: &View,
-    receiver: &ReceiverGeometry,
     (geometry, normals): (&[[f32; 4]], &[[f32; 4]]),
     q: [Vec3; 3],
     value: Vec3,
@@ -164,11 +162,7 @@ pub fn deposit_owned(
         let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
         let n = Vec4::from(normals[i]).truncate();
         let bias = depth_bias(view, centre, g, n);
-        if g > 0.0
-            && g >= zmin - bias
-            && g <= zmax + bias
-            && !receiver.outer_face(Vec4::from(geometry[i]).truncate(), n)
-        {
+        if g > 0.0 && g >= zmin - bias && g <= zmax + bias && normals[i][3] == 0.0 {
             add_texel(map, w, x, y, value * share);
             deposited += share;
         }
@@ -318,10 +312,13 @@ pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, 
             let (x, y) = (i as u32 % mw, i as u32 / mw);
             let (o, d) = map.world_ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
             match stage.receiver.intersect(o, d, 0.0) {
-                Some(h) => (
-                    h.position.extend(h.t).to_array(),
-                    h.normal.extend(0.0).to_array(),
-                ),
+                Some(h) => {
+                    let outer = stage.receiver.outer_face(h.position, h.normal);
+                    (
+                        h.position.extend(h.t).to_array(),
+                        h.normal.extend(f32::from(u8::from(outer))).to_array(),
+                    )
+                }
                 None => ([0.0; 4], [0.0; 4]),
             }
         })
@@ -375,14 +372,8 @@ pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, 
                             continue;
                         }
                         let q = v.map(|c| map.project(c.hit.truncate()));
-                        let share = deposit_owned(
-                            &mut flux,
-                            &map,
-                            &stage.receiver,
-                            (&out.geometry, &out.normals),
-                            q,
-                            f,
-                        );
+                        let share =
+                            deposit_owned(&mut flux, &map, (&out.geometry, &out.normals), q, f);
                         out.transmitted += f * share;
                         out.dropped += f * (1.0 - share);
                         if share > 0.0 {

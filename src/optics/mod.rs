@@ -638,7 +638,7 @@ pub fn checker_coordinates(p: Vec3, n: Vec3) -> Vec2 {
 /// the free surface of the water's body, which the few tops of drops and splashes do not move.
 /// The water's bounding box would put the walls halfway up a splash (the dam break's climbs to
 /// 4 over a body 0.6 deep, and walls 2 high hid the water from every camera); at most `top`.
-fn pool_wall_top(surfels: &[Surfel], floor: f32, top: f32) -> f32 {
+pub(crate) fn pool_wall_top(surfels: &[Surfel], floor: f32, top: f32) -> f32 {
     let mut up: Vec<f32> = surfels
         .iter()
         .filter(|s| s.is_drawable() && Vec3::from(s.normal).normalize_or_zero().y > 0.5)

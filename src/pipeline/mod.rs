@@ -1149,10 +1149,8 @@ impl Pipeline {
             scene.optics.splat.mode = splat::SplatMode::Spheres;
         }
         if !self.params.keep_views {
-            if scene.receiver.kind == ReceiverKind::Auto {
-                let first = Stage::fitted(&scene, surfels, self.fit)?;
-                scene.receiver =
-                    self.pool_at_the_water(&scene, surfels, first.receiver.bounds(), radius);
+            if let Some(pool) = self.pool_at_the_water(&scene, surfels, radius) {
+                scene.receiver = pool;
             }
             return Ok(scene);
         }
@@ -1166,10 +1164,17 @@ impl Pipeline {
                 // a provisional stage fits the pool and the camera around this frame's water
                 let first = Stage::fitted(&scene, surfels, self.fit)?;
                 let (rmin, rmax) = first.receiver.bounds();
-                let receiver = if scene.receiver.kind == ReceiverKind::Auto {
-                    self.pool_at_the_water(&scene, surfels, (rmin, rmax), radius)
-                } else {
-                    scene.receiver.clone()
+                let receiver = match self.pool_at_the_water(&scene, surfels, radius) {
+                    Some(pool) => pool,
+                    // without a support radius (surfels given as they are): the provisional
+                    // stage's automatic pool, kept
+                    None if scene.receiver.kind == ReceiverKind::Auto => optics::Receiver {
+                        kind: ReceiverKind::OpenBox,
+                        min: rmin,
+                        max: rmax,
+                        ..scene.receiver.clone()
+                    },
+                    None => scene.receiver.clone(),
                 };
                 let water = crate::view::union_boxes(splat::bounds(surfels), self.fit);
                 let (lo, hi) =
@@ -1207,10 +1212,12 @@ impl Pipeline {
         Ok(scene)
     }
 
-    /// The automatic pool as an open box whose walls and floor meet the water: a quarter of a
-    /// spacing (an eighth of the support radius `radius`) inside the water's bounds (this frame's surfels, widened to [`Pipeline::fit_to`]'s
-    /// box), its walls' top that of `fitted` (the provisional stage's box, [`Stage::fitted`]),
-    /// and at least 7 % of the water's size over the floor.
+    /// The automatic pool (for a scene whose receiver is `auto`) as an open box whose walls and
+    /// floor meet the water: a quarter of a spacing (an eighth of the support radius `radius`)
+    /// inside the water's bounds (this frame's surfels, widened to [`Pipeline::fit_to`]'s box),
+    /// the walls up to the automatic pool's top ([`optics::pool_wall_top`]: 1.2x the water's
+    /// level) and at least 7 % of the water's size over the floor. `None` for another receiver,
+    /// without water, or without a support radius.
     /// A simulation's walls lie at the fluid's boundary, half a spacing outside the particles
     /// next to them, where the water's surface lies too; those particles are not all equally near
     /// the wall, and the rims of the ones a little behind the outermost (a one-layer sheet's rim
@@ -1225,25 +1232,24 @@ impl Pipeline {
         &self,
         scene: &OpticsScene,
         surfels: &[Surfel],
-        fitted: (Vec3, Vec3),
         radius: f32,
-    ) -> optics::Receiver {
-        let mut receiver = scene.receiver.clone();
-        receiver.kind = ReceiverKind::OpenBox;
-        (receiver.min, receiver.max) = fitted;
-        let water = crate::view::union_boxes(splat::bounds(surfels), self.fit);
-        if let Some((lo, hi)) = water.filter(|_| radius.is_finite() && radius > 0.0) {
-            let inset = (0.25 * 0.5 * radius).min(0.25 * (hi - lo).min_element());
-            receiver.min = lo + Vec3::splat(inset);
-            // walls as high over the floor as the former pool's over its own (5 % of the
-            // water's size over its bottom, the floor 2 % below it), on a thin sheet's pool
-            let top = fitted
-                .1
-                .y
-                .max(receiver.min.y + 0.07 * (hi - lo).max_element());
-            receiver.max = Vec3::new(hi.x - inset, top, hi.z - inset);
+    ) -> Option<optics::Receiver> {
+        if scene.receiver.kind != ReceiverKind::Auto || !(radius.is_finite() && radius > 0.0) {
+            return None;
         }
-        receiver
+        let (lo, hi) = crate::view::union_boxes(splat::bounds(surfels), self.fit)?;
+        let inset = (0.25 * 0.5 * radius).min(0.25 * (hi - lo).min_element());
+        let min = lo + Vec3::splat(inset);
+        // walls as high over the floor as the former pool's over its own (5 % of the water's
+        // size over its bottom, the floor 2 % below it), on a thin sheet's pool
+        let top =
+            optics::pool_wall_top(surfels, lo.y, hi.y).max(min.y + 0.07 * (hi - lo).max_element());
+        Some(optics::Receiver {
+            kind: ReceiverKind::OpenBox,
+            min,
+            max: Vec3::new(hi.x - inset, top, hi.z - inset),
+            ..scene.receiver.clone()
+        })
     }
 }
 

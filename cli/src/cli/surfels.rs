@@ -116,14 +116,14 @@ impl SurfelsArgs {
     }
 }
 
-/// The surfels of `pipeline` for one frame's particles, with the grid, the ms of the density
-/// grid and of the extraction, and what the report says of the pipeline.
+/// The surfels of `pipeline` for one frame's particles (their ids carry the detection's
+/// hysteresis over a sequence), with the grid, the ms of the density grid and of the
+/// extraction, and what the report says of the pipeline.
 fn pipeline_surfels(
     pipeline: &mut Pipeline,
-    positions: &[Vec3],
+    particles: fluid_surfels::ParticleView<'_>,
 ) -> Result<(Surfels, GridSpec, f64, f64, PipelineReport), Error> {
-    let set = fluid_surfels::ParticleSet::from_positions(positions.to_vec());
-    let frame = pipeline.frame_through(&set, Through::Surfels)?;
+    let frame = pipeline.frame_through(particles, Through::Surfels)?;
     for w in &frame.warnings {
         eprintln!("warning: {w}");
     }
@@ -249,7 +249,8 @@ pub fn surfels_command(args: &SurfelsArgs) -> Result<(), Error> {
     let (s, spec, density_ms, extract_ms, pipeline) = match args.pipeline_source() {
         Some(source) => {
             let mut p = Pipeline::new(args.pipeline_params(source, radius, iso))?;
-            let (s, spec, d, e, r) = pipeline_surfels(&mut p, &positions)?;
+            let view = fluid_surfels::ParticleView::of_positions(&positions);
+            let (s, spec, d, e, r) = pipeline_surfels(&mut p, view)?;
             (s, spec, d, e, Some(r))
         }
         None => {
@@ -329,7 +330,7 @@ fn surfels_sequence(args: &SurfelsArgs, pattern: &FramePattern, iso: f32) -> Res
             let particles = super::read_particles(&pattern.path(f), src.format)?;
             let (s, d, e) = match pipeline {
                 Some(p) => {
-                    let (s, _, d, e, _) = pipeline_surfels(p, &particles.positions)?;
+                    let (s, _, d, e, _) = pipeline_surfels(p, particles.view())?;
                     (s, d, e)
                 }
                 None => {
