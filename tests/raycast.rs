@@ -465,6 +465,26 @@ fn the_pipeline_casts_rays_for_the_splats_and_the_optics() {
     );
     assert!(wet > 200, "{wet} wet pixels");
     assert!(f.caustics.total_flux().length() > 0.0);
+    // the automatic pool meets the calibrated surface (half a spacing outside the spheres'
+    // centres, a quarter spacing in), not the spheres' bounds a support radius out
+    let (lo, hi) = f.stage.receiver.bounds();
+    let (clo, chi) = positions.iter().fold(
+        (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)),
+        |(a, b), p| (a.min(*p), b.max(*p)),
+    );
+    let s = 0.5 * finished.radius;
+    for (got, want) in [
+        (lo.x, clo.x - 0.25 * s),
+        (lo.z, clo.z - 0.25 * s),
+        (hi.x, chi.x + 0.25 * s),
+        (hi.z, chi.z + 0.25 * s),
+        (lo.y, clo.y - 0.25 * s),
+    ] {
+        assert!(
+            (got - want).abs() < 1e-3 * s,
+            "pool {lo} {hi}, centres {clo} {chi}"
+        );
+    }
 }
 
 /// The caster's image from `camera` at SIZE x SIZE on the CPU and on the GPU.

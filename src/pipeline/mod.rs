@@ -1237,7 +1237,24 @@ impl Pipeline {
         if scene.receiver.kind != ReceiverKind::Auto || !(radius.is_finite() && radius > 0.0) {
             return None;
         }
-        let (lo, hi) = crate::view::union_boxes(splat::bounds(surfels), self.fit)?;
+        // the ray caster's spheres reach a support radius past their centres, its calibrated
+        // surface half a spacing: the box of that surface
+        let own = if self.params.renderer == Renderer::RayCast
+            && self.params.grid.calibration == Calibration::Boundary
+        {
+            let half = Vec3::splat(0.25 * radius);
+            surfels
+                .iter()
+                .filter(|s| s.is_drawable())
+                .map(|s| Vec3::from(s.position))
+                .fold(None, |b: Option<(Vec3, Vec3)>, p| {
+                    Some(b.map_or((p, p), |(a, c)| (a.min(p), c.max(p))))
+                })
+                .map(|(a, c)| (a - half, c + half))
+        } else {
+            splat::bounds(surfels)
+        };
+        let (lo, hi) = crate::view::union_boxes(own, self.fit)?;
         let inset = (0.25 * 0.5 * radius).min(0.25 * (hi - lo).min_element());
         let min = lo + Vec3::splat(inset);
         // walls as high over the floor as the former pool's over its own (5 % of the water's
