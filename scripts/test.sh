@@ -52,7 +52,7 @@ if [ "$quick" = 1 ]; then
   # Integration test binaries that finish in seconds each on 2 cores (measured; the README's
   # testing section says how a test stays in this list). The unit tests of the library and the
   # command line run whole.
-  QUICK_TESTS=(formats io lnm particle_splat splat density surfels ssfr raycast refine surface pipeline)
+  QUICK_TESTS=(formats io lnm particle_splat splat density surfels ssfr raycast refine surface pipeline detail)
   echo "== cargo test --quick (unit tests; integration tests: ${QUICK_TESTS[*]})"
   cargo test --locked --lib --bins
   args=()

@@ -77,9 +77,11 @@ class Frame:
     image: Optional[npt.NDArray[np.uint8]]
     """(H, W, 4) RGBA: the shaded splats (through="splats") or the finished frame
     (through="frame"); None before."""
-    timings: dict[str, float]
-    """Milliseconds per stage: neighbours_ms, detect_ms, refine_ms, density_ms, surfels_ms,
-    splats_ms, caustics_ms, image_ms, total_ms."""
+    timings: dict[str, Union[float, int, str]]
+    """Milliseconds per stage: neighbours_ms, detect_ms, refine_ms, calibration_ms, density_ms,
+    surfels_ms, splats_ms, caustics_ms, image_ms, total_ms; and what the level of detail made:
+    detail ("auto" or "fixed" as applied), steps (run), refined_points, cell (the density
+    grid's, world units), surfels."""
     warnings: list[str]
     """What a user should know (a support radius far off, a grid coarsened to fit its memory
     budget)."""

@@ -649,7 +649,9 @@ struct Frame {
     /// (`through="frame"`); None before.
     #[pyo3(get)]
     image: Option<Py<PyAny>>,
-    /// Milliseconds per stage (`neighbours_ms`, `detect_ms`, ..., `total_ms`).
+    /// Milliseconds per stage (`neighbours_ms`, `detect_ms`, ..., `total_ms`) and what the level
+    /// of detail made: `detail` ("auto" or "fixed" as applied), `steps` (run), `refined_points`,
+    /// `cell` (the density grid's) and `surfels`.
     #[pyo3(get)]
     timings: Py<PyAny>,
     /// What a user should know (a radius far off, a grid coarsened to fit the memory budget).
@@ -735,8 +737,16 @@ fn frame_out(py: Python<'_>, frame: pipeline::Frame) -> PyResult<Frame> {
         (None, Some(s)) => Some(image_out(py, s.image)?),
         (None, None) => None,
     };
-    let timings =
+    // the milliseconds per stage and what the level of detail made (steps, points, cell,
+    // surfels) in one dict
+    let mut timings =
         toml::Value::try_from(frame.timings).map_err(|e| Error::new_err(e.to_string()))?;
+    if let (Some(t), toml::Value::Table(d)) = (
+        timings.as_table_mut(),
+        toml::Value::try_from(frame.detail).map_err(|e| Error::new_err(e.to_string()))?,
+    ) {
+        t.extend(d);
+    }
     Ok(Frame {
         radius: float_out(frame.radius.into()),
         mean_neighbours: float_out(frame.mean_neighbours.into()),

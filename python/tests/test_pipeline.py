@@ -49,6 +49,11 @@ def test_column_matches_the_main_job(cli, column, tmp_path):
     np.testing.assert_array_equal(frame.surfels.radii, surfels["attributes"]["radius"])
     # the timings and the report
     assert frame.timings["total_ms"] > 0 and frame.timings["refine_ms"] > 0
+    # what the level of detail made (through the surfels: no camera, so fixed)
+    assert frame.timings["detail"] == "fixed" and frame.timings["steps"] == 3
+    assert frame.timings["refined_points"] == len(frame.refined)
+    assert frame.timings["points_per_level"] == [0, 0, 0, len(frame.refined)]
+    assert frame.timings["surfels"] == len(frame.surfels) and frame.timings["cell"] > 0
     assert frame.image is None and frame.radius == fs.column_params()["support_radius"]
 
 

@@ -500,6 +500,11 @@ pub struct LightViews {
     pub map: View,
 }
 
+/// The direction (towards the eye) the finished frame's automatic camera looks from: higher than
+/// the particle previews' (40 degrees instead of 24), so that it sees into the pool over its
+/// walls.
+pub const CAMERA_DIRECTION: Vec3 = Vec3::new(0.55, 0.95, 1.0);
+
 /// An [`OpticsScene`] resolved for one set of surfels.
 #[derive(Debug)]
 pub struct Stage {
@@ -556,7 +561,7 @@ impl Stage {
                 Camera::fitting(
                     all_min,
                     all_max,
-                    Vec3::new(0.55, 0.95, 1.0),
+                    CAMERA_DIRECTION,
                     w as f32 / h.max(1) as f32,
                 )
             }

@@ -76,7 +76,9 @@ impl GpuPipeline {
         check_size(size)?;
         let mut params = params.clone();
         params.scene.optics.image_size = [size.0, size.1];
-        let cpu = Pipeline::new(params)?;
+        let mut cpu = Pipeline::new(params)?;
+        // the CPU stages' surfels are drawn as the finished frame: `detail = "auto"` sees them so
+        cpu.set_drawn(Some(Through::Frame));
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let optics = OpticsGpu::new(device)?;
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {

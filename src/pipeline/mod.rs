@@ -52,12 +52,14 @@ use crate::surfels::{self, SurfelParams, Surfels};
 use crate::{Error, ParticleView};
 
 mod boundary;
+mod detail;
 pub mod gpu;
 
 pub use boundary::{
     BAND, BURIED, ChainPoints, Fluid, LONE_RADIUS, MAX_WEIGHT, Sheet, WEIGHT_STEPS,
     boundary_weights, chain_points_at_boundary, particle_points_at_boundary,
 };
+pub use detail::{DEFAULT_DETAIL_PX, Detail, ViewLevels, spacing_after};
 pub use gpu::{GpuPipeline, iso_surfels_gpu};
 
 /// Where the surfels that are rendered come from.
@@ -247,6 +249,13 @@ pub struct PipelineParams {
     /// Fit the camera, the pool and the scene box on the first rendered frame and keep them
     /// (default); off, every frame is fitted anew.
     pub keep_views: bool,
+    /// How much of `refine.steps` the upsampling takes: `fixed` (default: every region all
+    /// of them) or `auto` (detail from the view, [`Detail::Auto`]: a region stops once its
+    /// points' spacing seen from the camera is under `detail_px` pixels; only for frames drawn
+    /// from a camera, through [`Through::Splats`] or [`Through::Frame`]).
+    pub detail: Detail,
+    /// The footprint of `detail = "auto"`, in pixels (default [`DEFAULT_DETAIL_PX`]).
+    pub detail_px: f32,
 }
 
 impl Default for PipelineParams {
@@ -264,12 +273,16 @@ impl Default for PipelineParams {
             splat: SplatParams::default(),
             scene: OpticsScene::default(),
             keep_views: true,
+            detail: Detail::Fixed,
+            detail_px: DEFAULT_DETAIL_PX,
         }
     }
 }
 
 /// The keys of a TOML file that belong to the pipeline; every other key is the optics scene's.
-const PIPELINE_KEYS: [&str; 11] = [
+const PIPELINE_KEYS: [&str; 13] = [
+    "detail",
+    "detail_px",
     "raycast",
     "ssfr",
     "support_radius",
@@ -347,6 +360,15 @@ impl PipelineParams {
         {
             return bad("support_radius", format!("must be finite and > 0, got {r}"));
         }
+        if !(self.detail_px.is_finite() && self.detail_px > 0.0) {
+            return bad(
+                "detail_px",
+                format!(
+                    "must be finite and > 0 (the footprint in pixels under which a region stops refining), got {}",
+                    self.detail_px
+                ),
+            );
+        }
         let g = &self.grid;
         if !(g.cells_per_radius.is_finite() && (0.5..=64.0).contains(&g.cells_per_radius)) {
             return bad(
@@ -399,6 +421,25 @@ pub struct FrameTimings {
     pub total_ms: f64,
 }
 
+/// What a frame's level of detail chose and made (issue 36): `Frame::detail`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct DetailReport {
+    /// `auto` or `fixed` as applied: `fixed` for a frame without a camera (through
+    /// [`Through::Surfels`] or earlier) whatever [`PipelineParams::detail`] says.
+    pub detail: Detail,
+    /// The steps run: the finest region's level (0 without refined points).
+    pub steps: u32,
+    /// Refined points.
+    pub refined_points: usize,
+    /// Refined points by the level of their region ([`Refined::levels`]), from level 0 up to
+    /// the steps run.
+    pub points_per_level: Vec<usize>,
+    /// The density grid's cell, world units (0 without a grid).
+    pub cell: f32,
+    /// Surfels on the iso-surface (0 without a density grid).
+    pub surfels: usize,
+}
+
 /// The finished frame of the optics stage.
 #[derive(Debug)]
 pub struct Finished {
@@ -447,6 +488,8 @@ pub struct Frame {
     pub finished: Option<Finished>,
     /// Milliseconds per stage.
     pub timings: FrameTimings,
+    /// The level of detail: steps run, refined points, grid cell, surfels.
+    pub detail: DetailReport,
     /// What a user should know: a grid coarsened to fit the memory budget, for instance.
     pub warnings: Vec<String>,
 }
@@ -481,6 +524,9 @@ pub struct Pipeline {
     grid_buffer: Vec<f32>,
     /// Told each warning as soon as it is known ([`Pipeline::on_warning`]).
     warning_sink: Option<WarningSink>,
+    /// Frames through the surfels are drawn by the caller as this picture
+    /// ([`Pipeline::set_drawn`]).
+    drawn: Option<Through>,
 }
 
 /// A function told each warning of a frame as soon as it is known.
@@ -498,8 +544,20 @@ impl Pipeline {
             fit: None,
             grid_buffer: Vec::new(),
             warning_sink: None,
+            drawn: None,
             params,
         })
+    }
+
+    /// Says that the frames made through [`Through::Surfels`] are drawn by the caller (on a
+    /// GPU, in a viewer) as the shaded splats (`Some(Through::Splats)`) or the finished frame
+    /// (`Some(Through::Frame)`), from the pipeline's camera ([`Pipeline::set_camera`], the
+    /// scene's, or the one such a picture fits) at the image size, so that `detail = "auto"`
+    /// chooses their detail from that view as it does for the pictures the pipeline draws
+    /// itself. `None` (the default): such frames refine every region to `refine.steps`, so that
+    /// surfels written to disk never depend on an image size.
+    pub fn set_drawn(&mut self, drawn_as: Option<Through>) {
+        self.drawn = drawn_as.filter(|&t| t >= Through::Splats);
     }
 
     /// Tells `sink` each warning as soon as it is known, before the rest of the frame's work (a
@@ -661,6 +719,7 @@ impl Pipeline {
             splats: None,
             finished: None,
             timings,
+            detail: DetailReport::default(),
             warnings: Vec::new(),
         };
         drop(nb);
@@ -670,7 +729,21 @@ impl Pipeline {
         if needs_refined {
             let t = Instant::now();
             let (p, n) = gather(particles, &frame.surface, &frame.surface_indices);
-            frame.refined = Some(refine::refine(&p, &n, &self.refine_params(radius))?);
+            let params = self.refine_params(radius);
+            let refined = match self.view_levels(particles.positions, radius, through)? {
+                Some(levels) => {
+                    frame.detail.detail = Detail::Auto;
+                    refine::refine_to_levels(&p, &n, &params, true, &|x| levels.level(x))?
+                }
+                None => refine::refine(&p, &n, &params)?,
+            };
+            frame.detail.steps = refined.levels.iter().copied().max().map_or(0, u32::from);
+            frame.detail.refined_points = refined.len();
+            frame.detail.points_per_level = vec![0; refined.stats.len() + 1];
+            for &l in &refined.levels {
+                frame.detail.points_per_level[l as usize] += 1;
+            }
+            frame.refined = Some(refined);
             frame.timings.refine_ms = ms(t);
         }
         if through < Through::Surfels {
@@ -699,6 +772,8 @@ impl Pipeline {
                 frame.timings.density_ms = iso.density_ms;
                 frame.timings.surfels_ms = iso.surfels_ms;
                 self.warn(&mut warnings, iso.warning);
+                frame.detail.cell = iso.grid.spec().spacing;
+                frame.detail.surfels = iso.surfels.len();
                 frame.grid = Some(iso.grid);
                 frame.surfels = Some(iso.surfels);
             }
@@ -919,6 +994,7 @@ impl Pipeline {
             splats: None,
             finished: None,
             timings: FrameTimings::default(),
+            detail: DetailReport::default(),
             warnings: Vec::new(),
         };
         let skipped = frame
@@ -939,6 +1015,71 @@ impl Pipeline {
         }
         frame.timings.total_ms = ms(total);
         Ok(frame)
+    }
+
+    /// The level of detail each region needs (`detail = "auto"` on a frame drawn through
+    /// `through`, [`Through::Splats`] or later, or [`Through::Surfels`] drawn by the caller,
+    /// [`Pipeline::set_drawn`]): from the camera the frame will be seen from
+    /// ([`Pipeline::detail_camera`]) at the image size. `None` refines every region to
+    /// `refine.steps`.
+    fn view_levels(
+        &self,
+        positions: &[Vec3],
+        radius: f32,
+        through: Through,
+    ) -> Result<Option<ViewLevels>, Error> {
+        let seen = match (through, self.drawn) {
+            (Through::Splats | Through::Frame, _) => through,
+            (Through::Surfels, Some(drawn)) => drawn,
+            _ => return Ok(None),
+        };
+        if self.params.detail != Detail::Auto {
+            return Ok(None);
+        }
+        let camera = self.detail_camera(positions, radius, seen);
+        let [w, h] = self.params.scene.optics.image_size;
+        let view = splat::View::new(&camera, &Light::default(), &self.splat_params(), w, h)?;
+        Ok(Some(ViewLevels::new(
+            vec![view],
+            radius,
+            self.refine_params(radius).steps,
+            self.params.detail_px,
+        )))
+    }
+
+    /// The camera a frame through `through` will be seen from, known before its surfels are:
+    /// the sequence's kept camera, else the scene's, else the one the splats or the finished
+    /// frame fit, to the water's box (the particles' widened by half a spacing, where the
+    /// surface lies, and [`Pipeline::fit_to`]'s box). The finished frame's camera fits the pool
+    /// too, whose walls may rise over the water: seen from here the water is a little nearer,
+    /// so that its detail errs on the fine side.
+    fn detail_camera(&self, positions: &[Vec3], radius: f32, through: Through) -> Camera {
+        if self.params.keep_views
+            && let Some(v) = &self.views
+        {
+            return v.camera;
+        }
+        if let Some(c) = self.params.scene.camera {
+            return c;
+        }
+        let own = positions
+            .iter()
+            .fold(None, |b: Option<(Vec3, Vec3)>, &p| {
+                Some(b.map_or((p, p), |(a, c)| (a.min(p), c.max(p))))
+            })
+            .map(|(a, c)| {
+                (
+                    a - Vec3::splat(0.25 * radius),
+                    c + Vec3::splat(0.25 * radius),
+                )
+            });
+        let (lo, hi) = crate::view::union_boxes(own, self.fit).unwrap_or((Vec3::ZERO, Vec3::ONE));
+        if through == Through::Frame {
+            let [w, h] = self.params.scene.optics.image_size;
+            Camera::fitting(lo, hi, optics::CAMERA_DIRECTION, w as f32 / h.max(1) as f32)
+        } else {
+            Camera::framing(lo, hi)
+        }
     }
 
     fn refine_params(&self, radius: f32) -> RefineParams {

@@ -20,9 +20,9 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::{
-    BYTES_PER_POINT, Candidate, Lists, NeighbourLists, RADIUS_FACTOR, RefineError, RefineParams,
-    Refined, StepStats, Target, apply_moves, candidates_of, finish, for_each_new_neighbour,
-    initial_neighbours, pairs_of,
+    BYTES_PER_POINT, Candidate, Levels, Lists, NeighbourLists, RADIUS_FACTOR, RefineError,
+    RefineParams, Refined, StepStats, Target, apply_moves, candidates_of, caps_of, finish,
+    for_each_new_neighbour, initial_neighbours, pairs_of, radii_after,
 };
 
 /// Items per parallel task: fixed, so that the output does not depend on the thread count.
@@ -162,6 +162,8 @@ struct Points {
     nrm: Vec<Vec3>,
     step: Vec<u8>,
     weight: Vec<f32>,
+    /// the most steps of each point's region
+    cap: Vec<u8>,
     /// neighbours within the current radius, sorted ascending
     nb: Csr,
 }
@@ -185,7 +187,7 @@ fn make_candidates(
         .into_par_iter()
         .map(|c| {
             range(c)
-                .map(|p1| pairs_of(&pts.pos, pts.nb.of(p1), p1, r_next).count())
+                .map(|p1| pairs_of(&pts.pos, &pts.cap, pts.nb.of(p1), p1, r_next, step).count())
                 .sum()
         })
         .collect();
@@ -208,7 +210,17 @@ fn make_candidates(
             let mut out = Vec::with_capacity(share.len());
             let mut none = 0;
             for p1 in range(c) {
-                let n = candidates_of(&pts.pos, &pts.nrm, pts.nb.of(p1), p1, params, r, &mut out);
+                let n = candidates_of(
+                    &pts.pos,
+                    &pts.nrm,
+                    &pts.cap,
+                    pts.nb.of(p1),
+                    p1,
+                    params,
+                    r,
+                    step,
+                    &mut out,
+                );
                 out.extend(std::iter::repeat_n(hole, n));
                 none += n;
             }
@@ -448,7 +460,8 @@ fn step_once(
     pts: &mut Points,
     params: &RefineParams,
     r: f32,
-    step: u32,
+    (step, last): (u32, u32),
+    levels: Option<Levels<'_>>,
 ) -> Result<StepStats, RefineError> {
     let t = Instant::now();
     let n_old = pts.pos.len();
@@ -485,6 +498,12 @@ fn step_once(
     pts.nrm.reserve_exact(n_new - pts.nrm.len());
     pts.step.reserve_exact(n_new - pts.step.len());
     pts.weight.reserve_exact(n_new - pts.weight.len());
+    let cap = |x: Vec3| levels.map_or(params.steps, |f| f(x)).min(params.steps) as u8;
+    pts.cap.par_extend(
+        d.accepted
+            .par_iter()
+            .map(|&k| cap(candidates[k as usize].pos)),
+    );
     for &k in &d.accepted {
         let c = &candidates[k as usize];
         pts.pos.push(c.pos);
@@ -508,7 +527,7 @@ fn step_once(
     );
     s.phases.moves_ms = phase.elapsed().as_secs_f64() * 1e3;
     drop((d.registered, d.moves));
-    if step < params.steps {
+    if step < last {
         pts.nb = update(pts, &candidates, &d.accepted, n_old, r_next);
     }
     // no update after the last step (§3.4)
@@ -518,12 +537,14 @@ fn step_once(
     Ok(s)
 }
 
-/// Runs the steps on validated input; `observe` sees the positions, neighbourhoods and radius
-/// after each step's update (not after the last step, which has none).
+/// Runs the steps on validated input, each region to its level (`levels`, every point
+/// `params.steps` without); `observe` sees the positions, neighbourhoods and radius after each
+/// step's update (not after the last step, which has none).
 pub(super) fn run(
     positions: &[Vec3],
     normals: &[Vec3],
     params: &RefineParams,
+    levels: Option<Levels<'_>>,
     mut observe: impl FnMut(&[Vec3], NeighbourLists<'_>, f32),
 ) -> Result<Refined, RefineError> {
     let nb = initial_neighbours(positions, params)?;
@@ -535,24 +556,39 @@ pub(super) fn run(
     drop(nb);
     let n = positions.len();
     let isolated: Vec<bool> = (0..n).map(|i| lists.of(i).is_empty()).collect();
+    let (cap, last) = caps_of(positions, params, levels);
     let mut pts = Points {
         pos: positions.to_vec(),
         nrm: normals.par_iter().map(|n| n.normalize_or_zero()).collect(),
         step: vec![0; n],
         weight: vec![params.original_weight; n],
+        cap,
         nb: lists,
     };
     let mut stats = Vec::new();
-    let mut r = params.initial_radius;
-    for step in 1..=params.steps {
-        stats.push(step_once(&mut pts, params, r, step)?);
-        r *= RADIUS_FACTOR;
-        if step < params.steps {
-            observe(&pts.pos, NeighbourLists::flat(&pts.nb), r);
+    let radius_after = radii_after(params.initial_radius, last);
+    for step in 1..=last {
+        let r = radius_after[step as usize - 1];
+        stats.push(step_once(&mut pts, params, r, (step, last), levels)?);
+        if step < last {
+            observe(
+                &pts.pos,
+                NeighbourLists::flat(&pts.nb),
+                radius_after[step as usize],
+            );
         }
     }
     drop(pts.nb);
     Ok(finish(
-        pts.pos, pts.nrm, pts.step, pts.weight, &isolated, params, stats, r,
+        pts.pos,
+        pts.nrm,
+        pts.step,
+        pts.weight,
+        &pts.cap,
+        &isolated,
+        params,
+        stats,
+        &radius_after,
+        levels.is_some(),
     ))
 }

@@ -242,12 +242,15 @@ pub struct Refined {
     pub weights: Vec<f32>,
     /// Splat radius of each point for rendering.
     pub radii: Vec<f32>,
-    /// Density kernel radius of each point (`kernel_factor r_n`; `r0` for points that had no
-    /// neighbour), for the design chain's density grid.
+    /// Density kernel radius of each point (`kernel_factor r_k`, `k` its level; `r0` for points
+    /// that had no neighbour), for the design chain's density grid.
     pub kernel_radii: Vec<f32>,
+    /// The steps each point's region took ([`refine_to_levels`]; every point `steps` in a fixed
+    /// refinement): its splat and kernel radii are that level's.
+    pub levels: Vec<u8>,
     /// Per step.
     pub stats: Vec<StepStats>,
-    /// `r_n`, the radius after the last step.
+    /// `r_n`, the radius after the last step run (the finest level's).
     pub final_radius: f32,
 }
 
@@ -504,28 +507,38 @@ fn for_each_common(a: &[u32], b: &[u32], mut f: impl FnMut(u32)) {
 }
 
 /// The neighbours of `p1` that make a pair with it this step: the higher-numbered ones at least
-/// `r_next` away (nearer ones are left to the next step: type 1 collisions, §3.3.1).
+/// `r_next` away (nearer ones are left to the next step: type 1 collisions, §3.3.1), where one
+/// of the two may still refine this step (`caps`, the most steps of each point's region,
+/// [`refine_to_levels`]).
 fn pairs_of<'a>(
     pos: &'a [Vec3],
+    caps: &'a [u8],
     nb: &'a [u32],
     p1: usize,
     r_next: f32,
+    step: u32,
 ) -> impl Iterator<Item = u32> + 'a {
     let x1 = pos[p1];
+    let open1 = u32::from(caps[p1]) >= step;
     nb.iter().copied().filter(move |&p2| {
-        p2 as usize > p1 && x1.distance_squared(pos[p2 as usize]) >= r_next * r_next
+        p2 as usize > p1
+            && (open1 || u32::from(caps[p2 as usize]) >= step)
+            && x1.distance_squared(pos[p2 as usize]) >= r_next * r_next
     })
 }
 
 /// The child candidates of point `p1` with its higher-numbered neighbours, in neighbour order.
 /// Returns the number of pairs that gave no child (`|b'|` near zero).
+#[allow(clippy::too_many_arguments)] // one point's pairs, passed once
 fn candidates_of(
     pos: &[Vec3],
     nrm: &[Vec3],
+    caps: &[u8],
     nb: &[u32],
     p1: usize,
     params: &RefineParams,
     r: f32,
+    step: u32,
     out: &mut Vec<Candidate>,
 ) -> usize {
     let (r_next, h_max, rule, r0) = (
@@ -536,7 +549,7 @@ fn candidates_of(
     );
     let mut no_normal = 0;
     let (x1, n1) = (pos[p1], nrm[p1]);
-    for p2 in pairs_of(pos, nb, p1, r_next) {
+    for p2 in pairs_of(pos, caps, nb, p1, r_next, step) {
         let (x2, n2) = (pos[p2 as usize], nrm[p2 as usize]);
         match child(x1, n1, x2, n2, rule, h_max) {
             Some((at, normal)) => out.push(Candidate {
@@ -700,27 +713,43 @@ fn initial_neighbours(
     )?)
 }
 
-/// The refined set from the final points. Splat and kernel radii: `splat_factor * r_n` and
-/// `kernel_factor * r_n` for points that took part in the refinement; points that had no
-/// neighbour at the start (isolated drops) keep half the initial radius as splat and the
-/// initial radius as kernel.
+/// The refined set from the final points. Splat and kernel radii: `splat_factor * r_k` and
+/// `kernel_factor * r_k` for points that took part in the refinement, `r_k` the radius after the
+/// `k` steps their region took (`caps`, at most the steps run, or `by_region` the last step
+/// that made a point: every point of a fixed refinement has `r_n`); points that had no neighbour at the start (isolated drops) keep half
+/// the initial radius as splat and the initial radius as kernel. `radius_after[k]` is `r_k`.
 #[allow(clippy::too_many_arguments)] // the final state, passed once
 fn finish(
     positions: Vec<Vec3>,
     normals: Vec<Vec3>,
     steps: Vec<u8>,
     weights: Vec<f32>,
+    caps: &[u8],
     isolated: &[bool],
     params: &RefineParams,
     stats: Vec<StepStats>,
-    r_n: f32,
+    radius_after: &[f32],
+    by_region: bool,
 ) -> Refined {
+    // by region: the finest level used is the last step that made a point (a region may ask for
+    // a step that finds no pair far enough apart), so that no point takes a finer kernel (and
+    // the density grid a finer cell) than the points around it were refined to
+    let run = if by_region {
+        stats
+            .iter()
+            .rposition(|s| s.points_after > s.points_before)
+            .map_or(0, |i| i + 1)
+    } else {
+        stats.len()
+    };
+    let levels: Vec<u8> = caps.iter().map(|&c| c.min(run as u8)).collect();
     let (radii, kernel_radii) = (0..positions.len())
         .map(|i| {
             if i < isolated.len() && isolated[i] {
                 (0.5 * params.initial_radius, params.initial_radius)
             } else {
-                (params.splat_factor * r_n, params.kernel_factor * r_n)
+                let r = radius_after[levels[i] as usize];
+                (params.splat_factor * r, params.kernel_factor * r)
             }
         })
         .unzip();
@@ -731,9 +760,48 @@ fn finish(
         weights,
         radii,
         kernel_radii,
+        levels,
         stats,
-        final_radius: r_n,
+        final_radius: radius_after[run],
     }
+}
+
+/// The most steps the refinement takes around a position ([`refine_to_levels`]): detail chosen
+/// from the view (issue 36), where a region seen small stops early.
+pub type Levels<'a> = &'a (dyn Fn(Vec3) -> u32 + Sync);
+
+/// The steps each input point's region takes (`levels`, at most `params.steps`), and how many
+/// steps run: the most of them with `levels` (none without points), else `params.steps`.
+fn caps_of(
+    positions: &[Vec3],
+    params: &RefineParams,
+    levels: Option<Levels<'_>>,
+) -> (Vec<u8>, u32) {
+    let steps = params.steps as u8;
+    let caps: Vec<u8> = match levels {
+        Some(f) => positions
+            .par_iter()
+            .map(|&x| f(x).min(u32::from(steps)) as u8)
+            .collect(),
+        None => vec![steps; positions.len()],
+    };
+    let run = match levels {
+        Some(_) => caps.iter().copied().max().unwrap_or(0),
+        None => steps,
+    };
+    (caps, u32::from(run))
+}
+
+/// `r_k` after `k` steps from `r_0`, for `k` in `0..=steps`, multiplied step by step as the
+/// refinement does.
+fn radii_after(r0: f32, steps: u32) -> Vec<f32> {
+    let mut r = r0;
+    let mut out = vec![r];
+    for _ in 0..steps {
+        r *= RADIUS_FACTOR;
+        out.push(r);
+    }
+    out
 }
 
 /// The faithful single-threaded refinement (the specification the parallel one is tested
@@ -768,9 +836,31 @@ pub fn refine_observed(
 ) -> Result<Refined, RefineError> {
     validate(positions, normals, params)?;
     if parallel {
-        flat::run(positions, normals, params, observe)
+        flat::run(positions, normals, params, None, observe)
     } else {
-        reference::run(positions, normals, params, observe)
+        reference::run(positions, normals, params, None, observe)
+    }
+}
+
+/// [`refine`] (`parallel`) or [`refine_reference`] where each region stops after its own number
+/// of steps: a pair of points makes a child in step `i` only when `levels` of one of them is at
+/// least `i`, and a child's region is `levels` of its position. The steps run are the most that
+/// `levels` gives an input point (at most `params.steps`); each point's kernel and splat radii are
+/// those of its region's last step ([`Refined::levels`]), so a region that stops early is drawn
+/// as the whole surface would be after that many steps. With `levels` always `params.steps`, the
+/// same points as [`refine`].
+pub fn refine_to_levels(
+    positions: &[Vec3],
+    normals: &[Vec3],
+    params: &RefineParams,
+    parallel: bool,
+    levels: Levels<'_>,
+) -> Result<Refined, RefineError> {
+    validate(positions, normals, params)?;
+    if parallel {
+        flat::run(positions, normals, params, Some(levels), |_, _, _| {})
+    } else {
+        reference::run(positions, normals, params, Some(levels), |_, _, _| {})
     }
 }
 

@@ -11,9 +11,10 @@ use std::time::Instant;
 use glam::Vec3;
 
 use super::{
-    BYTES_PER_POINT, Candidate, NeighbourLists, RADIUS_FACTOR, RefineError, RefineParams, Refined,
-    StepStats, Target, apply_moves, candidates_of, finish, for_each_common, for_each_new_neighbour,
-    for_each_registration_unique, initial_neighbours, type2_hit,
+    BYTES_PER_POINT, Candidate, Levels, NeighbourLists, RADIUS_FACTOR, RefineError, RefineParams,
+    Refined, StepStats, Target, apply_moves, candidates_of, caps_of, finish, for_each_common,
+    for_each_new_neighbour, for_each_registration_unique, initial_neighbours, radii_after,
+    type2_hit,
 };
 
 /// Point data carried between steps.
@@ -22,6 +23,8 @@ struct Points {
     nrm: Vec<Vec3>,
     step: Vec<u8>,
     weight: Vec<f32>,
+    /// the most steps of each point's region
+    cap: Vec<u8>,
     /// neighbours within the current radius, sorted ascending
     nb: Vec<Vec<u32>>,
 }
@@ -63,9 +66,11 @@ fn append_and_update(
     r_next: f32,
     beta: f32,
     last: bool,
+    cap: impl Fn(Vec3) -> u8,
 ) -> (usize, f64) {
     let n_old = pts.pos.len();
     for c in accepted {
+        pts.cap.push(cap(c.pos));
         pts.pos.push(c.pos);
         pts.nrm.push(c.nrm);
         pts.step.push(step);
@@ -148,7 +153,8 @@ fn step_once(
     pts: &mut Points,
     params: &RefineParams,
     r: f32,
-    step: u32,
+    (step, last): (u32, u32),
+    levels: Option<Levels<'_>>,
 ) -> Result<StepStats, RefineError> {
     let t = Instant::now();
     let n_old = pts.pos.len();
@@ -165,10 +171,12 @@ fn step_once(
         s.different_surfaces += candidates_of(
             &pts.pos,
             &pts.nrm,
+            &pts.cap,
             &pts.nb[p1],
             p1,
             params,
             r,
+            step,
             &mut candidates,
         );
     }
@@ -244,7 +252,8 @@ fn step_once(
         step as u8,
         r_next,
         beta,
-        step == params.steps,
+        step == last,
+        |x| levels.map_or(params.steps, |f| f(x)).min(params.steps) as u8,
     );
     s.points_after = pts.pos.len();
     s.phases.update_ms = phase.elapsed().as_secs_f64() * 1e3;
@@ -252,20 +261,24 @@ fn step_once(
     Ok(s)
 }
 
-/// Runs the steps on validated input; `observe` sees the positions, neighbourhoods and radius
-/// after each step's update (not after the last step, which has none).
+/// Runs the steps on validated input, each region to its level (`levels`, every point
+/// `params.steps` without); `observe` sees the positions, neighbourhoods and radius after each
+/// step's update (not after the last step, which has none).
 pub(super) fn run(
     positions: &[Vec3],
     normals: &[Vec3],
     params: &RefineParams,
+    levels: Option<Levels<'_>>,
     mut observe: impl FnMut(&[Vec3], NeighbourLists<'_>, f32),
 ) -> Result<Refined, RefineError> {
     let nb = initial_neighbours(positions, params)?;
+    let (cap, last) = caps_of(positions, params, levels);
     let mut pts = Points {
         pos: positions.to_vec(),
         nrm: normals.iter().map(|n| n.normalize_or_zero()).collect(),
         step: vec![0; positions.len()],
         weight: vec![params.original_weight; positions.len()],
+        cap,
         nb: (0..positions.len())
             .map(|i| {
                 let mut v = nb.of(i).to_vec();
@@ -277,15 +290,28 @@ pub(super) fn run(
     drop(nb);
     let isolated: Vec<bool> = pts.nb.iter().map(Vec::is_empty).collect();
     let mut stats = Vec::new();
-    let mut r = params.initial_radius;
-    for step in 1..=params.steps {
-        stats.push(step_once(&mut pts, params, r, step)?);
-        r *= RADIUS_FACTOR;
-        if step < params.steps {
-            observe(&pts.pos, NeighbourLists::nested(&pts.nb), r);
+    let radius_after = radii_after(params.initial_radius, last);
+    for step in 1..=last {
+        let r = radius_after[step as usize - 1];
+        stats.push(step_once(&mut pts, params, r, (step, last), levels)?);
+        if step < last {
+            observe(
+                &pts.pos,
+                NeighbourLists::nested(&pts.nb),
+                radius_after[step as usize],
+            );
         }
     }
     Ok(finish(
-        pts.pos, pts.nrm, pts.step, pts.weight, &isolated, params, stats, r,
+        pts.pos,
+        pts.nrm,
+        pts.step,
+        pts.weight,
+        &pts.cap,
+        &isolated,
+        params,
+        stats,
+        &radius_after,
+        levels.is_some(),
     ))
 }

@@ -10,7 +10,8 @@ use fluid_surfels::density::Resolution;
 use fluid_surfels::gpu::GpuContext;
 use fluid_surfels::io::{self, Format};
 use fluid_surfels::pipeline::{
-    self, Calibration, GpuPipeline, Pipeline, PipelineParams, Renderer, SurfelSource, Through,
+    self, Calibration, Detail, DetailReport, GpuPipeline, Pipeline, PipelineParams, Renderer,
+    SurfelSource, Through,
 };
 use fluid_surfels::scenes::{self, ColumnParams, ColumnSim, SceneName};
 use fluid_surfels::sequence::{FramePattern, FrameRange};
@@ -154,6 +155,15 @@ pub struct RenderArgs {
     /// --config file's.
     #[arg(long, value_parser = super::names_parser(&Calibration::ALL, Calibration::as_str))]
     pub calibration: Option<Calibration>,
+    /// How much of --steps the chain's upsampling takes: auto (detail from the view: each
+    /// region stops once its points' spacing seen from the camera is under --detail-px pixels;
+    /// regions outside the view are not refined) or fixed (every region all the steps); the
+    /// `detail` key, over a --config file's (default fixed).
+    #[arg(long, value_parser = super::names_parser(&Detail::ALL, Detail::as_str))]
+    pub detail: Option<Detail>,
+    /// The footprint of --detail auto, in pixels (the `detail_px` key; default 1.5).
+    #[arg(long)]
+    pub detail_px: Option<f32>,
     /// Also write the surfels the frame renders (positions, normals and a `radius` attribute:
     /// what --surfels reads back) to this particle file, in the coordinates of the rendering
     /// (turned by --up). One frame only, not with --frames.
@@ -287,6 +297,12 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
     }
     if let Some(c) = args.calibration {
         p.grid.calibration = c;
+    }
+    if let Some(d) = args.detail {
+        p.detail = d;
+    }
+    if let Some(px) = args.detail_px {
+        p.detail_px = px;
     }
     p.ssfr.filter = args.filter;
     if args.no_narrow_band {
@@ -499,6 +515,8 @@ struct RenderReport {
     enclosed_holes_fraction: f64,
     surfels_ms: f64,
     render_ms: f64,
+    /// The level of detail: steps run, refined points, grid cell, surfels.
+    detail: DetailReport,
     warnings: Vec<String>,
     output: String,
 }
@@ -542,6 +560,9 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         params.support_radius = frames.support_radius();
     }
     let mut pipeline = Pipeline::new(params)?;
+    // the surfels are drawn here as the shaded splats (from --camera or the one framing them):
+    // --detail auto sees them so
+    pipeline.set_drawn(Some(Through::Splats));
     let splat_params = pipeline.splat_params();
     super::warn_at_once(&mut pipeline);
     let t = Instant::now();
@@ -590,6 +611,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
         enclosed_holes_fraction: holes.enclosed_fraction(),
         surfels_ms,
         render_ms,
+        detail: frame.detail.clone(),
         warnings: frame.warnings,
         output: args.out.display().to_string(),
     };
@@ -673,6 +695,8 @@ struct FrameReport {
     specks_fraction: f64,
     /// Specks none of whose 8 neighbours is one (`quality::isolated`): 1-pixel dots, not lines.
     isolated_specks: usize,
+    /// The level of detail: steps run, refined points, grid cell, surfels.
+    detail: DetailReport,
     warnings: Vec<String>,
 }
 
@@ -719,6 +743,7 @@ fn finished_frame(
                 specks: 0,
                 specks_fraction: 0.0,
                 isolated_specks: 0,
+                detail: f.detail.clone(),
                 warnings: f.warnings.clone(),
             };
             let image = fin.image.clone();
@@ -745,6 +770,7 @@ fn finished_frame(
                 specks: 0,
                 specks_fraction: 0.0,
                 isolated_specks: 0,
+                detail: f.detail.clone(),
                 warnings: f.warnings.clone(),
             };
             Ok((source, image, report))
@@ -783,6 +809,8 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
                 (w, h),
                 &params,
             )?;
+            // the CPU stages' surfels are drawn as the finished frame on the GPU
+            pipeline.set_drawn(Some(Through::Frame));
             Some((ctx, g))
         }
         None => None,
