@@ -657,6 +657,18 @@ pub(crate) fn pool_wall_top(surfels: &[Surfel], floor: f32, top: f32) -> f32 {
     (floor + 1.2 * (*level - floor)).min(top)
 }
 
+/// The light's virtual screen (Iwasaki et al. §5.1) around the water's box `water` in a scene
+/// whose box is `all`: the view the caustics sample the water's surface from (a texel of the
+/// screen is a ray refracted through the surface), as [`Stage::fitted`] sets it up, known
+/// before the water's surfels are (to choose the detail the caustics need).
+pub fn light_screen(
+    scene: &OpticsScene,
+    water: (Vec3, Vec3),
+    all: (Vec3, Vec3),
+) -> Result<View, OpticsError> {
+    Ok(light_views(scene, water, all)?.screen)
+}
+
 /// Sets up the screen and map views of the light around the water box and the whole scene box.
 fn light_views(
     scene: &OpticsScene,

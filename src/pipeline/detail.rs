@@ -89,20 +89,57 @@ impl ViewLevels {
     /// `detail_px` pixels (0 outside every view, at most the most steps).
     #[must_use]
     pub fn level(&self, x: Vec3) -> u32 {
+        self.level_after(self.needed(x), None)
+    }
+
+    /// The level `x` needs as a real number `k*`, where the spacing bound `2 s F^(k*+1)` seen
+    /// there is exactly `detail_px` pixels: `ceil(k*)` steps are enough (minus infinity outside
+    /// every view).
+    #[must_use]
+    pub fn needed(&self, x: Vec3) -> f32 {
         let px = self
             .views
             .iter()
             .map(|v| pixels_per_unit(v, x, self.margin))
             .fold(0.0f32, f32::max);
         if px <= 0.0 {
-            return 0;
+            return f32::NEG_INFINITY;
         }
-        // the fewest k with 2 s F^(k+1) px <= detail_px
-        (0..self.steps)
-            .find(|&k| spacing_after(k) * self.spacing * px <= self.detail_px)
-            .unwrap_or(self.steps)
+        // 2 s F^(k+1) px = detail_px
+        (self.detail_px / (2.0 * self.spacing * px)).ln() / RADIUS_FACTOR.ln() - 1.0
+    }
+
+    /// The level of a point that needs `needed` ([`ViewLevels::needed`]) and had `previous` in
+    /// the frame before: the previous level while the need stays within [`LEVEL_HYSTERESIS`] of
+    /// that level's range `(previous - 1, previous]`, else `ceil(needed)`; within `0..=steps`.
+    #[must_use]
+    pub fn level_after(&self, needed: f32, previous: Option<u8>) -> u32 {
+        let fresh = if needed.is_nan() {
+            self.steps
+        } else {
+            needed.ceil().clamp(0.0, self.steps as f32) as u32
+        };
+        match previous {
+            Some(p) => {
+                let p = u32::from(p).min(self.steps);
+                let (lo, hi) = (
+                    p as f32 - 1.0 - LEVEL_HYSTERESIS,
+                    p as f32 + LEVEL_HYSTERESIS,
+                );
+                // at the ends of the range any need beyond keeps the level
+                let above = p == self.steps || needed <= hi;
+                let below = p == 0 || needed > lo;
+                if above && below { p } else { fresh }
+            }
+            None => fresh,
+        }
     }
 }
+
+/// How far, in levels, a point's need may pass the range of its previous frame's level before
+/// the level changes: the hysteresis that keeps a region's level from popping back and forth
+/// in a sequence as its particles move across a level's border (`detail = "auto"`).
+pub const LEVEL_HYSTERESIS: f32 = 0.25;
 
 /// Pixels per world unit at `x` in view `v`: 0 when `x` lies outside the view by more than
 /// `margin` (behind the eye, beside the window).

@@ -59,7 +59,7 @@ pub use boundary::{
     BAND, BURIED, ChainPoints, Fluid, LONE_RADIUS, MAX_WEIGHT, Sheet, WEIGHT_STEPS,
     boundary_weights, chain_points_at_boundary, particle_points_at_boundary,
 };
-pub use detail::{DEFAULT_DETAIL_PX, Detail, ViewLevels, spacing_after};
+pub use detail::{DEFAULT_DETAIL_PX, Detail, LEVEL_HYSTERESIS, ViewLevels, spacing_after};
 pub use gpu::{GpuPipeline, iso_surfels_gpu};
 
 /// Where the surfels that are rendered come from.
@@ -434,6 +434,9 @@ pub struct DetailReport {
     /// Refined points by the level of their region ([`Refined::levels`]), from level 0 up to
     /// the steps run.
     pub points_per_level: Vec<usize>,
+    /// Refined particles whose level differs from their level in the last `auto` frame (by id;
+    /// the level's hysteresis keeps this low in a sequence with a fixed camera).
+    pub level_changes: usize,
     /// The density grid's cell, world units (0 without a grid).
     pub cell: f32,
     /// Surfels on the iso-surface (0 without a density grid).
@@ -527,6 +530,9 @@ pub struct Pipeline {
     /// Frames through the surfels are drawn by the caller as this picture
     /// ([`Pipeline::set_drawn`]).
     drawn: Option<Through>,
+    /// The level of detail of each surface particle (by id) in the last `detail = "auto"`
+    /// frame: the hysteresis of [`ViewLevels::level_after`].
+    levels_before: std::collections::HashMap<u32, u8>,
 }
 
 /// A function told each warning of a frame as soon as it is known.
@@ -545,6 +551,7 @@ impl Pipeline {
             grid_buffer: Vec::new(),
             warning_sink: None,
             drawn: None,
+            levels_before: std::collections::HashMap::new(),
             params,
         })
     }
@@ -641,6 +648,7 @@ impl Pipeline {
     /// frame starts a new sequence.
     pub fn reset(&mut self) {
         self.detector.reset();
+        self.levels_before.clear();
         self.radius = self.params.support_radius;
         self.views = None;
     }
@@ -731,9 +739,12 @@ impl Pipeline {
             let (p, n) = gather(particles, &frame.surface, &frame.surface_indices);
             let params = self.refine_params(radius);
             let refined = match self.view_levels(particles.positions, radius, through)? {
-                Some(levels) => {
+                Some(view) => {
                     frame.detail.detail = Detail::Auto;
-                    refine::refine_to_levels(&p, &n, &params, true, &|x| levels.level(x))?
+                    let (levels, changes) =
+                        self.surface_levels(&view, particles, &frame.surface_indices);
+                    frame.detail.level_changes = changes;
+                    refine::refine_to_levels(&p, &n, &params, true, &levels)?
                 }
                 None => refine::refine(&p, &n, &params)?,
             };
@@ -1036,32 +1047,70 @@ impl Pipeline {
         if self.params.detail != Detail::Auto {
             return Ok(None);
         }
-        let camera = self.detail_camera(positions, radius, seen);
+        let water = self.water_box(positions, radius);
+        let camera = self.detail_camera(water, seen);
         let [w, h] = self.params.scene.optics.image_size;
-        let view = splat::View::new(&camera, &Light::default(), &self.splat_params(), w, h)?;
+        let mut views = vec![splat::View::new(
+            &camera,
+            &Light::default(),
+            &self.splat_params(),
+            w,
+            h,
+        )?];
+        if seen == Through::Frame {
+            // the caustics sample the water from the light's screen: its texels set their own
+            // footprint (the map's texels hold the receiver's light, not the water's detail)
+            let mut scene = self.params.scene.clone();
+            let mut all = water;
+            if let Some(kept) = self.views.as_ref().and_then(|v| v.optics.as_ref()) {
+                let o = &mut scene.optics;
+                o.caustics_resolution = Some(o.caustics_resolution.unwrap_or(kept.screen));
+                all = (kept.bounds[0], kept.bounds[1]);
+            }
+            if let Some([a, b]) = scene.optics.scene_bounds {
+                all = (a, b);
+            }
+            views.push(optics::light_screen(&scene, water, all)?);
+        }
         Ok(Some(ViewLevels::new(
-            vec![view],
+            views,
             radius,
             self.refine_params(radius).steps,
             self.params.detail_px,
         )))
     }
 
-    /// The camera a frame through `through` will be seen from, known before its surfels are:
-    /// the sequence's kept camera, else the scene's, else the one the splats or the finished
-    /// frame fit, to the water's box (the particles' widened by half a spacing, where the
-    /// surface lies, and [`Pipeline::fit_to`]'s box). The finished frame's camera fits the pool
-    /// too, whose walls may rise over the water: seen from here the water is a little nearer,
-    /// so that its detail errs on the fine side.
-    fn detail_camera(&self, positions: &[Vec3], radius: f32, through: Through) -> Camera {
-        if self.params.keep_views
-            && let Some(v) = &self.views
-        {
-            return v.camera;
-        }
-        if let Some(c) = self.params.scene.camera {
-            return c;
-        }
+    /// The level of each refined particle (`indices`, in that order) seen in `view`, with the
+    /// hysteresis of [`ViewLevels::level_after`] against the particle's level in the last such
+    /// frame (by id); remembered for the next. Also how many changed level.
+    fn surface_levels(
+        &mut self,
+        view: &ViewLevels,
+        particles: ParticleView<'_>,
+        indices: &[u32],
+    ) -> (Vec<u8>, usize) {
+        use rayon::prelude::*;
+        let before = &self.levels_before;
+        let (levels, changed): (Vec<u8>, Vec<bool>) = indices
+            .par_iter()
+            .map(|&i| {
+                let i = i as usize;
+                let previous = before.get(&particles.id(i)).copied();
+                let l = view.level_after(view.needed(particles.positions[i]), previous) as u8;
+                (l, previous.is_some_and(|p| p != l))
+            })
+            .unzip();
+        self.levels_before = indices
+            .iter()
+            .zip(&levels)
+            .map(|(&i, &l)| (particles.id(i as usize), l))
+            .collect();
+        (levels, changed.iter().filter(|&&c| c).count())
+    }
+
+    /// The water's box before its surfels are known: the particles' box widened by half a
+    /// spacing (where the surface lies), and [`Pipeline::fit_to`]'s box.
+    fn water_box(&self, positions: &[Vec3], radius: f32) -> (Vec3, Vec3) {
         let own = positions
             .iter()
             .fold(None, |b: Option<(Vec3, Vec3)>, &p| {
@@ -1073,7 +1122,23 @@ impl Pipeline {
                     c + Vec3::splat(0.25 * radius),
                 )
             });
-        let (lo, hi) = crate::view::union_boxes(own, self.fit).unwrap_or((Vec3::ZERO, Vec3::ONE));
+        crate::view::union_boxes(own, self.fit).unwrap_or((Vec3::ZERO, Vec3::ONE))
+    }
+
+    /// The camera a picture `through` will be seen from, known before its surfels are: the
+    /// sequence's kept camera, else the scene's, else the one the splats or the finished frame
+    /// fit, to the water's box ([`Pipeline::water_box`]). The finished frame's camera fits the
+    /// pool too, whose walls may rise over the water: seen from here the water is a little
+    /// nearer, so that its detail errs on the fine side.
+    fn detail_camera(&self, (lo, hi): (Vec3, Vec3), through: Through) -> Camera {
+        if self.params.keep_views
+            && let Some(v) = &self.views
+        {
+            return v.camera;
+        }
+        if let Some(c) = self.params.scene.camera {
+            return c;
+        }
         if through == Through::Frame {
             let [w, h] = self.params.scene.optics.image_size;
             Camera::fitting(lo, hi, optics::CAMERA_DIRECTION, w as f32 / h.max(1) as f32)

@@ -461,7 +461,6 @@ fn step_once(
     params: &RefineParams,
     r: f32,
     (step, last): (u32, u32),
-    levels: Option<Levels<'_>>,
 ) -> Result<StepStats, RefineError> {
     let t = Instant::now();
     let n_old = pts.pos.len();
@@ -498,12 +497,16 @@ fn step_once(
     pts.nrm.reserve_exact(n_new - pts.nrm.len());
     pts.step.reserve_exact(n_new - pts.step.len());
     pts.weight.reserve_exact(n_new - pts.weight.len());
-    let cap = |x: Vec3| levels.map_or(params.steps, |f| f(x)).min(params.steps) as u8;
-    pts.cap.par_extend(
-        d.accepted
-            .par_iter()
-            .map(|&k| cap(candidates[k as usize].pos)),
-    );
+    // a child's level: the higher of its parents'
+    let caps: Vec<u8> = d
+        .accepted
+        .iter()
+        .map(|&k| {
+            let c = &candidates[k as usize];
+            pts.cap[c.p1 as usize].max(pts.cap[c.p2 as usize])
+        })
+        .collect();
+    pts.cap.extend(caps);
     for &k in &d.accepted {
         let c = &candidates[k as usize];
         pts.pos.push(c.pos);
@@ -556,7 +559,7 @@ pub(super) fn run(
     drop(nb);
     let n = positions.len();
     let isolated: Vec<bool> = (0..n).map(|i| lists.of(i).is_empty()).collect();
-    let (cap, last) = caps_of(positions, params, levels);
+    let (cap, last) = caps_of(params, positions.len(), levels);
     let mut pts = Points {
         pos: positions.to_vec(),
         nrm: normals.par_iter().map(|n| n.normalize_or_zero()).collect(),
@@ -569,7 +572,7 @@ pub(super) fn run(
     let radius_after = radii_after(params.initial_radius, last);
     for step in 1..=last {
         let r = radius_after[step as usize - 1];
-        stats.push(step_once(&mut pts, params, r, (step, last), levels)?);
+        stats.push(step_once(&mut pts, params, r, (step, last))?);
         if step < last {
             observe(
                 &pts.pos,

@@ -766,24 +766,17 @@ fn finish(
     }
 }
 
-/// The most steps the refinement takes around a position ([`refine_to_levels`]): detail chosen
-/// from the view (issue 36), where a region seen small stops early.
-pub type Levels<'a> = &'a (dyn Fn(Vec3) -> u32 + Sync);
+/// The most steps the refinement takes around each input point ([`refine_to_levels`]): detail
+/// chosen from the view (issue 36), where a region seen small stops early.
+pub type Levels<'a> = &'a [u8];
 
 /// The steps each input point's region takes (`levels`, at most `params.steps`), and how many
 /// steps run: the most of them with `levels` (none without points), else `params.steps`.
-fn caps_of(
-    positions: &[Vec3],
-    params: &RefineParams,
-    levels: Option<Levels<'_>>,
-) -> (Vec<u8>, u32) {
+fn caps_of(params: &RefineParams, n: usize, levels: Option<Levels<'_>>) -> (Vec<u8>, u32) {
     let steps = params.steps as u8;
     let caps: Vec<u8> = match levels {
-        Some(f) => positions
-            .par_iter()
-            .map(|&x| f(x).min(u32::from(steps)) as u8)
-            .collect(),
-        None => vec![steps; positions.len()],
+        Some(l) => l.iter().map(|&k| k.min(steps)).collect(),
+        None => vec![steps; n],
     };
     let run = match levels {
         Some(_) => caps.iter().copied().max().unwrap_or(0),
@@ -843,12 +836,13 @@ pub fn refine_observed(
 }
 
 /// [`refine`] (`parallel`) or [`refine_reference`] where each region stops after its own number
-/// of steps: a pair of points makes a child in step `i` only when `levels` of one of them is at
-/// least `i`, and a child's region is `levels` of its position. The steps run are the most that
-/// `levels` gives an input point (at most `params.steps`); each point's kernel and splat radii are
-/// those of its region's last step ([`Refined::levels`]), so a region that stops early is drawn
-/// as the whole surface would be after that many steps. With `levels` always `params.steps`, the
-/// same points as [`refine`].
+/// of steps, `levels[i]` around input point `i`: a pair of points makes a child in step `s` only
+/// when the level of one of them is at least `s`, and a child takes the higher of its parents'
+/// levels (so the finer side of a border refines the pairs that straddle it). The steps run are
+/// the most that `levels` gives (at most `params.steps`); each point's kernel and splat radii are
+/// those of its level ([`Refined::levels`]), so a region that stops early is drawn as the whole
+/// surface would be after that many steps. With every level `params.steps`, the same points as
+/// [`refine`].
 pub fn refine_to_levels(
     positions: &[Vec3],
     normals: &[Vec3],
@@ -857,6 +851,12 @@ pub fn refine_to_levels(
     levels: Levels<'_>,
 ) -> Result<Refined, RefineError> {
     validate(positions, normals, params)?;
+    if levels.len() != positions.len() {
+        return Err(RefineError::InvalidParameter {
+            name: "levels",
+            reason: format!("{} levels for {} points", levels.len(), positions.len()),
+        });
+    }
     if parallel {
         flat::run(positions, normals, params, Some(levels), |_, _, _| {})
     } else {

@@ -66,11 +66,12 @@ fn append_and_update(
     r_next: f32,
     beta: f32,
     last: bool,
-    cap: impl Fn(Vec3) -> u8,
 ) -> (usize, f64) {
     let n_old = pts.pos.len();
     for c in accepted {
-        pts.cap.push(cap(c.pos));
+        // a child's level: the higher of its parents'
+        pts.cap
+            .push(pts.cap[c.p1 as usize].max(pts.cap[c.p2 as usize]));
         pts.pos.push(c.pos);
         pts.nrm.push(c.nrm);
         pts.step.push(step);
@@ -154,7 +155,6 @@ fn step_once(
     params: &RefineParams,
     r: f32,
     (step, last): (u32, u32),
-    levels: Option<Levels<'_>>,
 ) -> Result<StepStats, RefineError> {
     let t = Instant::now();
     let n_old = pts.pos.len();
@@ -253,7 +253,6 @@ fn step_once(
         r_next,
         beta,
         step == last,
-        |x| levels.map_or(params.steps, |f| f(x)).min(params.steps) as u8,
     );
     s.points_after = pts.pos.len();
     s.phases.update_ms = phase.elapsed().as_secs_f64() * 1e3;
@@ -272,7 +271,7 @@ pub(super) fn run(
     mut observe: impl FnMut(&[Vec3], NeighbourLists<'_>, f32),
 ) -> Result<Refined, RefineError> {
     let nb = initial_neighbours(positions, params)?;
-    let (cap, last) = caps_of(positions, params, levels);
+    let (cap, last) = caps_of(params, positions.len(), levels);
     let mut pts = Points {
         pos: positions.to_vec(),
         nrm: normals.iter().map(|n| n.normalize_or_zero()).collect(),
@@ -293,7 +292,7 @@ pub(super) fn run(
     let radius_after = radii_after(params.initial_radius, last);
     for step in 1..=last {
         let r = radius_after[step as usize - 1];
-        stats.push(step_once(&mut pts, params, r, (step, last), levels)?);
+        stats.push(step_once(&mut pts, params, r, (step, last))?);
         if step < last {
             observe(
                 &pts.pos,
