@@ -118,8 +118,27 @@ pub fn render_points_on(
     }
     let mut image = RgbImage::from_pixel(width, height, Rgb(background));
     let mut depth = vec![f32::INFINITY; (width * height) as usize];
+    draw_points(positions, colours, radius, camera, &mut image, &mut depth)?;
+    Ok(image)
+}
+
+/// Draws shaded spheres of world radius `radius` into `image`, nearer than `depth` (updated).
+fn draw_points(
+    positions: &[Vec3],
+    colours: &[[u8; 3]],
+    radius: f32,
+    camera: &PreviewCamera,
+    image: &mut RgbImage,
+    depth: &mut [f32],
+) -> Result<(), PreviewError> {
+    if colours.len() != positions.len() {
+        return Err(PreviewError::LengthMismatch {
+            positions: positions.len(),
+            colours: colours.len(),
+        });
+    }
+    let (width, height) = image.dimensions();
     let view = glam::camera::rh::view::look_at_mat4(camera.eye, camera.target, Vec3::Y);
-    let aspect = width as f32 / height as f32;
     let focal = 0.5 * height as f32 / (camera.fov_y_degrees.to_radians() * 0.5).tan();
     let light = Vec3::new(-0.4, 0.7, 0.6).normalize();
     for (p, colour) in positions.iter().zip(colours) {
@@ -134,7 +153,6 @@ pub fn render_points_on(
         let sx = 0.5 * width as f32 + v.x / z * focal;
         let sy = 0.5 * height as f32 - v.y / z * focal;
         let pr = (radius / z * focal).max(0.7);
-        let _ = aspect;
         let x0 = (sx - pr).floor().max(0.0) as i64;
         let x1 = ((sx + pr).ceil() as i64).min(width as i64 - 1);
         let y0 = (sy - pr).floor().max(0.0) as i64;
@@ -161,7 +179,7 @@ pub fn render_points_on(
             }
         }
     }
-    Ok(image)
+    Ok(())
 }
 
 /// Places pictures side by side on one canvas (heights may differ; shorter ones are centred).
@@ -223,6 +241,53 @@ pub fn class_colours(classes: &[crate::surface::ParticleClass]) -> Vec<[u8; 3]> 
         .collect()
 }
 
+/// The level map of detail from the view (issue 36): the refined points seen from `camera`,
+/// coloured by the level of their region ([`crate::refine::Refined::levels`]: the colours of the
+/// steps, black for level 0, blue 1, red 2, yellow 3), each drawn with its level's splat radius
+/// (the coarsest level's where levels overlap on screen).
+pub fn levels_picture(
+    refined: &crate::refine::Refined,
+    camera: &crate::splat::Camera,
+    width: u32,
+    height: u32,
+) -> Result<RgbImage, PreviewError> {
+    let camera = PreviewCamera {
+        eye: camera.eye,
+        target: camera.target,
+        fov_y_degrees: camera.fov_y_degrees,
+    };
+    let colours: Vec<[u8; 3]> = refined
+        .levels
+        .iter()
+        .map(|&l| palette::STEPS[(l as usize).min(4)])
+        .collect();
+    // coarse levels first, each with its own radius, finer ones over them
+    let mut image = RgbImage::from_pixel(width, height, Rgb(palette::LIGHT_BACKGROUND));
+    let mut depth = vec![f32::INFINITY; (width as usize) * (height as usize)];
+    for level in 0..=refined.levels.iter().copied().max().unwrap_or(0) {
+        let (points, point_colours): (Vec<Vec3>, Vec<[u8; 3]>) = (0..refined.len())
+            .filter(|&i| refined.levels[i] == level)
+            .map(|i| (refined.positions[i], colours[i]))
+            .unzip();
+        let Some(radius) = (0..refined.len())
+            .filter(|&i| refined.levels[i] == level)
+            .map(|i| refined.radii[i])
+            .reduce(f32::min)
+        else {
+            continue;
+        };
+        draw_points(
+            &points,
+            &point_colours,
+            radius,
+            &camera,
+            &mut image,
+            &mut depth,
+        )?;
+    }
+    Ok(image)
+}
+
 /// The input points beside the refined points coloured by step (Solenthaler et al.'s Figure 2:
 /// black P0, blue P1, red P2, yellow P3).
 pub fn refinement_picture(
@@ -234,7 +299,10 @@ pub fn refinement_picture(
     let camera = PreviewCamera::framing(lo, hi);
     let splat = refined.final_radius * 0.5;
     let input_colours = vec![palette::STEPS[0]; input.len()];
-    let r0 = refined.final_radius / crate::refine::RADIUS_FACTOR.powi(refined.stats.len() as i32);
+    // the finest level's radius over that level's factor (every point's level in a fixed
+    // refinement is its steps)
+    let finest = refined.levels.iter().copied().max().unwrap_or(0);
+    let r0 = refined.final_radius / crate::refine::RADIUS_FACTOR.powi(i32::from(finest));
     let left = render_points_on(
         input,
         &input_colours,

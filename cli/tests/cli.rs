@@ -2278,3 +2278,64 @@ fn documented_commands_exist() {
     }
     assert!(checked > 50, "only {checked} options found in the docs");
 }
+
+/// `render --detail auto|fixed` (auto by default): a small picture takes fewer steps, reported in
+/// `--json`'s `detail`; `--level-map` draws the refined points coloured by their level at the
+/// picture's size; `--save-surfels` files are `fixed` unless `--detail` says otherwise.
+#[test]
+fn render_chooses_the_detail_from_the_view() {
+    let dir = ddb_dir();
+    let map = dir.path().join("levels.png");
+    let render_ddb = |dir: &Path, extra: &[&str]| {
+        bin()
+            .args(["render", "--cpu", "--force", "--size", "64x48", "--out"])
+            .arg(dir.join("chain.png"))
+            .arg("--input")
+            .arg(dir.join("ddb.vtk"))
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let auto = json_of(&render_ddb(
+        dir.path(),
+        &["--level-map", map.to_str().unwrap(), "--json"],
+    ));
+    let fixed = json_of(&render_ddb(dir.path(), &["--detail", "fixed", "--json"]));
+    let saving = json_of(&render_ddb(
+        dir.path(),
+        &[
+            "--save-surfels",
+            dir.path().join("s.ply").to_str().unwrap(),
+            "--json",
+        ],
+    ));
+    let (a, f, s) = (&auto["detail"], &fixed["detail"], &saving["detail"]);
+    assert_eq!(a["detail"], "auto");
+    assert_eq!(f["detail"], "fixed");
+    assert_eq!(s["detail"], "fixed");
+    assert_eq!(f["steps"], 3);
+    assert!(a["steps"].as_u64().unwrap() < 3, "{a}");
+    assert!(a["refined_points"].as_u64().unwrap() < f["refined_points"].as_u64().unwrap());
+    let levels = image::open(&map).unwrap().to_rgb8();
+    assert_eq!(levels.dimensions(), (64, 48));
+    // some pixels in the colour of the level it took
+    let level = a["steps"].as_u64().unwrap() as usize;
+    let colour = fluid_surfels::preview::palette::STEPS[level];
+    // shaded: the colour times a shade in [0.35, 1]
+    let of_level = |c: [u8; 3]| {
+        let peak = f32::from(*colour.iter().max().unwrap());
+        let shade = f32::from(*c.iter().max().unwrap()) / peak;
+        c != fluid_surfels::preview::palette::LIGHT_BACKGROUND
+            && (0..3).all(|k| (f32::from(c[k]) - shade * f32::from(colour[k])).abs() <= 12.0)
+    };
+    assert!(
+        levels.pixels().any(|p| of_level(p.0)),
+        "no point of level {level} drawn"
+    );
+    let out = bin()
+        .args(["render", "--optics", "--level-map", "x.png", "--input"])
+        .arg(dir.path().join("ddb.vtk"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+}

@@ -26,11 +26,12 @@ use crate::splat::View;
 #[serde(rename_all = "snake_case")]
 pub enum Detail {
     /// Each region stops once its points' spacing seen from the camera is under `detail_px`
-    /// pixels, never past `refine.steps`; outputs without a camera (surfels, refined points)
-    /// take `fixed`, so that what is written to disk never depends on an image size.
+    /// pixels, never past `refine.steps` (the default); outputs without a camera (surfels,
+    /// refined points) take `fixed`, so that what is written to disk never depends on an image
+    /// size.
+    #[default]
     Auto,
     /// Every region takes `refine.steps` (the paper's three by default).
-    #[default]
     Fixed,
 }
 

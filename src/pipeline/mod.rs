@@ -249,10 +249,11 @@ pub struct PipelineParams {
     /// Fit the camera, the pool and the scene box on the first rendered frame and keep them
     /// (default); off, every frame is fitted anew.
     pub keep_views: bool,
-    /// How much of `refine.steps` the upsampling takes: `fixed` (default: every region all
-    /// of them) or `auto` (detail from the view, [`Detail::Auto`]: a region stops once its
-    /// points' spacing seen from the camera is under `detail_px` pixels; only for frames drawn
-    /// from a camera, through [`Through::Splats`] or [`Through::Frame`]).
+    /// How much of `refine.steps` the upsampling takes: `auto` (default; detail from the view,
+    /// [`Detail::Auto`]: a region stops once its points' spacing seen from the camera is under
+    /// `detail_px` pixels; only for frames drawn from a camera, through [`Through::Splats`] or
+    /// [`Through::Frame`] or drawn by the caller, [`Pipeline::set_drawn`]: the others refine
+    /// every region fully) or `fixed` (every region all of them).
     pub detail: Detail,
     /// The footprint of `detail = "auto"`, in pixels (default [`DEFAULT_DETAIL_PX`]).
     pub detail_px: f32,
@@ -273,7 +274,7 @@ impl Default for PipelineParams {
             splat: SplatParams::default(),
             scene: OpticsScene::default(),
             keep_views: true,
-            detail: Detail::Fixed,
+            detail: Detail::Auto,
             detail_px: DEFAULT_DETAIL_PX,
         }
     }
@@ -422,7 +423,7 @@ pub struct FrameTimings {
 }
 
 /// What a frame's level of detail chose and made (issue 36): `Frame::detail`.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct DetailReport {
     /// `auto` or `fixed` as applied: `fixed` for a frame without a camera (through
     /// [`Through::Surfels`] or earlier) whatever [`PipelineParams::detail`] says.
@@ -441,6 +442,21 @@ pub struct DetailReport {
     pub cell: f32,
     /// Surfels on the iso-surface (0 without a density grid).
     pub surfels: usize,
+}
+
+impl Default for DetailReport {
+    /// Nothing made yet, every region at its full steps (`fixed`) until the view says otherwise.
+    fn default() -> Self {
+        Self {
+            detail: Detail::Fixed,
+            steps: 0,
+            refined_points: 0,
+            points_per_level: Vec::new(),
+            level_changes: 0,
+            cell: 0.0,
+            surfels: 0,
+        }
+    }
 }
 
 /// The finished frame of the optics stage.

@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use fluid_surfels::io::Format;
 use fluid_surfels::pipeline::{
-    Calibration, Pipeline, PipelineParams, Renderer, SurfelSource, Through,
+    Calibration, Detail, Pipeline, PipelineParams, Renderer, SurfelSource, Through,
 };
 use fluid_surfels::quality::{self, SurfaceDifference};
 use fluid_surfels::raycast::RayNormals;
@@ -66,6 +66,11 @@ pub struct CompareArgs {
     /// of detail (with the default calibration, boundary, each at the fluid's boundary).
     #[arg(long)]
     pub levels: bool,
+    /// How much of --steps the chain's upsampling takes: fixed (default here: every method at
+    /// the paper's level, whatever the image size) or auto (detail from the view, as `render`);
+    /// the --levels panels are always fixed at their level.
+    #[arg(long, value_parser = super::names_parser(&Detail::ALL, Detail::as_str), default_value = "fixed")]
+    pub detail: Detail,
 }
 
 /// The sources' names of the chain at each level of `--levels`.
@@ -141,6 +146,12 @@ fn run_method(
     if let Some(k) = steps.or(args.steps) {
         params.refine.steps = k;
     }
+    // a panel of --levels is its level
+    params.detail = if steps.is_some() {
+        Detail::Fixed
+    } else {
+        args.detail
+    };
     params.grid.calibration = args.calibration;
     params.scene.optics.image_size = [size.0, size.1];
     if exact {

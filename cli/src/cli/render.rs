@@ -158,15 +158,22 @@ pub struct RenderArgs {
     /// How much of --steps the chain's upsampling takes: auto (detail from the view: each
     /// region stops once its points' spacing seen from the camera is under --detail-px pixels;
     /// regions outside the view are not refined) or fixed (every region all the steps); the
-    /// `detail` key, over a --config file's (default fixed).
+    /// `detail` key, over a --config file's (default auto).
     #[arg(long, value_parser = super::names_parser(&Detail::ALL, Detail::as_str))]
     pub detail: Option<Detail>,
     /// The footprint of --detail auto, in pixels (the `detail_px` key; default 1.5).
     #[arg(long)]
     pub detail_px: Option<f32>,
+    /// Also write the level map of the detail: the chain's refined points from the picture's
+    /// camera, coloured by the steps their region took (black 0, blue 1, red 2, yellow 3), a
+    /// PNG of --size. The shaded splats only (not with --optics, --config or --frames).
+    #[arg(long, conflicts_with_all = ["optics", "config", "frames", "caustics_resolution", "surfels"])]
+    pub level_map: Option<PathBuf>,
     /// Also write the surfels the frame renders (positions, normals and a `radius` attribute:
     /// what --surfels reads back) to this particle file, in the coordinates of the rendering
-    /// (turned by --up). One frame only, not with --frames.
+    /// (turned by --up). One frame only, not with --frames. The frame is then refined with
+    /// --detail fixed unless --detail is given, so that the file does not depend on the image
+    /// size.
     #[arg(long, conflicts_with = "frames")]
     pub save_surfels: Option<PathBuf>,
     /// The PNG to write (a folder with --frames).
@@ -298,8 +305,11 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
     if let Some(c) = args.calibration {
         p.grid.calibration = c;
     }
-    if let Some(d) = args.detail {
-        p.detail = d;
+    match (args.detail, &args.save_surfels) {
+        (Some(d), _) => p.detail = d,
+        // the surfels written to disk never depend on the image size unless asked for
+        (None, Some(_)) => p.detail = Detail::Fixed,
+        (None, None) => {}
     }
     if let Some(px) = args.detail_px {
         p.detail_px = px;
@@ -554,6 +564,9 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     if let Some(path) = &args.save_surfels {
         check_output(path, input, args.force, OutputKind::Single)?;
     }
+    if let Some(path) = &args.level_map {
+        check_output(path, input, args.force, OutputKind::Single)?;
+    }
     let mut frames = Frames::of(args, false)?;
     let mut params = pipeline_params(args)?;
     if params.support_radius.is_none() {
@@ -574,6 +587,19 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     let camera = args
         .camera
         .map_or_else(|| framing(surfels), |c| turned_camera(c, args.up));
+    if let Some(path) = &args.level_map {
+        let refined = frame
+            .refined
+            .as_ref()
+            .ok_or_else(|| Error::InvalidArgument {
+                argument: "--level-map",
+                reason: "the level map shows the refined points: use --source chain or refined"
+                    .into(),
+            })?;
+        let map =
+            fluid_surfels::preview::levels_picture(refined, &camera, args.size.0, args.size.1)?;
+        fluid_surfels::preview::save_png(&map, path)?;
+    }
     let ctx = choose_gpu(args.cpu, args.gpu)?;
     let t = Instant::now();
     let render = match ctx.as_ref() {
