@@ -390,6 +390,12 @@ impl CellGrid {
         &self.order
     }
 
+    /// The positions in cell order: slot `s` holds particle [`Self::order`]`[s]`.
+    #[must_use]
+    pub fn sorted(&self) -> &[Vec3] {
+        &self.sorted
+    }
+
     /// The neighbourhoods of every particle within the cell size, in parallel.
     #[must_use]
     pub fn all_neighbours(&self) -> Neighbourhoods {

@@ -114,6 +114,9 @@ pub struct ExactDensity<'a> {
     kernel: Kernel,
 }
 
+/// Bits of a term code ([`ExactDensity::terms`]) that name the group.
+const TERM_GROUP_BITS: u32 = 4;
+
 /// Points of similar radius in a cell grid of the largest of them.
 struct Group {
     reach: f32,
@@ -265,6 +268,45 @@ impl<'a> ExactDensity<'a> {
     #[must_use]
     pub fn kernel(&self) -> Kernel {
         self.kernel
+    }
+
+    /// Appends to `out` the terms [`Self::value`] sums at `x`, in the order it visits them, as
+    /// codes ([`ExactDensity::value_of_terms`] reads them): for sums at the same place with
+    /// weights that change ([`Self::reweight`]), each then without the cell search. Returns
+    /// false, appending nothing, when the points lie in more groups or slots than a code holds
+    /// (16 groups of radius, 2^28 points a group).
+    pub fn terms(&self, x: Vec3, out: &mut Vec<u32>) -> bool {
+        if self.groups.len() > 1 << TERM_GROUP_BITS
+            || self
+                .groups
+                .iter()
+                .any(|g| g.members.len() >= 1 << (32 - TERM_GROUP_BITS))
+        {
+            return false;
+        }
+        for (gi, g) in self.groups.iter().enumerate() {
+            g.grid.for_each_slot_within(x, g.reach, |slot, _| {
+                out.push(((slot as u32) << TERM_GROUP_BITS) | gi as u32);
+            });
+        }
+        true
+    }
+
+    /// [`Self::value`] at `x` over the terms [`Self::terms`] listed there, with the weights as
+    /// they are now: the same terms in the same order, so the same sum bit for bit.
+    #[must_use]
+    pub fn value_of_terms(&self, x: Vec3, terms: &[u32]) -> f32 {
+        let mut sum = 0.0;
+        let h = self.points.h;
+        for &code in terms {
+            let g = &self.groups[(code & ((1 << TERM_GROUP_BITS) - 1)) as usize];
+            let slot = (code >> TERM_GROUP_BITS) as usize;
+            let q = g.grid.sorted()[slot];
+            let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
+            let w = g.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
+            sum += w * self.kernel.weighted_r2(q.distance_squared(x), r, h);
+        }
+        sum
     }
 
     /// Density at `x`: the sum of the kernels of the points whose radius reaches it.

@@ -56,7 +56,7 @@ mod detail;
 pub mod gpu;
 
 pub use boundary::{
-    BAND, BURIED, ChainPoints, Fluid, LONE_RADIUS, MAX_WEIGHT, Sheet, WEIGHT_STEPS,
+    BAND, BURIED, ChainPoints, Fluid, LISTED_TARGETS, LONE_RADIUS, MAX_WEIGHT, Sheet, WEIGHT_STEPS,
     boundary_weights, chain_points_at_boundary, particle_points_at_boundary,
 };
 pub use detail::{DEFAULT_DETAIL_PX, Detail, LEVEL_HYSTERESIS, ViewLevels, spacing_after};
