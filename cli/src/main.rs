@@ -89,6 +89,18 @@ enum BenchCommand {
     Ssfr(cli::bench::BenchSsfrArgs),
 }
 
+/// A standard output closed early (`fluid-surfels info F | head`) ends the process quietly, as
+/// other command-line tools do: Rust ignores SIGPIPE, and `println!` then panicked ("failed
+/// printing to stdout: Broken pipe").
+fn default_sigpipe() {
+    #[cfg(unix)]
+    // SAFETY: restores the default action of one signal, first thing in main, before any other
+    // thread exists
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 /// Mesa's software Vulkan driver (lavapipe) prints "XDG_RUNTIME_DIR is invalid" on stderr when
 /// the variable is unset, which reads like a failure of ours: point it at a private folder.
 fn quiet_lavapipe() {
@@ -132,6 +144,7 @@ fn parse() -> Cli {
 }
 
 fn main() -> ExitCode {
+    default_sigpipe();
     quiet_lavapipe();
     let cli = parse();
     cli::set_globals(cli.global.clone());

@@ -2339,3 +2339,21 @@ fn render_chooses_the_detail_from_the_view() {
         .unwrap();
     assert!(!out.status.success());
 }
+
+/// A standard output closed before the command writes (`fluid-surfels info F | head -0`) ends
+/// it quietly: no panic message ("failed printing to stdout: Broken pipe").
+#[test]
+fn a_closed_stdout_ends_quietly() {
+    let dir = ddb_dir();
+    let mut child = bin()
+        .args(["info"])
+        .arg(dir.path().join("ddb.vtk"))
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}
