@@ -455,14 +455,27 @@ pub fn chain_points_at_boundary(
             base.push(*share);
         }
     }
-    // (the sheet's share around a refined point only where there is a thin sheet: a bulk
-    // scene's points skip that neighbour loop)
-    let any_thin = share.iter().any(|&s| s > 0.0);
+    // (the sheet's share around a refined point only where a thin sheet's particle lies within
+    // the average's reach: elsewhere it is 0 exactly, and most points skip that neighbour loop
+    // over every particle)
+    let thin_positions: Vec<Vec3> = (0..particles.len())
+        .filter(|&i| share[i] > 0.0)
+        .map(|i| particles[i])
+        .collect();
+    let thin_grid = if thin_positions.is_empty() {
+        None
+    } else {
+        Some(CellGrid::new(&thin_positions, 2.0 * spacing)?)
+    };
     let kept: Vec<f32> = (0..refined.positions.len())
         .into_par_iter()
         .map(|j| {
             let x = refined.positions[j];
-            let around = if any_thin {
+            let mut near_thin = false;
+            if let Some(g) = &thin_grid {
+                g.for_each_within(x, 2.0 * spacing, |_| near_thin = true);
+            }
+            let around = if near_thin {
                 fluid.average(x, &share)
             } else {
                 0.0
