@@ -15,6 +15,11 @@
 //! could collide with is found in parallel beforehand. Both give the same points in the same
 //! order whatever the thread count (tested).
 //!
+//! Both also refine each region to its own level ([`refine_to_levels`], for detail chosen from
+//! the view, issue 36): a pair makes a child in step `i` only when one of its points' level is
+//! at least `i`, a child takes the higher of its parents' levels, and each point's kernel and
+//! splat radii are those of its level ([`Refined::levels`]).
+//!
 //! Where this differs from, or makes precise, the paper:
 //! - Eq. 8 and 10 take `|n . a|`, which loses the side of the child: between two points on the
 //!   inside of a bowl the child is pushed away from the surface. With `a = (x1 - x2)/|x1 - x2|`
