@@ -114,6 +114,18 @@ pub struct ExactDensity<'a> {
     kernel: Kernel,
 }
 
+impl Group {
+    /// The term at `x` of the point in cell-order `slot` (at `q`): its weight times its kernel,
+    /// `h` the reference radius (one expression for [`ExactDensity::value`] and
+    /// [`ExactDensity::value_of_terms`], which must agree bit for bit).
+    #[inline]
+    fn term(&self, kernel: Kernel, h: f32, slot: usize, q: Vec3, x: Vec3) -> f32 {
+        let r = self.cell_radii.as_ref().map_or(h, |r| r[slot]);
+        let w = self.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
+        w * kernel.weighted_r2(q.distance_squared(x), r, h)
+    }
+}
+
 /// Bits of a term code ([`ExactDensity::terms`]) that name the group.
 const TERM_GROUP_BITS: u32 = 4;
 
@@ -301,10 +313,7 @@ impl<'a> ExactDensity<'a> {
         for &code in terms {
             let g = &self.groups[(code & ((1 << TERM_GROUP_BITS) - 1)) as usize];
             let slot = (code >> TERM_GROUP_BITS) as usize;
-            let q = g.grid.sorted()[slot];
-            let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
-            let w = g.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
-            sum += w * self.kernel.weighted_r2(q.distance_squared(x), r, h);
+            sum += g.term(self.kernel, h, slot, g.grid.sorted()[slot], x);
         }
         sum
     }
@@ -316,9 +325,7 @@ impl<'a> ExactDensity<'a> {
         let h = self.points.h;
         for g in &self.groups {
             g.grid.for_each_slot_within(x, g.reach, |slot, q| {
-                let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
-                let w = g.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
-                sum += w * self.kernel.weighted_r2(q.distance_squared(x), r, h);
+                sum += g.term(self.kernel, h, slot, q, x);
             });
         }
         sum

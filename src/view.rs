@@ -85,6 +85,16 @@ pub fn union_boxes(a: Option<(Vec3, Vec3)>, b: Option<(Vec3, Vec3)>) -> Option<(
     }
 }
 
+/// The smallest box holding `points` widened by `margin` on every side; `None` without points.
+#[must_use]
+pub fn widened_bounds(points: impl IntoIterator<Item = Vec3>, margin: f32) -> Option<(Vec3, Vec3)> {
+    points
+        .into_iter()
+        .map(|p| (p, p))
+        .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)))
+        .map(|(a, b)| (a - Vec3::splat(margin), b + Vec3::splat(margin)))
+}
+
 /// The eight corners of the box `[min, max]`.
 #[must_use]
 pub fn box_corners(min: Vec3, max: Vec3) -> [Vec3; 8] {

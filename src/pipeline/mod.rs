@@ -422,6 +422,26 @@ pub struct FrameTimings {
     pub total_ms: f64,
 }
 
+impl std::fmt::Display for FrameTimings {
+    /// Each stage's milliseconds, `neighbours 8.0, detection 3.0, ..., image 0.0` (the total
+    /// apart), as the command line prints them.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "neighbours {:.1}, detection {:.1}, refinement {:.1}, calibration {:.1}, density {:.1}, surfels {:.1}, splats {:.1}, caustics {:.1}, image {:.1}",
+            self.neighbours_ms,
+            self.detect_ms,
+            self.refine_ms,
+            self.calibration_ms,
+            self.density_ms,
+            self.surfels_ms,
+            self.splats_ms,
+            self.caustics_ms,
+            self.image_ms
+        )
+    }
+}
+
 /// What a frame's level of detail chose and made (issue 36): `Frame::detail`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct DetailReport {
@@ -1091,7 +1111,7 @@ impl Pipeline {
         Ok(Some(ViewLevels::new(
             views,
             radius,
-            self.refine_params(radius).steps,
+            self.params.refine.steps,
             self.params.detail_px,
         )))
     }
@@ -1116,50 +1136,45 @@ impl Pipeline {
                 (l, previous.is_some_and(|p| p != l))
             })
             .unzip();
-        self.levels_before = indices
-            .iter()
-            .zip(&levels)
-            .map(|(&i, &l)| (particles.id(i as usize), l))
-            .collect();
+        // the map's allocation kept from frame to frame
+        self.levels_before.clear();
+        self.levels_before.extend(
+            indices
+                .iter()
+                .zip(&levels)
+                .map(|(&i, &l)| (particles.id(i as usize), l)),
+        );
         (levels, changed.iter().filter(|&&c| c).count())
     }
 
     /// The water's box before its surfels are known: the particles' box widened by half a
     /// spacing (where the surface lies), and [`Pipeline::fit_to`]'s box.
     fn water_box(&self, positions: &[Vec3], radius: f32) -> (Vec3, Vec3) {
-        let own = positions
-            .iter()
-            .fold(None, |b: Option<(Vec3, Vec3)>, &p| {
-                Some(b.map_or((p, p), |(a, c)| (a.min(p), c.max(p))))
-            })
-            .map(|(a, c)| {
-                (
-                    a - Vec3::splat(0.25 * radius),
-                    c + Vec3::splat(0.25 * radius),
-                )
-            });
+        let own = crate::view::widened_bounds(positions.iter().copied(), 0.25 * radius);
         crate::view::union_boxes(own, self.fit).unwrap_or((Vec3::ZERO, Vec3::ONE))
     }
 
-    /// The camera a picture `through` will be seen from, known before its surfels are: the
-    /// sequence's kept camera, else the scene's, else the one the splats or the finished frame
-    /// fit, to the water's box ([`Pipeline::water_box`]). The finished frame's camera fits the
-    /// pool too, whose walls may rise over the water: seen from here the water is a little
-    /// nearer, so that its detail errs on the fine side.
+    /// The camera a picture `through` will be seen from, known before its surfels are
+    /// ([`Pipeline::camera_or`]): the one the splats or the finished frame fit, to the water's
+    /// box ([`Pipeline::water_box`]). The finished frame's camera fits the pool too, whose walls
+    /// may rise over the water: seen from here the water is a little nearer, so that its detail
+    /// errs on the fine side.
     fn detail_camera(&self, (lo, hi): (Vec3, Vec3), through: Through) -> Camera {
-        if self.params.keep_views
-            && let Some(v) = &self.views
-        {
-            return v.camera;
-        }
-        if let Some(c) = self.params.scene.camera {
-            return c;
-        }
-        if through == Through::Frame {
-            let [w, h] = self.params.scene.optics.image_size;
-            Camera::fitting(lo, hi, optics::CAMERA_DIRECTION, w as f32 / h.max(1) as f32)
-        } else {
-            Camera::framing(lo, hi)
+        self.camera_or(|| {
+            if through == Through::Frame {
+                let [w, h] = self.params.scene.optics.image_size;
+                Camera::fitting(lo, hi, optics::CAMERA_DIRECTION, w as f32 / h.max(1) as f32)
+            } else {
+                Camera::framing(lo, hi)
+            }
+        })
+    }
+
+    /// The sequence's kept camera (with `keep_views`), else the scene's, else `fit()`.
+    fn camera_or(&self, fit: impl FnOnce() -> Camera) -> Camera {
+        match &self.views {
+            Some(v) if self.params.keep_views => v.camera,
+            _ => self.params.scene.camera.unwrap_or_else(fit),
         }
     }
 
@@ -1342,14 +1357,11 @@ impl Pipeline {
     /// The camera of the shaded splats: the sequence's kept camera, else the scene's, else one
     /// framing the surfels (then kept, with `keep_views`).
     pub(crate) fn splat_camera(&mut self, surfels: &[Surfel]) -> Camera {
-        let camera = match &self.views {
-            Some(v) if self.params.keep_views => v.camera,
-            _ => self.params.scene.camera.unwrap_or_else(|| {
-                let (lo, hi) = crate::view::union_boxes(splat::bounds(surfels), self.fit)
-                    .unwrap_or((Vec3::ZERO, Vec3::ONE));
-                Camera::framing(lo, hi)
-            }),
-        };
+        let camera = self.camera_or(|| {
+            let (lo, hi) = crate::view::union_boxes(splat::bounds(surfels), self.fit)
+                .unwrap_or((Vec3::ZERO, Vec3::ONE));
+            Camera::framing(lo, hi)
+        });
         if self.views.is_none() && self.params.keep_views {
             self.views = Some(Views {
                 camera,
@@ -1464,15 +1476,13 @@ impl Pipeline {
         let own = if self.params.renderer == Renderer::RayCast
             && self.params.grid.calibration == Calibration::Boundary
         {
-            let half = Vec3::splat(0.25 * radius);
-            surfels
-                .iter()
-                .filter(|s| s.is_drawable())
-                .map(|s| Vec3::from(s.position))
-                .fold(None, |b: Option<(Vec3, Vec3)>, p| {
-                    Some(b.map_or((p, p), |(a, c)| (a.min(p), c.max(p))))
-                })
-                .map(|(a, c)| (a - half, c + half))
+            crate::view::widened_bounds(
+                surfels
+                    .iter()
+                    .filter(|s| s.is_drawable())
+                    .map(|s| Vec3::from(s.position)),
+                0.25 * radius,
+            )
         } else {
             splat::bounds(surfels)
         };

@@ -116,17 +116,7 @@ pub fn bench_pipeline(args: &BenchPipelineArgs) -> Result<(), Error> {
             "  median {:.1} ms (fastest {:.1} of {}; goal {:.0} ms)",
             report.median_ms, report.fastest_ms, report.repeat, report.goal_ms
         );
-        println!(
-            "  neighbours {:.1}, detection {:.1}, refinement {:.1}, calibration {:.1}, density {:.1}, surfels {:.1}, caustics {:.1}, image {:.1}",
-            t.neighbours_ms,
-            t.detect_ms,
-            t.refine_ms,
-            t.calibration_ms,
-            t.density_ms,
-            t.surfels_ms,
-            t.caustics_ms,
-            t.image_ms
-        );
+        println!("  {t}");
     }
     Ok(())
 }
@@ -277,18 +267,7 @@ fn bench_file(args: &BenchPipelineArgs, path: &std::path::Path) -> Result<(), Er
             m.surfels,
             100.0 * r.enclosed_holes_fraction
         );
-        println!(
-            "        neighbours {:.1}, detection {:.1}, refinement {:.1}, calibration {:.1}, density {:.1}, surfels {:.1}, splats {:.1}, caustics {:.1}, image {:.1}",
-            t.neighbours_ms,
-            t.detect_ms,
-            t.refine_ms,
-            t.calibration_ms,
-            t.density_ms,
-            t.surfels_ms,
-            t.splats_ms,
-            t.caustics_ms,
-            t.image_ms
-        );
+        println!("        {t}");
     }
     if let (Some(x), Some(db)) = (report.speedup, report.psnr_db) {
         println!("  auto {x:.2}x faster than fixed; pictures {db:.1} dB apart");
