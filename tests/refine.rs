@@ -299,11 +299,26 @@ fn same(a: &Refined, b: &Refined) -> bool {
         && a.weights == b.weights
 }
 
+/// The parallel step (its registration lists grouped and its type 3 decisions settled in
+/// parallel rounds, flat.rs) keeps the reference's result exactly, so the reference is the
+/// oracle of every property the parallel step must have: the same output on any thread count,
+/// the collision rule and the surface bounds (the other tests here and in tests/detail.rs and
+/// tests/boundary.rs, on the parallel step). Also with regions at their own levels.
 #[test]
 fn parallel_equals_reference_for_any_thread_count() {
     let (f, p, n, r0) = column_frames(&[ColumnParams::SPLASH_FRAME]).pop().unwrap();
     let params = RefineParams::with_radius(r0);
     let reference = refine::refine_reference(&p, &n, &params).unwrap();
+    // every third particle's region stops one step early, every seventh takes none
+    let levels: Vec<u8> = (0..p.len())
+        .map(|i| match (i % 3, i % 7) {
+            (_, 0) => 0,
+            (0, _) => 2,
+            _ => 3,
+        })
+        .collect();
+    let by_level = refine::refine_to_levels(&p, &n, &params, false, &levels).unwrap();
+    assert!(by_level.len() < reference.len());
     for threads in [1, 2, 3, 5] {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -313,6 +328,13 @@ fn parallel_equals_reference_for_any_thread_count() {
         assert!(
             same(&parallel, &reference),
             "frame {f}: {threads} threads differ from the reference"
+        );
+        let parallel = pool
+            .install(|| refine::refine_to_levels(&p, &n, &params, true, &levels))
+            .unwrap();
+        assert!(
+            same(&parallel, &by_level) && parallel.levels == by_level.levels,
+            "frame {f}, by level: {threads} threads differ from the reference"
         );
     }
     let average = RefineParams {

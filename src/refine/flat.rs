@@ -22,7 +22,7 @@ use rayon::prelude::*;
 use super::{
     BYTES_PER_POINT, Candidate, Levels, Lists, NeighbourLists, RADIUS_FACTOR, RefineError,
     RefineParams, Refined, StepStats, Target, apply_moves, candidates_of, caps_of, finish,
-    for_each_new_neighbour, initial_neighbours, pairs_of, radii_after,
+    for_each_new_neighbour, initial_neighbours, may_pair, pairs_of, radii_after,
 };
 
 /// Items per parallel task: fixed, so that the output does not depend on the thread count.
@@ -455,13 +455,15 @@ fn update(
     })
 }
 
-/// One step (§3.2-3.4), the reference's result.
+/// One step (§3.2-3.4), the reference's result, and whether another step follows: one does
+/// up to `last`, except, by region, where no point is left to pair ([`may_pair`]).
 fn step_once(
     pts: &mut Points,
     params: &RefineParams,
     r: f32,
     (step, last): (u32, u32),
-) -> Result<StepStats, RefineError> {
+    by_region: bool,
+) -> Result<(StepStats, bool), RefineError> {
     let t = Instant::now();
     let n_old = pts.pos.len();
     let (r_next, beta) = (r * RADIUS_FACTOR, params.collision_factor * r);
@@ -530,14 +532,15 @@ fn step_once(
     );
     s.phases.moves_ms = phase.elapsed().as_secs_f64() * 1e3;
     drop((d.registered, d.moves));
-    if step < last {
+    let more = step < last && (!by_region || may_pair(&pts.pos, &pts.cap, step + 1, r_next));
+    if more {
         pts.nb = update(pts, &candidates, &d.accepted, n_old, r_next);
     }
     // no update after the last step (§3.4)
     s.points_after = pts.pos.len();
     s.phases.update_ms = phase.elapsed().as_secs_f64() * 1e3;
     s.ms = t.elapsed().as_secs_f64() * 1e3;
-    Ok(s)
+    Ok((s, more))
 }
 
 /// Runs the steps on validated input, each region to its level (`levels`, every point
@@ -572,14 +575,16 @@ pub(super) fn run(
     let radius_after = radii_after(params.initial_radius, last);
     for step in 1..=last {
         let r = radius_after[step as usize - 1];
-        stats.push(step_once(&mut pts, params, r, (step, last))?);
-        if step < last {
-            observe(
-                &pts.pos,
-                NeighbourLists::flat(&pts.nb),
-                radius_after[step as usize],
-            );
+        let (done, more) = step_once(&mut pts, params, r, (step, last), levels.is_some())?;
+        stats.push(done);
+        if !more {
+            break;
         }
+        observe(
+            &pts.pos,
+            NeighbourLists::flat(&pts.nb),
+            radius_after[step as usize],
+        );
     }
     drop(pts.nb);
     Ok(finish(

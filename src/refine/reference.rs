@@ -13,8 +13,8 @@ use glam::Vec3;
 use super::{
     BYTES_PER_POINT, Candidate, Levels, NeighbourLists, RADIUS_FACTOR, RefineError, RefineParams,
     Refined, StepStats, Target, apply_moves, candidates_of, caps_of, finish, for_each_common,
-    for_each_new_neighbour, for_each_registration_unique, initial_neighbours, radii_after,
-    type2_hit,
+    for_each_new_neighbour, for_each_registration_unique, initial_neighbours, may_pair,
+    radii_after, type2_hit,
 };
 
 /// Point data carried between steps.
@@ -54,7 +54,9 @@ fn type3_hit(
 /// Appends the accepted children, applies the moves and, unless this was the last step,
 /// updates every neighbourhood to `r_next` (§3.4) from the step's relations: type 1 by filtering
 /// the old lists, types 2 and 3 from `U` of each child's parents and the children of the points
-/// in `U`. Returns the points moved and the milliseconds of the moves.
+/// in `U`, unless this is the last step (`last`, or by region where no point is left to pair,
+/// [`may_pair`]). Returns the points moved, the milliseconds of the moves and whether another
+/// step follows.
 #[allow(clippy::too_many_arguments)] // one step's state, passed once
 fn append_and_update(
     pts: &mut Points,
@@ -65,8 +67,8 @@ fn append_and_update(
     step: u8,
     r_next: f32,
     beta: f32,
-    last: bool,
-) -> (usize, f64) {
+    (step_number, last, by_region): (u32, u32, bool),
+) -> (usize, f64, bool) {
     let n_old = pts.pos.len();
     for c in accepted {
         // a child's level: the higher of its parents'
@@ -90,10 +92,12 @@ fn append_and_update(
         beta,
     );
     let moves_ms = t.elapsed().as_secs_f64() * 1e3;
-    if last {
+    let more =
+        step_number < last && (!by_region || may_pair(&pts.pos, &pts.cap, step_number + 1, r_next));
+    if !more {
         // no update after the last step (§3.4)
         pts.nb.resize(pts.pos.len(), Vec::new());
-        return (moved, moves_ms);
+        return (moved, moves_ms, false);
     }
     let r2 = r_next * r_next;
     let pos = &pts.pos;
@@ -146,7 +150,7 @@ fn append_and_update(
         old.extend(new); // old indices < n_old <= new indices: sorted
         pts.nb.push(old);
     }
-    (moved, moves_ms)
+    (moved, moves_ms, true)
 }
 
 /// One step (§3.2-3.4).
@@ -155,7 +159,8 @@ fn step_once(
     params: &RefineParams,
     r: f32,
     (step, last): (u32, u32),
-) -> Result<StepStats, RefineError> {
+    by_region: bool,
+) -> Result<(StepStats, bool), RefineError> {
     let t = Instant::now();
     let n_old = pts.pos.len();
     let (r_next, beta) = (r * RADIUS_FACTOR, params.collision_factor * r);
@@ -243,7 +248,8 @@ fn step_once(
     s.resolved = moves.len();
     s.phases.accept_ms = phase.elapsed().as_secs_f64() * 1e3;
     let phase = Instant::now();
-    (s.moved, s.phases.moves_ms) = append_and_update(
+    let more;
+    (s.moved, s.phases.moves_ms, more) = append_and_update(
         pts,
         &accepted,
         &moves,
@@ -252,12 +258,12 @@ fn step_once(
         step as u8,
         r_next,
         beta,
-        step == last,
+        (step, last, by_region),
     );
     s.points_after = pts.pos.len();
     s.phases.update_ms = phase.elapsed().as_secs_f64() * 1e3;
     s.ms = t.elapsed().as_secs_f64() * 1e3;
-    Ok(s)
+    Ok((s, more))
 }
 
 /// Runs the steps on validated input, each region to its level (`levels`, every point
@@ -292,14 +298,16 @@ pub(super) fn run(
     let radius_after = radii_after(params.initial_radius, last);
     for step in 1..=last {
         let r = radius_after[step as usize - 1];
-        stats.push(step_once(&mut pts, params, r, (step, last))?);
-        if step < last {
-            observe(
-                &pts.pos,
-                NeighbourLists::nested(&pts.nb),
-                radius_after[step as usize],
-            );
+        let (done, more) = step_once(&mut pts, params, r, (step, last), levels.is_some())?;
+        stats.push(done);
+        if !more {
+            break;
         }
+        observe(
+            &pts.pos,
+            NeighbourLists::nested(&pts.nb),
+            radius_after[step as usize],
+        );
     }
     Ok(finish(
         pts.pos,
