@@ -14,6 +14,7 @@
 //! kiddo also serves k-nearest queries ([`estimate_spacing`]).
 
 use std::num::NonZeroUsize;
+use std::ops::ControlFlow;
 
 use glam::Vec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
@@ -368,9 +369,23 @@ impl CellGrid {
     /// which hold every particle within `radius` (<= the cell size) of `p`.
     #[inline]
     fn for_each_run(&self, p: Vec3, radius: f32, mut run: impl FnMut(std::ops::Range<usize>)) {
+        let _ = self.try_for_each_run(p, radius, |range| {
+            run(range);
+            ControlFlow::Continue(())
+        });
+    }
+
+    /// [`Self::for_each_run`] until `run` breaks.
+    #[inline]
+    fn try_for_each_run(
+        &self,
+        p: Vec3,
+        radius: f32,
+        mut run: impl FnMut(std::ops::Range<usize>) -> ControlFlow<()>,
+    ) -> ControlFlow<()> {
         debug_assert!(radius <= self.cell * 1.0001);
         if self.sorted.is_empty() {
-            return;
+            return ControlFlow::Continue(());
         }
         let [cx, cy, cz] = self.cell_of(p);
         let [nx, ny, nz] = self.dims;
@@ -379,9 +394,30 @@ impl CellGrid {
         for z in cz.saturating_sub(1)..=(cz + 1).min(nz - 1) {
             for y in cy.saturating_sub(1)..=(cy + 1).min(ny - 1) {
                 let row = nx * (y + ny * z);
-                run(self.slots(row + x0, row + x1));
+                run(self.slots(row + x0, row + x1))?;
             }
         }
+        ControlFlow::Continue(())
+    }
+
+    /// [`Self::for_each_slot_within`] until `visit` breaks, in the same order; returns whether
+    /// it broke.
+    #[inline]
+    pub fn try_for_each_slot_within(
+        &self,
+        p: Vec3,
+        radius: f32,
+        mut visit: impl FnMut(usize, Vec3) -> ControlFlow<()>,
+    ) -> ControlFlow<()> {
+        let r2 = radius * radius;
+        self.try_for_each_run(p, radius, |range| {
+            for (s, &q) in self.sorted[range.clone()].iter().enumerate() {
+                if q.distance_squared(p) <= r2 {
+                    visit(range.start + s, q)?;
+                }
+            }
+            ControlFlow::Continue(())
+        })
     }
 
     /// Cell-order slot -> particle index.

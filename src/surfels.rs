@@ -318,6 +318,31 @@ impl<'a> ExactDensity<'a> {
         sum
     }
 
+    /// [`Self::value`] at `x` where it is below `limit`, bit for bit; elsewhere a partial sum
+    /// of the same terms in the same order that is at least `limit` (the sum stops there: every
+    /// term is at least zero with weights at least zero, and a float sum of such terms only
+    /// grows, so the value is at least `limit` too). For densities tested against a bound that
+    /// most points pass early (how alone a refined point is, in the boundary calibration).
+    #[must_use]
+    pub fn value_up_to(&self, x: Vec3, limit: f32) -> f32 {
+        let mut sum = 0.0;
+        let h = self.points.h;
+        for g in &self.groups {
+            let reached = g.grid.try_for_each_slot_within(x, g.reach, |slot, q| {
+                sum += g.term(self.kernel, h, slot, q, x);
+                if sum >= limit {
+                    std::ops::ControlFlow::Break(())
+                } else {
+                    std::ops::ControlFlow::Continue(())
+                }
+            });
+            if reached.is_break() {
+                break;
+            }
+        }
+        sum
+    }
+
     /// Density at `x`: the sum of the kernels of the points whose radius reaches it.
     #[must_use]
     pub fn value(&self, x: Vec3) -> f32 {

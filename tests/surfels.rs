@@ -622,3 +622,44 @@ fn the_sparse_grid_refuses_bad_input() {
         Err(DensityError::InvalidRadius { .. })
     ));
 }
+
+/// `ExactDensity::value_up_to` is the density bit for bit below its limit and at least the
+/// limit elsewhere (the boundary calibration's test of how alone a point is relies on both):
+/// points of three radii and varied weights, queried at and between them against limits from
+/// a tenth to twice the density there.
+#[test]
+fn a_density_up_to_a_limit_is_the_density_below_it() {
+    let (mut positions, mut radii, mut weights) = (Vec::new(), Vec::new(), Vec::new());
+    for i in 0..600 {
+        let t = i as f32 * 0.37;
+        positions.push(Vec3::new(t.sin(), (1.7 * t).cos(), (0.3 * t).sin()) * 0.5);
+        radii.push([0.05, 0.12, 0.3][i % 3]);
+        weights.push(0.25 + (i % 7) as f32 * 0.3);
+    }
+    let points = density::Points::with_radii(&positions, &radii, 0.3).with_weights(&weights);
+    let exact = ExactDensity::of(points, Kernel::Wyvill).unwrap();
+    let (mut below, mut stopped) = (0, 0);
+    for (i, &p) in positions.iter().enumerate().step_by(7) {
+        for x in [p, p + Vec3::new(0.013, -0.021, 0.008) * (i % 5) as f32] {
+            let value = exact.value(x);
+            for factor in [0.1, 0.5, 0.99, 1.0, 1.01, 2.0] {
+                let limit = value * factor;
+                let up_to = exact.value_up_to(x, limit);
+                if value < limit {
+                    assert_eq!(up_to.to_bits(), value.to_bits(), "at {x}, limit {limit}");
+                    below += 1;
+                } else {
+                    assert!(
+                        up_to >= limit && up_to <= value,
+                        "at {x}: {up_to} {limit} {value}"
+                    );
+                    stopped += usize::from(up_to < value);
+                }
+            }
+        }
+    }
+    assert!(
+        below > 0 && stopped > 0,
+        "{below} below, {stopped} stopped early"
+    );
+}
