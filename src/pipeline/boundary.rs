@@ -147,7 +147,7 @@ fn weights_listing(
             let x = points.positions[j];
             let own = base[j] * kernel.weighted_r2(0.0, points.radius(j), h);
             // the sum stops once the others pass the point's own term (alone is 0 then, the
-            // same as from the whole sum: most points, 44 -> 20 ms on the dam break at two
+            // same as from the whole sum: most points, 44 -> 16 ms on the dam break at two
             // steps)
             let mut others = sheet_density.value_up_to(x, 2.0 * own) - own;
             if others < own {
@@ -195,31 +195,43 @@ fn weights_listing(
     // the sheet's terms at each target, found once and summed again at every step (the same
     // sums bit for bit, without the cell searches: the dam break's calibration at two steps,
     // 88,902 refined points, 202 -> 145 ms; the column's splash frame 115-138 -> 92 ms), where
-    // they fit [`LISTED_TARGETS`]
+    // they fit [`LISTED_TARGETS`]; the first step's sums come from the same visit as the lists
+    // (its weights are the ones the sheet was indexed with: 8 ms less at two steps)
     let terms = (targets.len() <= listed)
         .then(|| {
-            let lists: Vec<(Vec<u32>, Vec<u32>)> = targets
+            let lists: Vec<Listed> = targets
                 .par_chunks(TERMS_CHUNK)
                 .map(|chunk| {
-                    let (mut ends, mut codes) = (Vec::with_capacity(chunk.len() + 1), Vec::new());
-                    ends.push(0);
+                    let mut l = Listed {
+                        ends: Vec::with_capacity(chunk.len() + 1),
+                        codes: Vec::new(),
+                        first: Vec::with_capacity(chunk.len()),
+                    };
+                    l.ends.push(0);
                     for t in chunk {
-                        if t.alone < 1.0 && !sheet_density.terms(t.at, &mut codes) {
-                            return None;
-                        }
-                        ends.push(codes.len() as u32);
+                        let first = if t.alone < 1.0 {
+                            sheet_density.value_and_terms(t.at, &mut l.codes)?
+                        } else {
+                            0.0
+                        };
+                        l.first.push(first);
+                        l.ends.push(l.codes.len() as u32);
                     }
-                    Some((ends, codes))
+                    Some(l)
                 })
                 .collect::<Option<_>>()?;
             Some(lists)
         })
         .flatten();
-    let sheet_at = |j: usize, x: Vec3, density: &ExactDensity<'_>| match &terms {
+    let sheet_at = |j: usize, x: Vec3, density: &ExactDensity<'_>, step: u32| match &terms {
         Some(lists) => {
-            let (ends, codes) = &lists[j / TERMS_CHUNK];
+            let l = &lists[j / TERMS_CHUNK];
             let k = j % TERMS_CHUNK;
-            density.value_of_terms(x, &codes[ends[k] as usize..ends[k + 1] as usize])
+            if step == 0 {
+                l.first[k]
+            } else {
+                density.value_of_terms(x, &l.codes[l.ends[k] as usize..l.ends[k + 1] as usize])
+            }
         }
         None => density.value(x),
     };
@@ -243,7 +255,7 @@ fn weights_listing(
                 if t.alone >= 1.0 {
                     return t.lone;
                 }
-                let sheet = sheet_at(j, t.at, density);
+                let sheet = sheet_at(j, t.at, density, step);
                 let want = (tau - inside).max(0.0);
                 let boundary = if sheet > 0.0 {
                     (w * want / sheet).clamp(0.0, MAX_WEIGHT)
@@ -260,6 +272,15 @@ fn weights_listing(
         *o *= w;
     }
     Ok(out)
+}
+
+/// The sheet's terms at a chunk of targets ([`TERMS_CHUNK`]): target `k`'s are
+/// `codes[ends[k]..ends[k + 1]]` ([`ExactDensity::terms`]), `first[k]` their sum with the
+/// weights the sheet was indexed with (the first Jacobi step's).
+struct Listed {
+    ends: Vec<u32>,
+    codes: Vec<u32>,
+    first: Vec<f32>,
 }
 
 /// A refined point's target half a spacing out along its normal (the point itself without one),
