@@ -378,6 +378,48 @@ impl<'a> ExactDensity<'a> {
     }
 }
 
+/// The crossings of the iso-value `iso` on the edges of z plane `k` (`plane`, `nx * ny` values):
+/// its x and y edges, and its z edges down to the plane before (`previous`, none at the first),
+/// in (row, point, then x, y and z edge) order.
+fn plane_crossings(
+    spec: &GridSpec,
+    iso: f32,
+    k: u32,
+    plane: &[f32],
+    previous: Option<&[f32]>,
+) -> Vec<Vec3> {
+    let [nx, ny, _] = spec.dims;
+    let (nx, ny) = (nx as usize, ny as usize);
+    let at = |i: usize, j: usize| spec.point(i as u32, j as u32, k);
+    let cross = |a: f32, b: f32| (a < iso) != (b < iso);
+    let mut found = Vec::new();
+    for j in 0..ny {
+        for i in 0..nx {
+            let v = plane[i + nx * j];
+            if i + 1 < nx {
+                let w = plane[i + 1 + nx * j];
+                if cross(v, w) {
+                    found.push(at(i, j).lerp(at(i + 1, j), (iso - v) / (w - v)));
+                }
+            }
+            if j + 1 < ny {
+                let w = plane[i + nx * (j + 1)];
+                if cross(v, w) {
+                    found.push(at(i, j).lerp(at(i, j + 1), (iso - v) / (w - v)));
+                }
+            }
+            if let Some(prev) = previous {
+                let u = prev[i + nx * j];
+                if cross(u, v) {
+                    let below = spec.point(i as u32, j as u32, k - 1);
+                    found.push(below.lerp(at(i, j), (iso - u) / (v - u)));
+                }
+            }
+        }
+    }
+    found
+}
+
 /// Collects edge crossings plane by plane.
 pub struct SurfelExtractor {
     spec: GridSpec,
@@ -401,36 +443,8 @@ impl SurfelExtractor {
     /// Takes the next z plane (`k` in increasing order, `nx * ny` values); only a copy of the
     /// latest plane is kept.
     pub fn push_plane(&mut self, k: u32, plane: &[f32]) {
-        let [nx, ny, _] = self.spec.dims;
-        let (nx, ny) = (nx as usize, ny as usize);
-        let iso = self.iso;
-        let at = |i: usize, j: usize| self.spec.point(i as u32, j as u32, k);
-        let cross = |a: f32, b: f32| (a < iso) != (b < iso);
-        let mut found = Vec::new();
-        for j in 0..ny {
-            for i in 0..nx {
-                let v = plane[i + nx * j];
-                if i + 1 < nx {
-                    let w = plane[i + 1 + nx * j];
-                    if cross(v, w) {
-                        found.push(at(i, j).lerp(at(i + 1, j), (iso - v) / (w - v)));
-                    }
-                }
-                if j + 1 < ny {
-                    let w = plane[i + nx * (j + 1)];
-                    if cross(v, w) {
-                        found.push(at(i, j).lerp(at(i, j + 1), (iso - v) / (w - v)));
-                    }
-                }
-                if let Some((_, prev)) = &self.previous {
-                    let u = prev[i + nx * j];
-                    if cross(u, v) {
-                        let below = self.spec.point(i as u32, j as u32, k - 1);
-                        found.push(below.lerp(at(i, j), (iso - u) / (v - u)));
-                    }
-                }
-            }
-        }
+        let previous = self.previous.as_ref().map(|(_, p)| p.as_slice());
+        let found = plane_crossings(&self.spec, self.iso, k, plane, previous);
         self.crossings.extend(found);
         // keep this plane for the z edges of the next one, reusing the buffer
         match &mut self.previous {
@@ -521,9 +535,42 @@ impl SurfelExtractor {
     /// Takes a slab of consecutive planes starting at `k0`, as [`crate::density::splat_slabs`]
     /// hands them out.
     pub fn push_slab(&mut self, k0: u32, slab: Vec<f32>) {
+        self.push_planes(k0, &slab);
+    }
+
+    /// Takes consecutive planes starting at `k0` (`nx * ny` values each), their crossings
+    /// found in parallel, plane by plane, in the order [`Self::push_plane`] finds them.
+    pub fn push_planes(&mut self, k0: u32, planes: &[f32]) {
         let plane = self.spec.dims[0] as usize * self.spec.dims[1] as usize;
-        for (dk, values) in slab.chunks(plane).enumerate() {
-            self.push_plane(k0 + dk as u32, values);
+        if plane == 0 || planes.is_empty() {
+            return;
+        }
+        let previous = self.previous.as_ref().map(|(_, p)| p.as_slice());
+        let (spec, iso) = (&self.spec, self.iso);
+        let found: Vec<Vec<Vec3>> = planes
+            .par_chunks(plane)
+            .enumerate()
+            .map(|(dk, values)| {
+                let before = if dk == 0 {
+                    previous
+                } else {
+                    Some(&planes[(dk - 1) * plane..dk * plane])
+                };
+                plane_crossings(spec, iso, k0 + dk as u32, values, before)
+            })
+            .collect();
+        for f in found {
+            self.crossings.extend(f);
+        }
+        let last = planes.len() / plane - 1;
+        let values = &planes[last * plane..(last + 1) * plane];
+        match &mut self.previous {
+            Some((pk, buffer)) => {
+                buffer.clear();
+                buffer.extend_from_slice(values);
+                *pk = k0 + last as u32;
+            }
+            None => self.previous = Some((k0 + last as u32, values.to_vec())),
         }
     }
 
@@ -615,9 +662,6 @@ pub fn extract_points(
     let iso = iso_of(points.h, kernel, params)?;
     let density = ExactDensity::of(points, kernel)?;
     let mut extractor = SurfelExtractor::new(grid.spec, iso);
-    let plane = grid.spec.dims[0] as usize * grid.spec.dims[1] as usize;
-    for (k, values) in grid.values.chunks(plane).enumerate() {
-        extractor.push_plane(k as u32, values);
-    }
+    extractor.push_planes(0, &grid.values);
     Ok(extractor.finish(&density, params))
 }
