@@ -13,6 +13,20 @@
 //! without a type 2 hit, within `beta` of `k`, whose `U` holds both of `k`'s parents) are found
 //! in parallel, and the sequential pass only asks which rivals were accepted, taking the
 //! nearest, ties to the earliest, as the reference does. Most candidates have no rival.
+//!
+//! The three sequential passes stay, measured (issue 36, this project's 2 cores, the dam break's
+//! surface at three steps, 363,266 points; `bench refine`): the inversion is 21 of the step's
+//! 60-70 ms of type 2 work, the decisions 3-10 ms, the moves 52 ms. Each was made parallel and
+//! deterministic, and none paid: the inversion as a two-pass counting sort over fixed segments
+//! of the sources (type 2 phase 59-71 -> 55-61 ms, but 22 MiB more peak memory, 68 -> 90 MiB);
+//! the decisions in parallel rounds, each deciding the candidates whose rivals are all decided
+//! (the reference's result exactly, but slower: the splashing frame's acceptance 4.6-4.9 -> 6.8-7.0
+//! ms, the sequential pass being one cheap sweep); the moves in slabs along the longest axis,
+//! even slabs at once then odd ones, each keeping its own moved points apart (deterministic, not
+//! the reference's order), where every read of a point a move sees must ask whether its slab
+//! moved it: an unpredictable branch that doubled the work per move (115 ms on one thread for
+//! the sweep's 52; 58 ms on two cores). On more cores the slabs would pay; on two the sweep
+//! stays, and the step keeps the reference's result point for point.
 
 use std::time::Instant;
 
