@@ -836,3 +836,38 @@ fn the_waters_shadow_edge_is_a_ramp_not_texel_steps() {
     }
     println!("{ramp} samples on the ramp; steepest {worst:.3} per texel");
 }
+
+/// The CPU caustics are the same on 1, 2 and 3 threads: the triangles' fates in parallel, the
+/// map's bands deposited at once, each texel's shares in triangle order.
+#[test]
+fn cpu_caustics_do_not_depend_on_the_thread_count() {
+    let (scene, surfels) = lens_scene(3.5);
+    let stage = Stage::new(&scene, &surfels).unwrap();
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| caustics_cpu(&stage, &surfels).unwrap())
+    };
+    let one = run(1);
+    assert!(one.triangles > 1000, "{}", one.triangles);
+    for threads in [2, 3] {
+        let other = run(threads);
+        assert_eq!(one.flux, other.flux, "{threads} threads");
+        assert_eq!(one.irradiance, other.irradiance, "{threads} threads");
+        assert_eq!(
+            (one.transmitted, one.dropped, one.incident),
+            (other.transmitted, other.dropped, other.incident)
+        );
+        assert_eq!(
+            (one.triangles, one.hidden, one.missed, one.discontinuous),
+            (
+                other.triangles,
+                other.hidden,
+                other.missed,
+                other.discontinuous
+            )
+        );
+    }
+}

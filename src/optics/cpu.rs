@@ -145,8 +145,10 @@ fn add_texel(map: &mut [[f32; 4]], width: u32, x: u32, y: u32, v: Vec3) {
 /// light that belongs elsewhere (measured on the column's splash frame with the surface at the
 /// fluid's boundary: 4 texels, up to 0.04 % of a texel's direct light).
 /// Returns the share of `value` deposited. `deposit_triangle` in the WGSL.
+/// The map is handed in bands of rows (`band`: the map's rows `rows`, `width` texels each), so
+/// that bands take their triangles at once ([`caustics_of`]); the share returned is the band's.
 pub fn deposit_owned(
-    map: &mut [[f32; 4]],
+    (band, rows): (&mut [[f32; 4]], std::ops::Range<u32>),
     view: &View,
     (geometry, normals): (&[[f32; 4]], &[[f32; 4]]),
     q: [Vec3; 3],
@@ -156,14 +158,15 @@ pub fn deposit_owned(
     let zmin = q[0].z.min(q[1].z).min(q[2].z);
     let zmax = q[0].z.max(q[1].z).max(q[2].z);
     let mut deposited = 0.0;
-    rasterise(w, h, q.map(|v| v.truncate()), |x, y, share| {
+    let first = rows.start;
+    rasterise(w, h, q.map(|v| v.truncate()), rows, |x, y, share| {
         let i = (y * w + x) as usize;
         let g = geometry[i][3];
         let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
         let n = Vec4::from(normals[i]).truncate();
         let bias = depth_bias(view, centre, g, n);
         if g > 0.0 && g >= zmin - bias && g <= zmax + bias && normals[i][3] == 0.0 {
-            add_texel(map, w, x, y, value * share);
+            add_texel(band, w, x, y - first, value * share);
             deposited += share;
         }
     });
@@ -187,7 +190,15 @@ pub(crate) fn depth_bias(v: &View, q: Vec2, z: f32, n: Vec3) -> f32 {
 /// smaller than a texel, so the map conserves flux exactly, and a uniform tiling of triangles
 /// still gives a uniform map. A degenerate triangle gives all of it to the texel of its
 /// centroid.
-fn rasterise(width: u32, height: u32, p: [Vec2; 3], mut texel: impl FnMut(u32, u32, f32)) {
+/// Only the texels of the rows `rows` are visited (the same shares as in a whole pass: each row
+/// is clipped on its own, relative to the triangle's first texel).
+fn rasterise(
+    width: u32,
+    height: u32,
+    p: [Vec2; 3],
+    rows: std::ops::Range<u32>,
+    mut texel: impl FnMut(u32, u32, f32),
+) {
     if !(p[0].is_finite() && p[1].is_finite() && p[2].is_finite()) {
         return;
     }
@@ -196,7 +207,12 @@ fn rasterise(width: u32, height: u32, p: [Vec2; 3], mut texel: impl FnMut(u32, u
     let hi = p[0].max(p[1]).max(p[2]);
     if !(total > 1e-12) {
         let m = (p[0] + p[1] + p[2]) / 3.0;
-        if m.x >= 0.0 && m.y >= 0.0 && m.x < width as f32 && m.y < height as f32 {
+        if m.x >= 0.0
+            && m.y >= 0.0
+            && m.x < width as f32
+            && m.y < height as f32
+            && rows.contains(&(m.y as u32))
+        {
             texel(m.x as u32, m.y as u32, 1.0);
         }
         return;
@@ -209,7 +225,7 @@ fn rasterise(width: u32, height: u32, p: [Vec2; 3], mut texel: impl FnMut(u32, u
     // the shoelace formula loses ~0.2 % of a texel's area to f32 rounding
     let origin = Vec2::new(x0 as f32, y0 as f32);
     let local = p.map(|q| q - origin);
-    for y in y0..y1 {
+    for y in y0.max(rows.start)..y1.min(rows.end) {
         let ly = (y - y0) as f32;
         let mut row = [Vec2::ZERO; 8];
         row[..3].copy_from_slice(&local);
@@ -323,8 +339,46 @@ pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, 
             }
         })
         .unzip();
-    // 4. caustics triangles, drawn in order (deterministic)
+    // 4. caustics triangles: their fates in parallel, deposited band by band (deterministic)
+    let fates = fates_of(stage, &screen, &map, &vertices, &geometry);
+    // the deposits, band by band of the map's rows at once, each band's texels taking their
+    // shares in triangle order (the same sums as one pass over the triangles); a triangle's
+    // share is the sum of its bands', in band order
+    let deposits: Vec<usize> = (0..fates.len())
+        .filter(|&t| matches!(fates[t], Fate::Deposit { .. }))
+        .collect();
+    let band_rows = mh.div_ceil(MAP_BANDS).max(1);
     let mut flux = vec![[0.0f32; 4]; (mw * mh) as usize];
+    let band_shares: Vec<Vec<f32>> = flux
+        .par_chunks_mut((band_rows * mw).max(1) as usize)
+        .enumerate()
+        .map(|(b, band)| {
+            let rows = b as u32 * band_rows..((b as u32 + 1) * band_rows).min(mh);
+            deposits
+                .iter()
+                .map(|&t| match fates[t] {
+                    Fate::Deposit { flux: f, q, .. } => {
+                        let (lo, hi) = q.iter().fold((f32::MAX, f32::MIN), |(lo, hi), p| {
+                            (lo.min(p.y), hi.max(p.y))
+                        });
+                        // a band no row of the triangle's box reaches takes nothing
+                        if hi < rows.start as f32 - 1.0 || lo > rows.end as f32 + 1.0 {
+                            0.0
+                        } else {
+                            deposit_owned(
+                                (&mut *band, rows.clone()),
+                                &map,
+                                (&geometry, &normals),
+                                q,
+                                f,
+                            )
+                        }
+                    }
+                    _ => 0.0,
+                })
+                .collect()
+        })
+        .collect();
     let mut out = Caustics {
         screen,
         map,
@@ -341,47 +395,36 @@ pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, 
         hidden: 0,
         dropped: Vec3::ZERO,
     };
-    let limit = stage.scene.optics.discontinuity;
-    for y in 0..sh.saturating_sub(1) {
-        for x in 0..sw.saturating_sub(1) {
-            let k = |dx: u32, dy: u32| ((y + dy) * sw + x + dx) as usize;
-            for tri in [[k(0, 0), k(1, 0), k(0, 1)], [k(1, 1), k(0, 1), k(1, 0)]] {
-                let v = tri.map(|j| vertices[j]);
-                match triangle_flux(stage, &screen, &v, limit) {
-                    TriangleFlux::NoWater => {}
-                    TriangleFlux::Discontinuous(incident) => {
-                        out.incident += incident;
-                        out.discontinuous += 1;
-                    }
-                    TriangleFlux::Missed(incident) => {
-                        out.incident += incident;
-                        out.missed += 1;
-                    }
-                    TriangleFlux::Lit { incident, flux: f } => {
-                        out.incident += incident;
-                        // the map's texels belong to the surfaces the light sees: light that a
-                        // refracted ray brings to a receiver point hidden from the light, or to
-                        // the side of a surface facing away from it (the inside of a thin wall),
-                        // cannot be kept in the map without lighting the surface the light sees
-                        // there (the wall's outer face), so it is dropped (GPU: the same)
-                        if v.iter().any(|c| {
-                            c.hit.w > 1.5 || hidden_in_map(&map, &out.geometry, c.hit.truncate())
-                        }) {
-                            out.hidden += 1;
-                            out.dropped += f;
-                            continue;
-                        }
-                        let q = v.map(|c| map.project(c.hit.truncate()));
-                        let share =
-                            deposit_owned(&mut flux, &map, (&out.geometry, &out.normals), q, f);
-                        out.transmitted += f * share;
-                        out.dropped += f * (1.0 - share);
-                        if share > 0.0 {
-                            out.triangles += 1;
-                        } else {
-                            out.hidden += 1;
-                        }
-                    }
+    // the sums over the triangles, in order
+    let mut next_deposit = 0;
+    for fate in &fates {
+        match *fate {
+            Fate::Other(TriangleFlux::NoWater) | Fate::Other(TriangleFlux::Lit { .. }) => {}
+            Fate::Other(TriangleFlux::Discontinuous(incident)) => {
+                out.incident += incident;
+                out.discontinuous += 1;
+            }
+            Fate::Other(TriangleFlux::Missed(incident)) => {
+                out.incident += incident;
+                out.missed += 1;
+            }
+            Fate::Hidden { incident, flux: f } => {
+                out.incident += incident;
+                out.hidden += 1;
+                out.dropped += f;
+            }
+            Fate::Deposit {
+                incident, flux: f, ..
+            } => {
+                out.incident += incident;
+                let share: f32 = band_shares.iter().map(|b| b[next_deposit]).sum();
+                next_deposit += 1;
+                out.transmitted += f * share;
+                out.dropped += f * (1.0 - share);
+                if share > 0.0 {
+                    out.triangles += 1;
+                } else {
+                    out.hidden += 1;
                 }
             }
         }
@@ -425,6 +468,74 @@ pub enum TriangleFlux {
     Missed(Vec3),
     /// Incident flux and the flux it carries to the receiver.
     Lit { incident: Vec3, flux: Vec3 },
+}
+
+/// Each caustics triangle's fate (two a screen pixel, in pixel order), in parallel: eq. 3 over
+/// the screen's `vertices`, the hidden test against the map's `geometry`, the projection into
+/// the `map`.
+fn fates_of(
+    stage: &Stage,
+    screen: &View,
+    map: &View,
+    vertices: &[CausticVertex],
+    geometry: &[[f32; 4]],
+) -> Vec<Fate> {
+    let (sw, sh) = (screen.width, screen.height);
+    let limit = stage.scene.optics.discontinuity;
+    // each triangle's fate, in parallel (two a pixel, in pixel order)
+    let quads = (sw.saturating_sub(1) * sh.saturating_sub(1)) as usize;
+    (0..2 * quads)
+        .into_par_iter()
+        .map(|t| {
+            let (x, y) = ((t / 2) as u32 % (sw - 1), (t / 2) as u32 / (sw - 1));
+            let k = |dx: u32, dy: u32| ((y + dy) * sw + x + dx) as usize;
+            let tri = if t % 2 == 0 {
+                [k(0, 0), k(1, 0), k(0, 1)]
+            } else {
+                [k(1, 1), k(0, 1), k(1, 0)]
+            };
+            let v = tri.map(|j| vertices[j]);
+            match triangle_flux(stage, screen, &v, limit) {
+                TriangleFlux::Lit { incident, flux } => {
+                    // the map's texels belong to the surfaces the light sees: light that a
+                    // refracted ray brings to a receiver point hidden from the light, or to
+                    // the side of a surface facing away from it (the inside of a thin wall),
+                    // cannot be kept in the map without lighting the surface the light sees
+                    // there (the wall's outer face), so it is dropped (GPU: the same)
+                    if v.iter()
+                        .any(|c| c.hit.w > 1.5 || hidden_in_map(map, geometry, c.hit.truncate()))
+                    {
+                        Fate::Hidden { incident, flux }
+                    } else {
+                        Fate::Deposit {
+                            incident,
+                            flux,
+                            q: v.map(|c| map.project(c.hit.truncate())),
+                        }
+                    }
+                }
+                other => Fate::Other(other),
+            }
+        })
+        .collect()
+}
+
+/// Bands of the caustics map's rows that take their triangles' deposits at once.
+const MAP_BANDS: u32 = 16;
+
+/// What becomes of a caustics triangle ([`caustics_of`]).
+#[derive(Clone, Copy)]
+enum Fate {
+    /// No water, a discontinuity or a miss ([`TriangleFlux`]).
+    Other(TriangleFlux),
+    /// Lit, but a vertex's receiver point is hidden from the light: its flux is dropped.
+    Hidden { incident: Vec3, flux: Vec3 },
+    /// Lit: deposited into the map at the projected vertices `q`.
+    Deposit {
+        incident: Vec3,
+        flux: Vec3,
+        q: [Vec3; 3],
+    },
 }
 
 /// Eq. 3 for one triangle (see the module docs): `triangle_flux` in the WGSL.
@@ -735,4 +846,54 @@ fn water_pixel(stage: &Stage, caustics: &Caustics, p: Vec3, dn: Vec3, n: Vec3) -
         None => Vec3::ZERO,
     };
     reflected * r + refracted * (1.0 - r)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Triangles rasterised band by band of rows give every texel the shares of one pass over
+    /// all rows, bit for bit, and the same total share up to rounding (what [`caustics_of`]
+    /// relies on to deposit bands at once).
+    #[test]
+    fn rows_in_bands_give_the_shares_of_one_pass() {
+        let (w, h) = (37u32, 29u32);
+        let triangles: Vec<[Vec2; 3]> = (0..200)
+            .map(|i| {
+                let t = i as f32 * 0.71;
+                let c = Vec2::new(18.0 + 17.0 * t.sin(), 14.0 + 15.0 * (1.3 * t).cos());
+                let r = 0.3 + (i % 9) as f32;
+                [
+                    c,
+                    c + Vec2::new(r, 0.4 * r),
+                    c + Vec2::new(-0.3 * r, r * (i % 3) as f32 * 0.5),
+                ]
+            })
+            .collect();
+        let pass = |bands: &[std::ops::Range<u32>]| {
+            let mut map = vec![0.0f32; (w * h) as usize];
+            let mut totals = Vec::new();
+            for p in &triangles {
+                let mut total = 0.0f32;
+                for rows in bands {
+                    let mut part = 0.0f32;
+                    rasterise(w, h, *p, rows.clone(), |x, y, share| {
+                        map[(y * w + x) as usize] += share;
+                        part += share;
+                    });
+                    total += part;
+                }
+                totals.push(total);
+            }
+            (map, totals)
+        };
+        let all = 0..h;
+        let (whole, whole_totals) = pass(std::slice::from_ref(&all));
+        let (banded, banded_totals) = pass(&[0..5, 5..6, 6..17, 17..h]);
+        assert_eq!(whole, banded);
+        assert!(whole.iter().any(|&v| v > 0.0));
+        for (a, b) in whole_totals.iter().zip(&banded_totals) {
+            assert!((a - b).abs() <= 1e-6 * a.max(1.0), "{a} {b}");
+        }
+    }
 }
