@@ -210,11 +210,9 @@ fn closed(b: u32, n: u32) -> (u32, u32) {
 /// The sparse density grid of `points` (see the module's documentation), the interior taken
 /// from `band` (the LNM band of the same points, voxels at least as wide as the largest radius);
 /// refused when its blocks' states, or the values of the blocks it evaluates, would need more
-/// than `memory_limit` bytes.
-#[allow(
-    clippy::too_many_lines,
-    reason = "issue 38: still to split into named phases"
-)]
+/// than `memory_limit` bytes. In phases: the points sorted into blocks ([`Blocks::new`]), the
+/// blocks' states ([`Blocks::states`]), the evaluated blocks' values ([`Blocks::evaluate`]), the
+/// inside points that end a crossing edge made exact ([`exact_ends`]).
 pub fn points_grid_sparse(
     points: Points<'_>,
     spec: &GridSpec,
@@ -263,288 +261,20 @@ pub fn points_grid_sparse(
     if count * 10 > u128::from(memory_limit) {
         return too_large(count * 10);
     }
-    let count = count as usize;
-    let [bx, by, bz] = blocks.map(|b| b as usize);
-    let index = |b: [usize; 3]| b[0] + bx * (b[1] + by * b[2]);
-    let side = BLOCK as f32 * spec.spacing;
-    let block_of = |p: Vec3| -> [usize; 3] {
-        let c = ((p - spec.origin) / side).floor();
-        let at = |v: f32, n: usize| (v.max(0.0) as usize).min(n - 1);
-        [at(c.x, bx), at(c.y, by), at(c.z, bz)]
-    };
-
-    // the points sorted into blocks (counting sort: each block's points in index order)
-    let home: Vec<u32> = points
-        .positions
-        .par_iter()
-        .map(|&p| index(block_of(p)) as u32)
-        .collect();
-    let mut start = vec![0u32; count + 1];
-    for &b in &home {
-        start[b as usize + 1] += 1;
-    }
-    for b in 0..count {
-        start[b + 1] += start[b];
-    }
-    let mut sorted = vec![0u32; points.len()];
-    let mut fill = start.clone();
-    for (p, &b) in home.iter().enumerate() {
-        sorted[fill[b as usize] as usize] = p as u32;
-        fill[b as usize] += 1;
-    }
-    drop(fill);
-    drop(home);
-
-    // the world box of a block's closed range, and the blocks whose points may reach it
-    let world_box = |b: [usize; 3]| -> (Vec3, Vec3) {
-        let r = [0, 1, 2].map(|a| closed(b[a] as u32, spec.dims[a]));
-        (
-            spec.point(r[0].0, r[1].0, r[2].0),
-            spec.point(r[0].1, r[1].1, r[2].1),
-        )
-    };
-    let around = |lo: Vec3, hi: Vec3| -> ([usize; 3], [usize; 3]) {
-        (
-            block_of(lo - Vec3::splat(reach)),
-            block_of(hi + Vec3::splat(reach)),
-        )
-    };
-    // the points of the blocks within reach of the world box [lo, hi], until `visit` says stop
-    let for_each_near = |lo: Vec3, hi: Vec3, visit: &mut dyn FnMut(u32) -> bool| {
-        let (a, c) = around(lo, hi);
-        for z in a[2]..=c[2] {
-            for y in a[1]..=c[1] {
-                let row = index([0, y, z]);
-                let (s, e) = (start[row + a[0]], start[row + c[0] + 1]);
-                for &p in &sorted[s as usize..e as usize] {
-                    if !visit(p) {
-                        return;
-                    }
-                }
-            }
-        }
-    };
-
-    // inside: count the interior voxels each block's closed range covers
-    let inv = 1.0 / band.edge;
-    let voxel_range = |lo: Vec3, hi: Vec3| -> ([i64; 3], [i64; 3]) {
-        let a = ((lo - band.origin) * inv).floor();
-        let c = ((hi - band.origin) * inv).floor();
-        (
-            [a.x as i64, a.y as i64, a.z as i64],
-            [c.x as i64, c.y as i64, c.z as i64],
-        )
-    };
-    let mut interior_seen = vec![0u16; count];
-    for v in band.voxels.iter().filter(|v| v.label == 0) {
-        let vlo = band.origin
-            + Vec3::new(v.coord[0] as f32, v.coord[1] as f32, v.coord[2] as f32) * band.edge;
-        let (a, c) = around(vlo, vlo + Vec3::splat(band.edge));
-        for z in a[2]..=c[2] {
-            for y in a[1]..=c[1] {
-                for x in a[0]..=c[0] {
-                    let (lo, hi) = world_box([x, y, z]);
-                    let (r0, r1) = voxel_range(lo, hi);
-                    if (0..3).all(|k| (r0[k]..=r1[k]).contains(&i64::from(v.coord[k]))) {
-                        let s = &mut interior_seen[index([x, y, z])];
-                        *s = s.saturating_add(1);
-                    }
-                }
-            }
-        }
-    }
-
-    // each block's state: inside when every voxel its closed range covers is interior, empty
-    // when no point's ball reaches its closed range (with a margin of 1e-4 of the radius, so
-    // that the dense grid's kernels there are exactly 0 despite rounding), evaluated otherwise
-    let mut states: Vec<u32> = (0..count)
-        .into_par_iter()
-        .map(|b| {
-            let c = [b % bx, (b / bx) % by, b / (bx * by)];
-            let (lo, hi) = world_box(c);
-            let (r0, r1) = voxel_range(lo, hi);
-            let in_domain = (0..3).all(|k| r0[k] >= 0 && r1[k] < i64::from(band.dims[k]));
-            let covered: i64 = (0..3).map(|k| r1[k] - r0[k] + 1).product();
-            if in_domain && covered == i64::from(interior_seen[b]) {
-                return INSIDE;
-            }
-            let mut reached = false;
-            for_each_near(lo, hi, &mut |p| {
-                let x = points.positions[p as usize];
-                let r = points.radius(p as usize) * (1.0 + 1e-4);
-                let d = (lo - x).max(x - hi).max(Vec3::ZERO);
-                reached = d.length_squared() < r * r;
-                !reached
-            });
-            if reached { 0 } else { EMPTY }
-        })
-        .collect();
-    drop(interior_seen);
-    let evaluated: Vec<u32> = (0..count as u32)
-        .filter(|&b| states[b as usize] == 0)
+    let b = Blocks::new(points, spec, band, blocks.map(|b| b as usize));
+    let mut states = b.states(&b.interior_seen());
+    let evaluated: Vec<u32> = (0..b.count as u32)
+        .filter(|&k| states[k as usize] == 0)
         .collect();
     let bytes = evaluated.len() as u128 * BLOCK_VALUES as u128 * 4;
     if bytes > u128::from(memory_limit) {
         return too_large(bytes);
     }
-    for (slot, &b) in evaluated.iter().enumerate() {
-        states[b as usize] = slot as u32;
+    for (slot, &k) in evaluated.iter().enumerate() {
+        states[k as usize] = slot as u32;
     }
-
-    // the evaluated blocks, from their candidates in index order (the dense grid's order),
-    // over the window of their points that lie outside the interior voxels; the interior points
-    // read as `inside`. Consecutive evaluated blocks along x are filled as one run, so that a
-    // point's disk is set up once per plane and its rows are long, as in the dense slabs.
-    let interior_voxel = |c: [i64; 3]| -> bool {
-        (0..3).all(|a| c[a] >= 0 && c[a] < i64::from(band.dims[a]))
-            && band
-                .voxel_at(c.map(|v| v as u32))
-                .is_some_and(|v| band.voxels[v].label == 0)
-    };
     let columns: Vec<f32> = (0..spec.dims[0]).map(|i| column(spec, i)).collect();
-    let mut values = vec![0.0f32; evaluated.len() * BLOCK_VALUES];
-    let mut interior = vec![[0u64; 8]; evaluated.len()];
-    // runs of slots: consecutive blocks of one row of blocks
-    let mut runs: Vec<(usize, usize)> = Vec::new();
-    for (slot, &b) in evaluated.iter().enumerate() {
-        match runs.last_mut() {
-            Some((first, len))
-                if evaluated[*first + *len - 1] + 1 == b && !(b as usize).is_multiple_of(bx) =>
-            {
-                *len += 1;
-            }
-            _ => runs.push((slot, 1)),
-        }
-    }
-    let mut jobs = Vec::with_capacity(runs.len());
-    let (mut rest_v, mut rest_m) = (values.as_mut_slice(), interior.as_mut_slice());
-    for &(first, len) in &runs {
-        let (v, tail_v) = rest_v.split_at_mut(len * BLOCK_VALUES);
-        let (m, tail_m) = rest_m.split_at_mut(len);
-        jobs.push((evaluated[first] as usize, len, v, m));
-        (rest_v, rest_m) = (tail_v, tail_m);
-    }
-    jobs.into_par_iter().for_each_init(
-        || (Vec::new(), Vec::new()),
-        |(candidates, scratch), (b, len, out, masks)| {
-            let c = [b % bx, (b / bx) % by, b / (bx * by)];
-            let o = c.map(|v| v as u32 * BLOCK);
-            // local extents: x over the whole run, y and z of one block
-            let n = [
-                (spec.dims[0] - o[0]).min(BLOCK * len as u32) as usize,
-                (spec.dims[1] - o[1]).min(BLOCK) as usize,
-                (spec.dims[2] - o[2]).min(BLOCK) as usize,
-            ];
-            // the voxel of each point, axis by axis (the voxel lattice is separable), and the
-            // interior test of the few voxels the run meets
-            let voxel = |a: usize, l: usize| {
-                let p = spec.origin[a] + (o[a] + l as u32) as f32 * spec.spacing;
-                ((p - band.origin[a]) * inv).floor() as i64
-            };
-            let axes: [Vec<i64>; 3] = [0, 1, 2].map(|a| (0..n[a]).map(|l| voxel(a, l)).collect());
-            let first = [0, 1, 2].map(|a| axes[a][0]);
-            let span = [0, 1, 2].map(|a| (axes[a][n[a] - 1] - first[a] + 1) as usize);
-            let table: Vec<bool> = (0..span[0] * span[1] * span[2])
-                .map(|t| {
-                    let d = [
-                        t % span[0],
-                        (t / span[0]) % span[1],
-                        t / (span[0] * span[1]),
-                    ];
-                    interior_voxel([0, 1, 2].map(|a| first[a] + d[a] as i64))
-                })
-                .collect();
-            let mut lo = [usize::MAX; 3];
-            let mut hi = [0usize; 3];
-            for k in 0..n[2] {
-                for j in 0..n[1] {
-                    for i in 0..n[0] {
-                        let d = [
-                            (axes[0][i] - first[0]) as usize,
-                            (axes[1][j] - first[1]) as usize,
-                            (axes[2][k] - first[2]) as usize,
-                        ];
-                        if table[d[0] + span[0] * (d[1] + span[1] * d[2])] {
-                            let l = i % B + B * (j + B * k);
-                            masks[i / B][l / 64] |= 1 << (l % 64);
-                        } else {
-                            for (a, v) in [i, j, k].into_iter().enumerate() {
-                                lo[a] = lo[a].min(v);
-                                hi[a] = hi[a].max(v);
-                            }
-                        }
-                    }
-                }
-            }
-            if lo[0] != usize::MAX {
-                let (wlo, whi) = (
-                    [0, 1, 2].map(|a| o[a] + lo[a] as u32),
-                    [0, 1, 2].map(|a| o[a] + hi[a] as u32),
-                );
-                let window = Window {
-                    lo: [wlo[0], wlo[1]],
-                    hi: [whi[0], whi[1]],
-                    stride: hi[0] - lo[0] + 1,
-                };
-                let (box_lo, box_hi) = (
-                    spec.point(wlo[0], wlo[1], wlo[2]),
-                    spec.point(whi[0], whi[1], whi[2]),
-                );
-                candidates.clear();
-                for_each_near(box_lo, box_hi, &mut |p| {
-                    let x = points.positions[p as usize];
-                    let r = points.radius(p as usize);
-                    let d = (box_lo - x).max(x - box_hi).max(Vec3::ZERO);
-                    // a point whose ball misses the window adds nothing there (the margin as
-                    // for the empty blocks)
-                    if d.length_squared() < (r * (1.0 + 1e-4)).powi(2) {
-                        candidates.push(p);
-                    }
-                    true
-                });
-                candidates.sort_unstable();
-                let plane = window.stride * (hi[1] - lo[1] + 1);
-                scratch.clear();
-                scratch.resize(plane * (hi[2] - lo[2] + 1), 0.0f32);
-                for &p in candidates.iter() {
-                    let x = points.positions[p as usize];
-                    let hj = points.radius(p as usize);
-                    let w = points.weight(p as usize);
-                    for k in lo[2]..=hi[2] {
-                        let s = (k - lo[2]) * plane;
-                        splat_disk(
-                            spec,
-                            kernel,
-                            x,
-                            (hj, w),
-                            points.h,
-                            o[2] + k as u32,
-                            &window,
-                            &columns,
-                            &mut scratch[s..s + plane],
-                        );
-                    }
-                }
-                // into the blocks
-                for k in lo[2]..=hi[2] {
-                    for j in lo[1]..=hi[1] {
-                        let row = (k - lo[2]) * plane + (j - lo[1]) * window.stride;
-                        for i in lo[0]..=hi[0] {
-                            out[(i / B) * BLOCK_VALUES + i % B + B * (j + B * k)] =
-                                scratch[row + i - lo[0]];
-                        }
-                    }
-                }
-            }
-            for (t, mask) in masks.iter().enumerate() {
-                for l in 0..BLOCK_VALUES {
-                    if mask[l / 64] >> (l % 64) & 1 == 1 {
-                        out[t * BLOCK_VALUES + l] = inside;
-                    }
-                }
-            }
-        },
-    );
+    let (values, interior) = b.evaluate(kernel, inside, &columns, &evaluated);
     let mut grid = SparseGrid {
         spec: *spec,
         blocks,
@@ -554,146 +284,525 @@ pub fn points_grid_sparse(
         values,
         interior,
     };
+    exact_ends(&mut grid, &b, kernel, &columns, iso);
+    Ok(grid)
+}
 
-    // An inside point next to a point below the iso-value ends a crossing edge, whose surfel is
-    // placed by both values: such points (rare: a dip of the density next to the band's
-    // interior, as where the chain's fine surface points meet the interior particles) get their
-    // exact value, the dense grid's, an inside block holding one becomes an evaluated one.
-    let neighbours = |[i, j, k]: [u32; 3]| {
-        let n = spec.dims;
-        [
-            (i > 0).then(|| [i - 1, j, k]),
-            (i + 1 < n[0]).then(|| [i + 1, j, k]),
-            (j > 0).then(|| [i, j - 1, k]),
-            (j + 1 < n[1]).then(|| [i, j + 1, k]),
-            (k > 0).then(|| [i, j, k - 1]),
-            (k + 1 < n[2]).then(|| [i, j, k + 1]),
-        ]
-    };
-    let ends: Vec<[u32; 3]> = {
-        let g = &grid;
-        let inside_point = |p: [u32; 3]| match g.state(p.map(|c| c / BLOCK)) {
-            BlockState::Inside => true,
-            BlockState::Empty => false,
-            BlockState::Evaluated(slot) => {
-                let l = local(p);
-                g.interior[slot as usize][l / 64] >> (l % 64) & 1 == 1
-            }
+/// The blocks of a grid, the points sorted into them and the band's interior: what the phases of
+/// [`points_grid_sparse`] read.
+struct Blocks<'a> {
+    points: Points<'a>,
+    spec: &'a GridSpec,
+    band: &'a NarrowBand,
+    /// blocks along each axis
+    dims: [usize; 3],
+    count: usize,
+    /// the largest radius
+    reach: f32,
+    /// a block's edge in world units
+    side: f32,
+    /// 1 / the band's voxel edge
+    inv: f32,
+    /// block `b`'s points are `sorted[start[b]..start[b + 1]]`, in index order
+    start: Vec<u32>,
+    sorted: Vec<u32>,
+}
+
+impl<'a> Blocks<'a> {
+    /// The points sorted into blocks (a counting sort: each block's points in index order).
+    fn new(points: Points<'a>, spec: &'a GridSpec, band: &'a NarrowBand, dims: [usize; 3]) -> Self {
+        let count = dims.iter().product();
+        let mut b = Self {
+            points,
+            spec,
+            band,
+            dims,
+            count,
+            reach: points.max_radius(),
+            side: BLOCK as f32 * spec.spacing,
+            inv: 1.0 / band.edge,
+            start: vec![0u32; count + 1],
+            sorted: vec![0u32; points.len()],
         };
-        // the inside points that can touch a point off the inside: the interior points of the
-        // evaluated blocks and the points of the inside blocks next to a block that is not
-        (0..count)
-            .into_par_iter()
-            .filter(|&b| match g.states[b] {
-                EMPTY => false,
-                INSIDE => {
-                    let c = [b % bx, (b / bx) % by, b / (bx * by)];
-                    (0..27).any(|t| {
-                        let d = [t % 3, (t / 3) % 3, t / 9];
-                        let n: Option<Vec<usize>> = (0..3)
-                            .map(|a| {
-                                (c[a] + d[a])
-                                    .checked_sub(1)
-                                    .filter(|&v| v < blocks[a] as usize)
-                            })
-                            .collect();
-                        n.is_some_and(|n| g.states[index([n[0], n[1], n[2]])] != INSIDE)
-                    })
+        let home: Vec<u32> = points
+            .positions
+            .par_iter()
+            .map(|&p| b.index(b.block_of(p)) as u32)
+            .collect();
+        for &k in &home {
+            b.start[k as usize + 1] += 1;
+        }
+        for k in 0..count {
+            b.start[k + 1] += b.start[k];
+        }
+        let mut fill = b.start.clone();
+        for (p, &k) in home.iter().enumerate() {
+            b.sorted[fill[k as usize] as usize] = p as u32;
+            fill[k as usize] += 1;
+        }
+        b
+    }
+
+    fn index(&self, b: [usize; 3]) -> usize {
+        b[0] + self.dims[0] * (b[1] + self.dims[1] * b[2])
+    }
+
+    fn coords(&self, b: usize) -> [usize; 3] {
+        let [bx, by, _] = self.dims;
+        [b % bx, (b / bx) % by, b / (bx * by)]
+    }
+
+    fn block_of(&self, p: Vec3) -> [usize; 3] {
+        let c = ((p - self.spec.origin) / self.side).floor();
+        let at = |v: f32, n: usize| (v.max(0.0) as usize).min(n - 1);
+        [
+            at(c.x, self.dims[0]),
+            at(c.y, self.dims[1]),
+            at(c.z, self.dims[2]),
+        ]
+    }
+
+    /// The world box of a block's closed range.
+    fn world_box(&self, b: [usize; 3]) -> (Vec3, Vec3) {
+        let r = [0, 1, 2].map(|a| closed(b[a] as u32, self.spec.dims[a]));
+        (
+            self.spec.point(r[0].0, r[1].0, r[2].0),
+            self.spec.point(r[0].1, r[1].1, r[2].1),
+        )
+    }
+
+    /// The blocks whose points may reach the world box `[lo, hi]`.
+    fn around(&self, lo: Vec3, hi: Vec3) -> ([usize; 3], [usize; 3]) {
+        (
+            self.block_of(lo - Vec3::splat(self.reach)),
+            self.block_of(hi + Vec3::splat(self.reach)),
+        )
+    }
+
+    /// The points of the blocks within reach of the world box `[lo, hi]`, until `visit` says
+    /// stop.
+    fn for_each_near(&self, lo: Vec3, hi: Vec3, visit: &mut dyn FnMut(u32) -> bool) {
+        let (a, c) = self.around(lo, hi);
+        for z in a[2]..=c[2] {
+            for y in a[1]..=c[1] {
+                let row = self.index([0, y, z]);
+                let (s, e) = (self.start[row + a[0]], self.start[row + c[0] + 1]);
+                for &p in &self.sorted[s as usize..e as usize] {
+                    if !visit(p) {
+                        return;
+                    }
                 }
-                slot => g.interior[slot as usize].iter().any(|&w| w != 0),
-            })
-            .flat_map_iter(|b| {
-                let c = [b % bx, (b / bx) % by, b / (bx * by)].map(|v| v as u32 * BLOCK);
-                let n = [0, 1, 2].map(|a| (spec.dims[a] - c[a]).min(BLOCK));
-                let mut out = Vec::new();
-                for k in 0..n[2] {
-                    for j in 0..n[1] {
-                        for i in 0..n[0] {
-                            let p = [c[0] + i, c[1] + j, c[2] + k];
-                            if inside_point(p)
-                                && neighbours(p)
-                                    .into_iter()
-                                    .flatten()
-                                    .any(|q| !inside_point(q) && g.at(q[0], q[1], q[2]) < iso)
-                            {
-                                out.push(p);
-                            }
+            }
+        }
+    }
+
+    /// The band's voxels the world box `[lo, hi]` covers, as ranges per axis.
+    fn voxel_range(&self, lo: Vec3, hi: Vec3) -> ([i64; 3], [i64; 3]) {
+        let a = ((lo - self.band.origin) * self.inv).floor();
+        let c = ((hi - self.band.origin) * self.inv).floor();
+        (
+            [a.x as i64, a.y as i64, a.z as i64],
+            [c.x as i64, c.y as i64, c.z as i64],
+        )
+    }
+
+    /// Whether the band's voxel `c` is an interior one.
+    fn interior_voxel(&self, c: [i64; 3]) -> bool {
+        let band = self.band;
+        (0..3).all(|a| c[a] >= 0 && c[a] < i64::from(band.dims[a]))
+            && band
+                .voxel_at(c.map(|v| v as u32))
+                .is_some_and(|v| band.voxels[v].label == 0)
+    }
+
+    /// The interior voxels each block's closed range covers, counted.
+    fn interior_seen(&self) -> Vec<u16> {
+        let band = self.band;
+        let mut seen = vec![0u16; self.count];
+        for v in band.voxels.iter().filter(|v| v.label == 0) {
+            let vlo = band.origin
+                + Vec3::new(v.coord[0] as f32, v.coord[1] as f32, v.coord[2] as f32) * band.edge;
+            let (a, c) = self.around(vlo, vlo + Vec3::splat(band.edge));
+            for z in a[2]..=c[2] {
+                for y in a[1]..=c[1] {
+                    for x in a[0]..=c[0] {
+                        let (lo, hi) = self.world_box([x, y, z]);
+                        let (r0, r1) = self.voxel_range(lo, hi);
+                        if (0..3).all(|k| (r0[k]..=r1[k]).contains(&i64::from(v.coord[k]))) {
+                            let s = &mut seen[self.index([x, y, z])];
+                            *s = s.saturating_add(1);
                         }
                     }
                 }
-                out
+            }
+        }
+        seen
+    }
+
+    /// Each block's state: inside when every voxel its closed range covers is interior
+    /// (`interior_seen`), empty when no point's ball reaches its closed range (with a margin of
+    /// 1e-4 of the radius, so that the dense grid's kernels there are exactly 0 despite
+    /// rounding), 0 (to evaluate) otherwise.
+    fn states(&self, interior_seen: &[u16]) -> Vec<u32> {
+        let band = self.band;
+        (0..self.count)
+            .into_par_iter()
+            .map(|b| {
+                let (lo, hi) = self.world_box(self.coords(b));
+                let (r0, r1) = self.voxel_range(lo, hi);
+                let in_domain = (0..3).all(|k| r0[k] >= 0 && r1[k] < i64::from(band.dims[k]));
+                let covered: i64 = (0..3).map(|k| r1[k] - r0[k] + 1).product();
+                if in_domain && covered == i64::from(interior_seen[b]) {
+                    return INSIDE;
+                }
+                let mut reached = false;
+                self.for_each_near(lo, hi, &mut |p| {
+                    let x = self.points.positions[p as usize];
+                    let r = self.points.radius(p as usize) * (1.0 + 1e-4);
+                    let d = (lo - x).max(x - hi).max(Vec3::ZERO);
+                    reached = d.length_squared() < r * r;
+                    !reached
+                });
+                if reached { 0 } else { EMPTY }
             })
             .collect()
-    };
-    if !ends.is_empty() {
-        // the inside blocks that hold one become evaluated (appended, in block order)
-        let mut promote: Vec<usize> = ends
-            .iter()
-            .map(|p| index(p.map(|c| (c / BLOCK) as usize)))
-            .filter(|&b| grid.states[b] == INSIDE)
+    }
+
+    /// The values and interior masks of the `evaluated` blocks, from their candidates in index
+    /// order (the dense grid's order), over the window of their points that lie outside the
+    /// interior voxels; the interior points read as `inside`. Consecutive evaluated blocks
+    /// along x are filled as one run ([`Self::fill_run`]), so that a point's disk is set up once
+    /// per plane and its rows are long, as in the dense slabs.
+    fn evaluate(
+        &self,
+        kernel: Kernel,
+        inside: f32,
+        columns: &[f32],
+        evaluated: &[u32],
+    ) -> (Vec<f32>, Vec<[u64; 8]>) {
+        let mut values = vec![0.0f32; evaluated.len() * BLOCK_VALUES];
+        let mut interior = vec![[0u64; 8]; evaluated.len()];
+        // runs of slots: consecutive blocks of one row of blocks
+        let mut runs: Vec<(usize, usize)> = Vec::new();
+        for (slot, &b) in evaluated.iter().enumerate() {
+            match runs.last_mut() {
+                Some((first, len))
+                    if evaluated[*first + *len - 1] + 1 == b
+                        && !(b as usize).is_multiple_of(self.dims[0]) =>
+                {
+                    *len += 1;
+                }
+                _ => runs.push((slot, 1)),
+            }
+        }
+        let mut jobs = Vec::with_capacity(runs.len());
+        let (mut rest_v, mut rest_m) = (values.as_mut_slice(), interior.as_mut_slice());
+        for &(first, len) in &runs {
+            let (v, tail_v) = rest_v.split_at_mut(len * BLOCK_VALUES);
+            let (m, tail_m) = rest_m.split_at_mut(len);
+            jobs.push((evaluated[first] as usize, len, v, m));
+            (rest_v, rest_m) = (tail_v, tail_m);
+        }
+        jobs.into_par_iter().for_each_init(
+            || (Vec::new(), Vec::new()),
+            |scratch, (b, len, out, masks)| {
+                self.fill_run((kernel, inside, columns), (b, len), (out, masks), scratch);
+            },
+        );
+        (values, interior)
+    }
+
+    /// One run of `len` evaluated blocks from block `b` along x: the interior points marked in
+    /// `masks` (and read as `inside`), the other points' values splatted into `out` over the
+    /// window they span. `scratch`: the candidates' and the window's buffers, reused.
+    fn fill_run(
+        &self,
+        (kernel, inside, columns): (Kernel, f32, &[f32]),
+        (b, len): (usize, usize),
+        (out, masks): (&mut [f32], &mut [[u64; 8]]),
+        (candidates, scratch): &mut (Vec<u32>, Vec<f32>),
+    ) {
+        let spec = self.spec;
+        let o = self.coords(b).map(|v| v as u32 * BLOCK);
+        // local extents: x over the whole run, y and z of one block
+        let n = [
+            (spec.dims[0] - o[0]).min(BLOCK * len as u32) as usize,
+            (spec.dims[1] - o[1]).min(BLOCK) as usize,
+            (spec.dims[2] - o[2]).min(BLOCK) as usize,
+        ];
+        let Some((lo, hi)) = self.mark_interior(o, n, masks) else {
+            fill_inside(out, masks, inside);
+            return;
+        };
+        let (wlo, whi) = (
+            [0, 1, 2].map(|a| o[a] + lo[a] as u32),
+            [0, 1, 2].map(|a| o[a] + hi[a] as u32),
+        );
+        let window = Window {
+            lo: [wlo[0], wlo[1]],
+            hi: [whi[0], whi[1]],
+            stride: hi[0] - lo[0] + 1,
+        };
+        let (box_lo, box_hi) = (
+            spec.point(wlo[0], wlo[1], wlo[2]),
+            spec.point(whi[0], whi[1], whi[2]),
+        );
+        let points = self.points;
+        candidates.clear();
+        self.for_each_near(box_lo, box_hi, &mut |p| {
+            let x = points.positions[p as usize];
+            let r = points.radius(p as usize);
+            let d = (box_lo - x).max(x - box_hi).max(Vec3::ZERO);
+            // a point whose ball misses the window adds nothing there (the margin as for the
+            // empty blocks)
+            if d.length_squared() < (r * (1.0 + 1e-4)).powi(2) {
+                candidates.push(p);
+            }
+            true
+        });
+        candidates.sort_unstable();
+        let plane = window.stride * (hi[1] - lo[1] + 1);
+        scratch.clear();
+        scratch.resize(plane * (hi[2] - lo[2] + 1), 0.0f32);
+        for &p in candidates.iter() {
+            let x = points.positions[p as usize];
+            let hj = points.radius(p as usize);
+            let w = points.weight(p as usize);
+            for k in lo[2]..=hi[2] {
+                let s = (k - lo[2]) * plane;
+                splat_disk(
+                    spec,
+                    kernel,
+                    x,
+                    (hj, w),
+                    points.h,
+                    o[2] + k as u32,
+                    &window,
+                    columns,
+                    &mut scratch[s..s + plane],
+                );
+            }
+        }
+        // into the blocks
+        for k in lo[2]..=hi[2] {
+            for j in lo[1]..=hi[1] {
+                let row = (k - lo[2]) * plane + (j - lo[1]) * window.stride;
+                for i in lo[0]..=hi[0] {
+                    out[(i / B) * BLOCK_VALUES + i % B + B * (j + B * k)] =
+                        scratch[row + i - lo[0]];
+                }
+            }
+        }
+        fill_inside(out, masks, inside);
+    }
+
+    /// Marks in `masks` the points of the run at grid point `o` (extents `n`) that lie in
+    /// interior voxels, and returns the local box of the others (`None`: every point interior).
+    /// The voxel of each point is found axis by axis (the voxel lattice is separable), and the
+    /// interior test of the few voxels the run meets once.
+    fn mark_interior(
+        &self,
+        o: [u32; 3],
+        n: [usize; 3],
+        masks: &mut [[u64; 8]],
+    ) -> Option<([usize; 3], [usize; 3])> {
+        let spec = self.spec;
+        let voxel = |a: usize, l: usize| {
+            let p = spec.origin[a] + (o[a] + l as u32) as f32 * spec.spacing;
+            ((p - self.band.origin[a]) * self.inv).floor() as i64
+        };
+        let axes: [Vec<i64>; 3] = [0, 1, 2].map(|a| (0..n[a]).map(|l| voxel(a, l)).collect());
+        let first = [0, 1, 2].map(|a| axes[a][0]);
+        let span = [0, 1, 2].map(|a| (axes[a][n[a] - 1] - first[a] + 1) as usize);
+        let table: Vec<bool> = (0..span[0] * span[1] * span[2])
+            .map(|t| {
+                let d = [
+                    t % span[0],
+                    (t / span[0]) % span[1],
+                    t / (span[0] * span[1]),
+                ];
+                self.interior_voxel([0, 1, 2].map(|a| first[a] + d[a] as i64))
+            })
             .collect();
-        promote.sort_unstable();
-        promote.dedup();
-        for b in promote {
-            let slot = grid.evaluated.len() as u32;
-            grid.states[b] = slot;
-            grid.evaluated.push(b as u32);
-            grid.values
-                .extend(std::iter::repeat_n(inside, BLOCK_VALUES));
-            let c = [b % bx, (b / bx) % by, b / (bx * by)].map(|v| v as u32 * BLOCK);
-            let n = [0, 1, 2].map(|a| (spec.dims[a] - c[a]).min(BLOCK));
-            let mut mask = [0u64; 8];
-            for k in 0..n[2] {
-                for j in 0..n[1] {
-                    for i in 0..n[0] {
-                        let l = local([i, j, k]);
-                        mask[l / 64] |= 1 << (l % 64);
+        let mut lo = [usize::MAX; 3];
+        let mut hi = [0usize; 3];
+        for k in 0..n[2] {
+            for j in 0..n[1] {
+                for i in 0..n[0] {
+                    let d = [
+                        (axes[0][i] - first[0]) as usize,
+                        (axes[1][j] - first[1]) as usize,
+                        (axes[2][k] - first[2]) as usize,
+                    ];
+                    if table[d[0] + span[0] * (d[1] + span[1] * d[2])] {
+                        let l = i % B + B * (j + B * k);
+                        masks[i / B][l / 64] |= 1 << (l % 64);
+                    } else {
+                        for (a, v) in [i, j, k].into_iter().enumerate() {
+                            lo[a] = lo[a].min(v);
+                            hi[a] = hi[a].max(v);
+                        }
                     }
                 }
             }
-            grid.interior.push(mask);
         }
-        let exact: Vec<f32> = ends
-            .par_iter()
-            .map(|&p| {
-                let x0 = spec.point(p[0], p[1], p[2]);
-                let mut candidates = Vec::new();
-                for_each_near(x0, x0, &mut |q| {
-                    candidates.push(q);
-                    true
-                });
-                candidates.sort_unstable();
-                let window = Window {
-                    lo: [p[0], p[1]],
-                    hi: [p[0], p[1]],
-                    stride: 1,
-                };
-                let mut v = [0.0f32];
-                for &q in &candidates {
-                    splat_disk(
-                        spec,
-                        kernel,
-                        points.positions[q as usize],
-                        (points.radius(q as usize), points.weight(q as usize)),
-                        points.h,
-                        p[2],
-                        &window,
-                        &columns,
-                        &mut v,
-                    );
-                }
-                v[0]
-            })
-            .collect();
-        for (&p, v) in ends.iter().zip(exact) {
-            let b = index(p.map(|c| (c / BLOCK) as usize));
-            let slot = grid.states[b] as usize;
-            let l = local(p);
-            grid.values[slot * BLOCK_VALUES + l] = v;
-            grid.interior[slot][l / 64] &= !(1 << (l % 64));
+        (lo[0] != usize::MAX).then_some((lo, hi))
+    }
+}
+
+/// The interior points of a run's blocks (`masks`) read as `inside` in `out`.
+fn fill_inside(out: &mut [f32], masks: &[[u64; 8]], inside: f32) {
+    for (t, mask) in masks.iter().enumerate() {
+        for l in 0..BLOCK_VALUES {
+            if mask[l / 64] >> (l % 64) & 1 == 1 {
+                out[t * BLOCK_VALUES + l] = inside;
+            }
         }
     }
-    Ok(grid)
+}
+
+/// The grid points next to `p` along the axes, within the grid.
+fn axis_neighbours([i, j, k]: [u32; 3], n: [u32; 3]) -> [Option<[u32; 3]>; 6] {
+    [
+        (i > 0).then(|| [i - 1, j, k]),
+        (i + 1 < n[0]).then(|| [i + 1, j, k]),
+        (j > 0).then(|| [i, j - 1, k]),
+        (j + 1 < n[1]).then(|| [i, j + 1, k]),
+        (k > 0).then(|| [i, j, k - 1]),
+        (k + 1 < n[2]).then(|| [i, j, k + 1]),
+    ]
+}
+
+/// An inside point next to a point below the iso-value ends a crossing edge, whose surfel is
+/// placed by both values: such points (rare: a dip of the density next to the band's interior,
+/// as where the chain's fine surface points meet the interior particles) get their exact value,
+/// the dense grid's, an inside block holding one becoming an evaluated one.
+fn exact_ends(grid: &mut SparseGrid, b: &Blocks<'_>, kernel: Kernel, columns: &[f32], iso: f32) {
+    let ends = crossing_ends(grid, b, iso);
+    if ends.is_empty() {
+        return;
+    }
+    let spec = b.spec;
+    // the inside blocks that hold one become evaluated (appended, in block order)
+    let mut promote: Vec<usize> = ends
+        .iter()
+        .map(|p| b.index(p.map(|c| (c / BLOCK) as usize)))
+        .filter(|&k| grid.states[k] == INSIDE)
+        .collect();
+    promote.sort_unstable();
+    promote.dedup();
+    for k in promote {
+        let slot = grid.evaluated.len() as u32;
+        grid.states[k] = slot;
+        grid.evaluated.push(k as u32);
+        grid.values
+            .extend(std::iter::repeat_n(grid.inside, BLOCK_VALUES));
+        let c = b.coords(k).map(|v| v as u32 * BLOCK);
+        let n = [0, 1, 2].map(|a| (spec.dims[a] - c[a]).min(BLOCK));
+        let mut mask = [0u64; 8];
+        for z in 0..n[2] {
+            for y in 0..n[1] {
+                for x in 0..n[0] {
+                    let l = local([x, y, z]);
+                    mask[l / 64] |= 1 << (l % 64);
+                }
+            }
+        }
+        grid.interior.push(mask);
+    }
+    let points = b.points;
+    let exact: Vec<f32> = ends
+        .par_iter()
+        .map(|&p| {
+            let x0 = spec.point(p[0], p[1], p[2]);
+            let mut candidates = Vec::new();
+            b.for_each_near(x0, x0, &mut |q| {
+                candidates.push(q);
+                true
+            });
+            candidates.sort_unstable();
+            let window = Window {
+                lo: [p[0], p[1]],
+                hi: [p[0], p[1]],
+                stride: 1,
+            };
+            let mut v = [0.0f32];
+            for &q in &candidates {
+                splat_disk(
+                    spec,
+                    kernel,
+                    points.positions[q as usize],
+                    (points.radius(q as usize), points.weight(q as usize)),
+                    points.h,
+                    p[2],
+                    &window,
+                    columns,
+                    &mut v,
+                );
+            }
+            v[0]
+        })
+        .collect();
+    for (&p, v) in ends.iter().zip(exact) {
+        let k = b.index(p.map(|c| (c / BLOCK) as usize));
+        let slot = grid.states[k] as usize;
+        let l = local(p);
+        grid.values[slot * BLOCK_VALUES + l] = v;
+        grid.interior[slot][l / 64] &= !(1 << (l % 64));
+    }
+}
+
+/// The inside points next to a point off the inside below the iso-value ([`exact_ends`]): among
+/// the interior points of the evaluated blocks and the points of the inside blocks next to a
+/// block that is not inside.
+fn crossing_ends(g: &SparseGrid, b: &Blocks<'_>, iso: f32) -> Vec<[u32; 3]> {
+    let spec = b.spec;
+    let inside_point = |p: [u32; 3]| match g.state(p.map(|c| c / BLOCK)) {
+        BlockState::Inside => true,
+        BlockState::Empty => false,
+        BlockState::Evaluated(slot) => {
+            let l = local(p);
+            g.interior[slot as usize][l / 64] >> (l % 64) & 1 == 1
+        }
+    };
+    (0..b.count)
+        .into_par_iter()
+        .filter(|&k| match g.states[k] {
+            EMPTY => false,
+            INSIDE => {
+                let c = b.coords(k);
+                (0..27).any(|t| {
+                    let d = [t % 3, (t / 3) % 3, t / 9];
+                    let n: Option<Vec<usize>> = (0..3)
+                        .map(|a| (c[a] + d[a]).checked_sub(1).filter(|&v| v < b.dims[a]))
+                        .collect();
+                    n.is_some_and(|n| g.states[b.index([n[0], n[1], n[2]])] != INSIDE)
+                })
+            }
+            slot => g.interior[slot as usize].iter().any(|&w| w != 0),
+        })
+        .flat_map_iter(|k| {
+            let c = b.coords(k).map(|v| v as u32 * BLOCK);
+            let n = [0, 1, 2].map(|a| (spec.dims[a] - c[a]).min(BLOCK));
+            let mut out = Vec::new();
+            for z in 0..n[2] {
+                for y in 0..n[1] {
+                    for x in 0..n[0] {
+                        let p = [c[0] + x, c[1] + y, c[2] + z];
+                        if inside_point(p)
+                            && axis_neighbours(p, spec.dims)
+                                .into_iter()
+                                .flatten()
+                                .any(|q| !inside_point(q) && g.at(q[0], q[1], q[2]) < iso)
+                        {
+                            out.push(p);
+                        }
+                    }
+                }
+            }
+            out
+        })
+        .collect()
 }
 
 /// Index of grid point `p` inside its block.
