@@ -210,9 +210,9 @@ fn closed(b: u32, n: u32) -> (u32, u32) {
 /// The sparse density grid of `points` (see the module's documentation), the interior taken
 /// from `band` (the LNM band of the same points, voxels at least as wide as the largest radius);
 /// refused when its blocks' states, or the values of the blocks it evaluates, would need more
-/// than `memory_limit` bytes. In phases: the points sorted into blocks ([`Blocks::new`]), the
-/// blocks' states ([`Blocks::states`]), the evaluated blocks' values ([`Blocks::evaluate`]), the
-/// inside points that end a crossing edge made exact ([`exact_ends`]).
+/// than `memory_limit` bytes. In phases: the points sorted into blocks (`Blocks::new`), the
+/// blocks' states (`Blocks::states`), the evaluated blocks' values (`Blocks::evaluate`), the
+/// inside points that end a crossing edge made exact (`exact_ends`).
 pub fn points_grid_sparse(
     points: Points<'_>,
     spec: &GridSpec,
