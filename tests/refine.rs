@@ -319,6 +319,17 @@ fn parallel_equals_reference_for_any_thread_count() {
         .collect();
     let by_level = refine::refine_to_levels(&p, &n, &params, false, &levels).unwrap();
     assert!(by_level.len() < reference.len());
+    // a small region at the third step, the rest at two: the parallel step then updates only
+    // the lists near that region (flat.rs, `near_open`), the reference every list
+    let centre = p[p.len() / 2];
+    let small: Vec<u8> = p
+        .iter()
+        .map(|x| if x.distance(centre) < 2.0 * r0 { 3 } else { 2 })
+        .collect();
+    let open = small.iter().filter(|&&l| l == 3).count();
+    assert!(open > 5 && open * 10 < p.len(), "{open} of {}", p.len());
+    let small_level = refine::refine_to_levels(&p, &n, &params, false, &small).unwrap();
+    assert!(small_level.levels.contains(&3));
     for threads in [1, 2, 3, 5] {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -335,6 +346,13 @@ fn parallel_equals_reference_for_any_thread_count() {
         assert!(
             same(&parallel, &by_level) && parallel.levels == by_level.levels,
             "frame {f}, by level: {threads} threads differ from the reference"
+        );
+        let parallel = pool
+            .install(|| refine::refine_to_levels(&p, &n, &params, true, &small))
+            .unwrap();
+        assert!(
+            same(&parallel, &small_level) && parallel.levels == small_level.levels,
+            "frame {f}, a small region at three steps: {threads} threads differ from the reference"
         );
     }
     let average = RefineParams {
