@@ -107,19 +107,19 @@ pub fn render_points_on(
     height: u32,
     background: [u8; 3],
 ) -> Result<RgbImage, PreviewError> {
-    if width == 0 || height == 0 || width > 16384 || height > 16384 {
-        return Err(PreviewError::InvalidSize { width, height });
-    }
-    if colours.len() != positions.len() {
-        return Err(PreviewError::LengthMismatch {
-            positions: positions.len(),
-            colours: colours.len(),
-        });
-    }
+    check_size(width, height)?;
     let mut image = RgbImage::from_pixel(width, height, Rgb(background));
     let mut depth = vec![f32::INFINITY; (width * height) as usize];
     draw_points(positions, colours, radius, camera, &mut image, &mut depth)?;
     Ok(image)
+}
+
+/// A picture's size: at least 1 and at most 16384 pixels a side.
+fn check_size(width: u32, height: u32) -> Result<(), PreviewError> {
+    if width == 0 || height == 0 || width > 16384 || height > 16384 {
+        return Err(PreviewError::InvalidSize { width, height });
+    }
+    Ok(())
 }
 
 /// Draws shaded spheres of world radius `radius` into `image`, nearer than `depth` (updated).
@@ -251,6 +251,7 @@ pub fn levels_picture(
     width: u32,
     height: u32,
 ) -> Result<RgbImage, PreviewError> {
+    check_size(width, height)?;
     let camera = PreviewCamera {
         eye: camera.eye,
         target: camera.target,

@@ -126,7 +126,7 @@ impl Group {
     }
 }
 
-/// Bits of a term code ([`ExactDensity::terms`]) that name the group.
+/// Bits of a term code ([`ExactDensity::value_and_terms`]) that name the group.
 const TERM_GROUP_BITS: u32 = 4;
 
 /// Points of similar radius in a cell grid of the largest of them.
@@ -282,25 +282,11 @@ impl<'a> ExactDensity<'a> {
         self.kernel
     }
 
-    /// Appends to `out` the terms [`Self::value`] sums at `x`, in the order it visits them, as
-    /// codes ([`ExactDensity::value_of_terms`] reads them): for sums at the same place with
-    /// weights that change ([`Self::reweight`]), each then without the cell search. Returns
-    /// false, appending nothing, when the points lie in more groups or slots than a code holds
-    /// (16 groups of radius, 2^28 points a group).
-    pub fn terms(&self, x: Vec3, out: &mut Vec<u32>) -> bool {
-        if !self.codes_fit() {
-            return false;
-        }
-        for (gi, g) in self.groups.iter().enumerate() {
-            g.grid.for_each_slot_within(x, g.reach, |slot, _| {
-                out.push(((slot as u32) << TERM_GROUP_BITS) | gi as u32);
-            });
-        }
-        true
-    }
-
-    /// [`Self::terms`] at `x` and [`Self::value`] there from the same visit: the value bit for
-    /// bit, without a second cell search. `None` (nothing appended) where `terms` is false.
+    /// [`Self::value`] at `x`, appending to `out` the terms it sums, in the order it visits them,
+    /// as codes ([`ExactDensity::value_of_terms`] reads them): for sums at the same place with
+    /// weights that change ([`Self::reweight`]), each then without the cell search. `None`,
+    /// appending nothing, when the points lie in more groups or slots than a code holds (16
+    /// groups of radius, 2^28 points a group).
     pub fn value_and_terms(&self, x: Vec3, out: &mut Vec<u32>) -> Option<f32> {
         if !self.codes_fit() {
             return None;
@@ -316,7 +302,7 @@ impl<'a> ExactDensity<'a> {
         Some(sum)
     }
 
-    /// Whether every point's term fits a code of [`Self::terms`].
+    /// Whether every point's term fits a code of [`Self::value_and_terms`].
     fn codes_fit(&self) -> bool {
         self.groups.len() <= 1 << TERM_GROUP_BITS
             && self
@@ -325,7 +311,7 @@ impl<'a> ExactDensity<'a> {
                 .all(|g| g.members.len() < 1 << (32 - TERM_GROUP_BITS))
     }
 
-    /// [`Self::value`] at `x` over the terms [`Self::terms`] listed there, with the weights as
+    /// [`Self::value`] at `x` over the terms [`Self::value_and_terms`] listed there, with the weights as
     /// they are now: the same terms in the same order, so the same sum bit for bit.
     #[must_use]
     pub fn value_of_terms(&self, x: Vec3, terms: &[u32]) -> f32 {
@@ -443,18 +429,7 @@ impl SurfelExtractor {
     /// Takes the next z plane (`k` in increasing order, `nx * ny` values); only a copy of the
     /// latest plane is kept.
     pub fn push_plane(&mut self, k: u32, plane: &[f32]) {
-        let previous = self.previous.as_ref().map(|(_, p)| p.as_slice());
-        let found = plane_crossings(&self.spec, self.iso, k, plane, previous);
-        self.crossings.extend(found);
-        // keep this plane for the z edges of the next one, reusing the buffer
-        match &mut self.previous {
-            Some((pk, buffer)) => {
-                buffer.clear();
-                buffer.extend_from_slice(plane);
-                *pk = k;
-            }
-            None => self.previous = Some((k, plane.to_vec())),
-        }
+        self.push_planes(k, plane);
     }
 
     /// The crossings of a sparse grid ([`crate::density::sparse`]): the edges the evaluated
@@ -562,6 +537,7 @@ impl SurfelExtractor {
         for f in found {
             self.crossings.extend(f);
         }
+        // keep the last plane for the z edges of the next one, reusing the buffer
         let last = planes.len() / plane - 1;
         let values = &planes[last * plane..(last + 1) * plane];
         match &mut self.previous {

@@ -297,13 +297,15 @@ fn same(a: &Refined, b: &Refined) -> bool {
         && a.normals == b.normals
         && a.steps == b.steps
         && a.weights == b.weights
+        && a.levels == b.levels
 }
 
-/// The parallel step (its registration lists grouped and its type 3 decisions settled in
-/// parallel rounds, flat.rs) keeps the reference's result exactly, so the reference is the
+/// The parallel step (flat.rs) keeps the reference's result exactly, so the reference is the
 /// oracle of every property the parallel step must have: the same output on any thread count,
 /// the collision rule and the surface bounds (the other tests here and in tests/detail.rs and
-/// tests/boundary.rs, on the parallel step). Also with regions at their own levels.
+/// tests/boundary.rs, on the parallel step). Also with regions at their own levels, and with a
+/// small region at the third step, where the parallel step updates only the lists near it
+/// (`near_open`: 637 of 13,330 points open to the third step, 3,302 listed, measured).
 #[test]
 fn parallel_equals_reference_for_any_thread_count() {
     let (f, p, n, r0) = column_frames(&[ColumnParams::SPLASH_FRAME]).pop().unwrap();
@@ -340,20 +342,18 @@ fn parallel_equals_reference_for_any_thread_count() {
             same(&parallel, &reference),
             "frame {f}: {threads} threads differ from the reference"
         );
-        let parallel = pool
-            .install(|| refine::refine_to_levels(&p, &n, &params, true, &levels))
-            .unwrap();
-        assert!(
-            same(&parallel, &by_level) && parallel.levels == by_level.levels,
-            "frame {f}, by level: {threads} threads differ from the reference"
-        );
-        let parallel = pool
-            .install(|| refine::refine_to_levels(&p, &n, &params, true, &small))
-            .unwrap();
-        assert!(
-            same(&parallel, &small_level) && parallel.levels == small_level.levels,
-            "frame {f}, a small region at three steps: {threads} threads differ from the reference"
-        );
+        for (name, levels, reference) in [
+            ("by level", &levels, &by_level),
+            ("a small region at three steps", &small, &small_level),
+        ] {
+            let parallel = pool
+                .install(|| refine::refine_to_levels(&p, &n, &params, true, levels))
+                .unwrap();
+            assert!(
+                same(&parallel, reference),
+                "frame {f}, {name}: {threads} threads differ from the reference"
+            );
+        }
     }
     let average = RefineParams {
         height: refine::HeightRule::Average,

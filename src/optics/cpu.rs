@@ -341,44 +341,14 @@ pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, 
         .unzip();
     // 4. caustics triangles: their fates in parallel, deposited band by band (deterministic)
     let fates = fates_of(stage, &screen, &map, &vertices, &geometry);
-    // the deposits, band by band of the map's rows at once, each band's texels taking their
-    // shares in triangle order (the same sums as one pass over the triangles); a triangle's
-    // share is the sum of its bands', in band order
-    let deposits: Vec<usize> = (0..fates.len())
-        .filter(|&t| matches!(fates[t], Fate::Deposit { .. }))
-        .collect();
-    let band_rows = mh.div_ceil(MAP_BANDS).max(1);
-    let mut flux = vec![[0.0f32; 4]; (mw * mh) as usize];
-    let band_shares: Vec<Vec<f32>> = flux
-        .par_chunks_mut((band_rows * mw).max(1) as usize)
-        .enumerate()
-        .map(|(b, band)| {
-            let rows = b as u32 * band_rows..((b as u32 + 1) * band_rows).min(mh);
-            deposits
-                .iter()
-                .map(|&t| match fates[t] {
-                    Fate::Deposit { flux: f, q, .. } => {
-                        let (lo, hi) = q.iter().fold((f32::MAX, f32::MIN), |(lo, hi), p| {
-                            (lo.min(p.y), hi.max(p.y))
-                        });
-                        // a band no row of the triangle's box reaches takes nothing
-                        if hi < rows.start as f32 - 1.0 || lo > rows.end as f32 + 1.0 {
-                            0.0
-                        } else {
-                            deposit_owned(
-                                (&mut *band, rows.clone()),
-                                &map,
-                                (&geometry, &normals),
-                                q,
-                                f,
-                            )
-                        }
-                    }
-                    _ => 0.0,
-                })
-                .collect()
+    let deposits: Vec<([Vec3; 3], Vec3)> = fates
+        .iter()
+        .filter_map(|f| match *f {
+            Fate::Deposit { q, flux, .. } => Some((q, flux)),
+            _ => None,
         })
         .collect();
+    let (flux, share) = deposit_in_bands(&deposits, &map, (&geometry, &normals));
     let mut out = Caustics {
         screen,
         map,
@@ -417,7 +387,7 @@ pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, 
                 incident, flux: f, ..
             } => {
                 out.incident += incident;
-                let share: f32 = band_shares.iter().map(|b| b[next_deposit]).sum();
+                let share = share[next_deposit];
                 next_deposit += 1;
                 out.transmitted += f * share;
                 out.dropped += f * (1.0 - share);
@@ -518,6 +488,46 @@ fn fates_of(
             }
         })
         .collect()
+}
+
+/// The caustics map of the `deposits` (each triangle's projected vertices and flux, in order)
+/// and each one's share deposited ([`deposit_owned`]), band by band of the map's rows at once:
+/// each band's texels take their shares in triangle order (the same sums as one pass over the
+/// triangles); each band lists the shares of the triangles it reaches, and a triangle's share
+/// is the sum of its bands', in band order.
+fn deposit_in_bands(
+    deposits: &[([Vec3; 3], Vec3)],
+    map: &View,
+    (geometry, normals): (&[[f32; 4]], &[[f32; 4]]),
+) -> (Vec<[f32; 4]>, Vec<f32>) {
+    let (mw, mh) = (map.width, map.height);
+    let band_rows = mh.div_ceil(MAP_BANDS).max(1);
+    let mut flux = vec![[0.0f32; 4]; (mw * mh) as usize];
+    let band_shares: Vec<Vec<(u32, f32)>> = flux
+        .par_chunks_mut((band_rows * mw).max(1) as usize)
+        .enumerate()
+        .map(|(b, band)| {
+            let rows = b as u32 * band_rows..((b as u32 + 1) * band_rows).min(mh);
+            let mut shares = Vec::new();
+            for (t, &(q, f)) in deposits.iter().enumerate() {
+                let (lo, hi) = q.iter().fold((f32::MAX, f32::MIN), |(lo, hi), p| {
+                    (lo.min(p.y), hi.max(p.y))
+                });
+                // a band no row of the triangle's box reaches takes nothing
+                if hi >= rows.start as f32 - 1.0 && lo <= rows.end as f32 + 1.0 {
+                    let share =
+                        deposit_owned((&mut *band, rows.clone()), map, (geometry, normals), q, f);
+                    shares.push((t as u32, share));
+                }
+            }
+            shares
+        })
+        .collect();
+    let mut share = vec![0.0f32; deposits.len()];
+    for (t, s) in band_shares.into_iter().flatten() {
+        share[t as usize] += s;
+    }
+    (flux, share)
 }
 
 /// Bands of the caustics map's rows that take their triangles' deposits at once.

@@ -275,7 +275,7 @@ fn weights_listing(
 }
 
 /// The sheet's terms at a chunk of targets ([`TERMS_CHUNK`]): target `k`'s are
-/// `codes[ends[k]..ends[k + 1]]` ([`ExactDensity::terms`]), `first[k]` their sum with the
+/// `codes[ends[k]..ends[k + 1]]` ([`ExactDensity::value_and_terms`]), `first[k]` their sum with the
 /// weights the sheet was indexed with (the first Jacobi step's).
 struct Listed {
     ends: Vec<u32>,

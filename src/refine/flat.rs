@@ -42,7 +42,8 @@ use rayon::prelude::*;
 use super::{
     BYTES_PER_POINT, Candidate, Levels, Lists, NeighbourLists, RADIUS_FACTOR, RefineError,
     RefineParams, Refined, StepStats, Target, apply_moves, candidates_of, caps_of, finish,
-    for_each_new_neighbour, initial_neighbours, may_pair, pairs_of, radii_after,
+    for_each_new_neighbour, initial_neighbours, may_pair, open_to, pairs_of, radii_after,
+    run_steps,
 };
 
 /// Items per parallel task: fixed, so that the output does not depend on the thread count.
@@ -504,18 +505,15 @@ struct Near {
     children: Vec<bool>,
 }
 
-/// [`Near`] for the next step (`step`, radius `r`): `None` (every list) unless at most a quarter
-/// of the points are open to it. Only the lists this leaves empty differ from a whole update's,
-/// and the steps to come never read them: the same points, bit for bit (tested against the
-/// reference, which updates every list).
-fn near_open(pos: &[Vec3], caps: &[u8], step: u32, r: f32) -> Option<Near> {
-    let open: Vec<Vec3> = (0..pos.len())
-        .filter(|&i| u32::from(caps[i]) >= step)
-        .map(|i| pos[i])
-        .collect();
+/// [`Near`] for the next step (lists of radius `r`) and the points `open` to it: `None` (every
+/// list) unless at most a quarter of the points are open. Only the lists this leaves empty
+/// differ from a whole update's, and the steps to come never read them: the same points, bit for
+/// bit (tested against the reference, which updates every list).
+fn near_open(pos: &[Vec3], open: &[usize], r: f32) -> Option<Near> {
     if open.len() * 4 > pos.len() || open.is_empty() {
         return None;
     }
+    let open: Vec<Vec3> = open.iter().map(|&i| pos[i]).collect();
     let (reach, wider) = (NEAR_RADII * r, (NEAR_RADII + 1.0) * r);
     let grid = crate::neighbours::CellGrid::new(&open, wider).ok()?;
     let (points, children): (Vec<bool>, Vec<bool>) = pos
@@ -608,12 +606,12 @@ fn step_once(
     );
     s.phases.moves_ms = phase.elapsed().as_secs_f64() * 1e3;
     drop((d.registered, d.moves));
-    let more = step < last && (!by_region || may_pair(&pts.pos, &pts.cap, step + 1, r_next));
+    // by region, the next step only where a point open to it can pair, and then only the lists
+    // near the points it refines
+    let open = (step < last && by_region).then(|| open_to(&pts.cap, step + 1));
+    let more = step < last && open.as_ref().is_none_or(|o| may_pair(&pts.pos, o, r_next));
     if more {
-        // by region, only the lists near the points the next steps refine
-        let near = by_region
-            .then(|| near_open(&pts.pos, &pts.cap, step + 1, r_next))
-            .flatten();
+        let near = open.as_ref().and_then(|o| near_open(&pts.pos, o, r_next));
         pts.nb = update(pts, &candidates, &d.accepted, n_old, r_next, near.as_ref());
     }
     // no update after the last step (§3.4)
@@ -651,21 +649,14 @@ pub(super) fn run(
         cap,
         nb: lists,
     };
-    let mut stats = Vec::new();
     let radius_after = radii_after(params.initial_radius, last);
-    for step in 1..=last {
-        let r = radius_after[step as usize - 1];
-        let (done, more) = step_once(&mut pts, params, r, (step, last), levels.is_some())?;
-        stats.push(done);
-        if !more {
-            break;
-        }
-        observe(
-            &pts.pos,
-            NeighbourLists::flat(&pts.nb),
-            radius_after[step as usize],
-        );
-    }
+    let stats = run_steps(
+        &mut pts,
+        &radius_after,
+        last,
+        |pts, r, step| step_once(pts, params, r, (step, last), levels.is_some()),
+        |pts, r| observe(&pts.pos, NeighbourLists::flat(&pts.nb), r),
+    )?;
     drop(pts.nb);
     Ok(finish(
         pts.pos,

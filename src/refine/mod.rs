@@ -535,21 +535,25 @@ fn pairs_of<'a>(
 /// The most points a step may be open to for [`may_pair`] to look for their pairs by brute force.
 const FEW_OPEN: usize = 64;
 
-/// Whether step `step`, at radius `r`, could pair two points ([`pairs_of`]): some point whose
-/// region takes that step (`caps`) has another point at a distance in `[r_next, r]`. The
-/// neighbourhoods before the step hold only points within `r`, so where no point is there the
-/// step makes nothing, and the neighbourhood update before it (the largest phase of a step) can
-/// be skipped. Detail from the view leaves a handful of points (isolated drops, a crest near the
-/// camera) at a level no other point reaches: on the dam break at 640x480, 5 of 8,457 surface
-/// particles asked for a third step that made no point, after a 45 ms update. Brute force over
-/// all points when at most [`FEW_OPEN`] points are open to the step (a few milliseconds at
-/// most), else `true` (the step runs and finds its pairs). Conservative: the range is widened
-/// by a few ulps, and the answer is `true` wherever the lists could hold a pair.
-fn may_pair(pos: &[Vec3], caps: &[u8], step: u32, r: f32) -> bool {
-    let open: Vec<usize> = (0..caps.len())
+/// The points open to step `step`: those whose region takes it (`caps`, [`refine_to_levels`]).
+fn open_to(caps: &[u8], step: u32) -> Vec<usize> {
+    (0..caps.len())
         .into_par_iter()
         .filter(|&i| u32::from(caps[i]) >= step)
-        .collect();
+        .collect()
+}
+
+/// Whether a step at radius `r` could pair two points ([`pairs_of`]): some point `open` to it
+/// ([`open_to`]) has another point at a distance in `[r_next, r]`. The neighbourhoods before
+/// the step hold only points within `r`, so where no point is there the step makes nothing,
+/// and the neighbourhood update before it (the largest phase of a step) can be skipped. Detail
+/// from the view leaves a handful of points (isolated drops, a crest near the camera) at a
+/// level no other point reaches: on the dam break at 640x480, 5 of 8,457 surface particles
+/// asked for a third step that made no point, after a 45 ms update. Brute force over all
+/// points when at most [`FEW_OPEN`] points are open (a few milliseconds at most), else `true`
+/// (the step runs and finds its pairs). Conservative: the range is widened by a few ulps, and
+/// the answer is `true` wherever the lists could hold a pair.
+fn may_pair(pos: &[Vec3], open: &[usize], r: f32) -> bool {
     if open.len() > FEW_OPEN {
         return true;
     }
@@ -560,6 +564,29 @@ fn may_pair(pos: &[Vec3], caps: &[u8], step: u32, r: f32) -> bool {
             .enumerate()
             .any(|(q, x)| q != p && (near..=far).contains(&x.distance_squared(pos[p])))
     })
+}
+
+/// The steps of a refinement, for both implementations: step `s` at radius
+/// `radius_after[s - 1]` (`step(points, r, s)`, which says whether another follows), from 1 up
+/// to `last` or until one says none follows; `after(points, r_next)` sees the points after
+/// each step that another follows.
+fn run_steps<P>(
+    pts: &mut P,
+    radius_after: &[f32],
+    last: u32,
+    mut step: impl FnMut(&mut P, f32, u32) -> Result<(StepStats, bool), RefineError>,
+    mut after: impl FnMut(&P, f32),
+) -> Result<Vec<StepStats>, RefineError> {
+    let mut stats = Vec::new();
+    for s in 1..=last {
+        let (done, more) = step(pts, radius_after[s as usize - 1], s)?;
+        stats.push(done);
+        if !more {
+            break;
+        }
+        after(pts, radius_after[s as usize]);
+    }
+    Ok(stats)
 }
 
 /// The child candidates of point `p1` with its higher-numbered neighbours, in neighbour order.

@@ -13,8 +13,8 @@ use glam::Vec3;
 use super::{
     BYTES_PER_POINT, Candidate, Levels, NeighbourLists, RADIUS_FACTOR, RefineError, RefineParams,
     Refined, StepStats, Target, apply_moves, candidates_of, caps_of, finish, for_each_common,
-    for_each_new_neighbour, for_each_registration_unique, initial_neighbours, may_pair,
-    radii_after, type2_hit,
+    for_each_new_neighbour, for_each_registration_unique, initial_neighbours, may_pair, open_to,
+    radii_after, run_steps, type2_hit,
 };
 
 /// Point data carried between steps.
@@ -92,8 +92,8 @@ fn append_and_update(
         beta,
     );
     let moves_ms = t.elapsed().as_secs_f64() * 1e3;
-    let more =
-        step_number < last && (!by_region || may_pair(&pts.pos, &pts.cap, step_number + 1, r_next));
+    let more = step_number < last
+        && (!by_region || may_pair(&pts.pos, &open_to(&pts.cap, step_number + 1), r_next));
     if !more {
         // no update after the last step (§3.4)
         pts.nb.resize(pts.pos.len(), Vec::new());
@@ -294,21 +294,14 @@ pub(super) fn run(
     };
     drop(nb);
     let isolated: Vec<bool> = pts.nb.iter().map(Vec::is_empty).collect();
-    let mut stats = Vec::new();
     let radius_after = radii_after(params.initial_radius, last);
-    for step in 1..=last {
-        let r = radius_after[step as usize - 1];
-        let (done, more) = step_once(&mut pts, params, r, (step, last), levels.is_some())?;
-        stats.push(done);
-        if !more {
-            break;
-        }
-        observe(
-            &pts.pos,
-            NeighbourLists::nested(&pts.nb),
-            radius_after[step as usize],
-        );
-    }
+    let stats = run_steps(
+        &mut pts,
+        &radius_after,
+        last,
+        |pts, r, step| step_once(pts, params, r, (step, last), levels.is_some()),
+        |pts, r| observe(&pts.pos, NeighbourLists::nested(&pts.nb), r),
+    )?;
     Ok(finish(
         pts.pos,
         pts.nrm,
