@@ -585,3 +585,35 @@ fn invalid_views_are_refused() {
         println!("{what}: {e}");
     }
 }
+
+/// The GPU twin refuses the same inputs with the same stage error (issue 38: `GpuError` no
+/// longer wraps it, so a caller matching `Error::Splat` catches the GPU path's refusal too).
+#[test]
+fn the_gpu_twin_refuses_bad_views_with_the_splat_error() {
+    let Some(ctx) =
+        gpu::context_or_skip("the_gpu_twin_refuses_bad_views_with_the_splat_error").unwrap()
+    else {
+        return;
+    };
+    let s = [Surfel::disk(Vec3::ZERO, Vec3::Z, 0.3, splat::WATER)];
+    let (light, p, c) = (Light::default(), SplatParams::default(), Camera::default());
+    let eye_on_target = Camera { target: c.eye, ..c };
+    let cases = [
+        ("zero width", c, 0, 10),
+        ("huge", c, 100_000, 10),
+        ("eye on target", eye_on_target, 8, 8),
+    ];
+    for (what, camera, w, h) in cases {
+        let cpu = splat::render_cpu(&s, &camera, &light, &p, w, h).expect_err(what);
+        match gpu_splat::render_gpu(&ctx, &s, &camera, &light, &p, w, h) {
+            Err(fluid_surfels::Error::Splat(e)) => {
+                assert_eq!(
+                    std::mem::discriminant(&e),
+                    std::mem::discriminant(&cpu),
+                    "{what}: GPU {e} against CPU {cpu}"
+                );
+            }
+            other => panic!("{what}: expected Error::Splat, got {other:?}"),
+        }
+    }
+}

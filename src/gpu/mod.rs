@@ -31,18 +31,6 @@ pub enum GpuError {
     /// Reading results back failed.
     #[error("GPU readback failed: {0}")]
     Readback(String),
-    /// The splatting's inputs (the GPU twin checks them as the CPU path does).
-    #[error(transparent)]
-    Splat(#[from] crate::splat::SplatError),
-    /// The optics stage's inputs.
-    #[error(transparent)]
-    Optics(#[from] crate::optics::OpticsError),
-    /// The ray caster's inputs.
-    #[error(transparent)]
-    RayCast(#[from] crate::raycast::RayCastError),
-    /// The screen-space renderer's inputs.
-    #[error(transparent)]
-    Ssfr(#[from] crate::ssfr::SsfrError),
 }
 
 /// What adapter runs the GPU stages.

@@ -304,7 +304,7 @@ impl OpticsGpu {
         stage: &Stage,
         surfels: &[Surfel],
         size: Option<(u32, u32)>,
-    ) -> Result<PreparedOptics, GpuError> {
+    ) -> Result<PreparedOptics, crate::Error> {
         self.prepare_water(device, queue, stage, GpuWater::Surfels(surfels), size)
     }
 
@@ -348,7 +348,7 @@ impl OpticsGpu {
         stage: &Stage,
         water: GpuWater<'_>,
         size: Option<(u32, u32)>,
-    ) -> Result<PreparedOptics, GpuError> {
+    ) -> Result<PreparedOptics, crate::Error> {
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let limit = device.limits().max_texture_dimension_2d;
         let screen = stage.views.screen;
@@ -463,7 +463,7 @@ impl OpticsGpu {
             ],
         });
         if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Validation(e.to_string()));
+            return Err(GpuError::Validation(e.to_string()).into());
         }
         Ok(PreparedOptics {
             screen,
@@ -497,7 +497,7 @@ struct GeometryTarget {
 }
 
 /// Refuses a screen, map or frame larger than the device's textures.
-fn check_sizes(limit: u32, sizes: [(u32, u32); 3]) -> Result<(), GpuError> {
+fn check_sizes(limit: u32, sizes: [(u32, u32); 3]) -> Result<(), crate::Error> {
     for (w, h) in sizes {
         if w > limit || h > limit {
             return Err(OpticsError::InvalidParameter {
@@ -517,7 +517,7 @@ fn water_passes(
     water: GpuWater<'_>,
     screen: &View,
     camera: &View,
-) -> Result<Water, GpuError> {
+) -> Result<Water, crate::Error> {
     let (fw, fh) = (camera.width, camera.height);
     Ok(match water {
         GpuWater::Surfels(surfels) => {
@@ -690,7 +690,7 @@ impl PreparedOptics {
         queue: &wgpu::Queue,
         stage: &Stage,
         surfels: &[Surfel],
-    ) -> Result<bool, GpuError> {
+    ) -> Result<bool, crate::Error> {
         self.update_water(device, queue, stage, GpuWater::Surfels(surfels))
     }
 
@@ -702,7 +702,7 @@ impl PreparedOptics {
         queue: &wgpu::Queue,
         stage: &Stage,
         water: GpuWater<'_>,
-    ) -> Result<bool, GpuError> {
+    ) -> Result<bool, crate::Error> {
         let (screen, map) = (stage.views.screen, stage.views.map);
         let Some((fw, fh)) = self.frame_size else {
             return Ok(false);
@@ -833,7 +833,7 @@ impl PreparedOptics {
         queue: &wgpu::Queue,
         optics: &OpticsGpu,
         encoder: &mut wgpu::CommandEncoder,
-    ) -> Result<(), GpuError> {
+    ) -> Result<(), crate::Error> {
         match &self.water {
             Water::Splats { surfels, light, .. } => {
                 light.encode_queued(queue, encoder, &self.light_image, surfels, &self.screen)?;
@@ -858,7 +858,7 @@ impl PreparedOptics {
         queue: &wgpu::Queue,
         optics: &OpticsGpu,
         encoder: &mut wgpu::CommandEncoder,
-    ) -> Result<(), GpuError> {
+    ) -> Result<(), crate::Error> {
         let Some(size) = self.frame_size else {
             return Ok(());
         };
@@ -915,7 +915,7 @@ pub fn render_gpu(
     stage: &Stage,
     surfels: &[Surfel],
     size: Option<(u32, u32)>,
-) -> Result<(GpuOpticsResult, OpticsTimes), GpuError> {
+) -> Result<(GpuOpticsResult, OpticsTimes), crate::Error> {
     let optics = OpticsGpu::new(&ctx.device)?;
     let prepared = optics.prepare(&ctx.device, &ctx.queue, stage, surfels, size)?;
     let times = run_timed(ctx, &optics, &prepared)?;
@@ -927,10 +927,10 @@ pub fn run_timed(
     ctx: &GpuContext,
     optics: &OpticsGpu,
     prepared: &PreparedOptics,
-) -> Result<OpticsTimes, GpuError> {
+) -> Result<OpticsTimes, crate::Error> {
     let device = &ctx.device;
     let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-    let run = |frame: bool| -> Result<f64, GpuError> {
+    let run = |frame: bool| -> Result<f64, crate::Error> {
         let mut encoder = device.create_command_encoder(&Default::default());
         if frame {
             prepared.encode_frame(&ctx.queue, optics, &mut encoder)?;
@@ -949,7 +949,7 @@ pub fn run_timed(
         frame_ms: run(true)?,
     };
     if let Some(e) = pollster::block_on(scope.pop()) {
-        return Err(GpuError::Validation(e.to_string()));
+        return Err(GpuError::Validation(e.to_string()).into());
     }
     Ok(times)
 }

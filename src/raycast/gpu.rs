@@ -357,17 +357,18 @@ impl GpuCaster {
         device: &wgpu::Device,
         caster: &Caster<'_>,
         view: &View,
-    ) -> Result<(), GpuError> {
+    ) -> Result<(), crate::Error> {
         if (view.width, view.height) != (self.width, self.height) {
             return Err(GpuError::Validation(format!(
                 "a {}x{} view for a ray caster made for {}x{}",
                 view.width, view.height, self.width, self.height
-            )));
+            ))
+            .into());
         }
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let frame = self.upload(device, caster, view)?;
         if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Validation(e.to_string()));
+            return Err(GpuError::Validation(e.to_string()).into());
         }
         self.frame = Some(frame);
         Ok(())
@@ -378,7 +379,7 @@ impl GpuCaster {
         device: &wgpu::Device,
         caster: &Caster<'_>,
         v: &View,
-    ) -> Result<Frame, GpuError> {
+    ) -> Result<Frame, crate::Error> {
         let points = caster.density().points();
         let params = &caster.params;
         let (tw, tiles) = bin_spheres(caster, v)?;

@@ -188,13 +188,14 @@ impl SplatRenderer {
         format: wgpu::TextureFormat,
         width: u32,
         height: u32,
-    ) -> Result<Self, GpuError> {
+    ) -> Result<Self, crate::Error> {
         check_size(device, width, height)?;
         if !device.features().contains(REQUIRED_FEATURES) {
             return Err(GpuError::MissingFeature {
                 adapter: "the given device".into(),
                 feature: "FLOAT32_BLENDABLE (additive blending into 32-bit float targets)",
-            });
+            }
+            .into());
         }
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -314,7 +315,7 @@ impl SplatRenderer {
         let layouts = [&splat_layout, &attributes_layout, &shade_layout];
         let bound = bind_groups(device, layouts, &targets, &uniforms);
         if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Validation(e.to_string()));
+            return Err(GpuError::Validation(e.to_string()).into());
         }
         Ok(Self {
             format,
@@ -348,7 +349,7 @@ impl SplatRenderer {
         device: &wgpu::Device,
         width: u32,
         height: u32,
-    ) -> Result<(), GpuError> {
+    ) -> Result<(), crate::Error> {
         check_size(device, width, height)?;
         if (width, height) != self.size() {
             self.targets = create_targets(device, width, height);
@@ -406,7 +407,7 @@ impl SplatRenderer {
         bind_groups(device, self.layouts(), &self.targets, &uniforms)
     }
 
-    fn check_view(&self, view: &View) -> Result<(), GpuError> {
+    fn check_view(&self, view: &View) -> Result<(), crate::Error> {
         if (view.width, view.height) != self.size() {
             return Err(SplatError::InvalidParameter {
                 name: "view",
@@ -429,7 +430,7 @@ impl SplatRenderer {
         target: &wgpu::TextureView,
         surfels: &SurfelBuffer,
         view: &View,
-    ) -> Result<(), GpuError> {
+    ) -> Result<(), crate::Error> {
         self.check_view(view)?;
         let bound = self.bind_groups(device, view);
         self.encode_passes(encoder, target, surfels, &bound);
@@ -461,7 +462,7 @@ impl SplatRenderer {
         target: &wgpu::TextureView,
         (colour, normal): (&wgpu::TextureView, &wgpu::TextureView),
         view: &View,
-    ) -> Result<(), GpuError> {
+    ) -> Result<(), crate::Error> {
         self.check_view(view)?;
         queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&view.to_raw()));
         let entry = |binding, resource| wgpu::BindGroupEntry { binding, resource };
@@ -488,7 +489,7 @@ impl SplatRenderer {
         target: &wgpu::TextureView,
         surfels: &SurfelBuffer,
         view: &View,
-    ) -> Result<(), GpuError> {
+    ) -> Result<(), crate::Error> {
         self.check_view(view)?;
         queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&view.to_raw()));
         self.encode_passes(encoder, target, surfels, &self.bound);
@@ -642,7 +643,7 @@ fn bind_groups(
     }
 }
 
-fn check_size(device: &wgpu::Device, width: u32, height: u32) -> Result<(), GpuError> {
+fn check_size(device: &wgpu::Device, width: u32, height: u32) -> Result<(), crate::Error> {
     let max = device
         .limits()
         .max_texture_dimension_2d
@@ -662,7 +663,7 @@ pub fn render_gpu(
     params: &SplatParams,
     width: u32,
     height: u32,
-) -> Result<Render, GpuError> {
+) -> Result<Render, crate::Error> {
     let view = View::new(camera, light, params, width, height)?;
     crate::splat::check_cost(
         surfels.len(),
@@ -681,7 +682,7 @@ pub fn render_timed(
     renderer: &SplatRenderer,
     surfels: &SurfelBuffer,
     view: &View,
-) -> Result<(Render, PassTimes), GpuError> {
+) -> Result<(Render, PassTimes), crate::Error> {
     renderer.check_view(view)?;
     let device = &ctx.device;
     let (width, height) = renderer.size();
@@ -713,7 +714,7 @@ pub fn render_timed(
     let colour = gpu::read_texture(ctx, &renderer.targets.colour, 16)?;
     let normal = gpu::read_texture(ctx, &renderer.targets.normal, 16)?;
     if let Some(e) = pollster::block_on(scope.pop()) {
-        return Err(GpuError::Validation(e.to_string()));
+        return Err(GpuError::Validation(e.to_string()).into());
     }
     let render = Render {
         width,

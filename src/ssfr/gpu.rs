@@ -244,7 +244,7 @@ impl GpuSsfr {
         device: &wgpu::Device,
         screen: &ScreenSpace<'_>,
         v: &View,
-    ) -> Result<(), GpuError> {
+    ) -> Result<(), crate::Error> {
         let params = screen.params();
         let (w, h) = (v.width, v.height);
         let spheres: Vec<[f32; 4]> = (0..screen.drawn())
@@ -370,7 +370,7 @@ impl GpuSsfr {
             ],
         );
         if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Validation(e.to_string()));
+            return Err(GpuError::Validation(e.to_string()).into());
         }
         self.frame = Some(Frame {
             view: *v,
