@@ -539,6 +539,35 @@ fn gpu_pipeline_with_the_peer_renderers_equals_the_cpu_pipeline() {
         ctx.queue.submit([encoder.finish()]);
         let splats = gpu::read_rgba8(&ctx, &target).unwrap();
         let splats_db = splat::psnr(cpu_splats, &splats);
+        // both pictures from one build of the renderer's water: the same two images
+        let both = gpu::texture_2d(
+            &ctx.device,
+            "both",
+            size,
+            format,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+        );
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        gpu.prepare_frame_and_splats(
+            &ctx.device,
+            &ctx.queue,
+            &mut encoder,
+            &frame,
+            &both.create_view(&Default::default()),
+        )
+        .unwrap();
+        let finished = gpu.draw_to_texture(&ctx.device, &mut encoder);
+        ctx.queue.submit([encoder.finish()]);
+        assert_eq!(
+            gpu::read_rgba8(&ctx, &both).unwrap(),
+            splats,
+            "{renderer:?}"
+        );
+        assert_eq!(
+            gpu::read_rgba8(&ctx, &finished).unwrap(),
+            image,
+            "{renderer:?}"
+        );
         // the pipeline of the previous renderer, switched to this one
         let switched_db = switched.as_mut().map(|g| {
             g.cpu_mut().set_renderer(renderer);

@@ -9,7 +9,7 @@ use image::RgbaImage;
 use rayon::prelude::*;
 
 use super::{OpticsError, Stage, encode, fresnel_reflectance, refract, texel_area};
-use crate::splat::{Light, Render, Surfel, View, render_view_cpu};
+use crate::splat::{Light, Render, Surfel, View, WaterSurface, render_view_cpu};
 
 /// One pixel of the virtual screen: the water point, its depth from the light, where its
 /// refracted ray meets the receiver, and `T exp(-sigma_t l)` per channel.
@@ -250,31 +250,26 @@ fn rasterise(
     }
 }
 
-/// What draws the water for the optics' views (the light's screen and the camera): the
-/// per-pixel buffers of a [`Render`], `(sum w normal, sum w depth)` with their weight, which the
-/// optics read as the water's normal and depth. Surfels are drawn by EWA splatting (or particle
-/// spheres, by the view's mode); [`crate::raycast::Caster`] casts rays to the iso-surface.
-pub trait WaterSurface: Sync {
-    /// The water as seen in `view`.
-    fn render(&self, view: &View) -> Result<Render, OpticsError>;
-}
-
-impl WaterSurface for &[Surfel] {
-    fn render(&self, view: &View) -> Result<Render, OpticsError> {
-        Ok(render_view_cpu(self, view)?)
-    }
-}
-
 /// The caustics of the surfels under the stage's light (§5.1), CPU reference.
 pub fn caustics_cpu(stage: &Stage, surfels: &[Surfel]) -> Result<Caustics, OpticsError> {
-    caustics_of(stage, &surfels)
+    caustics_of_render(stage, &render_view_cpu(surfels, &stage.views.screen)?)
 }
 
-/// [`caustics_cpu`] of any water surface.
-pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, OpticsError> {
+/// [`caustics_cpu`] of any water surface (the renderers of [`crate::splat::water`]: splatted
+/// surfels, rays cast to the iso-surface, the screen-space surface).
+pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, crate::Error> {
+    Ok(caustics_of_render(
+        stage,
+        &water.render(&stage.views.screen)?,
+    )?)
+}
+
+/// [`caustics_cpu`] of the water as drawn from the light's screen: the per-pixel buffers of a
+/// [`Render`], `(sum w normal, sum w depth)` with their weight, read as the water's normal and
+/// depth.
+fn caustics_of_render(stage: &Stage, water: &Render) -> Result<Caustics, OpticsError> {
     let screen = stage.views.screen;
     let map = stage.views.map;
-    let water = water.render(&screen)?;
     let ior = stage.scene.water.ior;
     let sigma = stage.scene.water.extinction;
     let eps = 1e-5 * stage.size;
@@ -283,7 +278,7 @@ pub fn caustics_of(stage: &Stage, water: &dyn WaterSurface) -> Result<Caustics, 
     let vertices: Vec<CausticVertex> = (0..(sw * sh) as usize)
         .into_par_iter()
         .map(|i| {
-            let Some((n_acc, depth)) = water_at(&water, i) else {
+            let Some((n_acc, depth)) = water_at(water, i) else {
                 return CausticVertex::default();
             };
             let (x, y) = (i as u32 % sw, i as u32 / sw);
@@ -769,7 +764,9 @@ pub fn frame_cpu(
     caustics: &Caustics,
     size: (u32, u32),
 ) -> Result<FrameImage, OpticsError> {
-    frame_of(stage, &surfels, caustics, size)
+    let view = camera_view(stage, size)?;
+    let water = render_view_cpu(surfels, &view)?;
+    frame_of_render(stage, &view, water, caustics)
 }
 
 /// [`frame_cpu`] of any water surface.
@@ -778,15 +775,31 @@ pub fn frame_of(
     water: &dyn WaterSurface,
     caustics: &Caustics,
     size: (u32, u32),
-) -> Result<FrameImage, OpticsError> {
-    let view = View::new(
+) -> Result<FrameImage, crate::Error> {
+    let view = camera_view(stage, size)?;
+    let water = water.render(&view)?;
+    Ok(frame_of_render(stage, &view, water, caustics)?)
+}
+
+/// The camera's view of the finished frame, `size` pixels.
+fn camera_view(stage: &Stage, size: (u32, u32)) -> Result<View, OpticsError> {
+    Ok(View::new(
         &stage.camera,
         &Light::default(),
         &stage.scene.optics.splat,
         size.0,
         size.1,
-    )?;
-    let water = water.render(&view)?;
+    )?)
+}
+
+/// [`frame_cpu`] of the water as drawn from the camera's `view`.
+fn frame_of_render(
+    stage: &Stage,
+    view: &View,
+    water: Render,
+    caustics: &Caustics,
+) -> Result<FrameImage, OpticsError> {
+    let size = (view.width, view.height);
     let linear: Vec<[f32; 4]> = (0..(size.0 * size.1) as usize)
         .into_par_iter()
         .map(|i| {

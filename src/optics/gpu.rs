@@ -17,10 +17,7 @@ use wgpu::util::DeviceExt;
 
 use crate::gpu::{self, GpuContext, GpuError, entry, texture_2d, texture_descriptor};
 use crate::optics::{Container, EnvironmentKind, LightKind, OpticsError, Stage, encode};
-use crate::raycast::Caster;
-use crate::raycast::gpu::GpuCaster;
-use crate::splat::gpu::{SplatRenderer, SurfelBuffer};
-use crate::splat::{Light, Surfel, View};
+use crate::splat::{GpuWaterPass, Light, Surfel, SurfelWater, View, WaterSurface};
 
 /// The WGSL of the caustics and final-image passes.
 pub const SHADER: &str = concat!(
@@ -305,7 +302,7 @@ impl OpticsGpu {
         surfels: &[Surfel],
         size: Option<(u32, u32)>,
     ) -> Result<PreparedOptics, crate::Error> {
-        self.prepare_water(device, queue, stage, GpuWater::Surfels(surfels), size)
+        self.prepare_water(device, queue, stage, &SurfelWater(surfels), size)
     }
 
     /// The targets and uniforms of a geometry map of the receiver seen in `v` (its size).
@@ -338,15 +335,16 @@ impl OpticsGpu {
         }
     }
 
-    /// [`Self::prepare`] with the water drawn from `water`: splatted surfels, or rays cast to
-    /// the iso-surface of a caster's points (the light's view and the camera's, each cast on
-    /// the GPU into the textures the optics read).
+    /// [`Self::prepare`] with the water drawn from `water`: splatted surfels, rays cast to the
+    /// iso-surface of a caster's points, the screen-space surface (any renderer of
+    /// [`crate::splat::water`]: the light's view and the camera's, each drawn on the GPU by the
+    /// renderer's [`GpuWaterPass`] into the accumulation textures the optics read).
     pub fn prepare_water(
         &self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
         stage: &Stage,
-        water: GpuWater<'_>,
+        water: &dyn WaterSurface,
         size: Option<(u32, u32)>,
     ) -> Result<PreparedOptics, crate::Error> {
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -369,19 +367,8 @@ impl OpticsGpu {
             fw,
             fh,
         )?;
-        let texture = |label, w, h, format, usage| texture_2d(device, label, (w, h), format, usage);
-        let attach = wgpu::TextureUsages::RENDER_ATTACHMENT;
         let map_geometry = self.geometry_target(device, "light geometry map", &map);
         let camera_geometry = self.geometry_target(device, "camera geometry map", &camera);
-        let rgba8 = wgpu::TextureFormat::Rgba8Unorm;
-        let light_image = texture(
-            "light splat image",
-            screen.width,
-            screen.height,
-            rgba8,
-            attach,
-        );
-        let camera_image = texture("camera splat image", fw, fh, rgba8, attach);
         let water = water_passes(device, queue, water, &screen, &camera)?;
         let environment = environment_texture(device, queue, stage, limit);
         // the receiver, flat normals per vertex
@@ -416,11 +403,8 @@ impl OpticsGpu {
             contents: bytemuck::bytes_of(&raw_optics(stage, &camera)),
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
         });
-        let ((screen_colour, screen_normal), (camera_colour, camera_normal)) = match &water {
-            Water::Splats { light, camera, .. } => (light.accumulation(), camera.accumulation()),
-            Water::Cast { light, camera } => (light.accumulation(), camera.accumulation()),
-            Water::Screen { light, camera } => (light.accumulation()?, camera.accumulation()?),
-        };
+        let (screen_colour, screen_normal) = water.light.accumulation()?;
+        let (camera_colour, camera_normal) = water.camera.accumulation()?;
         let view = |t: &wgpu::Texture| t.create_view(&Default::default());
         let views = [
             view(&map_geometry.position),
@@ -471,8 +455,6 @@ impl OpticsGpu {
             camera,
             frame_size: size,
             water,
-            light_image: view(&light_image),
-            camera_image: view(&camera_image),
             map_geometry,
             camera_geometry,
             receiver_vertices,
@@ -510,50 +492,29 @@ fn check_sizes(limit: u32, sizes: [(u32, u32); 3]) -> Result<(), crate::Error> {
     Ok(())
 }
 
-/// The water's passes from the light's screen and from the camera, for each kind of water.
+/// The water's passes from the light's screen and from the camera, made and prepared by the
+/// water's renderer.
 fn water_passes(
     device: &wgpu::Device,
     queue: &wgpu::Queue,
-    water: GpuWater<'_>,
+    water: &dyn WaterSurface,
     screen: &View,
     camera: &View,
 ) -> Result<Water, crate::Error> {
-    let (fw, fh) = (camera.width, camera.height);
-    Ok(match water {
-        GpuWater::Surfels(surfels) => {
-            let mut buffer = SplatRenderer::upload(device, &[]);
-            buffer.write(device, queue, surfels);
-            Water::Splats {
-                surfels: buffer,
-                light: SplatRenderer::new(
-                    device,
-                    wgpu::TextureFormat::Rgba8Unorm,
-                    screen.width,
-                    screen.height,
-                )?,
-                camera: SplatRenderer::new(device, wgpu::TextureFormat::Rgba8Unorm, fw, fh)?,
-            }
+    let pass = |v: &View| -> Result<Box<dyn GpuWaterPass>, crate::Error> {
+        let mut pass =
+            water.gpu_pass(device, wgpu::TextureFormat::Rgba8Unorm, (v.width, v.height))?;
+        if !water.prepare_gpu(device, queue, pass.as_mut(), v)? {
+            return Err(GpuError::Validation(
+                "a water pass its own renderer could not prepare".into(),
+            )
+            .into());
         }
-        GpuWater::Cast(caster) => {
-            let mut light = GpuCaster::new(device, screen.width, screen.height)?;
-            light.prepare(device, caster, screen)?;
-            let mut cast = GpuCaster::new(device, fw, fh)?;
-            cast.prepare(device, caster, camera)?;
-            Water::Cast {
-                light,
-                camera: cast,
-            }
-        }
-        GpuWater::Screen(screen_space) => {
-            let mut light = crate::ssfr::gpu::GpuSsfr::new(device)?;
-            light.prepare(device, screen_space, screen)?;
-            let mut view = crate::ssfr::gpu::GpuSsfr::new(device)?;
-            view.prepare(device, screen_space, camera)?;
-            Water::Screen {
-                light,
-                camera: view,
-            }
-        }
+        Ok(pass)
+    };
+    Ok(Water {
+        light: pass(screen)?,
+        camera: pass(camera)?,
     })
 }
 
@@ -583,34 +544,10 @@ fn environment_texture(
     )
 }
 
-/// What the GPU optics draw the water from.
-#[derive(Clone, Copy)]
-pub enum GpuWater<'a> {
-    /// Surfels splatted as the stage's splat parameters say (EWA, sprites or spheres).
-    Surfels(&'a [Surfel]),
-    /// Rays cast to the iso-surface of the caster's points ([`crate::raycast`]).
-    Cast(&'a Caster<'a>),
-    /// The screen-space passes of the points ([`crate::ssfr`]).
-    Screen(&'a crate::ssfr::ScreenSpace<'a>),
-}
-
-/// The water's passes: the light's and the camera's. One per prepared stage, so the size of
-/// its variants does not matter.
-#[allow(clippy::large_enum_variant)]
-enum Water {
-    Splats {
-        surfels: SurfelBuffer,
-        light: SplatRenderer,
-        camera: SplatRenderer,
-    },
-    Cast {
-        light: GpuCaster,
-        camera: GpuCaster,
-    },
-    Screen {
-        light: crate::ssfr::gpu::GpuSsfr,
-        camera: crate::ssfr::gpu::GpuSsfr,
-    },
+/// The water's passes: the light's and the camera's.
+struct Water {
+    light: Box<dyn GpuWaterPass>,
+    camera: Box<dyn GpuWaterPass>,
 }
 
 /// The GPU resources of one stage, ready to record.
@@ -620,8 +557,6 @@ pub struct PreparedOptics {
     camera: View,
     frame_size: Option<(u32, u32)>,
     water: Water,
-    light_image: wgpu::TextureView,
-    camera_image: wgpu::TextureView,
     map_geometry: GeometryTarget,
     camera_geometry: GeometryTarget,
     receiver_vertices: wgpu::Buffer,
@@ -691,7 +626,7 @@ impl PreparedOptics {
         stage: &Stage,
         surfels: &[Surfel],
     ) -> Result<bool, crate::Error> {
-        self.update_water(device, queue, stage, GpuWater::Surfels(surfels))
+        self.update_water(device, queue, stage, &SurfelWater(surfels))
     }
 
     /// [`Self::update`] with the water drawn from `water`; `false` too when it is drawn another
@@ -701,7 +636,7 @@ impl PreparedOptics {
         device: &wgpu::Device,
         queue: &wgpu::Queue,
         stage: &Stage,
-        water: GpuWater<'_>,
+        water: &dyn WaterSurface,
     ) -> Result<bool, crate::Error> {
         let (screen, map) = (stage.views.screen, stage.views.map);
         let Some((fw, fh)) = self.frame_size else {
@@ -722,38 +657,12 @@ impl PreparedOptics {
             fw,
             fh,
         )?;
-        match (&mut self.water, water) {
-            (
-                Water::Splats {
-                    surfels: buffer, ..
-                },
-                GpuWater::Surfels(surfels),
-            ) => {
-                buffer.write(device, queue, surfels);
-            }
-            (
-                Water::Cast {
-                    light,
-                    camera: cast,
-                },
-                GpuWater::Cast(caster),
-            ) => {
-                light.prepare(device, caster, &screen)?;
-                cast.prepare(device, caster, &camera)?;
-            }
-            (
-                Water::Screen {
-                    light,
-                    camera: view,
-                },
-                GpuWater::Screen(screen_space),
-            ) => {
-                // the same sizes (checked above), so the targets the bind groups hold stay
-                light.prepare(device, screen_space, &screen)?;
-                view.prepare(device, screen_space, &camera)?;
-            }
-            // drawn another way than prepared: new targets (nothing written yet)
-            _ => return Ok(false),
+        // the same sizes (checked above), so the targets the bind groups hold stay; drawn
+        // another way than prepared: new targets
+        if !water.prepare_gpu(device, queue, self.water.light.as_mut(), &screen)?
+            || !water.prepare_gpu(device, queue, self.water.camera.as_mut(), &camera)?
+        {
+            return Ok(false);
         }
         queue.write_buffer(
             &self.uniforms,
@@ -834,13 +743,7 @@ impl PreparedOptics {
         optics: &OpticsGpu,
         encoder: &mut wgpu::CommandEncoder,
     ) -> Result<(), crate::Error> {
-        match &self.water {
-            Water::Splats { surfels, light, .. } => {
-                light.encode_queued(queue, encoder, &self.light_image, surfels, &self.screen)?;
-            }
-            Water::Cast { light, .. } => light.encode(encoder)?,
-            Water::Screen { light, .. } => light.encode(encoder)?,
-        }
+        self.water.light.encode(queue, encoder)?;
         self.draw_geometry(optics, encoder, &self.map_geometry);
         encoder.clear_buffer(&self.flux, 0, None);
         let screen = (self.screen.width, self.screen.height);
@@ -862,15 +765,7 @@ impl PreparedOptics {
         let Some(size) = self.frame_size else {
             return Ok(());
         };
-        match &self.water {
-            Water::Splats {
-                surfels, camera, ..
-            } => {
-                camera.encode_queued(queue, encoder, &self.camera_image, surfels, &self.camera)?;
-            }
-            Water::Cast { camera, .. } => camera.encode(encoder)?,
-            Water::Screen { camera, .. } => camera.encode(encoder)?,
-        }
+        self.water.camera.encode(queue, encoder)?;
         self.draw_geometry(optics, encoder, &self.camera_geometry);
         self.dispatch(encoder, &optics.frame, size);
         Ok(())

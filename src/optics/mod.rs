@@ -60,8 +60,7 @@ use serde::{Deserialize, Serialize};
 use crate::splat::{Camera, SplatError, SplatParams, Surfel, View};
 
 pub use cpu::{
-    Caustics, FrameImage, WaterSurface, caustics_cpu, caustics_of, frame_cpu, frame_of,
-    receiver_irradiance,
+    Caustics, FrameImage, caustics_cpu, caustics_of, frame_cpu, frame_of, receiver_irradiance,
 };
 pub use receiver::{Container, Receiver, ReceiverGeometry, ReceiverKind};
 

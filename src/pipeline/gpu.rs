@@ -16,10 +16,9 @@
 use super::{Frame, Pipeline, PipelineParams, Through};
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::optics::Stage;
-use crate::optics::gpu::{GpuWater, OpticsGpu, PreparedOptics};
-use crate::raycast::gpu::GpuCaster;
-use crate::splat::gpu::{SplatRenderer, SurfelBuffer};
-use crate::view::{Light, View};
+use crate::optics::gpu::{OpticsGpu, PreparedOptics};
+use crate::splat::gpu::SplatRenderer;
+use crate::splat::{GpuWaterPass, WaterSurface};
 use crate::{Error, ParticleView};
 
 /// The WGSL of the presenting pass.
@@ -52,14 +51,12 @@ pub struct GpuPipeline {
     prepared: Option<(PreparedOptics, wgpu::BindGroup)>,
     /// Whether the last `prepare` reused the previous frame's GPU resources.
     reused: bool,
-    /// The shaded splats' renderer (for the caller's format and size) and surfel buffer.
-    splats: SplatRenderer,
-    splat_surfels: SurfelBuffer,
-    /// The ray caster of the shaded image (with [`super::Renderer::RayCast`]), made on first use.
-    caster: Option<GpuCaster>,
-    /// The screen-space passes of the shaded image (with [`super::Renderer::Ssfr`]), made on
-    /// first use.
-    screen_space: Option<crate::ssfr::gpu::GpuSsfr>,
+    /// The shaded image's water pass (the renderer's, for the caller's format and size), made
+    /// on first use and again when the renderer or the size changes.
+    pass: Option<Box<dyn GpuWaterPass>>,
+    /// The shading pass for a water pass that does not shade itself (the ray caster's, the
+    /// screen-space renderer's), made on first use.
+    shading: Option<SplatRenderer>,
 }
 
 impl GpuPipeline {
@@ -137,16 +134,13 @@ impl GpuPipeline {
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let splats = SplatRenderer::new(device, format, size.0, size.1)?;
-        let splat_surfels = SplatRenderer::upload(device, &[]);
+        crate::splat::gpu::check_device(device, size.0, size.1)?;
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Validation(e.to_string()).into());
         }
         Ok(Self {
-            splats,
-            splat_surfels,
-            caster: None,
-            screen_space: None,
+            pass: None,
+            shading: None,
             cpu,
             optics,
             format,
@@ -194,7 +188,10 @@ impl GpuPipeline {
     /// Follows a new target size (from the next `prepare` on).
     pub fn resize(&mut self, device: &wgpu::Device, width: u32, height: u32) -> Result<(), Error> {
         check_size((width, height))?;
-        self.splats.resize(device, width, height)?;
+        crate::splat::gpu::check_device(device, width, height)?;
+        if let Some(shading) = &mut self.shading {
+            shading.resize(device, width, height)?;
+        }
         self.size = (width, height);
         self.cpu.set_image_size(width, height);
         Ok(())
@@ -225,26 +222,48 @@ impl GpuPipeline {
         encoder: &mut wgpu::CommandEncoder,
         frame: &Frame,
     ) -> Result<(), Error> {
+        let points = self.cpu.water_points(&frame.render_surfels);
+        let water = self.cpu.water_of(
+            &frame.render_surfels,
+            points.as_ref(),
+            &frame.render_weights,
+        )?;
+        self.prepare_frame_with(device, queue, encoder, frame, water.as_ref())
+    }
+
+    /// Both pictures of `frame` from one build of the renderer's water (the ray caster's index,
+    /// the screen-space narrow band): [`GpuPipeline::prepare_frame`], then
+    /// [`GpuPipeline::encode_splats`] into `splats_target`.
+    pub fn prepare_frame_and_splats(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        frame: &Frame,
+        splats_target: &wgpu::TextureView,
+    ) -> Result<(), Error> {
+        let points = self.cpu.water_points(&frame.render_surfels);
+        let water = self.cpu.water_of(
+            &frame.render_surfels,
+            points.as_ref(),
+            &frame.render_weights,
+        )?;
+        self.prepare_frame_with(device, queue, encoder, frame, water.as_ref())?;
+        self.encode_splats_with(device, queue, encoder, frame, water.as_ref(), splats_target)
+    }
+
+    /// [`GpuPipeline::prepare_frame`] with the frame's water built.
+    fn prepare_frame_with(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        frame: &Frame,
+        water: &dyn WaterSurface,
+    ) -> Result<(), Error> {
         let surfels = &frame.render_surfels;
         let scene = self.cpu.fitted_scene(surfels, frame.radius)?;
         let stage = Stage::new(&scene, surfels)?;
-        // ray casting and screen space draw the light's and the camera's views from the
-        // surfels' points
-        let (positions, radii);
-        let (caster, screen);
-        let water = match self.cpu.params().renderer {
-            super::Renderer::RayCast => {
-                (positions, radii) = super::sphere_points(surfels);
-                caster = self.cpu.caster(&positions, &radii, &frame.render_weights)?;
-                GpuWater::Cast(&caster)
-            }
-            super::Renderer::Ssfr => {
-                (positions, radii) = super::sphere_points(surfels);
-                screen = self.cpu.screen_space(&positions, &radii)?;
-                GpuWater::Screen(&screen)
-            }
-            _ => GpuWater::Surfels(surfels),
-        };
         // the steady state: last frame's targets fit (the views are kept), only uniforms,
         // receiver and surfels are written
         let reused = match &mut self.prepared {
@@ -297,10 +316,10 @@ impl GpuPipeline {
     /// Records the shaded EWA splats of `frame`'s surfels (Blinn-Phong, no optics) into `target`,
     /// a view of a texture of the pipeline's format and size: the other picture `GpuPipeline`
     /// draws, the GPU twin of [`super::Through::Splats`]. Seen from the sequence's kept camera
-    /// (or the scene's, or one framing the surfels, as the CPU pipeline does). Creates nothing in
-    /// the steady state: the surfels go into a growing buffer through the queue. With
-    /// [`super::Renderer::RayCast`] the rays are cast (`raycast::gpu::GpuCaster`, whose inputs
-    /// are uploaded anew each frame) and shaded by the splats' shading pass.
+    /// (or the scene's, or one framing the surfels, as the CPU pipeline does), drawn by the
+    /// renderer's [`GpuWaterPass`]: the splats write their surfels into a growing buffer through
+    /// the queue and create nothing in the steady state; the ray caster and the screen-space
+    /// renderer upload their inputs anew each frame and are shaded by the splats' shading pass.
     pub fn encode_splats(
         &mut self,
         device: &wgpu::Device,
@@ -309,54 +328,48 @@ impl GpuPipeline {
         frame: &Frame,
         target: &wgpu::TextureView,
     ) -> Result<(), Error> {
+        let points = self.cpu.water_points(&frame.render_surfels);
+        let water = self.cpu.water_of(
+            &frame.render_surfels,
+            points.as_ref(),
+            &frame.render_weights,
+        )?;
+        self.encode_splats_with(device, queue, encoder, frame, water.as_ref(), target)
+    }
+
+    /// [`GpuPipeline::encode_splats`] with the frame's water built.
+    fn encode_splats_with(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        frame: &Frame,
+        water: &dyn WaterSurface,
+        target: &wgpu::TextureView,
+    ) -> Result<(), Error> {
         let camera = self.cpu.splat_camera(&frame.render_surfels);
-        let (w, h) = self.size;
-        let view = View::new(&camera, &Light::default(), &self.cpu.splat_params(), w, h)?;
-        if self.cpu.params().renderer == super::Renderer::Ssfr {
-            // the screen-space passes into their textures, shaded by the splats' shading pass
-            let (positions, radii) = super::sphere_points(&frame.render_surfels);
-            let screen = self.cpu.screen_space(&positions, &radii)?;
-            let passes = match &mut self.screen_space {
-                Some(p) => p,
-                slot => slot.insert(crate::ssfr::gpu::GpuSsfr::new(device)?),
-            };
-            passes.prepare(device, &screen, &view)?;
-            passes.encode(encoder)?;
-            self.splats.encode_shading_of(
-                device,
-                queue,
-                encoder,
-                target,
-                passes.accumulation()?,
-                &view,
-            )?;
-            return Ok(());
+        let view = self.cpu.draw_view(&camera, self.size)?;
+        let prepared = match &mut self.pass {
+            Some(pass) => water.prepare_gpu(device, queue, pass.as_mut(), &view)?,
+            None => false,
+        };
+        if !prepared {
+            // the first frame, another renderer or another size: a new pass
+            let mut pass = water.gpu_pass(device, self.format, self.size)?;
+            if !water.prepare_gpu(device, queue, pass.as_mut(), &view)? {
+                return Err(GpuError::Validation(
+                    "a water pass its own renderer could not prepare".into(),
+                )
+                .into());
+            }
+            self.pass = Some(pass);
         }
-        if self.cpu.params().renderer == super::Renderer::RayCast {
-            // cast into the caster's textures, shaded by the splats' shading pass
-            let (positions, radii) = super::sphere_points(&frame.render_surfels);
-            let caster = self.cpu.caster(&positions, &radii, &frame.render_weights)?;
-            let cast = match &mut self.caster {
-                Some(c) if c.size() == self.size => c,
-                slot => slot.insert(GpuCaster::new(device, w, h)?),
-            };
-            cast.prepare(device, &caster, &view)?;
-            cast.encode(encoder)?;
-            self.splats.encode_shading_of(
-                device,
-                queue,
-                encoder,
-                target,
-                cast.accumulation(),
-                &view,
-            )?;
-            return Ok(());
+        let pass = self.pass.as_deref().expect("made above");
+        if !pass.shades_itself() && self.shading.is_none() {
+            let (w, h) = self.size;
+            self.shading = Some(SplatRenderer::new(device, self.format, w, h)?);
         }
-        self.splat_surfels
-            .write(device, queue, &frame.render_surfels);
-        self.splats
-            .encode_queued(queue, encoder, target, &self.splat_surfels, &view)?;
-        Ok(())
+        pass.encode_shaded(device, queue, encoder, target, self.shading.as_ref())
     }
 
     /// Draws the prepared frame into the caller's render pass (a target of the pipeline's format
@@ -481,20 +494,8 @@ impl Pipeline {
         camera: &crate::splat::Camera,
         (w, h): (u32, u32),
     ) -> Result<crate::splat::Render, Error> {
-        let light = Light::default();
-        let params = self.splat_params();
-        let points = self.peer_points(surfels);
-        Ok(match self.peer_renderers(points.as_ref(), weights)? {
-            (_, Some(screen)) => {
-                let view = View::new(camera, &light, &params, w, h)?;
-                crate::ssfr::gpu::render_view_gpu(ctx, &screen, &view)?.render
-            }
-            (Some(caster), _) => {
-                crate::raycast::gpu::render_gpu(ctx, &caster, camera, &light, &params, w, h)?.render
-            }
-            (None, None) => {
-                crate::splat::gpu::render_gpu(ctx, surfels, camera, &light, &params, w, h)?
-            }
-        })
+        let points = self.water_points(surfels);
+        let water = self.water_of(surfels, points.as_ref(), weights)?;
+        water.render_gpu(ctx, &self.draw_view(camera, (w, h))?)
     }
 }

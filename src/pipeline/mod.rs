@@ -18,9 +18,13 @@
 //!
 //! Where the rendered surfels come from is [`SurfelSource`]: the design chain (default), the
 //! density grid of the raw particles, or the refined points themselves. How they are drawn is
-//! [`Renderer`]: EWA surface splatting of surfels (default), or particle splatting (Adams et al.
-//! 2006), which draws the source's points as spheres with neither a grid nor surfels; either
-//! gives the optics stage the same per-pixel depth and normal buffers to refract and reflect.
+//! [`Renderer`]: EWA surface splatting of surfels (default), particle splatting (Adams et al.
+//! 2006), which draws the source's points as spheres with neither a grid nor surfels, ray
+//! casting to the points' iso-surface or the screen-space surface; each gives the optics stage
+//! the same per-pixel depth and normal buffers to refract and reflect. The pipeline holds the
+//! renderer as a [`WaterRenderer`] ([`water_renderer`], the registry; or one of the caller's
+//! own, [`Pipeline::set_water_renderer`]) and never matches on its kind
+//! ([`crate::splat::water`]).
 //!
 //! ```
 //! use fluid_surfels::pipeline::{Pipeline, PipelineParams, Through};
@@ -46,7 +50,10 @@ use crate::neighbours::{self, Backend, Neighbourhoods};
 use crate::optics::{self, Caustics, OpticsScene, ReceiverKind, Stage};
 use crate::refine::{self, RefineParams, Refined};
 use crate::scenes::ColumnSim;
-use crate::splat::{self, Camera, Light, Render, SplatParams, Surfel};
+use crate::splat::{
+    self, Camera, Drawn, Light, Render, SplatParams, Surfel, View, WaterInput, WaterRenderer,
+    WaterSurface,
+};
 use crate::surface::{ParticleClass, Surface, SurfaceDetector, SurfaceParams};
 use crate::surfels::{self, SurfelParams, Surfels};
 use crate::{Error, ParticleView};
@@ -118,9 +125,37 @@ pub enum Renderer {
     Ssfr,
 }
 
+/// The renderer registry: the [`WaterRenderer`] of each [`Renderer`], made from the pipeline's
+/// parameters. A new renderer is its module (a `WaterRenderer`, its `WaterSurface` and
+/// `GpuWaterPass`) and one line here, with its name in [`Renderer`].
+#[must_use]
+pub fn water_renderer(params: &PipelineParams) -> Box<dyn WaterRenderer> {
+    match params.renderer {
+        Renderer::Ewa => Box::new(splat::Ewa),
+        Renderer::ParticleSplat => Box::new(splat::ParticleSplat),
+        Renderer::RayCast => Box::new(crate::raycast::Method {
+            kernel: params.grid.kernel,
+            params: params.raycast,
+        }),
+        Renderer::Ssfr => Box::new(crate::ssfr::Method {
+            params: params.ssfr,
+        }),
+    }
+}
+
 impl Renderer {
     /// Every renderer, in the order of the documentation.
     pub const ALL: [Self; 4] = [Self::Ewa, Self::ParticleSplat, Self::RayCast, Self::Ssfr];
+
+    /// What it draws the water from ([`WaterRenderer::drawn`] of its registered renderer).
+    #[must_use]
+    pub fn drawn(self) -> Drawn {
+        water_renderer(&PipelineParams {
+            renderer: self,
+            ..PipelineParams::default()
+        })
+        .drawn()
+    }
 
     /// The name used in files and on the command line.
     #[must_use]
@@ -569,6 +604,8 @@ pub struct Pipeline {
     /// The level of detail of each surface particle (by id) in the last `detail = "auto"`
     /// frame: the hysteresis of [`ViewLevels::level_after`].
     levels_before: std::collections::HashMap<u32, u8>,
+    /// What draws the water ([`water_renderer`] of the parameters, or the caller's own).
+    water: Box<dyn WaterRenderer>,
 }
 
 /// A function told each warning of a frame as soon as it is known.
@@ -588,6 +625,7 @@ impl Pipeline {
             warning_sink: None,
             drawn: None,
             levels_before: std::collections::HashMap::new(),
+            water: water_renderer(&params),
             params,
         })
     }
@@ -678,6 +716,20 @@ impl Pipeline {
     /// Draws with `renderer` from the next frame on.
     pub fn set_renderer(&mut self, renderer: Renderer) {
         self.params.renderer = renderer;
+        self.water = water_renderer(&self.params);
+    }
+
+    /// Draws with a renderer of the caller's own from the next frame on (the shaded splats, the
+    /// finished frame's views and [`GpuPipeline`]'s passes; `params().renderer` then names only
+    /// the one it replaced). See [`crate::splat::water`].
+    pub fn set_water_renderer(&mut self, water: Box<dyn WaterRenderer>) {
+        self.water = water;
+    }
+
+    /// What draws the water.
+    #[must_use]
+    pub fn water_renderer(&self) -> &dyn WaterRenderer {
+        self.water.as_ref()
     }
 
     /// Forgets what the sequence kept (hysteresis, estimated radius, camera and pool): the next
@@ -853,7 +905,10 @@ impl Pipeline {
         let given = refined;
         let refined = || refined.expect("refined above");
         let boundary = self.params.grid.calibration == Calibration::Boundary;
-        if self.params.renderer == Renderer::RayCast && boundary && source != SurfelSource::Refined
+        let drawn = self.water.drawn();
+        if drawn == (Drawn::Spheres { calibrated: true })
+            && boundary
+            && source != SurfelSource::Refined
         {
             let t = Instant::now();
             let c = self.points_at_boundary(source, particles, surface, given, radius)?;
@@ -864,7 +919,7 @@ impl Pipeline {
                 weights: c.weights,
             });
         }
-        if self.params.renderer != Renderer::Ewa {
+        if drawn != Drawn::Surfels {
             let (positions, radii) = match source {
                 SurfelSource::Chain => chain_points(particles, surface, refined(), radius),
                 SurfelSource::Particles => (particles.positions.to_vec(), Vec::new()),
@@ -1186,33 +1241,27 @@ impl Pipeline {
         p
     }
 
-    /// The points and radii the peer renderers draw ([`sphere_points`] of the surfels), for
-    /// [`Renderer::RayCast`] and [`Renderer::Ssfr`]; `None` for the splatting renderers.
-    fn peer_points(&self, surfels: &[Surfel]) -> Option<(Vec<Vec3>, Vec<f32>)> {
-        matches!(self.params.renderer, Renderer::RayCast | Renderer::Ssfr)
-            .then(|| sphere_points(surfels))
+    /// The points and radii the renderer draws ([`sphere_points`] of the surfels), when it asks
+    /// for them ([`WaterRenderer::needs_points`]).
+    #[must_use]
+    pub fn water_points(&self, surfels: &[Surfel]) -> Option<(Vec<Vec3>, Vec<f32>)> {
+        self.water.needs_points().then(|| sphere_points(surfels))
     }
 
-    /// What the peer renderer draws `points` (of [`Pipeline::peer_points`]) with, built once for
-    /// every view of a frame: the ray caster or the screen-space renderer (with its narrow band).
-    fn peer_renderers<'a>(
+    /// The frame's water, built once for every view of the frame: `points` from
+    /// [`Pipeline::water_points`].
+    pub fn water_of<'a>(
         &self,
+        surfels: &'a [Surfel],
         points: Option<&'a (Vec<Vec3>, Vec<f32>)>,
         weights: &'a [f32],
-    ) -> Result<
-        (
-            Option<crate::raycast::Caster<'a>>,
-            Option<crate::ssfr::ScreenSpace<'a>>,
-        ),
-        Error,
-    > {
-        let Some((p, r)) = points else {
-            return Ok((None, None));
-        };
-        Ok(match self.params.renderer {
-            Renderer::RayCast => (Some(self.caster(p, r, weights)?), None),
-            Renderer::Ssfr => (None, Some(self.screen_space(p, r)?)),
-            Renderer::Ewa | Renderer::ParticleSplat => (None, None),
+    ) -> Result<Box<dyn WaterSurface + 'a>, Error> {
+        let (positions, radii) = points.map_or((&[][..], &[][..]), |(p, r)| (&p[..], &r[..]));
+        self.water.water(WaterInput {
+            surfels,
+            points: (positions, radii),
+            weights,
+            reference_radius: self.reference_radius(radii),
         })
     }
 
@@ -1220,13 +1269,9 @@ impl Pipeline {
     fn render(&mut self, frame: &mut Frame, through: Through) -> Result<(), Error> {
         let surfels = &frame.render_surfels;
         let [w, h] = self.params.scene.optics.image_size;
-        let points = self.peer_points(surfels);
-        let (caster, screen) = self.peer_renderers(points.as_ref(), &frame.render_weights)?;
-        let water: &dyn optics::WaterSurface = match (&caster, &screen) {
-            (Some(c), _) => c,
-            (_, Some(s)) => s,
-            _ => &surfels.as_slice(),
-        };
+        let points = self.water_points(surfels);
+        let water = self.water_of(surfels, points.as_ref(), &frame.render_weights)?;
+        let water = water.as_ref();
         if through == Through::Frame {
             let scene = self.fitted_scene(surfels, frame.radius)?;
             let t = Instant::now();
@@ -1253,8 +1298,7 @@ impl Pipeline {
             return Ok(());
         }
         let t = Instant::now();
-        frame.splats =
-            Some(self.draw_with(caster.as_ref(), screen.as_ref(), surfels, &camera, (w, h))?);
+        frame.splats = Some(self.draw_with(water, &camera, (w, h))?);
         frame.timings.splats_ms = ms(t);
         Ok(())
     }
@@ -1271,30 +1315,31 @@ impl Pipeline {
         camera: &Camera,
         size: (u32, u32),
     ) -> Result<Render, Error> {
-        let points = self.peer_points(surfels);
-        let (caster, screen) = self.peer_renderers(points.as_ref(), weights)?;
-        self.draw_with(caster.as_ref(), screen.as_ref(), surfels, camera, size)
+        let points = self.water_points(surfels);
+        let water = self.water_of(surfels, points.as_ref(), weights)?;
+        self.draw_with(water.as_ref(), camera, size)
     }
 
-    /// [`Pipeline::draw`] with the ray caster or the screen-space renderer already built.
+    /// The view of [`Pipeline::draw`]: `camera`, the default light, the renderer's splat
+    /// parameters, `size` pixels.
+    pub fn draw_view(&self, camera: &Camera, (w, h): (u32, u32)) -> Result<View, Error> {
+        Ok(View::new(
+            camera,
+            &Light::default(),
+            &self.splat_params(),
+            w,
+            h,
+        )?)
+    }
+
+    /// [`Pipeline::draw`] of the frame's water already built.
     fn draw_with(
         &self,
-        caster: Option<&crate::raycast::Caster<'_>>,
-        screen: Option<&crate::ssfr::ScreenSpace<'_>>,
-        surfels: &[Surfel],
+        water: &dyn WaterSurface,
         camera: &Camera,
-        (w, h): (u32, u32),
+        size: (u32, u32),
     ) -> Result<Render, Error> {
-        let light = Light::default();
-        let params = self.splat_params();
-        Ok(match (caster, screen) {
-            (_, Some(s)) => {
-                let v = splat::View::new(camera, &light, &params, w, h)?;
-                s.render_view(&v)?.render
-            }
-            (Some(c), _) => crate::raycast::render_cpu(c, camera, &light, &params, w, h)?.render,
-            (None, None) => splat::render_cpu(surfels, camera, &light, &params, w, h)?,
-        })
+        water.render(&self.draw_view(camera, size)?)
     }
 
     /// The reference radius of the peer renderers: the support radius, or the largest of
@@ -1314,16 +1359,11 @@ impl Pipeline {
         radii: &'a [f32],
         weights: &'a [f32],
     ) -> Result<crate::raycast::Caster<'a>, Error> {
-        let reference = self.reference_radius(radii);
-        let mut points = Points::with_radii(positions, radii, reference);
-        if !weights.is_empty() {
-            points = points.with_weights(weights);
-        }
-        Ok(crate::raycast::Caster::new(
-            points,
-            self.params.grid.kernel,
-            &self.params.raycast,
-        )?)
+        let method = crate::raycast::Method {
+            kernel: self.params.grid.kernel,
+            params: self.params.raycast,
+        };
+        Ok(method.caster((positions, radii), weights, self.reference_radius(radii))?)
     }
 
     /// The screen-space renderer of [`Renderer::Ssfr`] over points and their radii (from
@@ -1347,11 +1387,7 @@ impl Pipeline {
     /// ([`splat::SplatMode::Spheres`] for [`Renderer::ParticleSplat`]).
     #[must_use]
     pub fn splat_params(&self) -> SplatParams {
-        let mut p = self.params.splat;
-        if self.params.renderer == Renderer::ParticleSplat {
-            p.mode = splat::SplatMode::Spheres;
-        }
-        p
+        self.water.splat_params(self.params.splat)
     }
 
     /// The camera of the shaded splats: the sequence's kept camera, else the scene's, else one
@@ -1379,9 +1415,7 @@ impl Pipeline {
         radius: f32,
     ) -> Result<OpticsScene, Error> {
         let mut scene = self.params.scene.clone();
-        if self.params.renderer == Renderer::ParticleSplat {
-            scene.optics.splat.mode = splat::SplatMode::Spheres;
-        }
+        scene.optics.splat = self.water.splat_params(scene.optics.splat);
         if !self.params.keep_views {
             if let Some(pool) = self.pool_at_the_water(&scene, surfels, radius) {
                 scene.receiver = pool;
@@ -1473,7 +1507,7 @@ impl Pipeline {
         }
         // the ray caster's spheres reach a support radius past their centres, its calibrated
         // surface half a spacing: the box of that surface
-        let own = if self.params.renderer == Renderer::RayCast
+        let own = if self.water.drawn() == (Drawn::Spheres { calibrated: true })
             && self.params.grid.calibration == Calibration::Boundary
         {
             crate::view::widened_bounds(

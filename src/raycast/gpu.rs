@@ -744,3 +744,28 @@ fn iteration_bound(caster: &Caster<'_>, tiles: &[Vec<u32>], grids: &[CsrGrid], s
         + pca_grid.most_visited()
         + 11
 }
+
+impl crate::splat::GpuWaterPass for GpuCaster {
+    fn size(&self) -> (u32, u32) {
+        GpuCaster::size(self)
+    }
+    fn encode(
+        &self,
+        _queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+    ) -> Result<(), crate::Error> {
+        Ok(GpuCaster::encode(self, encoder)?)
+    }
+    fn accumulation(&self) -> Result<(&wgpu::TextureView, &wgpu::TextureView), crate::Error> {
+        Ok(GpuCaster::accumulation(self))
+    }
+    fn view(&self) -> Result<&View, crate::Error> {
+        self.frame
+            .as_ref()
+            .map(|f| &f.view)
+            .ok_or_else(crate::splat::water::unprepared)
+    }
+    fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
+        self
+    }
+}

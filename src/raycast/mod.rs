@@ -24,9 +24,12 @@
 use glam::{Mat3, Vec3};
 use serde::{Deserialize, Serialize};
 
+use crate::Error;
 use crate::density::{DensityError, Points};
 use crate::neighbours::CellGrid;
-use crate::splat::{Render, SplatError};
+use crate::splat::{
+    Drawn, GpuWaterPass, Render, SplatError, View, WaterInput, WaterRenderer, WaterSurface,
+};
 use crate::surfels::{ExactDensity, SurfelError};
 
 pub mod cpu;
@@ -414,15 +417,79 @@ impl<'a> Caster<'a> {
     }
 }
 
-impl crate::optics::WaterSurface for Caster<'_> {
-    fn render(&self, view: &crate::splat::View) -> Result<Render, crate::optics::OpticsError> {
-        match cpu::render_view_cpu(self, view) {
-            Ok(cast) => Ok(cast.render),
-            Err(RayCastError::Splat(e)) => Err(e.into()),
-            Err(e) => Err(crate::optics::OpticsError::InvalidParameter {
-                name: "water",
-                reason: e.to_string(),
-            }),
+/// Ray casting as a [`WaterRenderer`]: the iso-surface of the source's points, with the
+/// grid's kernel and `[raycast]`.
+#[derive(Clone, Debug)]
+pub struct Method {
+    pub kernel: crate::density::Kernel,
+    pub params: RayCastParams,
+}
+
+impl Method {
+    /// The caster over points and their radii (the weights: the boundary calibration's, empty
+    /// for none), with `reference` as the reference radius.
+    pub fn caster<'a>(
+        &self,
+        (positions, radii): (&'a [Vec3], &'a [f32]),
+        weights: &'a [f32],
+        reference: f32,
+    ) -> Result<Caster<'a>, RayCastError> {
+        let mut points = Points::with_radii(positions, radii, reference);
+        if !weights.is_empty() {
+            points = points.with_weights(weights);
         }
+        Caster::new(points, self.kernel, &self.params)
+    }
+}
+
+impl WaterRenderer for Method {
+    fn drawn(&self) -> Drawn {
+        Drawn::Spheres { calibrated: true }
+    }
+    fn needs_points(&self) -> bool {
+        true
+    }
+    fn water<'a>(&self, input: WaterInput<'a>) -> Result<Box<dyn WaterSurface + 'a>, Error> {
+        Ok(Box::new(self.caster(
+            input.points,
+            input.weights,
+            input.reference_radius,
+        )?))
+    }
+}
+
+impl WaterSurface for Caster<'_> {
+    fn render(&self, view: &View) -> Result<Render, Error> {
+        Ok(cpu::render_view_cpu(self, view)?.render)
+    }
+
+    fn render_gpu(&self, ctx: &crate::gpu::GpuContext, view: &View) -> Result<Render, Error> {
+        Ok(gpu::render_view_gpu(ctx, self, view)?.render)
+    }
+
+    fn gpu_pass(
+        &self,
+        device: &wgpu::Device,
+        _format: wgpu::TextureFormat,
+        (w, h): (u32, u32),
+    ) -> Result<Box<dyn GpuWaterPass>, Error> {
+        Ok(Box::new(gpu::GpuCaster::new(device, w, h)?))
+    }
+
+    fn prepare_gpu(
+        &self,
+        device: &wgpu::Device,
+        _queue: &wgpu::Queue,
+        pass: &mut dyn GpuWaterPass,
+        view: &View,
+    ) -> Result<bool, Error> {
+        let Some(cast) = pass.as_any_mut().downcast_mut::<gpu::GpuCaster>() else {
+            return Ok(false);
+        };
+        if cast.size() != (view.width, view.height) {
+            return Ok(false);
+        }
+        cast.prepare(device, self, view)?;
+        Ok(true)
     }
 }

@@ -189,14 +189,7 @@ impl SplatRenderer {
         width: u32,
         height: u32,
     ) -> Result<Self, crate::Error> {
-        check_size(device, width, height)?;
-        if !device.features().contains(REQUIRED_FEATURES) {
-            return Err(GpuError::MissingFeature {
-                adapter: "the given device".into(),
-                feature: "FLOAT32_BLENDABLE (additive blending into 32-bit float targets)",
-            }
-            .into());
-        }
+        check_device(device, width, height)?;
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("surfel_splat"),
@@ -496,6 +489,23 @@ impl SplatRenderer {
         Ok(())
     }
 
+    /// [`Self::encode_queued`] without the shading pass: the visibility and attribute passes
+    /// fill the accumulation targets ([`Self::accumulation`]) for a pass that reads them (the
+    /// GPU optics).
+    pub fn encode_accumulation_queued(
+        &self,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        surfels: &SurfelBuffer,
+        view: &View,
+    ) -> Result<(), crate::Error> {
+        self.check_view(view)?;
+        queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&view.to_raw()));
+        self.encode_visibility(encoder, surfels, &self.bound.splat);
+        self.encode_attributes(encoder, surfels, &self.bound.attributes);
+        Ok(())
+    }
+
     fn draw_surfels(&self, pass: &mut wgpu::RenderPass<'_>, surfels: &SurfelBuffer) {
         for (buffer, count) in &surfels.chunks {
             pass.set_vertex_buffer(0, buffer.slice(..));
@@ -643,6 +653,20 @@ fn bind_groups(
     }
 }
 
+/// Whether `device` can splat `width` x `height` images: the size within the device's texture
+/// limit and [`MAX_SIZE`](crate::splat::MAX_SIZE), and the [`REQUIRED_FEATURES`].
+pub fn check_device(device: &wgpu::Device, width: u32, height: u32) -> Result<(), crate::Error> {
+    check_size(device, width, height)?;
+    if !device.features().contains(REQUIRED_FEATURES) {
+        return Err(GpuError::MissingFeature {
+            adapter: "the given device".into(),
+            feature: "FLOAT32_BLENDABLE (additive blending into 32-bit float targets)",
+        }
+        .into());
+    }
+    Ok(())
+}
+
 fn check_size(device: &wgpu::Device, width: u32, height: u32) -> Result<(), crate::Error> {
     let max = device
         .limits()
@@ -665,14 +689,24 @@ pub fn render_gpu(
     height: u32,
 ) -> Result<Render, crate::Error> {
     let view = View::new(camera, light, params, width, height)?;
-    crate::splat::check_cost(
-        surfels.len(),
-        crate::splat::fragments(surfels, &view),
-        &view,
+    render_view_gpu(ctx, surfels, &view)
+}
+
+/// [`render_gpu`] for a prepared view.
+pub fn render_view_gpu(
+    ctx: &GpuContext,
+    surfels: &[Surfel],
+    view: &View,
+) -> Result<Render, crate::Error> {
+    crate::splat::check_cost(surfels.len(), crate::splat::fragments(surfels, view), view)?;
+    let renderer = SplatRenderer::new(
+        &ctx.device,
+        wgpu::TextureFormat::Rgba8Unorm,
+        view.width,
+        view.height,
     )?;
-    let renderer = SplatRenderer::new(&ctx.device, wgpu::TextureFormat::Rgba8Unorm, width, height)?;
     let buffer = SplatRenderer::upload(&ctx.device, surfels);
-    Ok(render_timed(ctx, &renderer, &buffer, &view)?.0)
+    Ok(render_timed(ctx, &renderer, &buffer, view)?.0)
 }
 
 /// Renders headless with each pass submitted and waited for on its own (for benchmarks), and

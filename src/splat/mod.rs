@@ -27,6 +27,7 @@ use glam::{Vec2, Vec3, Vec3Swizzles, Vec4, Vec4Swizzles};
 
 pub mod cpu;
 pub mod gpu;
+pub mod water;
 
 // the view's types and the picture metrics, where the splats have always been found
 pub use crate::quality::{difference_image, psnr};
@@ -35,6 +36,9 @@ pub use crate::view::{
 };
 pub(crate) use crate::view::{check_cost, pixel_span};
 pub use cpu::{render_cpu, render_view_cpu};
+pub use water::{
+    Drawn, Ewa, GpuWaterPass, ParticleSplat, SurfelWater, WaterInput, WaterRenderer, WaterSurface,
+};
 
 /// One surfel as the GPU stores it (64 bytes, `SurfelIn` in the WGSL): position and radius,
 /// normal and stretch (minor / major axis; 1 for a circle), the major axis direction (ignored

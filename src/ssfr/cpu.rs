@@ -285,19 +285,6 @@ impl<'a> ScreenSpace<'a> {
     }
 }
 
-impl crate::optics::WaterSurface for ScreenSpace<'_> {
-    fn render(&self, view: &View) -> Result<Render, crate::optics::OpticsError> {
-        match self.render_view(view) {
-            Ok(r) => Ok(r.render),
-            Err(SsfrError::Splat(e)) => Err(e.into()),
-            Err(e) => Err(crate::optics::OpticsError::InvalidParameter {
-                name: "water",
-                reason: e.to_string(),
-            }),
-        }
-    }
-}
-
 fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }

@@ -495,3 +495,28 @@ pub fn render_view_gpu(
 ) -> Result<SsfrRender, crate::Error> {
     GpuSsfr::new(&ctx.device)?.render(ctx, screen, v)
 }
+
+impl crate::splat::GpuWaterPass for GpuSsfr {
+    fn size(&self) -> (u32, u32) {
+        GpuSsfr::size(self)
+    }
+    fn encode(
+        &self,
+        _queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+    ) -> Result<(), crate::Error> {
+        Ok(GpuSsfr::encode(self, encoder)?)
+    }
+    fn accumulation(&self) -> Result<(&wgpu::TextureView, &wgpu::TextureView), crate::Error> {
+        Ok(GpuSsfr::accumulation(self)?)
+    }
+    fn view(&self) -> Result<&View, crate::Error> {
+        self.frame
+            .as_ref()
+            .map(|f| &f.view)
+            .ok_or_else(crate::splat::water::unprepared)
+    }
+    fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
+        self
+    }
+}

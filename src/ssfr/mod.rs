@@ -35,6 +35,9 @@ pub mod gpu;
 
 pub use cpu::{ScreenSpace, render_cpu};
 
+use crate::Error;
+use crate::splat::{Drawn, GpuWaterPass, Render, View, WaterInput, WaterRenderer, WaterSurface};
+
 /// Errors of the screen-space renderer.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SsfrError {
@@ -666,5 +669,62 @@ mod tests {
             ));
         }
         assert_eq!(SsfrParams::default().validate(), Ok(()));
+    }
+}
+
+/// Screen-space rendering as a [`WaterRenderer`]: the source's points with `[ssfr]`.
+#[derive(Clone, Debug)]
+pub struct Method {
+    pub params: SsfrParams,
+}
+
+impl WaterRenderer for Method {
+    fn drawn(&self) -> Drawn {
+        Drawn::Spheres { calibrated: false }
+    }
+    fn needs_points(&self) -> bool {
+        true
+    }
+    fn water<'a>(&self, input: WaterInput<'a>) -> Result<Box<dyn WaterSurface + 'a>, Error> {
+        let (positions, radii) = input.points;
+        Ok(Box::new(ScreenSpace::new(
+            positions,
+            radii,
+            input.reference_radius,
+            &self.params,
+        )?))
+    }
+}
+
+impl WaterSurface for ScreenSpace<'_> {
+    fn render(&self, view: &View) -> Result<Render, Error> {
+        Ok(self.render_view(view)?.render)
+    }
+
+    fn render_gpu(&self, ctx: &crate::gpu::GpuContext, view: &View) -> Result<Render, Error> {
+        Ok(gpu::render_view_gpu(ctx, self, view)?.render)
+    }
+
+    fn gpu_pass(
+        &self,
+        device: &wgpu::Device,
+        _format: wgpu::TextureFormat,
+        _size: (u32, u32),
+    ) -> Result<Box<dyn GpuWaterPass>, Error> {
+        Ok(Box::new(gpu::GpuSsfr::new(device)?))
+    }
+
+    fn prepare_gpu(
+        &self,
+        device: &wgpu::Device,
+        _queue: &wgpu::Queue,
+        pass: &mut dyn GpuWaterPass,
+        view: &View,
+    ) -> Result<bool, Error> {
+        let Some(passes) = pass.as_any_mut().downcast_mut::<gpu::GpuSsfr>() else {
+            return Ok(false);
+        };
+        passes.prepare(device, self, view)?;
+        Ok(true)
     }
 }

@@ -81,20 +81,16 @@ const LEVELS: [&str; 4] = [
     "chain, 3 steps",
 ];
 
-/// The methods of the sheet, after the reference: every renderer with every surfel source.
-const METHODS: [(Renderer, SurfelSource); 11] = [
-    (Renderer::Ewa, SurfelSource::Chain),
-    (Renderer::Ewa, SurfelSource::Particles),
-    (Renderer::Ewa, SurfelSource::Refined),
-    (Renderer::ParticleSplat, SurfelSource::Chain),
-    (Renderer::ParticleSplat, SurfelSource::Particles),
-    (Renderer::ParticleSplat, SurfelSource::Refined),
-    (Renderer::RayCast, SurfelSource::Chain),
-    (Renderer::RayCast, SurfelSource::Particles),
-    (Renderer::Ssfr, SurfelSource::Chain),
-    (Renderer::Ssfr, SurfelSource::Particles),
-    (Renderer::Ssfr, SurfelSource::Refined),
-];
+/// The methods of the sheet, after the reference: every renderer of the library with every
+/// surfel source, but ray casting from the refined points (the sheet's twelfth panel is the
+/// reference, rays cast to the particles).
+fn methods() -> Vec<(Renderer, SurfelSource)> {
+    Renderer::ALL
+        .into_iter()
+        .flat_map(|r| SurfelSource::ALL.map(|s| (r, s)))
+        .filter(|&m| m != (Renderer::RayCast, SurfelSource::Refined))
+        .collect()
+}
 
 /// One method's figures.
 #[derive(Serialize)]
@@ -196,7 +192,8 @@ pub fn compare_command(args: &CompareArgs) -> Result<(), Error> {
         args.size.1,
     )?;
     let extra = if args.levels { LEVELS.len() } else { 0 };
-    let bar = super::progress((METHODS.len() + extra) as u64 + 1, "renderers");
+    let methods_run = methods();
+    let bar = super::progress((methods_run.len() + extra) as u64 + 1, "renderers");
     let reference = run_method(
         args,
         &set,
@@ -230,9 +227,9 @@ pub fn compare_command(args: &CompareArgs) -> Result<(), Error> {
     } else {
         0..0
     };
-    let runs = METHODS
-        .iter()
-        .map(|&m| (m, None))
+    let runs = methods_run
+        .into_iter()
+        .map(|m| (m, None))
         .chain(levels.map(|k| ((Renderer::Ewa, SurfelSource::Chain), Some(k))));
     for (method, steps) in runs {
         let r = run_method(args, &set, (radius, camera), method, false, steps)?;

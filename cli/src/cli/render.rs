@@ -326,11 +326,7 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
         p.splat.mode = SplatMode::Sprites;
     }
     if let Some(d) = args.depth_offset {
-        match p.renderer {
-            Renderer::Ewa => p.splat.depth_offset = d,
-            Renderer::ParticleSplat => p.splat.sphere_depth_offset = d,
-            Renderer::RayCast | Renderer::Ssfr => {}
-        }
+        fluid_surfels::pipeline::water_renderer(&p).set_depth_offset(&mut p.splat, d);
     }
     if let Some(l) = args.low_pass {
         p.splat.low_pass_px = l;
@@ -684,10 +680,7 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
 
 /// What the renderer draws, for the reports: surfels, or the spheres of particle splatting.
 fn drawn_as(args: &RenderArgs) -> &'static str {
-    match args.renderer {
-        Renderer::Ewa => "surfels",
-        Renderer::ParticleSplat | Renderer::RayCast | Renderer::Ssfr => "spheres",
-    }
+    args.renderer.drawn().noun()
 }
 
 /// Writes the rendered surfels to `--save-surfels`, when given.

@@ -76,12 +76,11 @@ struct RenderersBenchReport {
 /// Each renderer on one frame at one size, on the CPU and on the GPU: the draw alone, from the
 /// same surfels or points and the same camera on both.
 pub fn bench_renderers(args: &BenchRenderersArgs) -> Result<(), Error> {
-    use fluid_surfels::pipeline::{self, Pipeline, PipelineParams, Renderer, Through};
-    use fluid_surfels::splat::{self, Light};
+    use fluid_surfels::pipeline::{Pipeline, PipelineParams, Through};
+    use fluid_surfels::splat;
     let (source, set, radius) = args.frame.read()?;
     let ctx = bench_context(args.no_gpu, args.json);
     let (w, h) = args.size;
-    let light = Light::default();
     let mut rows = Vec::new();
     let bar = crate::cli::progress(args.renderers.len() as u64, "renderers");
     for &renderer in &args.renderers {
@@ -96,44 +95,15 @@ pub fn bench_renderers(args: &BenchRenderersArgs) -> Result<(), Error> {
         let prepare_ms = ms(t);
         let surfels = &frame.render_surfels;
         let camera = crate::cli::render::framing(surfels);
-        let params = pipeline.splat_params();
-        let (points, radii) = pipeline::sphere_points(surfels);
-        let caster = (renderer == Renderer::RayCast)
-            .then(|| pipeline.caster(&points, &radii, &frame.render_weights))
-            .transpose()?;
-        let screen = (renderer == Renderer::Ssfr)
-            .then(|| pipeline.screen_space(&points, &radii))
-            .transpose()?;
-        let (cpu_ms, cpu) = median_of(args.repeat, || {
-            Ok(if let Some(screen) = &screen {
-                let v = splat::View::new(&camera, &light, &params, w, h)?;
-                screen.render_view(&v)?.render
-            } else if let Some(caster) = &caster {
-                fluid_surfels::raycast::render_cpu(caster, &camera, &light, &params, w, h)?.render
-            } else {
-                splat::render_cpu(surfels, &camera, &light, &params, w, h)?
-            })
-        })?;
-        let mut gpu_ssfr = match (&ctx, &screen) {
-            (Some(ctx), Some(_)) => Some(fluid_surfels::ssfr::gpu::GpuSsfr::new(&ctx.device)?),
-            _ => None,
-        };
-        let gpu = match (&ctx, &screen, &mut gpu_ssfr) {
-            (Some(ctx), Some(screen), Some(g)) => Some(median_of(args.repeat, || {
-                let v = splat::View::new(&camera, &light, &params, w, h)?;
-                Ok(g.render(ctx, screen, &v)?.render)
-            })?),
-            (Some(ctx), _, _) => Some(median_of(args.repeat, || {
-                Ok(if let Some(caster) = &caster {
-                    fluid_surfels::raycast::gpu::render_gpu(
-                        ctx, caster, &camera, &light, &params, w, h,
-                    )?
-                    .render
-                } else {
-                    splat::gpu::render_gpu(ctx, surfels, &camera, &light, &params, w, h)?
-                })
-            })?),
-            _ => None,
+        // the renderer's water, built once (the ray caster's index, the narrow band), drawn
+        // from one view; the GPU's time includes making its passes, for every renderer
+        let points = pipeline.water_points(surfels);
+        let water = pipeline.water_of(surfels, points.as_ref(), &frame.render_weights)?;
+        let view = pipeline.draw_view(&camera, (w, h))?;
+        let (cpu_ms, cpu) = median_of(args.repeat, || water.render(&view))?;
+        let gpu = match &ctx {
+            Some(ctx) => Some(median_of(args.repeat, || water.render_gpu(ctx, &view))?),
+            None => None,
         };
         rows.push(RendererBench {
             renderer: renderer.as_str(),
