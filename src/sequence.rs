@@ -45,6 +45,9 @@ pub enum SequenceError {
         more: bool,
         first_path: PathBuf,
     },
+    /// `--shard` is not `K/N` with 1 <= K <= N, or `slurm` with usable array variables.
+    #[error("bad shard `{shard}`: {reason}")]
+    BadShard { shard: String, reason: String },
 }
 
 fn list(frames: &[usize]) -> String {
@@ -252,6 +255,95 @@ impl FromStr for FrameRange {
             });
         }
         Ok(Self { start, end, step })
+    }
+}
+
+/// One of `count` contiguous chunks of a sequence's frames (issue 39): `--shard K/N`, the
+/// `index`-th (1-based), or `--shard slurm` from a Slurm job array's variables. A farm or a
+/// scheduler runs the chunks as tasks; each loads the sequence's plan and warms up on the
+/// frames before its first (`pipeline::SequencePlan`, `Pipeline::warm_up`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Shard {
+    /// Which chunk, from 1.
+    pub index: usize,
+    /// How many chunks.
+    pub count: usize,
+}
+
+impl Shard {
+    /// The `index`-th of `count` chunks, checked (1 <= index <= count).
+    pub fn new(index: usize, count: usize) -> Result<Self, SequenceError> {
+        if count == 0 || index == 0 || index > count {
+            return Err(SequenceError::BadShard {
+                shard: format!("{index}/{count}"),
+                reason: "K/N needs 1 <= K <= N (K counts from 1)".into(),
+            });
+        }
+        Ok(Self { index, count })
+    }
+
+    /// The shard of a Slurm array task: `SLURM_ARRAY_TASK_ID` - `SLURM_ARRAY_TASK_MIN` + 1 of
+    /// `SLURM_ARRAY_TASK_COUNT` (`var` reads a variable: `std::env::var(..).ok()`).
+    pub fn from_slurm(var: impl Fn(&str) -> Option<String>) -> Result<Self, SequenceError> {
+        let bad = |reason: String| SequenceError::BadShard {
+            shard: "slurm".into(),
+            reason,
+        };
+        let read = |name: &str| -> Result<usize, SequenceError> {
+            let v = var(name).ok_or_else(|| {
+                bad(format!(
+                    "{name} is not set (run it as a Slurm array task: sbatch --array=1-N)"
+                ))
+            })?;
+            v.trim()
+                .parse()
+                .map_err(|_| bad(format!("{name}={v} is not a whole number")))
+        };
+        let (id, min, count) = (
+            read("SLURM_ARRAY_TASK_ID")?,
+            read("SLURM_ARRAY_TASK_MIN")?,
+            read("SLURM_ARRAY_TASK_COUNT")?,
+        );
+        if id < min || id - min >= count {
+            return Err(bad(format!(
+                "SLURM_ARRAY_TASK_ID={id} is not among the {count} tasks from SLURM_ARRAY_TASK_MIN={min} (an array with a step is not supported: use --array=A-B)"
+            )));
+        }
+        Self::new(id - min + 1, count)
+    }
+
+    /// This chunk of `frames`: contiguous, the chunks' sizes differing by at most one (the
+    /// first ones the larger); empty when there are fewer frames than chunks.
+    #[must_use]
+    pub fn of<'a>(&self, frames: &'a [usize]) -> &'a [usize] {
+        let (n, k) = (frames.len(), self.count);
+        let start = |i: usize| i * (n / k) + i.min(n % k);
+        &frames[start(self.index - 1)..start(self.index)]
+    }
+}
+
+impl FromStr for Shard {
+    type Err = SequenceError;
+
+    /// `K/N`, or `slurm` (the variables of the environment).
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        if s.trim() == "slurm" {
+            return Self::from_slurm(|name| std::env::var(name).ok());
+        }
+        let bad = || SequenceError::BadShard {
+            shard: s.to_owned(),
+            reason: "expected K/N (the K-th of N chunks, from 1) or slurm".into(),
+        };
+        let (k, n) = s.split_once('/').ok_or_else(bad)?;
+        let k = k.trim().parse().map_err(|_| bad())?;
+        let n = n.trim().parse().map_err(|_| bad())?;
+        Self::new(k, n).map_err(|e| match e {
+            SequenceError::BadShard { reason, .. } => SequenceError::BadShard {
+                shard: s.to_owned(),
+                reason,
+            },
+            other => other,
+        })
     }
 }
 
@@ -531,6 +623,68 @@ pub fn jobs(jobs: usize, frames: usize) -> Result<usize, Error> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The chunks of `--shard K/N` cover the frames once, in order, contiguous, their sizes
+    /// within one; bad shards and Slurm variables are refused with what is wrong.
+    #[test]
+    fn shards_split_the_frames_and_refuse_bad_values() {
+        for n_frames in [0usize, 1, 5, 24, 25, 100] {
+            let frames: Vec<usize> = (0..n_frames).map(|f| 3 * f + 1).collect();
+            for count in 1..=7 {
+                let parts: Vec<&[usize]> = (1..=count)
+                    .map(|k| Shard::new(k, count).unwrap().of(&frames))
+                    .collect();
+                assert_eq!(parts.concat(), frames, "{n_frames} frames in {count}");
+                let sizes: Vec<usize> = parts.iter().map(|p| p.len()).collect();
+                let (lo, hi) = (sizes.iter().min().unwrap(), sizes.iter().max().unwrap());
+                assert!(hi - lo <= 1, "{sizes:?}");
+            }
+        }
+        assert_eq!(
+            "2/3".parse::<Shard>().unwrap(),
+            Shard { index: 2, count: 3 }
+        );
+        for bad in ["3/2", "0/3", "1/0", "3", "a/b", "-1/3", ""] {
+            let e = bad.parse::<Shard>().unwrap_err().to_string();
+            assert!(e.contains("bad shard"), "{bad}: {e}");
+        }
+        let env = |vars: &'static [(&'static str, &'static str)]| {
+            move |name: &str| {
+                vars.iter()
+                    .find(|(k, _)| *k == name)
+                    .map(|(_, v)| (*v).to_owned())
+            }
+        };
+        let ok = Shard::from_slurm(env(&[
+            ("SLURM_ARRAY_TASK_ID", "5"),
+            ("SLURM_ARRAY_TASK_MIN", "4"),
+            ("SLURM_ARRAY_TASK_COUNT", "3"),
+        ]));
+        assert_eq!(ok.unwrap(), Shard { index: 2, count: 3 });
+        for (vars, what) in [
+            (&[][..], "SLURM_ARRAY_TASK_ID is not set"),
+            (
+                &[
+                    ("SLURM_ARRAY_TASK_ID", "x"),
+                    ("SLURM_ARRAY_TASK_MIN", "1"),
+                    ("SLURM_ARRAY_TASK_COUNT", "3"),
+                ][..],
+                "not a whole number",
+            ),
+            (
+                &[
+                    ("SLURM_ARRAY_TASK_ID", "9"),
+                    ("SLURM_ARRAY_TASK_MIN", "1"),
+                    ("SLURM_ARRAY_TASK_COUNT", "3"),
+                ][..],
+                "not among",
+            ),
+        ] {
+            let vars: &'static [(&'static str, &'static str)] = vars;
+            let e = Shard::from_slurm(env(vars)).unwrap_err().to_string();
+            assert!(e.contains(what), "{e}");
+        }
+    }
 
     #[test]
     fn patterns() {

@@ -1372,3 +1372,129 @@ fn a_renderer_of_ones_own_draws_the_splats_and_the_finished_frame() {
         .unwrap();
     assert_eq!(again.splats.unwrap().image, e.image);
 }
+
+/// A sequence in chunks (issue 39): each chunk's pipeline takes the serial run's plan (radius,
+/// camera, pool, scene box, resolutions; through a JSON file) and warms up on the
+/// `DEFAULT_WARMUP` frames before its first, and draws the serial run's finished frames byte
+/// for byte: 24 column frames in chunks of 8 (the second chunk's warm-up reaches back to frame
+/// 0, the third's only to frame 8).
+#[test]
+fn a_sequence_in_chunks_with_the_plan_and_a_warm_up_draws_the_serial_frames() {
+    let mut sim = ColumnSim::new(ColumnParams::default()).unwrap();
+    let sets: Vec<ParticleSet> = (0..24)
+        .map(|f| {
+            sim.advance_to(f);
+            sim.particles().clone()
+        })
+        .collect();
+    let mut params = pipeline::column_params();
+    params.scene.optics.image_size = [64, 48];
+    let mut serial = Pipeline::new(params.clone()).unwrap();
+    let images: Vec<image::RgbaImage> = sets
+        .iter()
+        .map(|s| {
+            let f = serial.frame_through(s, Through::Frame).unwrap();
+            f.finished.unwrap().image
+        })
+        .collect();
+    // the plan of the range's first frame, through a file
+    let mut first = Pipeline::new(params.clone()).unwrap();
+    assert!(first.plan().is_none(), "a plan before any frame");
+    first.frame_through(&sets[0], Through::Frame).unwrap();
+    let plan = first.plan().unwrap();
+    assert_eq!(
+        serial.plan().unwrap(),
+        plan,
+        "the views are the first frame's"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("plan.json");
+    plan.write(&path).unwrap();
+    let plan = pipeline::SequencePlan::read(&path).unwrap();
+    for start in [8usize, 16] {
+        let mut chunk = Pipeline::new(params.clone()).unwrap();
+        chunk.set_plan(&plan).unwrap();
+        for s in &sets[start.saturating_sub(pipeline::DEFAULT_WARMUP)..start] {
+            chunk.warm_up(s, Through::Frame).unwrap();
+        }
+        for f in start..start + 8 {
+            let image = chunk
+                .frame_through(&sets[f], Through::Frame)
+                .unwrap()
+                .finished
+                .unwrap()
+                .image;
+            assert!(image == images[f], "chunk at {start}: frame {f} differs");
+        }
+    }
+    // without the warm-up the third chunk's first frame is not the serial one's (what the
+    // warm-up is for)
+    let mut cold = Pipeline::new(params.clone()).unwrap();
+    cold.set_plan(&plan).unwrap();
+    let f = cold.frame_through(&sets[16], Through::Frame).unwrap();
+    assert!(
+        f.finished.unwrap().image != images[16],
+        "no warm-up needed?"
+    );
+    // a plan file that cannot be used: a clear error, no panic
+    for (text, what) in [
+        ("{", "JSON"),
+        (
+            &std::fs::read_to_string(&path)
+                .unwrap()
+                .replace("\"version\": 1", "\"version\": 7"),
+            "version",
+        ),
+        (
+            &std::fs::read_to_string(&path).unwrap().replacen(
+                "\"support_radius\": ",
+                "\"support_radius\": -",
+                1,
+            ),
+            "support_radius",
+        ),
+    ] {
+        std::fs::write(&path, text).unwrap();
+        let e = pipeline::SequencePlan::read(&path).unwrap_err().to_string();
+        assert!(e.contains(what), "{what}: {e}");
+    }
+}
+
+/// `threads` runs a frame in a pool of its own: a renderer of one's own sees that many threads
+/// while it builds the frame's water; 0 threads is refused.
+#[test]
+fn the_thread_count_is_a_pipeline_parameter() {
+    use fluid_surfels::Error;
+    use fluid_surfels::splat::{Drawn, WaterInput, WaterRenderer};
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    static SEEN: AtomicUsize = AtomicUsize::new(0);
+    struct Counting;
+    impl WaterRenderer for Counting {
+        fn drawn(&self) -> Drawn {
+            Drawn::Surfels
+        }
+        fn water<'a>(&self, input: WaterInput<'a>) -> Result<Box<dyn WaterSurface + 'a>, Error> {
+            SEEN.store(rayon::current_num_threads(), Ordering::SeqCst);
+            Ok(Box::new(fluid_surfels::splat::SurfelWater(input.surfels)))
+        }
+    }
+    let scene = scenes::sphere(&scenes::SphereParams::default()).unwrap();
+    for threads in [1, 3] {
+        let mut params = PipelineParams {
+            support_radius: Some(scene.support_radius),
+            threads: Some(threads),
+            ..Default::default()
+        };
+        params.scene.optics.image_size = [32, 24];
+        let mut p = Pipeline::new(params).unwrap();
+        p.set_water_renderer(Box::new(Counting));
+        p.frame_through(&scene.particles, Through::Splats).unwrap();
+        assert_eq!(SEEN.load(Ordering::SeqCst), threads);
+    }
+    let bad = PipelineParams {
+        threads: Some(0),
+        ..Default::default()
+    };
+    let e = Pipeline::new(bad).err().unwrap().to_string();
+    assert!(e.contains("threads"), "{e}");
+}

@@ -42,7 +42,7 @@ enum Command {
     /// (Botsch et al. 2005; default), particle splatting (Adams et al. 2006), ray casting
     /// (Xiao et al.) or narrow-band screen-space rendering (Oliveira and Paiva), or a file of
     /// surfels as they are; with --optics the finished frame.
-    Render(cli::render::RenderArgs),
+    Render(Box<cli::render::RenderArgs>),
     /// One frame drawn by every renderer from every surfel source, side by side on a labelled
     /// contact sheet, each with its time and its depth, normal and coverage errors against the
     /// ray-cast reference (the particles' exact iso-surface).

@@ -2357,3 +2357,85 @@ fn a_closed_stdout_ends_quietly() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!stderr.contains("panicked"), "{stderr}");
 }
+
+/// `render --frames --shard K/N` (issue 39): a 24-frame column sequence written to files and
+/// rendered in three shards (sharing one `--plan` file, each warming up on the frames before
+/// its chunk) gives the serial run's PNGs byte for byte; bad shards are refused at once.
+#[test]
+fn render_shards_draw_the_serial_frames_and_refuse_bad_shards() {
+    use fluid_surfels::scenes::{ColumnParams, ColumnSim};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let mut sim = ColumnSim::new(ColumnParams::default()).unwrap();
+    for f in 0..24 {
+        sim.advance_to(f);
+        fluid_surfels::io::write_particles(&d.join(format!("c_{f}.vtk")), sim.particles(), None)
+            .unwrap();
+    }
+    let render = |out: &str, extra: &[&str]| {
+        bin()
+            .args([
+                "render",
+                "--cpu",
+                "--size",
+                "48x36",
+                "--caustics-resolution",
+                "32x32",
+                "--frames",
+                "0..24",
+                "--input",
+            ])
+            .arg(d.join("c_{}.vtk"))
+            .arg("--out")
+            .arg(d.join(out))
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    succeeded(&render("serial", &[]));
+    let plan = d.join("plan.json");
+    let plan = plan.to_str().unwrap();
+    for k in 1..=3 {
+        let shard = format!("{k}/3");
+        let out = render("sharded", &["--shard", &shard, "--plan", plan]);
+        succeeded(&out);
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(text.contains(&format!("shard {k}/3")), "{text}");
+    }
+    assert!(d.join("plan.json").exists());
+    for f in 0..24 {
+        let name = format!("frame_{f:04}.png");
+        let serial = std::fs::read(d.join("serial").join(&name)).unwrap();
+        let sharded = std::fs::read(d.join("sharded").join(&name)).unwrap();
+        assert!(serial == sharded, "frame {f} differs");
+    }
+    // bad shards: clear errors before any work
+    for (shard, env, what) in [
+        ("3/2", None, "1 <= K <= N"),
+        ("0/3", None, "1 <= K <= N"),
+        ("x", None, "expected K/N"),
+        ("slurm", None, "SLURM_ARRAY_TASK_ID is not set"),
+        ("slurm", Some(("7", "1", "3")), "not among"),
+        ("slurm", Some(("a", "1", "3")), "not a whole number"),
+    ] {
+        let mut cmd = render("bad", &["--shard", shard]);
+        if let Some((id, min, count)) = env {
+            cmd = bin()
+                .args(["render", "--cpu", "--frames", "0..24", "--shard", "slurm"])
+                .arg("--input")
+                .arg(d.join("c_{}.vtk"))
+                .arg("--out")
+                .arg(d.join("bad"))
+                .env("SLURM_ARRAY_TASK_ID", id)
+                .env("SLURM_ARRAY_TASK_MIN", min)
+                .env("SLURM_ARRAY_TASK_COUNT", count)
+                .output()
+                .unwrap();
+        }
+        assert!(!cmd.status.success(), "{shard} {env:?}");
+        let e = stderr_of(&cmd);
+        assert!(e.contains(what), "{shard} {env:?}: {e}");
+        assert!(!e.contains("panicked"), "{e}");
+        assert!(!d.join("bad").exists(), "{shard}: work was done");
+    }
+}

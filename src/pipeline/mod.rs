@@ -61,6 +61,7 @@ use crate::{Error, ParticleView};
 mod boundary;
 mod detail;
 pub mod gpu;
+mod plan;
 
 pub use boundary::{
     BAND, BURIED, ChainPoints, Fluid, LISTED_TARGETS, LONE_RADIUS, MAX_WEIGHT, Sheet, WEIGHT_STEPS,
@@ -68,6 +69,7 @@ pub use boundary::{
 };
 pub use detail::{DEFAULT_DETAIL_PX, Detail, LEVEL_HYSTERESIS, ViewLevels, spacing_after};
 pub use gpu::{GpuPipeline, iso_surfels_gpu};
+pub use plan::{DEFAULT_WARMUP, PLAN_VERSION, SequencePlan};
 
 /// Where the surfels that are rendered come from.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -292,6 +294,9 @@ pub struct PipelineParams {
     pub detail: Detail,
     /// The footprint of `detail = "auto"`, in pixels (default [`DEFAULT_DETAIL_PX`]).
     pub detail_px: f32,
+    /// The threads a frame may use (`None`, the default: rayon's global pool, one per core);
+    /// a worker of a cluster is told how many cores are its own.
+    pub threads: Option<usize>,
 }
 
 impl Default for PipelineParams {
@@ -311,12 +316,14 @@ impl Default for PipelineParams {
             keep_views: true,
             detail: Detail::Auto,
             detail_px: DEFAULT_DETAIL_PX,
+            threads: None,
         }
     }
 }
 
 /// The keys of a TOML file that belong to the pipeline; every other key is the optics scene's.
-const PIPELINE_KEYS: [&str; 13] = [
+const PIPELINE_KEYS: [&str; 14] = [
+    "threads",
     "detail",
     "detail_px",
     "raycast",
@@ -395,6 +402,14 @@ impl PipelineParams {
             && !(r.is_finite() && r > 0.0)
         {
             return bad("support_radius", format!("must be finite and > 0, got {r}"));
+        }
+        if let Some(t) = self.threads
+            && !(1..=crate::sequence::MAX_JOBS).contains(&t)
+        {
+            return bad(
+                "threads",
+                format!("must lie in 1..={}, got {t}", crate::sequence::MAX_JOBS),
+            );
         }
         if !(self.detail_px.is_finite() && self.detail_px > 0.0) {
             return bad(
@@ -568,6 +583,14 @@ pub struct Frame {
     pub warnings: Vec<String>,
 }
 
+/// What [`Pipeline::detect_stage`] gives a frame.
+struct Detected {
+    radius: f32,
+    mean_neighbours: f32,
+    surface: Surface,
+    surface_indices: Vec<u32>,
+}
+
 /// What a sequence keeps from its first rendered frame.
 #[derive(Clone, Debug)]
 struct Views {
@@ -577,13 +600,18 @@ struct Views {
     optics: Option<KeptOptics>,
 }
 
-/// What the optics stage keeps of the first rendered frame.
-#[derive(Clone, Debug)]
-struct KeptOptics {
-    receiver: optics::Receiver,
-    bounds: [Vec3; 2],
-    screen: [u32; 2],
-    map: [u32; 2],
+/// What the optics stage keeps of the first rendered frame (part of a [`SequencePlan`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct KeptOptics {
+    /// The receiver as fitted (an `auto` pool resolved into its box).
+    pub receiver: optics::Receiver,
+    /// The scene box.
+    pub bounds: [Vec3; 2],
+    /// The light's caustics screen resolution.
+    pub screen: [u32; 2],
+    /// The caustics map's resolution.
+    pub map: [u32; 2],
 }
 
 /// The chain on the CPU. See the module documentation.
@@ -606,6 +634,8 @@ pub struct Pipeline {
     levels_before: std::collections::HashMap<u32, u8>,
     /// What draws the water ([`water_renderer`] of the parameters, or the caller's own).
     water: Box<dyn WaterRenderer>,
+    /// The threads of `params.threads`, when given.
+    pool: Option<std::sync::Arc<rayon::ThreadPool>>,
 }
 
 /// A function told each warning of a frame as soon as it is known.
@@ -626,6 +656,18 @@ impl Pipeline {
             drawn: None,
             levels_before: std::collections::HashMap::new(),
             water: water_renderer(&params),
+            pool: match params.threads {
+                Some(n) => Some(std::sync::Arc::new(
+                    rayon::ThreadPoolBuilder::new()
+                        .num_threads(n)
+                        .build()
+                        .map_err(|e| Error::InvalidArgument {
+                            argument: "threads",
+                            reason: e.to_string(),
+                        })?,
+                )),
+                None => None,
+            },
             params,
         })
     }
@@ -758,52 +800,43 @@ impl Pipeline {
         self.frame_through(particles, Through::Frame)
     }
 
-    /// The chain on one frame, up to `through`.
+    /// The chain on one frame, up to `through` (on `params.threads` threads, when given).
     pub fn frame_through<'a>(
         &mut self,
         particles: impl Into<ParticleView<'a>>,
         through: Through,
     ) -> Result<Frame, Error> {
-        let total = Instant::now();
         let particles: ParticleView<'a> = particles.into();
+        self.in_pool(|p| p.frame_here(particles, through))
+    }
+
+    /// Runs `f` on the pipeline in its own thread pool (`params.threads`), or where it is.
+    fn in_pool<R: Send>(&mut self, f: impl FnOnce(&mut Self) -> R + Send) -> R {
+        match self.pool.clone() {
+            Some(pool) => pool.install(|| f(self)),
+            None => f(self),
+        }
+    }
+
+    /// [`Pipeline::frame_through`] in the current thread pool.
+    fn frame_here(
+        &mut self,
+        particles: ParticleView<'_>,
+        through: Through,
+    ) -> Result<Frame, Error> {
+        let total = Instant::now();
         particles.validate()?;
         let mut timings = FrameTimings::default();
         let mut warnings = Vec::new();
-        let radius = match self.radius {
-            Some(r) => r,
-            None => {
-                let r = neighbours::support_radius(particles.positions)?;
-                self.radius = Some(r);
-                r
-            }
-        };
-        // stage 1: surface detection with hysteresis
-        let t = Instant::now();
-        let nb = Neighbourhoods::build(particles.positions, radius, Backend::CellGrid)?;
-        timings.neighbours_ms = ms(t);
-        if !particles.is_empty() {
-            self.warn(
-                &mut warnings,
-                neighbour_count_warning(radius, nb.mean_count()),
-            );
-        }
-        let t = Instant::now();
-        let mut surface = self.detector.detect(particles, &nb)?;
-        if self.params.surface.method == crate::surface::SurfaceMethod::Lnm {
-            // the band in place of the centre-of-mass classes (its isolated particles and
-            // offsets kept); the detector keeps its own hysteresis state
-            let band = crate::lnm::narrow_band(
-                particles.positions,
-                radius,
-                &crate::lnm::LnmParams::default(),
-            )?;
-            surface = crate::lnm::band_surface(&band, particles.positions, &surface);
-        }
-        timings.detect_ms = ms(t);
-        let surface_indices = refined_indices(&surface, particles.positions);
+        let Detected {
+            radius,
+            mean_neighbours,
+            surface,
+            surface_indices,
+        } = self.detect_stage(particles, &mut timings, &mut warnings)?;
         let mut frame = Frame {
             radius,
-            mean_neighbours: nb.mean_count(),
+            mean_neighbours,
             surface,
             surface_indices,
             refined: None,
@@ -818,7 +851,6 @@ impl Pipeline {
             detail: DetailReport::default(),
             warnings: Vec::new(),
         };
-        drop(nb);
         // stage 2: upsampling of the surface
         let needs_refined = through >= Through::Refine
             && (through == Through::Refine || self.params.source != SurfelSource::Particles);
@@ -1117,6 +1149,52 @@ impl Pipeline {
         }
         frame.timings.total_ms = ms(total);
         Ok(frame)
+    }
+
+    /// Stage 1 of a frame, what carries over to the next: the support radius (estimated on the
+    /// first frame), the neighbourhoods, surface detection with its hysteresis, the refined
+    /// particles' order.
+    fn detect_stage(
+        &mut self,
+        particles: ParticleView<'_>,
+        timings: &mut FrameTimings,
+        warnings: &mut Vec<String>,
+    ) -> Result<Detected, Error> {
+        let radius = match self.radius {
+            Some(r) => r,
+            None => {
+                let r = neighbours::support_radius(particles.positions)?;
+                self.radius = Some(r);
+                r
+            }
+        };
+        // stage 1: surface detection with hysteresis
+        let t = Instant::now();
+        let nb = Neighbourhoods::build(particles.positions, radius, Backend::CellGrid)?;
+        timings.neighbours_ms = ms(t);
+        if !particles.is_empty() {
+            self.warn(warnings, neighbour_count_warning(radius, nb.mean_count()));
+        }
+        let t = Instant::now();
+        let mut surface = self.detector.detect(particles, &nb)?;
+        if self.params.surface.method == crate::surface::SurfaceMethod::Lnm {
+            // the band in place of the centre-of-mass classes (its isolated particles and
+            // offsets kept); the detector keeps its own hysteresis state
+            let band = crate::lnm::narrow_band(
+                particles.positions,
+                radius,
+                &crate::lnm::LnmParams::default(),
+            )?;
+            surface = crate::lnm::band_surface(&band, particles.positions, &surface);
+        }
+        timings.detect_ms = ms(t);
+        let surface_indices = refined_indices(&surface, particles.positions);
+        Ok(Detected {
+            radius,
+            mean_neighbours: nb.mean_count(),
+            surface,
+            surface_indices,
+        })
     }
 
     /// The level of detail each region needs (`detail = "auto"` on a frame drawn through

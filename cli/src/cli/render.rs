@@ -14,7 +14,7 @@ use fluid_surfels::pipeline::{
     SurfelSource, Through,
 };
 use fluid_surfels::scenes::{self, ColumnParams, ColumnSim, SceneName};
-use fluid_surfels::sequence::{FramePattern, FrameRange};
+use fluid_surfels::sequence::{FramePattern, FrameRange, Shard};
 use fluid_surfels::splat::{self, Camera, SplatMode, Surfel};
 use fluid_surfels::ssfr::DepthFilter;
 use fluid_surfels::view::UpAxis;
@@ -183,10 +183,31 @@ pub struct RenderArgs {
     #[arg(long)]
     pub force: bool,
     /// With --frames: keep the frames whose PNG exists and render only the others (resume an
-    /// interrupted sequence; the camera and the pool are still fitted on the range's first
-    /// frame).
+    /// interrupted sequence; the camera, the pool and the radius are still the range's first
+    /// frame's, through the sequence's plan, and the hysteresis comes from a warm-up).
     #[arg(long, conflicts_with = "force")]
     pub skip_existing: bool,
+    /// With --frames: render only the K-th of N contiguous chunks of the range (1-based), as
+    /// the serial run would (the plan of the range's first frame, and a --warmup on the frames
+    /// before the chunk); `slurm`: the chunk of this Slurm array task
+    /// (SLURM_ARRAY_TASK_ID, _MIN, _COUNT; sbatch --array=1-N).
+    #[arg(long, requires = "frames")]
+    pub shard: Option<Shard>,
+    /// With --frames: how many frames before a chunk that does not start the range (--shard,
+    /// --skip-existing) run surface detection alone, so that its hysteresis is the serial
+    /// run's (default 8: on the column scene every chunk's classes and images agree with the
+    /// serial run's after 7; docs/cli.md).
+    #[arg(long, requires = "frames")]
+    pub warmup: Option<usize>,
+    /// With --frames: the sequence's plan (support radius, camera, pool, scene box, the
+    /// light's resolutions; JSON): read when the file exists, else made from the range's first
+    /// frame and written, so that the chunks of a farm make it once. Without it every chunk
+    /// that does not start the range makes it in memory.
+    #[arg(long, requires = "frames")]
+    pub plan: Option<PathBuf>,
+    /// Threads a frame may use (the `threads` key; default: one per core).
+    #[arg(long)]
+    pub threads: Option<usize>,
     /// Print one JSON object of statistics on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -297,6 +318,9 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
     };
     if args.radius.is_some() {
         p.support_radius = args.radius;
+    }
+    if args.threads.is_some() {
+        p.threads = args.threads;
     }
     p.source = args.source;
     p.renderer = args.renderer;
@@ -438,6 +462,35 @@ impl Frames {
             Self::Column(sim) => Some(sim.support_radius()),
             Self::Scene(_, scene) => Some(scene.support_radius),
             _ => None,
+        }
+    }
+
+    /// Frame `frame` of a sequence, warmed up on (`Pipeline::warm_up`: the detection and the
+    /// levels of detail alone) before the frames to draw. The column scene steps to it as
+    /// [`Frames::frame`] does, detecting on the frames it steps over.
+    fn warm_up(
+        &mut self,
+        pipeline: &mut Pipeline,
+        args: &RenderArgs,
+        frame: usize,
+    ) -> Result<(), Error> {
+        match self {
+            Self::Pattern(pattern) => {
+                let mut set = super::read_particles(&pattern.path(frame), args.format)?;
+                if args.up != UpAxis::Y {
+                    set.rotate(args.up.to_y_up());
+                }
+                pipeline.warm_up(&set, Through::Frame)
+            }
+            Self::Column(sim) => {
+                ColumnParams::check_frame(frame)?;
+                while sim.frame() < frame {
+                    pipeline.frame_through(sim.particles(), Through::Surface)?;
+                    sim.step_frame();
+                }
+                pipeline.warm_up(sim.particles(), Through::Frame)
+            }
+            _ => Ok(()),
         }
     }
 
@@ -817,17 +870,32 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
     if params.support_radius.is_none() {
         params.support_radius = frames.support_radius();
     }
+    let Some(range) = args.frames else {
+        let (mut pipeline, mut gpu) = pipelines(args, &params)?;
+        let (source, image, report) =
+            finished_frame(&mut pipeline, gpu.as_mut(), &mut frames, args, args.frame)?;
+        fluid_surfels::preview::save_rgba_png(&marked(args, &image), &args.out)?;
+        return report_frame(args, source, args.frame, &args.out, &image, report);
+    };
+    render_sequence(args, params, frames, range)
+}
+
+/// The CPU pipeline of a finished frame and, on a GPU, the `GpuPipeline` that draws it.
+fn pipelines(
+    args: &RenderArgs,
+    params: &PipelineParams,
+) -> Result<(Pipeline, Option<(GpuContext, GpuPipeline)>), Error> {
     let [w, h] = params.scene.optics.image_size;
     let mut pipeline = Pipeline::new(params.clone())?;
     super::warn_at_once(&mut pipeline);
-    let mut gpu = match choose_gpu(args.cpu, args.gpu)? {
+    let gpu = match choose_gpu(args.cpu, args.gpu)? {
         Some(ctx) => {
             let g = GpuPipeline::new(
                 &ctx.device,
                 &ctx.queue,
                 wgpu::TextureFormat::Rgba8Unorm,
                 (w, h),
-                &params,
+                params,
             )?;
             // the CPU stages' surfels are drawn as the finished frame on the GPU
             pipeline.set_drawn(Some(Through::Frame));
@@ -835,19 +903,149 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
         }
         None => None,
     };
-    let Some(range) = args.frames else {
-        let (source, image, report) =
-            finished_frame(&mut pipeline, gpu.as_mut(), &mut frames, args, args.frame)?;
-        fluid_surfels::preview::save_rgba_png(&marked(args, &image), &args.out)?;
-        return report_frame(args, source, args.frame, &args.out, &image, report);
-    };
-    let list: Vec<usize> = match &frames {
+    Ok((pipeline, gpu))
+}
+
+/// The frames of `--frames` in the order they are drawn, checked.
+fn range_frames(frames: &Frames, range: FrameRange) -> Result<Vec<usize>, Error> {
+    Ok(match frames {
         Frames::Pattern(pattern) => pattern.frames(Some(range))?,
         _ => {
             fluid_surfels::scenes::ColumnParams::check_frame(range.end - 1)?;
             range.frames().collect()
         }
+    })
+}
+
+/// `render --frames`: the range, or its `--shard`, into a folder of numbered PNGs through one
+/// pipeline. A run that does not start at the range's first frame (a shard, a resumed run)
+/// takes the sequence's plan (the radius, camera, pool and scene box of the range's first
+/// frame: `--plan`, or made here) and warms up on the `--warmup` frames before its first, so
+/// that it draws what the serial run draws.
+fn render_sequence(
+    args: &RenderArgs,
+    mut params: PipelineParams,
+    mut frames: Frames,
+    range: FrameRange,
+) -> Result<(), Error> {
+    let list = range_frames(&frames, range)?;
+    let chunk = args.shard.map_or(&list[..], |s| s.of(&list));
+    let Some(todo) = sequence_outputs(args, &list, chunk)? else {
+        return Ok(());
     };
+    let plan_exists = args.plan.as_ref().is_some_and(|p| p.exists());
+    let fit = match (args.fit, &frames) {
+        // the plan holds the fitted box
+        _ if plan_exists => None,
+        (FitChoice::First, _) => None,
+        (FitChoice::Union, Frames::Pattern(pattern)) => Some(union_bounds(pattern, &list, args)?),
+        (FitChoice::Union, _) => {
+            return Err(Error::InvalidArgument {
+                argument: "--fit",
+                reason: "`union` reads the frames' files first: it needs an --input pattern (the \
+                         column scene's frames are simulated in order)"
+                    .into(),
+            });
+        }
+    };
+    let first = todo[0];
+    let start = list
+        .iter()
+        .position(|&f| f == first)
+        .expect("a frame of the list");
+    let plan = match &args.plan {
+        Some(path) if path.exists() => Some(pipeline::SequencePlan::read(path)?),
+        _ if start > 0 => {
+            let plan = sequence_plan(args, &params, fit, list[0])?;
+            if let Some(path) = &args.plan {
+                plan.write(path)?;
+            }
+            Some(plan)
+        }
+        _ => None,
+    };
+    if let Some(plan) = &plan {
+        // the frames' pipeline takes the plan's radius (on a GPU the views are the GPU
+        // pipeline's, as in a serial run)
+        params.support_radius = Some(plan.support_radius);
+    }
+    let (mut pipeline, mut gpu) = pipelines(args, &params)?;
+    let fitted = match gpu.as_mut() {
+        Some((_, g)) => g.cpu_mut(),
+        None => &mut pipeline,
+    };
+    match (&plan, fit) {
+        (Some(plan), _) => fitted.set_plan(plan)?,
+        (None, Some((lo, hi))) => fitted.fit_to(lo, hi)?,
+        (None, None) => {}
+    }
+    let warmup = args.warmup.unwrap_or(pipeline::DEFAULT_WARMUP);
+    let warm = &list[start.saturating_sub(warmup)..start];
+    if !args.json && (args.shard.is_some() || start > 0) {
+        println!(
+            "frames {} of {} ({}), warm-up on {} frame(s) before",
+            todo.len(),
+            list.len(),
+            args.shard.map_or_else(
+                || "resumed".into(),
+                |s| format!("shard {}/{}", s.index, s.count)
+            ),
+            warm.len()
+        );
+    }
+    for &f in warm {
+        frames.warm_up(&mut pipeline, args, f)?;
+    }
+    let bar = super::progress(todo.len() as u64, "rendering");
+    for &frame in &todo {
+        let out = args.out.join(format!("frame_{frame:04}.png"));
+        let (source, image, report) =
+            finished_frame(&mut pipeline, gpu.as_mut(), &mut frames, args, Some(frame))?;
+        fluid_surfels::preview::save_rgba_png(&marked(args, &image), &out)?;
+        if plan.is_none()
+            && let Some(path) = args.plan.as_ref().filter(|p| !p.exists())
+        {
+            let fitted = match gpu.as_ref() {
+                Some((_, g)) => g.cpu(),
+                None => &pipeline,
+            };
+            if let Some(p) = fitted.plan() {
+                p.write(path)?;
+            }
+        }
+        bar.suspend(|| report_frame(args, source, Some(frame), &out, &image, report))?;
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    Ok(())
+}
+
+/// The sequence's plan, made from the range's first frame through a pipeline of its own.
+fn sequence_plan(
+    args: &RenderArgs,
+    params: &PipelineParams,
+    fit: Option<(Vec3, Vec3)>,
+    first: usize,
+) -> Result<pipeline::SequencePlan, Error> {
+    let mut frames = Frames::of(args, true)?;
+    let mut p = Pipeline::new(params.clone())?;
+    if let Some((lo, hi)) = fit {
+        p.fit_to(lo, hi)?;
+    }
+    frames.frame(&mut p, args, Some(first), Through::Frame)?;
+    p.plan().ok_or_else(|| Error::InvalidArgument {
+        argument: "--plan",
+        reason: "the range's first frame fitted no views".into(),
+    })
+}
+
+/// The frames of `chunk` to draw, after the checks of `--out` (a folder), `--force` and
+/// `--skip-existing` (made before any work); `None` when there is nothing to do (said).
+fn sequence_outputs(
+    args: &RenderArgs,
+    list: &[usize],
+    chunk: &[usize],
+) -> Result<Option<Vec<usize>>, Error> {
     if args.out.exists() && !args.out.is_dir() {
         return Err(Error::InvalidArgument {
             argument: "--out",
@@ -857,74 +1055,43 @@ fn render_optics(args: &RenderArgs) -> Result<(), Error> {
             ),
         });
     }
-    // refuse before any work: every output that exists without --force or --skip-existing
-    let outputs: Vec<PathBuf> = list
+    if chunk.is_empty() {
+        println!(
+            "no frame to do: the range holds {} frames, fewer than the shards",
+            list.len()
+        );
+        return Ok(None);
+    }
+    let out = |f: usize| args.out.join(format!("frame_{f:04}.png"));
+    let todo: Vec<usize> = chunk
         .iter()
-        .map(|f| args.out.join(format!("frame_{f:04}.png")))
-        .collect();
-    let todo: Vec<bool> = outputs
-        .iter()
-        .map(|o| !(args.skip_existing && o.exists()))
+        .copied()
+        .filter(|&f| !(args.skip_existing && out(f).exists()))
         .collect();
     std::fs::create_dir_all(&args.out).map_err(|e| Error::InvalidArgument {
         argument: "--out",
         reason: format!("{}: {e}", args.out.display()),
     })?;
     super::check_folder(&args.out.join("frame_0000.png"))?;
-    for (out, _) in outputs.iter().zip(&todo).filter(|(_, t)| **t) {
-        super::check_replaceable(out, None, args.force, OutputKind::Frame)?;
+    for &f in &todo {
+        super::check_replaceable(&out(f), None, args.force, OutputKind::Frame)?;
     }
-    let skipped = todo.iter().filter(|t| !**t).count();
-    if skipped == list.len() {
+    let skipped = chunk.len() - todo.len();
+    if todo.is_empty() {
         println!(
             "all {} frames exist in {} (--skip-existing): nothing to do",
-            list.len(),
+            chunk.len(),
             args.out.display()
         );
-        return Ok(());
+        return Ok(None);
     }
     if skipped > 0 && !args.json {
         println!(
             "skipping {skipped} of {} frames whose PNG exists",
-            list.len()
+            chunk.len()
         );
     }
-    if args.fit == FitChoice::Union {
-        let Frames::Pattern(pattern) = &frames else {
-            return Err(Error::InvalidArgument {
-                argument: "--fit",
-                reason: "`union` reads the frames' files first: it needs an --input pattern (the \
-                         column scene's frames are simulated in order)"
-                    .into(),
-            });
-        };
-        let (lo, hi) = union_bounds(pattern, &list, args)?;
-        match gpu.as_mut() {
-            Some((_, g)) => g.cpu_mut().fit_to(lo, hi)?,
-            None => pipeline.fit_to(lo, hi)?,
-        }
-    }
-    if !todo[0] {
-        // a resumed sequence keeps the camera and the pool of a whole run: fitted on its first
-        // frame, rendered again but not written
-        finished_frame(
-            &mut pipeline,
-            gpu.as_mut(),
-            &mut frames,
-            args,
-            Some(list[0]),
-        )?;
-    }
-    let bar = super::progress((list.len() - skipped) as u64, "rendering");
-    for ((&frame, out), _) in list.iter().zip(&outputs).zip(&todo).filter(|(_, t)| **t) {
-        let (source, image, report) =
-            finished_frame(&mut pipeline, gpu.as_mut(), &mut frames, args, Some(frame))?;
-        fluid_surfels::preview::save_rgba_png(&marked(args, &image), out)?;
-        bar.suspend(|| report_frame(args, source, Some(frame), out, &image, report))?;
-        bar.inc(1);
-    }
-    bar.finish_and_clear();
-    Ok(())
+    Ok(Some(todo))
 }
 
 /// The union of the particle bounds of `frames`, in the turned (`--up`) coordinates, widened by
