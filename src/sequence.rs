@@ -478,6 +478,13 @@ pub struct Sequence<'a> {
     /// Called once with the number of frames to do, then after each frame done (from the
     /// worker threads); the command line draws its progress bar with it.
     pub progress: Option<Box<dyn Fn(Progress) + Sync + 'a>>,
+    /// The chunk of `frames` this run does (`--shard K/N`); `None`: every frame.
+    pub shard: Option<Shard>,
+    /// How many frames of `frames` before each frame a job processes, back to the one it
+    /// processed last, go through [`Sequence::run_warm`]'s warm-up alone (`--warmup`): a job's
+    /// first frame, a shard's, a frame after skipped ones then carry the serial run's
+    /// hysteresis. 0: none.
+    pub warmup: usize,
 }
 
 /// What [`Sequence::progress`] is told.
@@ -511,7 +518,8 @@ impl Sequence<'_> {
         let mut todo = Vec::new();
         let mut skipped = Vec::new();
         let mut folders = std::collections::HashSet::new();
-        for &f in &self.frames {
+        let chunk = self.shard.map_or(&self.frames[..], |s| s.of(&self.frames));
+        for &f in chunk {
             let targets: Vec<PathBuf> = self.outputs.iter().map(|p| p.path(f)).collect();
             if self.skip_existing && !targets.is_empty() && targets.iter().all(|t| t.exists()) {
                 skipped.push(f);
@@ -535,6 +543,19 @@ impl Sequence<'_> {
     pub fn run<S, R: Send>(
         &self,
         make_state: impl Fn() -> Result<S, Error> + Sync,
+        process: impl Fn(&mut S, usize) -> Result<R, Error> + Sync,
+    ) -> Result<SequenceRun<R>, Error> {
+        self.run_warm(make_state, |_, _| Ok(()), process)
+    }
+
+    /// [`Sequence::run`] with a warm-up: before each frame a job processes, `warm_up(state,
+    /// frame)` on the [`Sequence::warmup`] frames of `frames` just before it that the job has
+    /// not processed (those before a job's first frame, a shard's, or between skipped ones), so
+    /// that the state carries what the serial run's would.
+    pub fn run_warm<S, R: Send>(
+        &self,
+        make_state: impl Fn() -> Result<S, Error> + Sync,
+        warm_up: impl Fn(&mut S, usize) -> Result<(), Error> + Sync,
         process: impl Fn(&mut S, usize) -> Result<R, Error> + Sync,
     ) -> Result<SequenceRun<R>, Error> {
         let (todo, skipped) = self.plan()?;
@@ -566,10 +587,18 @@ impl Sequence<'_> {
                     return out;
                 }
             };
+            let mut next = 0;
             for &f in frames {
                 if failed.load(Ordering::SeqCst) {
                     break;
                 }
+                let at = self.index_of(f);
+                let warm = &self.frames[next.max(at.saturating_sub(self.warmup))..at];
+                if let Err(e) = warm.iter().try_for_each(|&w| warm_up(&mut state, w)) {
+                    fail(e);
+                    break;
+                }
+                next = at + 1;
                 match process(&mut state, f) {
                     Ok(r) => out.push((f, r)),
                     Err(e) => {
@@ -601,6 +630,19 @@ impl Sequence<'_> {
             jobs,
             seconds: start.elapsed().as_secs_f64(),
         })
+    }
+}
+
+impl Sequence<'_> {
+    /// Where `frame` lies in `frames` (sorted as patterns and ranges give them; searched
+    /// otherwise).
+    fn index_of(&self, frame: usize) -> usize {
+        self.frames
+            .binary_search(&frame)
+            .ok()
+            .filter(|&i| self.frames[i] == frame)
+            .or_else(|| self.frames.iter().position(|&x| x == frame))
+            .expect("a frame of the sequence")
     }
 }
 
@@ -751,7 +793,62 @@ mod tests {
             force: false,
             label: "test",
             progress: None,
+            shard: None,
+            warmup: 0,
         }
+    }
+
+    /// The warm-up: before each frame a job processes, the frames of the range just before it
+    /// that the job has not processed (at most `warmup` of them): a job's first frame, a
+    /// shard's, a frame after a skipped one; so each state sees the frames a serial run's
+    /// would just before every frame it processes.
+    #[test]
+    fn the_runner_warms_up_jobs_shards_and_gaps() {
+        let dir = tempfile::tempdir().unwrap();
+        let input = FramePattern::parse(&format!("{}/in_{{}}.txt", dir.path().display()))
+            .unwrap()
+            .unwrap();
+        // (processed frame, the frames the state saw before it: warm-ups and processed ones)
+        let run = |seq: &Sequence<'_>| -> Vec<(usize, Vec<String>)> {
+            seq.run_warm(
+                || Ok(Vec::new()),
+                |seen: &mut Vec<String>, f| {
+                    seen.push(format!("w{f}"));
+                    Ok(())
+                },
+                |seen: &mut Vec<String>, f| {
+                    let before = seen.clone();
+                    seen.push(format!("p{f}"));
+                    Ok((f, before))
+                },
+            )
+            .unwrap()
+            .results
+        };
+        let mut seq = sequence(&input, dir.path(), (0..10).collect());
+        seq.warmup = 3;
+        let r = run(&seq);
+        // two jobs: 0..5 and 5..10; the second warms up on 2, 3, 4
+        assert_eq!(r[0].1, Vec::<String>::new());
+        assert_eq!(r[5].1, ["w2", "w3", "w4"]);
+        assert_eq!(r[6].1, ["w2", "w3", "w4", "p5"]);
+        // a skipped frame inside a job's run is warmed up on
+        std::fs::write(dir.path().join("out_7.txt"), "done").unwrap();
+        seq.skip_existing = true;
+        let r = run(&seq);
+        let eight = r.iter().find(|(f, _)| *f == 8).unwrap();
+        assert_eq!(eight.1.last().map(String::as_str), Some("w7"));
+        // the second of two shards, one job: frames 5..10, warmed up on 2, 3, 4
+        seq.skip_existing = false;
+        seq.force = true;
+        seq.jobs = 1;
+        seq.shard = Some(Shard::new(2, 2).unwrap());
+        let r = run(&seq);
+        assert_eq!(r.iter().map(|x| x.0).collect::<Vec<_>>(), [5, 6, 7, 8, 9]);
+        assert_eq!(r[0].1, ["w2", "w3", "w4"]);
+        // no warm-up: nothing before a job's first frame
+        seq.warmup = 0;
+        assert!(run(&seq)[0].1.is_empty());
     }
 
     /// The runner: results in frame order whatever the jobs, each run's state used in frame

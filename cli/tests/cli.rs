@@ -2409,6 +2409,35 @@ fn render_shards_draw_the_serial_frames_and_refuse_bad_shards() {
         let sharded = std::fs::read(d.join("sharded").join(&name)).unwrap();
         assert!(serial == sharded, "frame {f} differs");
     }
+    // detection over the same files: three shards, and three jobs, write the serial run's
+    // classes (each job and shard warmed up on the 8 frames before its first)
+    let detect = |out: &str, extra: &[&str]| {
+        let out = d.join(out).join("s_{}.ply");
+        bin()
+            .args(["detect", "--frames", "0..24", "--input"])
+            .arg(d.join("c_{}.vtk"))
+            .arg("--out")
+            .arg(&out)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    for folder in ["d_serial", "d_shards", "d_jobs"] {
+        std::fs::create_dir(d.join(folder)).unwrap();
+    }
+    succeeded(&detect("d_serial", &[]));
+    for k in 1..=3 {
+        succeeded(&detect("d_shards", &["--shard", &format!("{k}/3")]));
+    }
+    succeeded(&detect("d_jobs", &["--jobs", "3"]));
+    for f in 0..24 {
+        let name = format!("s_{f}.ply");
+        let serial = std::fs::read(d.join("d_serial").join(&name)).unwrap();
+        for other in ["d_shards", "d_jobs"] {
+            let o = std::fs::read(d.join(other).join(&name)).unwrap();
+            assert!(serial == o, "{other}: frame {f}'s classes differ");
+        }
+    }
     // bad shards: clear errors before any work
     for (shard, env, what) in [
         ("3/2", None, "1 <= K <= N"),

@@ -417,8 +417,12 @@ fn detect_sequence(
         png,
         radius,
     } = super::prepare_sequence(&args.source, &args.outputs, pattern, "detect")?;
-    let run = sequence.run(
+    let run = sequence.run_warm(
         || Pipeline::new(surface_params(params, Some(radius))),
+        |pipeline, f| {
+            let particles = super::read_particles(&pattern.path(f), args.source.format)?;
+            pipeline.warm_up(&particles, Through::Surface)
+        },
         |pipeline, f| {
             let t = Instant::now();
             let particles = super::read_particles(&pattern.path(f), args.source.format)?;

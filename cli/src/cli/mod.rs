@@ -214,9 +214,19 @@ pub struct OutputArgs {
     #[arg(long)]
     pub png: Option<String>,
     /// Frames processed at once (sequences). Each job runs consecutive frames in order with its
-    /// own state (hysteresis starts afresh at the job's first frame).
+    /// own state, warmed up on the --warmup frames before its first (the serial run's
+    /// hysteresis).
     #[arg(long, default_value_t = 1)]
     pub jobs: usize,
+    /// Sequences: do only the K-th of N contiguous chunks of the frames (1-based), as the
+    /// serial run would (the radius of the range's first frame, a --warmup before the chunk);
+    /// `slurm`: the chunk of this Slurm array task.
+    #[arg(long)]
+    pub shard: Option<fluid_surfels::sequence::Shard>,
+    /// Sequences: how many frames before a job's first frame (a shard's, a frame after skipped
+    /// ones) run surface detection alone, so that its hysteresis is the serial run's (default 8).
+    #[arg(long)]
+    pub warmup: Option<usize>,
     /// Skip frames whose outputs exist (resume an interrupted sequence).
     #[arg(long, conflicts_with = "force")]
     pub skip_existing: bool,
@@ -403,9 +413,14 @@ pub fn prepare_sequence<'a>(
         force: outputs.force,
         label,
         progress: Some(progress_bar(label)),
+        shard: outputs.shard,
+        warmup: outputs
+            .warmup
+            .unwrap_or(fluid_surfels::pipeline::DEFAULT_WARMUP),
     };
-    let (todo, _) = sequence.plan()?;
-    let radius = match (source.radius, todo.first()) {
+    sequence.plan()?;
+    // the range's first frame sets the radius of every job, shard and resumed run
+    let radius = match (source.radius, sequence.frames.first()) {
         (Some(r), _) => r,
         (None, Some(&f)) => {
             let first = read_particles(&pattern.path(f), source.format)?;

@@ -277,8 +277,16 @@ fn refine_sequence(args: &RefineArgs, pattern: &FramePattern) -> Result<(), Erro
         png,
         radius,
     } = super::prepare_sequence(&args.source, &args.outputs, pattern, "refine")?;
-    let run = sequence.run(
+    let run = sequence.run_warm(
         || detection_pipeline(radius),
+        |pipeline, f| {
+            if args.surface_input {
+                // the file's own classes: no hysteresis to carry
+                return Ok(());
+            }
+            let particles = super::read_particles(&pattern.path(f), args.source.format)?;
+            pipeline.warm_up(&particles, Through::Surface)
+        },
         |pipeline, f| {
             let t = Instant::now();
             let particles = super::read_particles(&pattern.path(f), args.source.format)?;

@@ -319,12 +319,20 @@ fn surfels_sequence(args: &SurfelsArgs, pattern: &FramePattern, iso: f32) -> Res
     } = super::prepare_sequence(src, o, pattern, "surfels")?;
     let h = args.h.unwrap_or(radius);
     let source = args.pipeline_source();
-    let run = sequence.run(
-        // one pipeline per job: its hysteresis runs over the job's frames
+    let run = sequence.run_warm(
+        // one pipeline per job: its hysteresis runs over the job's frames, warmed up before
         || {
             source
                 .map(|s| Pipeline::new(args.pipeline_params(s, radius, iso)))
                 .transpose()
+        },
+        |pipeline, f| match pipeline {
+            Some(p) => {
+                let particles = super::read_particles(&pattern.path(f), src.format)?;
+                p.warm_up(&particles, Through::Surfels)
+            }
+            // the raw density grid carries nothing from frame to frame
+            None => Ok(()),
         },
         |pipeline, f| {
             let particles = super::read_particles(&pattern.path(f), src.format)?;
