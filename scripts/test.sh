@@ -85,12 +85,14 @@ grep -q "16^3 block" "$example_out/peer.txt"
 rm -rf "$example_out"
 
 echo "== Python bindings: the wheel built by maturin, installed in a virtual environment, pytest"
-# needs python3 (3.9 or later) with venv; maturin, numpy and pytest come from the package index
+# needs python3 (3.9 or later) with venv; maturin, numpy, pytest and dask (the cluster tests, a
+# LocalCluster of 2 worker processes) come from the package index
 py_env="target/python-env"
 if [ ! -x "$py_env/bin/python" ]; then
   python3 -m venv "$py_env"
 fi
-"$py_env/bin/python" -m pip install --quiet --disable-pip-version-check "maturin>=1.9,<2" "numpy>=1.21" "pytest>=7"
+"$py_env/bin/python" -m pip install --quiet --disable-pip-version-check "maturin>=1.9,<2" "numpy>=1.21" "pytest>=7" \
+  "dask[distributed]>=2023.1"
 wheel_dir="$(mktemp -d)"
 wheel_start=$(date +%s)
 # the dev profile (optimised, see Cargo.toml) shares the test build's dependencies; --strip keeps

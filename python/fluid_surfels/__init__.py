@@ -19,7 +19,9 @@ from ._native import (
     __version__,
     column_frames,
     column_params,
+    plan_of,
     read,
+    render_chunk,
     write,
 )
 
@@ -39,6 +41,8 @@ __all__ = [
     "__version__",
     "column_frames",
     "column_params",
+    "plan_of",
     "read",
+    "render_chunk",
     "write",
 ]

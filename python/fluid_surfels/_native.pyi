@@ -140,6 +140,22 @@ class Pipeline:
         first rendered frame's water (give the union of every frame's bounds)."""
     def reset(self) -> None:
         """Forgets what the sequence kept (hysteresis, estimated radius, camera and pool)."""
+    def plan(self) -> Optional[dict[str, Any]]:
+        """The sequence's plan (support radius, camera, pool, scene box, the light's
+        resolutions) once a frame was rendered; None before."""
+    def set_plan(self, plan: Union[dict[str, Any], str]) -> None:
+        """Takes a sequence's plan (a dict or its JSON text): the next frames render with its
+        radius and views."""
+    def warm_up(
+        self,
+        positions: _Points,
+        ids: Optional[_Ids] = None,
+        *,
+        masses: Optional[npt.NDArray[Union[np.float32, np.float64]]] = None,
+        through: Literal["surface", "refine", "surfels", "splats", "frame"] = "frame",
+    ) -> None:
+        """Surface detection (and the levels of detail) alone on a frame before the ones to
+        draw: a chunk of a sequence then starts with the serial run's hysteresis."""
 
 def read(
     path: _Path, format: Optional[str] = None, *, memory_budget: Optional[int] = None
@@ -172,3 +188,22 @@ def column_frames(last: int) -> list[dict[str, npt.NDArray[Any]]]:
 
 def column_params() -> dict[str, Any]:
     """The parameters of the main job on the column scene, for Pipeline(**column_params())."""
+
+def plan_of(pattern: str, first: int, params: Optional[dict[str, Any]] = None) -> dict[str, Any]:
+    """The plan of a sequence of files: frame `first` of `pattern` (holding {} for the frame
+    number) drawn as a finished frame by a pipeline of `params`."""
+
+def render_chunk(
+    pattern: str,
+    frames: Sequence[int],
+    out: _Path,
+    *,
+    warmup: Sequence[int] = (),
+    plan: Optional[Union[dict[str, Any], str]] = None,
+    params: Optional[dict[str, Any]] = None,
+    skip_existing: bool = True,
+) -> dict[str, Any]:
+    """One chunk of a sequence of files: a pipeline of `params` takes `plan`, warms up on the
+    frames `warmup`, then writes the finished frame of each of `frames` to
+    out/frame_NNNN.png atomically. A frame that fails is reported and the others written.
+    Returns written, skipped, failed ([frame, error] pairs), warmup_failed and seconds."""

@@ -817,13 +817,7 @@ impl Pipeline {
     #[new]
     #[pyo3(signature = (**params))]
     fn new(params: Option<&Bound<'_, PyDict>>) -> PyResult<Self> {
-        let table = match params {
-            Some(d) => to_table("", d)?,
-            None => toml::Table::new(),
-        };
-        let params = pipeline::PipelineParams::from_table(table, Path::new("."))
-            .map_err(|e| value_error(format!("invalid pipeline parameters: {e}")))?;
-        Self::with(params)
+        Self::with(params_in(params)?)
     }
 
     /// A pipeline from a TOML file (the format of `render --config`; relative paths are
@@ -924,6 +918,38 @@ impl Pipeline {
     /// Forgets what the sequence kept (hysteresis, estimated radius, camera and pool).
     fn reset(&self) {
         self.lock().reset();
+    }
+
+    /// The sequence's plan (support radius, camera, pool, scene box, the light's resolutions)
+    /// as a dict, once a frame was rendered; None before. Another pipeline's `set_plan` takes
+    /// it, so a chunk of the sequence renders with the same views.
+    fn plan<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
+        self.lock().plan().map(|p| plan_out(py, &p)).transpose()
+    }
+
+    /// Takes a sequence's plan (a dict from `plan()` or `plan_of`, or its JSON text).
+    fn set_plan(&self, plan: &Bound<'_, PyAny>) -> PyResult<()> {
+        let plan = plan_in(plan)?;
+        self.lock().set_plan(&plan).map_err(pipeline_error)
+    }
+
+    /// Runs surface detection (and the levels of detail) alone on a frame before the ones to
+    /// draw, so that a chunk of a sequence starts with the serial run's hysteresis; `through`
+    /// as the frames to come ("frame" by default).
+    #[pyo3(signature = (positions, ids=None, *, masses=None, through="frame"))]
+    fn warm_up<'py>(
+        &self,
+        py: Python<'py>,
+        positions: &Bound<'py, PyAny>,
+        ids: Option<&Bound<'py, PyAny>>,
+        masses: Option<&Bound<'py, PyAny>>,
+        through: &str,
+    ) -> PyResult<()> {
+        let through = through_of(through)?;
+        let input = FrameIn::new(positions, ids, None, masses)?;
+        let view = input.view();
+        py.detach(|| self.lock().warm_up(view, through))
+            .map_err(crate_error)
     }
 
     fn __repr__(&self) -> String {
@@ -1188,6 +1214,104 @@ fn column_params(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     dict_of(py, &table)
 }
 
+// ---------------------------------------------------------------------------------------------
+// sequences in chunks
+
+/// A plan as a dict (through its JSON).
+fn plan_out<'py>(py: Python<'py>, plan: &pipeline::SequencePlan) -> PyResult<Bound<'py, PyAny>> {
+    let text = serde_json::to_string(plan).map_err(|e| Error::new_err(e.to_string()))?;
+    py.import("json")?.call_method1("loads", (text,))
+}
+
+/// A plan from a dict or its JSON text, checked.
+fn plan_in(plan: &Bound<'_, PyAny>) -> PyResult<pipeline::SequencePlan> {
+    let text: String = match plan.extract::<String>() {
+        Ok(t) => t,
+        Err(_) => plan
+            .py()
+            .import("json")?
+            .call_method1("dumps", (plan,))?
+            .extract()?,
+    };
+    let plan: pipeline::SequencePlan = serde_json::from_str(&text)
+        .map_err(|e| value_error(format!("not a sequence plan: {e}")))?;
+    plan.validate()
+        .map_err(|e| value_error(format!("unusable sequence plan: {e}")))?;
+    Ok(plan)
+}
+
+/// Pipeline parameters from the keyword dict of `Pipeline(**params)`.
+fn params_in(params: Option<&Bound<'_, PyDict>>) -> PyResult<pipeline::PipelineParams> {
+    let table = match params {
+        Some(d) => to_table("", d)?,
+        None => toml::Table::new(),
+    };
+    pipeline::PipelineParams::from_table(table, Path::new("."))
+        .map_err(|e| value_error(format!("invalid pipeline parameters: {e}")))
+}
+
+/// A file pattern holding `{}` or `{:04}` for the frame number.
+fn pattern_in(pattern: &str) -> PyResult<fluid_surfels::sequence::FramePattern> {
+    fluid_surfels::sequence::FramePattern::parse(pattern)
+        .map_err(|e| value_error(e.to_string()))?
+        .ok_or_else(|| value_error(format!("`{pattern}` needs a {{}} for the frame number")))
+}
+
+/// The plan of a sequence of files: frame `first` of `pattern` drawn as a finished frame by a
+/// pipeline of `params` (the camera, pool and scene box fitted to it), as a dict.
+#[pyfunction]
+#[pyo3(signature = (pattern, first, params=None))]
+fn plan_of<'py>(
+    py: Python<'py>,
+    pattern: &str,
+    first: usize,
+    params: Option<&Bound<'py, PyDict>>,
+) -> PyResult<Bound<'py, PyAny>> {
+    let pattern = pattern_in(pattern)?;
+    let params = params_in(params)?;
+    let plan = py
+        .detach(|| pipeline::plan_of(&pattern, first, &params, None))
+        .map_err(crate_error)?;
+    plan_out(py, &plan)
+}
+
+/// One chunk of a sequence of files (the task of `fluid_surfels.cluster`): a pipeline of
+/// `params` takes `plan`, warms up on the frames `warmup`, and writes the finished frame of
+/// each of `frames` to `out/frame_NNNN.png` atomically; a frame that fails is reported and the
+/// others are written; with `skip_existing` existing PNGs are kept. Returns a dict: `written`,
+/// `skipped`, `failed` (pairs of frame and error), `warmup_failed`, `seconds`.
+#[pyfunction]
+#[pyo3(signature = (pattern, frames, out, *, warmup=Vec::new(), plan=None, params=None, skip_existing=true))]
+#[allow(clippy::too_many_arguments)]
+fn render_chunk<'py>(
+    py: Python<'py>,
+    pattern: &str,
+    frames: Vec<usize>,
+    out: PathBuf,
+    warmup: Vec<usize>,
+    plan: Option<&Bound<'py, PyAny>>,
+    params: Option<&Bound<'py, PyDict>>,
+    skip_existing: bool,
+) -> PyResult<Bound<'py, PyAny>> {
+    let pattern = pattern_in(pattern)?;
+    let params = params_in(params)?;
+    let plan = plan.map(plan_in).transpose()?;
+    let report = py
+        .detach(|| {
+            pipeline::render_chunk(
+                &pattern,
+                (&warmup, &frames),
+                &out,
+                &params,
+                plan.as_ref(),
+                skip_existing,
+            )
+        })
+        .map_err(crate_error)?;
+    let text = serde_json::to_string(&report).map_err(|e| Error::new_err(e.to_string()))?;
+    py.import("json")?.call_method1("loads", (text,))
+}
+
 /// The extension module `fluid_surfels._native`.
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -1200,6 +1324,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(write, m)?)?;
     m.add_function(wrap_pyfunction!(column_frames, m)?)?;
     m.add_function(wrap_pyfunction!(column_params, m)?)?;
+    m.add_function(wrap_pyfunction!(plan_of, m)?)?;
+    m.add_function(wrap_pyfunction!(render_chunk, m)?)?;
     let formats: Vec<&str> = Format::ALL.iter().map(|f| f.name()).collect();
     m.add("FORMATS", formats)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;

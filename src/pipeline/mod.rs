@@ -69,7 +69,9 @@ pub use boundary::{
 };
 pub use detail::{DEFAULT_DETAIL_PX, Detail, LEVEL_HYSTERESIS, ViewLevels, spacing_after};
 pub use gpu::{GpuPipeline, iso_surfels_gpu};
-pub use plan::{DEFAULT_WARMUP, PLAN_VERSION, SequencePlan};
+pub use plan::{
+    ChunkReport, DEFAULT_WARMUP, PLAN_VERSION, SequencePlan, frame_png, plan_of, render_chunk,
+};
 
 /// Where the surfels that are rendered come from.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]

@@ -180,3 +180,105 @@ impl Pipeline {
         Ok(())
     }
 }
+
+/// What [`render_chunk`] did.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct ChunkReport {
+    /// Frames drawn and written.
+    pub written: Vec<usize>,
+    /// Frames whose PNG existed (kept).
+    pub skipped: Vec<usize>,
+    /// Frames that could not be read or drawn, with the error; the others were written.
+    pub failed: Vec<(usize, String)>,
+    /// Warm-up frames that could not be read (the warm-up went on without them).
+    pub warmup_failed: Vec<(usize, String)>,
+    /// Wall-clock seconds.
+    pub seconds: f64,
+}
+
+/// The PNG [`render_chunk`] writes frame `frame` to in `out`: `frame_NNNN.png`, as `render
+/// --frames` names them.
+#[must_use]
+pub fn frame_png(out: &Path, frame: usize) -> std::path::PathBuf {
+    out.join(format!("frame_{frame:04}.png"))
+}
+
+/// The plan of a sequence of files: frame `first` of `input` drawn through the finished frame
+/// by a pipeline of `params` (the camera, pool and scene box fitted to it, or also to `fit`).
+pub fn plan_of(
+    input: &crate::sequence::FramePattern,
+    first: usize,
+    params: &super::PipelineParams,
+    fit: Option<(Vec3, Vec3)>,
+) -> Result<SequencePlan, Error> {
+    let set = crate::io::read_particles(&input.path(first), None)?;
+    let mut p = Pipeline::new(params.clone())?;
+    if let Some((lo, hi)) = fit {
+        p.fit_to(lo, hi)?;
+    }
+    p.frame_through(&set, Through::Frame)?;
+    p.plan().ok_or_else(|| Error::InvalidArgument {
+        argument: "plan",
+        reason: format!("frame {first} fitted no views"),
+    })
+}
+
+/// One chunk of a sequence of files drawn as the serial run draws it (for a task of a cluster,
+/// `fluid_surfels.cluster` in Python): a pipeline of `params` takes `plan` (the range's first
+/// frame's, [`plan_of`]), warms up on `warmup` (the frames just before the chunk), then draws
+/// the finished frame of each of `frames` into the folder `out` (made when missing;
+/// [`frame_png`], written atomically: an
+/// interrupted task leaves no half-written PNG under a frame's name). A frame whose file cannot
+/// be read or drawn is reported and the others are written; with `skip_existing` the frames
+/// whose PNG exists are kept (warmed up on), so a rerun after a crash draws only the missing
+/// ones, as the uninterrupted run would have.
+pub fn render_chunk(
+    input: &crate::sequence::FramePattern,
+    (warmup, frames): (&[usize], &[usize]),
+    out: &Path,
+    params: &super::PipelineParams,
+    plan: Option<&SequencePlan>,
+    skip_existing: bool,
+) -> Result<ChunkReport, Error> {
+    let start = std::time::Instant::now();
+    let mut report = ChunkReport::default();
+    std::fs::create_dir_all(out).map_err(|e| IoError::os(out, e))?;
+    let mut p = Pipeline::new(params.clone())?;
+    if let Some(plan) = plan {
+        p.set_plan(plan)?;
+    }
+    let read = |f: usize| crate::io::read_particles(&input.path(f), None);
+    let warm = |p: &mut Pipeline, report: &mut ChunkReport, f: usize| {
+        let warmed = read(f)
+            .map_err(Error::from)
+            .and_then(|set| p.warm_up(&set, Through::Frame));
+        if let Err(e) = warmed {
+            report.warmup_failed.push((f, e.to_string()));
+        }
+    };
+    for &f in warmup {
+        warm(&mut p, &mut report, f);
+    }
+    for &f in frames {
+        let png = frame_png(out, f);
+        if skip_existing && png.exists() {
+            // kept, but its hysteresis carries over to the frames after it
+            report.skipped.push(f);
+            warm(&mut p, &mut report, f);
+            continue;
+        }
+        let drawn = read(f).map_err(Error::from).and_then(|set| {
+            let frame = p.frame_through(&set, Through::Frame)?;
+            let image = &frame.finished.as_ref().expect("through the frame").image;
+            crate::preview::save_rgba_png(image, &png)?;
+            p.recycle(frame);
+            Ok(())
+        });
+        match drawn {
+            Ok(()) => report.written.push(f),
+            Err(e) => report.failed.push((f, e.to_string())),
+        }
+    }
+    report.seconds = start.elapsed().as_secs_f64();
+    Ok(report)
+}
