@@ -441,7 +441,7 @@ fn to_toml(path: &str, value: &Bound<'_, PyAny>) -> PyResult<Option<toml::Value>
         return Ok(Some(toml::Value::Float(value.extract()?)));
     }
     if let Ok(s) = value.cast::<PyString>() {
-        return Ok(Some(toml::Value::String(s.to_str()?.to_string())));
+        return Ok(Some(toml::Value::String(s.to_cow()?.into_owned())));
     }
     if let Ok(d) = value.cast::<PyDict>() {
         return Ok(Some(toml::Value::Table(to_table(path, d)?)));

@@ -10,6 +10,29 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / "tests" / "data"
 DAM_BREAK = DATA / "double_dam_break_frame_26_4732_particles.vtk"
+IN_REPOSITORY = (ROOT / "Cargo.toml").exists() and DAM_BREAK.exists()
+"""Whether the tests run from a checkout (its data files, README, examples and command line), not
+from an installed wheel alone."""
+
+
+def pytest_configure(config):
+    config.addinivalue_line(
+        "markers",
+        "repository: needs the repository's data files, README or command line (skipped when "
+        "the tests run from an installed wheel alone)",
+    )
+
+
+def pytest_collection_modifyitems(config, items):
+    if IN_REPOSITORY:
+        return
+    skip = pytest.mark.skip(
+        reason="needs the fluid-surfels repository (tests/data, README.md, examples, the "
+        "command line): run the tests from a checkout"
+    )
+    for item in items:
+        if "repository" in item.keywords or "cli" in getattr(item, "fixturenames", ()):
+            item.add_marker(skip)
 
 
 def _binary() -> Path:

@@ -57,6 +57,7 @@ def test_column_matches_the_main_job(cli, column, tmp_path):
     assert frame.image is None and frame.radius == fs.column_params()["support_radius"]
 
 
+@pytest.mark.repository
 def test_real_file_matches_the_command_line(cli, tmp_path):
     """On a SPlisHSPlasH file read with fluid_surfels.read: the same surface particles, refined
     points and rendered surfels as detect, refine and render --save-surfels."""
@@ -76,6 +77,7 @@ def test_real_file_matches_the_command_line(cli, tmp_path):
     np.testing.assert_array_equal(frame.surfels.radii, surfels["attributes"]["radius"])
 
 
+@pytest.mark.repository
 def test_render_equals_the_command_lines_png(cli, column, tmp_path):
     """The finished frame as an array equals render's PNG of the same frame, byte for byte: the
     column splash frame (its pool and camera) and the real file (a fitted pool)."""
@@ -150,6 +152,7 @@ def test_a_sequence_in_a_loop_equals_the_command_lines(cli, column, tmp_path):
         np.testing.assert_array_equal(image, read_png(tmp_path / f"frame_{k:04}.png"), err_msg=k)
 
 
+@pytest.mark.repository
 def test_non_contiguous_and_float64_arrays_give_the_same_result():
     d = fs.read(DAM_BREAK)
     pos = d["positions"]
@@ -175,6 +178,7 @@ def test_non_contiguous_and_float64_arrays_give_the_same_result():
         np.testing.assert_array_equal(f.refined.positions, ref.refined.positions)
 
 
+@pytest.mark.repository
 def test_masses_weigh_the_centre_of_mass():
     d = fs.read(DAM_BREAK)
     pos = d["positions"]
@@ -190,6 +194,7 @@ def test_masses_weigh_the_centre_of_mass():
         fs.Pipeline().frame(pos, masses=np.ones(len(pos), np.float16))
 
 
+@pytest.mark.repository
 def test_bad_input_raises_clear_exceptions():
     p = fs.Pipeline(support_radius=0.1)
     good = np.zeros((10, 3), dtype=np.float32)
@@ -237,6 +242,7 @@ def test_bad_input_raises_clear_exceptions():
     assert len(p.frame(np.random.default_rng(1).random((200, 3), np.float32) * 0.3).classes) == 200
 
 
+@pytest.mark.repository
 def test_params_round_trip_and_files(tmp_path):
     p = fs.Pipeline(support_radius=0.05, refine={"steps": 2}, grid={"cells_per_radius": 2.5},
                     light={"direction": np.array([0.0, 1.0, 0.0])}, optics={"image_size": (64, 48)})
@@ -258,6 +264,7 @@ def test_params_round_trip_and_files(tmp_path):
         fs.Pipeline.from_toml(scene)
 
 
+@pytest.mark.repository
 def test_read_and_write_every_format(tmp_path):
     d = fs.read(DAM_BREAK)
     n = len(d["positions"])
@@ -304,6 +311,7 @@ def test_read_and_write_every_format(tmp_path):
         fs.write(tmp_path / "x.unknown", d["positions"])
 
 
+@pytest.mark.repository
 def test_the_gil_is_released_during_a_frame():
     """While one thread runs a frame, another thread runs Python code: with the GIL held for
     the whole frame it could not run at all between the frame's start and end."""
@@ -327,6 +335,7 @@ def test_the_gil_is_released_during_a_frame():
     assert len(inside) > 100, (len(inside), span["end"] - span["start"])
 
 
+@pytest.mark.repository
 def test_warnings_reach_pythons_warnings_module():
     """A support radius far off warns through `warnings` (UserWarning) and in Frame.warnings;
     a good one does not."""
@@ -341,6 +350,7 @@ def test_warnings_reach_pythons_warnings_module():
         assert fs.Pipeline().frame(d["positions"], through="surface").warnings == []
 
 
+@pytest.mark.repository
 def test_the_lnm_detection_method_equals_detect_method_lnm(cli, tmp_path):
     """surface={"method": "lnm"} gives the narrow band that `detect --method lnm` writes: the
     same surface particles in the same order (the dam break BGEO, a bulk body whose band is

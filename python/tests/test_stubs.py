@@ -8,7 +8,8 @@ from pathlib import Path
 import fluid_surfels as fs
 from fluid_surfels import _native
 
-STUBS = Path(__file__).resolve().parents[1] / "fluid_surfels" / "_native.pyi"
+# the stubs the package installs (the wheel holds them), so this runs from an installed wheel too
+STUBS = Path(fs.__file__).resolve().parent / "_native.pyi"
 
 
 def declared():
