@@ -1475,7 +1475,7 @@ fn the_thread_count_is_a_pipeline_parameter() {
         }
         fn water<'a>(&self, input: WaterInput<'a>) -> Result<Box<dyn WaterSurface + 'a>, Error> {
             SEEN.store(rayon::current_num_threads(), Ordering::SeqCst);
-            Ok(Box::new(fluid_surfels::splat::SurfelWater(input.surfels)))
+            Ok(Box::new(input.surfels))
         }
     }
     let scene = scenes::sphere(&scenes::SphereParams::default()).unwrap();

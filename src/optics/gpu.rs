@@ -17,7 +17,7 @@ use wgpu::util::DeviceExt;
 
 use crate::gpu::{self, GpuContext, GpuError, entry, texture_2d, texture_descriptor};
 use crate::optics::{Container, EnvironmentKind, LightKind, OpticsError, Stage, encode};
-use crate::splat::{GpuWaterPass, Light, Surfel, SurfelWater, View, WaterSurface};
+use crate::splat::{GpuWaterPass, Light, Surfel, View, WaterSurface};
 
 /// The WGSL of the caustics and final-image passes.
 pub const SHADER: &str = concat!(
@@ -302,7 +302,7 @@ impl OpticsGpu {
         surfels: &[Surfel],
         size: Option<(u32, u32)>,
     ) -> Result<PreparedOptics, crate::Error> {
-        self.prepare_water(device, queue, stage, &SurfelWater(surfels), size)
+        self.prepare_water(device, queue, stage, &surfels, size)
     }
 
     /// The targets and uniforms of a geometry map of the receiver seen in `v` (its size).
@@ -626,7 +626,7 @@ impl PreparedOptics {
         stage: &Stage,
         surfels: &[Surfel],
     ) -> Result<bool, crate::Error> {
-        self.update_water(device, queue, stage, &SurfelWater(surfels))
+        self.update_water(device, queue, stage, &surfels)
     }
 
     /// [`Self::update`] with the water drawn from `water`; `false` too when it is drawn another

@@ -222,13 +222,7 @@ impl GpuPipeline {
         encoder: &mut wgpu::CommandEncoder,
         frame: &Frame,
     ) -> Result<(), Error> {
-        let points = self.cpu.water_points(&frame.render_surfels);
-        let water = self.cpu.water_of(
-            &frame.render_surfels,
-            points.as_ref(),
-            &frame.render_weights,
-        )?;
-        self.prepare_frame_with(device, queue, encoder, frame, water.as_ref())
+        self.record(device, queue, encoder, frame, (true, None))
     }
 
     /// Both pictures of `frame` from one build of the renderer's water (the ray caster's index,
@@ -242,14 +236,34 @@ impl GpuPipeline {
         frame: &Frame,
         splats_target: &wgpu::TextureView,
     ) -> Result<(), Error> {
+        self.record(device, queue, encoder, frame, (true, Some(splats_target)))
+    }
+
+    /// Builds the renderer's water of `frame` once, then records the finished frame's passes
+    /// (`finished`) and the shaded splats into a target (`splats`).
+    fn record(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        frame: &Frame,
+        (finished, splats): (bool, Option<&wgpu::TextureView>),
+    ) -> Result<(), Error> {
         let points = self.cpu.water_points(&frame.render_surfels);
         let water = self.cpu.water_of(
             &frame.render_surfels,
             points.as_ref(),
             &frame.render_weights,
         )?;
-        self.prepare_frame_with(device, queue, encoder, frame, water.as_ref())?;
-        self.encode_splats_with(device, queue, encoder, frame, water.as_ref(), splats_target)
+        if finished {
+            self.prepare_frame_with(device, queue, encoder, frame, water.as_ref())?;
+        }
+        match splats {
+            Some(target) => {
+                self.encode_splats_with(device, queue, encoder, frame, water.as_ref(), target)
+            }
+            None => Ok(()),
+        }
     }
 
     /// [`GpuPipeline::prepare_frame`] with the frame's water built.
@@ -328,13 +342,7 @@ impl GpuPipeline {
         frame: &Frame,
         target: &wgpu::TextureView,
     ) -> Result<(), Error> {
-        let points = self.cpu.water_points(&frame.render_surfels);
-        let water = self.cpu.water_of(
-            &frame.render_surfels,
-            points.as_ref(),
-            &frame.render_weights,
-        )?;
-        self.encode_splats_with(device, queue, encoder, frame, water.as_ref(), target)
+        self.record(device, queue, encoder, frame, (false, Some(target)))
     }
 
     /// [`GpuPipeline::encode_splats`] with the frame's water built.

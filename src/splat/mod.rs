@@ -36,9 +36,7 @@ pub use crate::view::{
 };
 pub(crate) use crate::view::{check_cost, pixel_span};
 pub use cpu::{render_cpu, render_view_cpu};
-pub use water::{
-    Drawn, Ewa, GpuWaterPass, ParticleSplat, SurfelWater, WaterInput, WaterRenderer, WaterSurface,
-};
+pub use water::{Drawn, Ewa, GpuWaterPass, ParticleSplat, WaterInput, WaterRenderer, WaterSurface};
 
 /// One surfel as the GPU stores it (64 bytes, `SurfelIn` in the WGSL): position and radius,
 /// normal and stretch (minor / major axis; 1 for a circle), the major axis direction (ignored

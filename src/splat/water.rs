@@ -11,7 +11,7 @@
 //! - [`GpuWaterPass`]: the GPU targets and passes of one view size, kept from frame to frame;
 //!   its accumulation targets are what the splats' shading pass and the GPU optics read.
 //!
-//! The implementations: [`Ewa`] and [`ParticleSplat`] here (splatted surfels), `raycast::Method`
+//! The implementations: [`Ewa`] and [`ParticleSplat`] here (a slice of surfels splatted), `raycast::Method`
 //! and `ssfr::Method` in their modules. `Pipeline` and `GpuPipeline` hold a `WaterRenderer` and
 //! never match on the kind; a renderer of one's own is given by `Pipeline::set_water_renderer`.
 
@@ -178,7 +178,7 @@ impl WaterRenderer for Ewa {
         params.depth_offset = offset;
     }
     fn water<'a>(&self, input: WaterInput<'a>) -> Result<Box<dyn WaterSurface + 'a>, Error> {
-        Ok(Box::new(SurfelWater(input.surfels)))
+        Ok(Box::new(input.surfels))
     }
 }
 
@@ -199,21 +199,18 @@ impl WaterRenderer for ParticleSplat {
         params.sphere_depth_offset = offset;
     }
     fn water<'a>(&self, input: WaterInput<'a>) -> Result<Box<dyn WaterSurface + 'a>, Error> {
-        Ok(Box::new(SurfelWater(input.surfels)))
+        Ok(Box::new(input.surfels))
     }
 }
 
 /// Surfels drawn by splatting, as the view's mode says (EWA disks, sprites or spheres).
-#[derive(Clone, Copy, Debug)]
-pub struct SurfelWater<'a>(pub &'a [Surfel]);
-
-impl WaterSurface for SurfelWater<'_> {
+impl WaterSurface for &[Surfel] {
     fn render(&self, view: &View) -> Result<Render, Error> {
-        Ok(super::render_view_cpu(self.0, view)?)
+        Ok(super::render_view_cpu(self, view)?)
     }
 
     fn render_gpu(&self, ctx: &GpuContext, view: &View) -> Result<Render, Error> {
-        super::gpu::render_view_gpu(ctx, self.0, view)
+        super::gpu::render_view_gpu(ctx, self, view)
     }
 
     fn gpu_pass(
@@ -242,36 +239,9 @@ impl WaterSurface for SurfelWater<'_> {
         if pass.renderer.size() != (view.width, view.height) {
             return Ok(false);
         }
-        pass.surfels.write(device, queue, self.0);
+        pass.surfels.write(device, queue, self);
         pass.view = Some(*view);
         Ok(true)
-    }
-}
-
-/// A slice of surfels is drawn as [`SurfelWater`] of it.
-impl WaterSurface for &[Surfel] {
-    fn render(&self, view: &View) -> Result<Render, Error> {
-        SurfelWater(self).render(view)
-    }
-    fn render_gpu(&self, ctx: &GpuContext, view: &View) -> Result<Render, Error> {
-        SurfelWater(self).render_gpu(ctx, view)
-    }
-    fn gpu_pass(
-        &self,
-        device: &wgpu::Device,
-        format: wgpu::TextureFormat,
-        size: (u32, u32),
-    ) -> Result<Box<dyn GpuWaterPass>, Error> {
-        SurfelWater(self).gpu_pass(device, format, size)
-    }
-    fn prepare_gpu(
-        &self,
-        device: &wgpu::Device,
-        queue: &wgpu::Queue,
-        pass: &mut dyn GpuWaterPass,
-        view: &View,
-    ) -> Result<bool, Error> {
-        SurfelWater(self).prepare_gpu(device, queue, pass, view)
     }
 }
 

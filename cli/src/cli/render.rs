@@ -1056,10 +1056,12 @@ fn sequence_outputs(
         });
     }
     if chunk.is_empty() {
-        println!(
-            "no frame to do: the range holds {} frames, fewer than the shards",
-            list.len()
-        );
+        if !args.json {
+            println!(
+                "no frame to do: the range holds {} frames, fewer than the shards",
+                list.len()
+            );
+        }
         return Ok(None);
     }
     let out = |f: usize| args.out.join(format!("frame_{f:04}.png"));
