@@ -2468,3 +2468,37 @@ fn render_shards_draw_the_serial_frames_and_refuse_bad_shards() {
         assert!(!d.join("bad").exists(), "{shard}: work was done");
     }
 }
+
+/// `--threads N` (every command) caps the threads of the work: a bench reports the pool it ran
+/// in; 0 and absurd counts are refused.
+#[test]
+fn threads_cap_every_command() {
+    let v = json_of(
+        &bin()
+            .args([
+                "bench",
+                "lnm",
+                "--particles",
+                "5000",
+                "--repeat",
+                "1",
+                "--json",
+            ])
+            .args(["--threads", "1"])
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(v["threads"].as_u64(), Some(1), "{v}");
+    for bad in ["0", "5000", "x"] {
+        let out = bin()
+            .args(["info", &data("cube.ply"), "--threads", bad])
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "--threads {bad}");
+        assert!(
+            stderr_of(&out).contains("threads from 1 to"),
+            "{}",
+            stderr_of(&out)
+        );
+    }
+}

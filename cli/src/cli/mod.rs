@@ -69,6 +69,21 @@ pub struct GlobalArgs {
     /// predicted to need more is refused before it starts.
     #[arg(long, global = true, value_parser = parse_bytes, default_value = "1G")]
     pub memory_budget: u64,
+    /// The threads the work may use (1 to 1024; default: one per core), for a task of a farm
+    /// told how many cores are its own; a --config file's `threads` key gives a pipeline's
+    /// frames their own pool besides.
+    #[arg(long, global = true, value_parser = parse_threads)]
+    pub threads: Option<usize>,
+}
+
+fn parse_threads(text: &str) -> Result<usize, String> {
+    match text.trim().parse::<usize>() {
+        Ok(n) if (1..=fluid_surfels::sequence::MAX_JOBS).contains(&n) => Ok(n),
+        _ => Err(format!(
+            "`{text}`: a whole number of threads from 1 to {}",
+            fluid_surfels::sequence::MAX_JOBS
+        )),
+    }
 }
 
 fn parse_bounds(text: &str) -> Result<[f32; 6], String> {
@@ -116,6 +131,13 @@ static OUTSIDE_BOUNDS: std::sync::atomic::AtomicUsize = std::sync::atomic::Atomi
 
 /// Keeps the global options for [`read_particles`] (called once, by `main`).
 pub fn set_globals(args: GlobalArgs) {
+    if let Some(n) = args.threads {
+        // the first pool of the process: nothing ran in parallel before the command line was
+        // read, so this cannot fail but for a second call, which keeps the first
+        let _ = rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build_global();
+    }
     // a second call keeps the first: there is only one command line
     let _ = GLOBALS.set(args);
 }
@@ -124,6 +146,7 @@ fn globals() -> GlobalArgs {
     GLOBALS.get().cloned().unwrap_or(GlobalArgs {
         bounds: None,
         memory_budget: io::DEFAULT_MEMORY_BUDGET,
+        threads: None,
     })
 }
 

@@ -205,9 +205,6 @@ pub struct RenderArgs {
     /// that does not start the range makes it in memory.
     #[arg(long, requires = "frames")]
     pub plan: Option<PathBuf>,
-    /// Threads a frame may use (the `threads` key; default: one per core).
-    #[arg(long)]
-    pub threads: Option<usize>,
     /// Print one JSON object of statistics on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -318,9 +315,6 @@ fn pipeline_params(args: &RenderArgs) -> Result<PipelineParams, Error> {
     };
     if args.radius.is_some() {
         p.support_radius = args.radius;
-    }
-    if args.threads.is_some() {
-        p.threads = args.threads;
     }
     p.source = args.source;
     p.renderer = args.renderer;
