@@ -11,7 +11,8 @@
 //!    avoidance and incremental neighbourhoods (Solenthaler et al. 2007, §3.2-3.4).
 //! 3. [`density`]: the density grid of the refined surface points and the interior particles,
 //!    each with its own kernel radius (Iwasaki et al. §4), dense or sparse, on the CPU and on
-//!    the GPU; [`surfels`] on its iso-surface.
+//!    the GPU; [`surfels`] on its iso-surface, or a triangle [`mesh`] of it (marching cubes,
+//!    PLY and OBJ).
 //! 4. [`splat`]: EWA surface splatting (Botsch et al. 2005), with particle splatting (Adams et
 //!    al. 2006) as a mode; the peer renderers [`raycast`] (ray casting to the iso-surface, Xiao
 //!    et al.) and [`ssfr`] (narrow-band screen-space rendering, Oliveira and Paiva, on the
@@ -48,6 +49,7 @@ pub mod kernels;
 pub mod linalg;
 pub mod lnm;
 pub mod memory;
+pub mod mesh;
 pub mod neighbours;
 pub mod optics;
 pub mod particles;

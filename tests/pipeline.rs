@@ -1498,3 +1498,58 @@ fn the_thread_count_is_a_pipeline_parameter() {
     let e = Pipeline::new(bad).err().unwrap().to_string();
     assert!(e.contains("threads"), "{e}");
 }
+
+/// The chain's mesh (issue 40, first part): marching cubes over the frame's density grid at the
+/// surfels' iso-value gives a closed, consistently wound mesh of genus 0 on the sphere scene,
+/// outward, dense and sparse alike, its vertices within a cell of the surfels' surface.
+#[test]
+fn the_chains_mesh_of_a_sphere_is_closed_and_lies_at_its_surfels() {
+    let scene = scenes::sphere(&scenes::SphereParams::default()).unwrap();
+    for narrow_band in [false, true] {
+        let mut params = PipelineParams {
+            support_radius: Some(scene.support_radius),
+            detail: pipeline::Detail::Fixed,
+            ..Default::default()
+        };
+        params.grid.narrow_band = narrow_band;
+        let frame = Pipeline::new(params)
+            .unwrap()
+            .frame_through(&scene.particles, Through::Surfels)
+            .unwrap();
+        let mesh = frame.mesh().expect("a grid");
+        let what = if narrow_band { "sparse" } else { "dense" };
+        assert!(mesh.is_closed(), "{what}: not closed");
+        assert_eq!(mesh.euler_characteristic(), 2, "{what}");
+        let centre =
+            scene.particles.positions.iter().copied().sum::<Vec3>() / scene.particles.len() as f32;
+        let outward = mesh
+            .positions
+            .iter()
+            .zip(&mesh.normals)
+            .filter(|(p, n)| (**p - centre).dot(**n) > 0.0)
+            .count();
+        assert_eq!(outward, mesh.positions.len(), "{what}: inward normals");
+        // every vertex within one cell of the surfels' radius from the centre
+        let surfels = frame.surfels.as_ref().unwrap();
+        let r: Vec<f32> = surfels
+            .positions
+            .iter()
+            .map(|p| (*p - centre).length())
+            .collect();
+        let mean = r.iter().sum::<f32>() / r.len() as f32;
+        let cell = frame.grid.as_ref().unwrap().spec().spacing;
+        for p in &mesh.positions {
+            let d = ((*p - centre).length() - mean).abs();
+            assert!(
+                d < cell,
+                "{what}: a vertex {d} from the surfels' sphere (cell {cell})"
+            );
+        }
+        println!(
+            "{what}: {} vertices, {} triangles, {} surfels, cell {cell}",
+            mesh.positions.len(),
+            mesh.triangles.len(),
+            surfels.len()
+        );
+    }
+}

@@ -585,6 +585,24 @@ pub struct Frame {
     pub warnings: Vec<String>,
 }
 
+impl Frame {
+    /// The triangle mesh of the iso-surface the surfels lie on: marching cubes over the frame's
+    /// density grid (dense, or sparse: the blocks near the surface) at the surfels' iso-value
+    /// ([`crate::mesh`]); `None` without a grid (the peer renderers' spheres, or a frame not run
+    /// through the surfels). First part of issue 40: the vertices lie on the grid's edges (not
+    /// yet projected onto the exact iso-surface), normals from the triangles.
+    #[must_use]
+    pub fn mesh(&self) -> Option<crate::mesh::Mesh> {
+        let grid = self.grid.as_ref()?;
+        let iso = self.surfels.as_ref()?.iso;
+        Some(crate::mesh::marching_cubes(
+            grid.spec(),
+            |i, j, k| grid.at(i, j, k),
+            iso,
+        ))
+    }
+}
+
 /// What [`Pipeline::detect_stage`] gives a frame.
 struct Detected {
     radius: f32,
