@@ -14,8 +14,12 @@
 //! padded by a kernel radius, so it never does).
 //!
 //! **Vertices** lie on the grid's edges where the values cross the iso-value (linear
-//! interpolation), one per edge whatever the number of cubes around it (keyed by the edge), so
-//! the mesh is indexed with no duplicates. **Winding**: counter-clockwise seen from outside (the
+//! interpolation; inside at or above it), one per edge whatever the number of cubes around it
+//! (keyed by the edge), so the mesh is indexed with no duplicates, and in the order of the
+//! edges (plane, row, point, then x, y and z edge): the order in which
+//! [`crate::surfels::SurfelExtractor`] finds the same crossings, so vertex `n` is surfel `n`'s
+//! crossing and `Frame::mesh` puts the vertices where the surfels are, on the exact
+//! iso-surface with the kernel's gradient as normal. **Winding**: counter-clockwise seen from outside (the
 //! side of lower density), so the triangles' normals point out of the fluid; vertex normals are
 //! the area-weighted normals of the triangles around them.
 
@@ -167,7 +171,10 @@ pub fn marching_cubes(spec: &GridSpec, value: impl Fn(u32, u32, u32) -> f32, iso
                 for (c, v) in values.iter_mut().enumerate() {
                     let [dx, dy, dz] = corner(c);
                     *v = value(i + dx, j + dy, k + dz);
-                    if *v > iso {
+                    // inside unless below the iso-value, as the surfels' crossings count it
+                    // (`(a < iso) != (b < iso)`)
+                    let below = *v < iso;
+                    if !below {
                         inside |= 1 << c;
                     }
                 }
@@ -182,7 +189,9 @@ pub fn marching_cubes(spec: &GridSpec, value: impl Fn(u32, u32, u32) -> f32, iso
                             .into_iter()
                             .find(|&d| corner(b)[d] != corner(a)[d])
                             .expect("an edge along one axis");
-                        let key = point(i + ax, j + ay, k + az) * 3 + axis as u64;
+                        // the surfels' order: a z edge belongs to its upper plane
+                        let key =
+                            point(i + ax, j + ay, k + az + u32::from(axis == 2)) * 3 + axis as u64;
                         *vertex.entry(key).or_insert_with(|| {
                             let t = ((iso - values[a]) / (values[b] - values[a]))
                                 .clamp(T_MARGIN, 1.0 - T_MARGIN);
@@ -197,6 +206,23 @@ pub fn marching_cubes(spec: &GridSpec, value: impl Fn(u32, u32, u32) -> f32, iso
                 }
             }
         }
+    }
+    // vertices in the order of their edges' keys: (plane, row, point, then x, y and z edge),
+    // the order `surfels::SurfelExtractor` finds the same crossings in
+    let mut order: Vec<(u64, u32)> = vertex.into_iter().collect();
+    order.sort_unstable();
+    let mut new_index = vec![0u32; order.len()];
+    let positions = order
+        .iter()
+        .enumerate()
+        .map(|(n, &(_, old))| {
+            new_index[old as usize] = n as u32;
+            mesh.positions[old as usize]
+        })
+        .collect();
+    mesh.positions = positions;
+    for t in &mut mesh.triangles {
+        *t = t.map(|v| new_index[v as usize]);
     }
     mesh.normals = vertex_normals(&mesh.positions, &mesh.triangles);
     mesh

@@ -1501,7 +1501,8 @@ fn the_thread_count_is_a_pipeline_parameter() {
 
 /// The chain's mesh (issue 40, first part): marching cubes over the frame's density grid at the
 /// surfels' iso-value gives a closed, consistently wound mesh of genus 0 on the sphere scene,
-/// outward, dense and sparse alike, its vertices within a cell of the surfels' surface.
+/// outward, dense and sparse alike, whose vertices are the surfels (the same crossings in the
+/// same order, projected onto the exact iso-surface) and no triangle degenerate.
 #[test]
 fn the_chains_mesh_of_a_sphere_is_closed_and_lies_at_its_surfels() {
     let scene = scenes::sphere(&scenes::SphereParams::default()).unwrap();
@@ -1529,8 +1530,19 @@ fn the_chains_mesh_of_a_sphere_is_closed_and_lies_at_its_surfels() {
             .filter(|(p, n)| (**p - centre).dot(**n) > 0.0)
             .count();
         assert_eq!(outward, mesh.positions.len(), "{what}: inward normals");
-        // every vertex within one cell of the surfels' radius from the centre
+        // the vertices are the surfels: the same crossings, projected onto the exact
+        // iso-surface
         let surfels = frame.surfels.as_ref().unwrap();
+        assert_eq!(mesh.positions, surfels.positions, "{what}");
+        assert_eq!(mesh.normals, surfels.normals, "{what}");
+        for t in &mesh.triangles {
+            let [a, b, c] = t.map(|v| mesh.positions[v as usize]);
+            assert!(
+                (b - a).cross(c - a).length() > 0.0,
+                "{what}: a degenerate triangle"
+            );
+        }
+        // every vertex within one cell of the surfels' radius from the centre
         let r: Vec<f32> = surfels
             .positions
             .iter()
