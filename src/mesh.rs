@@ -28,6 +28,7 @@ use std::path::Path;
 use std::sync::OnceLock;
 
 use glam::Vec3;
+use rayon::prelude::*;
 
 use crate::density::GridSpec;
 use crate::io::IoError;
@@ -148,84 +149,114 @@ fn case(inside: usize) -> Vec<[u8; 3]> {
 const T_MARGIN: f32 = 1e-3;
 
 /// The mesh of the iso-surface `value = iso` of a grid (`value(i, j, k)` at grid point
-/// `(i, j, k)` of `spec`; inside where the value is above `iso`). See the module
-/// documentation.
+/// `(i, j, k)` of `spec`; inside where the value is not below `iso`). See the module
+/// documentation. The layers of cubes between consecutive z planes are meshed in parallel (each
+/// plane read twice), their vertices merged by edge.
 #[must_use]
-pub fn marching_cubes(spec: &GridSpec, value: impl Fn(u32, u32, u32) -> f32, iso: f32) -> Mesh {
+pub fn marching_cubes(
+    spec: &GridSpec,
+    value: impl Fn(u32, u32, u32) -> f32 + Sync,
+    iso: f32,
+) -> Mesh {
     let [nx, ny, nz] = spec.dims;
-    let mut mesh = Mesh::default();
     if nx < 2 || ny < 2 || nz < 2 {
-        return mesh;
+        return Mesh::default();
     }
+    let plane = |k: u32| -> Vec<f32> {
+        (0..ny)
+            .flat_map(|j| (0..nx).map(move |i| (i, j)))
+            .map(|(i, j)| value(i, j, k))
+            .collect()
+    };
+    let layers: Vec<Layer> = (0..nz - 1)
+        .into_par_iter()
+        .map(|k| mesh_layer(spec, iso, k, [&plane(k), &plane(k + 1)]))
+        .collect();
+    // one vertex per edge, in the order of the edges' keys: (plane, row, point, then x, y and z
+    // edge), the order `surfels::SurfelExtractor` finds the same crossings in
+    let mut vertices: Vec<(u64, Vec3)> = layers
+        .iter()
+        .flat_map(|l| l.vertices.iter().copied())
+        .collect();
+    vertices.par_sort_unstable_by_key(|v| v.0);
+    vertices.dedup_by_key(|v| v.0);
+    let index = |key: u64| {
+        vertices
+            .binary_search_by_key(&key, |v| v.0)
+            .expect("every corner's vertex") as u32
+    };
+    let triangles: Vec<[u32; 3]> = layers
+        .par_iter()
+        .flat_map_iter(|l| l.triangles.iter().map(|t| t.map(index)))
+        .collect();
+    let positions: Vec<Vec3> = vertices.iter().map(|v| v.1).collect();
+    Mesh {
+        normals: vertex_normals(&positions, &triangles),
+        positions,
+        triangles,
+    }
+}
+
+/// The vertices (keyed by edge, each once) and triangles (as keys) of one layer of cubes.
+struct Layer {
+    vertices: Vec<(u64, Vec3)>,
+    triangles: Vec<[u64; 3]>,
+}
+
+/// The cubes between planes `k` and `k + 1` (`planes`: their values, x fastest).
+fn mesh_layer(spec: &GridSpec, iso: f32, k: u32, planes: [&[f32]; 2]) -> Layer {
+    let [nx, ny, _] = spec.dims;
     let cases = cases();
-    // one vertex per crossing edge of the grid, keyed by (grid point index, axis)
-    let mut vertex: HashMap<u64, u32> = HashMap::new();
     let point = |i: u32, j: u32, k: u32| {
         u64::from(i) + u64::from(nx) * (u64::from(j) + u64::from(ny) * u64::from(k))
     };
+    let mut layer = Layer {
+        vertices: Vec::new(),
+        triangles: Vec::new(),
+    };
+    let mut seen: HashMap<u64, ()> = HashMap::new();
     let mut values = [0.0f32; 8];
-    for k in 0..nz - 1 {
-        for j in 0..ny - 1 {
-            for i in 0..nx - 1 {
-                let mut inside = 0usize;
-                for (c, v) in values.iter_mut().enumerate() {
-                    let [dx, dy, dz] = corner(c);
-                    *v = value(i + dx, j + dy, k + dz);
-                    // inside unless below the iso-value, as the surfels' crossings count it
-                    // (`(a < iso) != (b < iso)`)
-                    let below = *v < iso;
-                    if !below {
-                        inside |= 1 << c;
-                    }
+    for j in 0..ny - 1 {
+        for i in 0..nx - 1 {
+            let mut inside = 0usize;
+            for (c, v) in values.iter_mut().enumerate() {
+                let [dx, dy, dz] = corner(c);
+                *v = planes[dz as usize][(i + dx + nx * (j + dy)) as usize];
+                // inside unless below the iso-value, as the surfels' crossings count it
+                // (`(a < iso) != (b < iso)`)
+                let below = *v < iso;
+                if !below {
+                    inside |= 1 << c;
                 }
-                if inside == 0 || inside == 255 {
-                    continue;
-                }
-                for tri in &cases[inside] {
-                    let ids = tri.map(|e| {
-                        let (a, b) = EDGES[e as usize];
-                        let [ax, ay, az] = corner(a);
-                        let axis = [0, 1, 2]
-                            .into_iter()
-                            .find(|&d| corner(b)[d] != corner(a)[d])
-                            .expect("an edge along one axis");
-                        // the surfels' order: a z edge belongs to its upper plane
-                        let key =
-                            point(i + ax, j + ay, k + az + u32::from(axis == 2)) * 3 + axis as u64;
-                        *vertex.entry(key).or_insert_with(|| {
-                            let t = ((iso - values[a]) / (values[b] - values[a]))
-                                .clamp(T_MARGIN, 1.0 - T_MARGIN);
-                            let pa = Vec3::new((i + ax) as f32, (j + ay) as f32, (k + az) as f32);
-                            let mut p = pa;
-                            p[axis] += t;
-                            mesh.positions.push(spec.origin + p * spec.spacing);
-                            (mesh.positions.len() - 1) as u32
-                        })
+            }
+            if inside == 0 || inside == 255 {
+                continue;
+            }
+            for tri in &cases[inside] {
+                let keys = tri.map(|e| {
+                    let (a, b) = EDGES[e as usize];
+                    let [ax, ay, az] = corner(a);
+                    let axis = [0, 1, 2]
+                        .into_iter()
+                        .find(|&d| corner(b)[d] != corner(a)[d])
+                        .expect("an edge along one axis");
+                    // the surfels' order: a z edge belongs to its upper plane
+                    let key =
+                        point(i + ax, j + ay, k + az + u32::from(axis == 2)) * 3 + axis as u64;
+                    seen.entry(key).or_insert_with(|| {
+                        let t = ((iso - values[a]) / (values[b] - values[a]))
+                            .clamp(T_MARGIN, 1.0 - T_MARGIN);
+                        let mut p = Vec3::new((i + ax) as f32, (j + ay) as f32, (k + az) as f32);
+                        p[axis] += t;
+                        layer.vertices.push((key, spec.origin + p * spec.spacing));
                     });
-                    mesh.triangles.push(ids);
-                }
+                    key
+                });
+                layer.triangles.push(keys);
             }
         }
     }
-    // vertices in the order of their edges' keys: (plane, row, point, then x, y and z edge),
-    // the order `surfels::SurfelExtractor` finds the same crossings in
-    let mut order: Vec<(u64, u32)> = vertex.into_iter().collect();
-    order.sort_unstable();
-    let mut new_index = vec![0u32; order.len()];
-    let positions = order
-        .iter()
-        .enumerate()
-        .map(|(n, &(_, old))| {
-            new_index[old as usize] = n as u32;
-            mesh.positions[old as usize]
-        })
-        .collect();
-    mesh.positions = positions;
-    for t in &mut mesh.triangles {
-        *t = t.map(|v| new_index[v as usize]);
-    }
-    mesh.normals = vertex_normals(&mesh.positions, &mesh.triangles);
-    mesh
+    layer
 }
 
 /// The area-weighted normals of the triangles around each vertex, unit length.
@@ -329,7 +360,7 @@ mod tests {
     use super::*;
 
     /// A grid of `n` points a side over [-2, 2]^3 sampling `f`.
-    fn mesh_of(n: u32, f: impl Fn(Vec3) -> f32) -> (Mesh, GridSpec) {
+    fn mesh_of(n: u32, f: impl Fn(Vec3) -> f32 + Sync) -> (Mesh, GridSpec) {
         let spec = GridSpec {
             origin: Vec3::splat(-2.0),
             spacing: 4.0 / (n - 1) as f32,
