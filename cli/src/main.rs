@@ -38,6 +38,10 @@ enum Command {
     /// Density grid and iso-surface surfels (Iwasaki et al., §4) of a file, a frame sequence or
     /// a built-in scene.
     Surfels(cli::surfels::SurfelsArgs),
+    /// A triangle mesh of the iso-surface the surfels lie on (marching cubes over the chain's
+    /// density grid, the surfels as its vertices), per frame, as binary PLY or OBJ, for
+    /// Blender, Houdini or a game engine.
+    Mesh(cli::mesh::MeshArgs),
     /// The surface to a PNG: particles through the pipeline, drawn by EWA surfel splatting
     /// (Botsch et al. 2005; default), particle splatting (Adams et al. 2006), ray casting
     /// (Xiao et al.) or narrow-band screen-space rendering (Oliveira and Paiva), or a file of
@@ -158,6 +162,7 @@ fn main() -> ExitCode {
         Some(Command::Info(args)) => cli::info::info(&args),
         Some(Command::Refine(args)) => cli::refine::refine_command(&args),
         Some(Command::Surfels(args)) => cli::surfels::surfels_command(&args),
+        Some(Command::Mesh(args)) => cli::mesh::mesh_command(&args),
         Some(Command::Render(args)) => cli::render::render_command(&args),
         Some(Command::Compare(args)) => cli::compare::compare_command(&args),
         Some(Command::Bench(BenchCommand::Detect(args))) => cli::bench::bench_detect(&args),

@@ -2502,3 +2502,77 @@ fn threads_cap_every_command() {
         );
     }
 }
+
+/// `mesh` (issue 40, first part): a closed mesh of a real file, its PLY read back by our own
+/// reader (the vertices), its OBJ counted; a sequence of column frames with --skip-existing
+/// writes only the missing frames; an unknown mesh format is refused before any work.
+#[test]
+fn mesh_writes_closed_meshes_of_files_and_sequences() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let input = data("double_dam_break_frame_26_4732_particles.vtk");
+    let ply = d.join("ddb.ply");
+    let v = json_of(
+        &bin()
+            .args(["mesh", "--input", &input, "--json", "--out"])
+            .arg(&ply)
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(v["closed"], true, "{v}");
+    let vertices = v["vertices"].as_u64().unwrap() as usize;
+    assert!(
+        vertices > 10_000 && v["triangles"].as_u64().unwrap() as usize > vertices,
+        "{v}"
+    );
+    let back = fluid_surfels::io::read_particles(&ply, None).unwrap();
+    assert_eq!(back.len(), vertices);
+    let obj = d.join("ddb.obj");
+    succeeded(
+        &bin()
+            .args(["mesh", "--input", &input, "--out"])
+            .arg(&obj)
+            .output()
+            .unwrap(),
+    );
+    let text = std::fs::read_to_string(&obj).unwrap();
+    assert_eq!(
+        text.lines().filter(|l| l.starts_with("v ")).count(),
+        vertices
+    );
+    // a sequence: three column frames, one kept
+    let mut sim = fluid_surfels::scenes::ColumnSim::new(Default::default()).unwrap();
+    for f in 0..3 {
+        sim.advance_to(f);
+        fluid_surfels::io::write_particles(&d.join(format!("c_{f}.vtk")), sim.particles(), None)
+            .unwrap();
+    }
+    std::fs::write(d.join("m_1.ply"), b"kept").unwrap();
+    let out = bin()
+        .args(["mesh", "--frames", "0..3", "--skip-existing", "--input"])
+        .arg(d.join("c_{}.vtk"))
+        .arg("--out")
+        .arg(d.join("m_{}.ply"))
+        .output()
+        .unwrap();
+    succeeded(&out);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("2 frames meshed, 1 skipped"));
+    assert_eq!(std::fs::read(d.join("m_1.ply")).unwrap(), b"kept");
+    for f in [0, 2] {
+        let m = fluid_surfels::io::read_particles(&d.join(format!("m_{f}.ply")), None).unwrap();
+        assert!(m.len() > 1000, "frame {f}");
+    }
+    // an unknown format: refused at once, nothing written
+    let bad = bin()
+        .args(["mesh", "--input", &input, "--out"])
+        .arg(d.join("m.stl"))
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(
+        stderr_of(&bad).contains(".ply (binary) or .obj"),
+        "{}",
+        stderr_of(&bad)
+    );
+    assert!(!d.join("m.stl").exists());
+}

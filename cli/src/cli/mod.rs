@@ -4,6 +4,7 @@ pub mod bench;
 pub mod compare;
 pub mod detect;
 pub mod info;
+pub mod mesh;
 
 pub mod refine;
 pub mod render;
