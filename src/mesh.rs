@@ -273,6 +273,61 @@ fn vertex_normals(positions: &[Vec3], triangles: &[[u32; 3]]) -> Vec<Vec3> {
 }
 
 impl Mesh {
+    /// A mesh of given vertices and triangles (indices checked), its normals the area-weighted
+    /// normals of the triangles around each vertex.
+    pub fn new(positions: Vec<Vec3>, triangles: Vec<[u32; 3]>) -> Result<Self, crate::Error> {
+        let n = positions.len();
+        if let Some(t) = triangles
+            .iter()
+            .find(|t| t.iter().any(|&v| v as usize >= n))
+        {
+            return Err(crate::Error::InvalidArgument {
+                argument: "triangles",
+                reason: format!("the triangle {t:?} names a vertex past the {n} given"),
+            });
+        }
+        if positions.iter().any(|p| !p.is_finite()) {
+            return Err(crate::Error::InvalidArgument {
+                argument: "positions",
+                reason: "a vertex is not finite".into(),
+            });
+        }
+        Ok(Self {
+            normals: vertex_normals(&positions, &triangles),
+            positions,
+            triangles,
+        })
+    }
+
+    /// Whether `path` names a mesh format this crate writes: `.ply` (binary, `true`) or `.obj`
+    /// (`false`); an error naming both otherwise.
+    pub fn is_ply(path: &Path) -> Result<bool, crate::Error> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase);
+        match ext.as_deref() {
+            Some("ply") => Ok(true),
+            Some("obj") => Ok(false),
+            _ => Err(crate::Error::InvalidArgument {
+                argument: "path",
+                reason: format!(
+                    "{}: a mesh is written as .ply (binary) or .obj",
+                    path.display()
+                ),
+            }),
+        }
+    }
+
+    /// Writes the mesh in the format of `path`'s extension ([`Mesh::is_ply`]), atomically.
+    pub fn write(&self, path: &Path) -> Result<(), crate::Error> {
+        if Self::is_ply(path)? {
+            Ok(self.write_ply(path)?)
+        } else {
+            Ok(self.write_obj(path)?)
+        }
+    }
+
     /// Every edge (a pair of vertices) and the number of triangles that use it.
     #[must_use]
     pub fn edge_uses(&self) -> HashMap<(u32, u32), u32> {

@@ -13,6 +13,7 @@ from ._native import (
     FORMATS,
     Error,
     Frame,
+    Mesh,
     Pipeline,
     Refined,
     Surfels,
@@ -23,6 +24,7 @@ from ._native import (
     read,
     render_chunk,
     write,
+    write_mesh,
 )
 
 INTERIOR, SURFACE, ISOLATED = 0, 1, 2
@@ -35,6 +37,7 @@ __all__ = [
     "SURFACE",
     "Error",
     "Frame",
+    "Mesh",
     "Pipeline",
     "Refined",
     "Surfels",
@@ -45,4 +48,5 @@ __all__ = [
     "read",
     "render_chunk",
     "write",
+    "write_mesh",
 ]

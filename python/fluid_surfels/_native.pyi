@@ -52,6 +52,22 @@ class Surfels:
     """The iso-value of the density grid they lie on (nan for the 'refined' source)."""
     def __len__(self) -> int: ...
 
+class Mesh:
+    """A triangle mesh of the iso-surface the surfels lie on (`frame(..., mesh=True)`): closed,
+    indexed, counter-clockwise seen from outside; its vertices are the surfels."""
+
+    vertices: npt.NDArray[np.float32]
+    """(V, 3) vertex positions."""
+    normals: npt.NDArray[np.float32]
+    """(V, 3) unit vertex normals, out of the water."""
+    faces: npt.NDArray[np.uint32]
+    """(F, 3) vertex indices of each triangle."""
+    closed: bool
+    """Whether every edge is shared by two triangles, once each way."""
+    euler_characteristic: int
+    """V - E + F: 2 per separate body, less 2 per handle."""
+    def __len__(self) -> int: ...
+
 class Frame:
     """One frame through the pipeline: every intermediate that was computed."""
 
@@ -85,6 +101,9 @@ class Frame:
     warnings: list[str]
     """What a user should know (a support radius far off, a grid coarsened to fit its memory
     budget)."""
+    mesh: Optional[Mesh]
+    """The triangle mesh of the surfels' iso-surface, with frame(..., mesh=True); None
+    otherwise and for the renderers that draw spheres."""
 
 class Pipeline:
     """The chain from particles to pixels, on the CPU: surface detection (with hysteresis across
@@ -115,8 +134,10 @@ class Pipeline:
         *,
         masses: Optional[npt.NDArray[Union[np.float32, np.float64]]] = None,
         through: _Through = "surfels",
+        mesh: bool = False,
     ) -> Frame:
-        """Runs one frame. positions: (N, 3) float32 or float64, any layout. ids: (N,) integers
+        """Runs one frame. mesh: also the triangle mesh of the surfels' iso-surface
+        (Frame.mesh). positions: (N, 3) float32 or float64, any layout. ids: (N,) integers
         that keep the hysteresis of surface detection with each particle when the order
         changes. velocities: (N, 3), checked, read by no stage yet. masses: (N,) weights of the
         centre of mass (all equal when absent). through: how far the chain runs.
@@ -207,3 +228,14 @@ def render_chunk(
     frames `warmup`, then writes the finished frame of each of `frames` to
     out/frame_NNNN.png atomically. A frame that fails is reported and the others written.
     Returns written, skipped, failed ([frame, error] pairs), warmup_failed and seconds."""
+
+def write_mesh(
+    path: _Path,
+    vertices: _Points,
+    faces: npt.NDArray[Any],
+    *,
+    overwrite: bool = False,
+) -> None:
+    """Writes a triangle mesh as binary PLY or OBJ (by the extension of path), atomically:
+    vertices (V, 3), faces (F, 3) vertex indices; normals from the triangles. An existing file
+    is replaced only with overwrite=True (FileExistsError otherwise)."""

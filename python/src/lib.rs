@@ -615,6 +615,67 @@ impl Surfels {
     }
 }
 
+/// A triangle mesh of the iso-surface the surfels lie on (`pipeline.frame(..., mesh=True)`):
+/// closed, indexed, counter-clockwise seen from outside; its vertices are the surfels.
+#[pyclass(frozen, module = "fluid_surfels")]
+struct Mesh {
+    /// (V, 3) float32 vertex positions.
+    #[pyo3(get)]
+    vertices: Py<PyAny>,
+    /// (V, 3) float32 unit vertex normals, out of the water.
+    #[pyo3(get)]
+    normals: Py<PyAny>,
+    /// (F, 3) uint32 vertex indices of each triangle.
+    #[pyo3(get)]
+    faces: Py<PyAny>,
+    /// Whether every edge is shared by two triangles, once each way.
+    #[pyo3(get)]
+    closed: bool,
+    /// V - E + F: 2 per separate body, less 2 per handle.
+    #[pyo3(get)]
+    euler_characteristic: i64,
+    len: usize,
+}
+
+#[pymethods]
+impl Mesh {
+    /// The number of triangles.
+    fn __len__(&self) -> usize {
+        self.len
+    }
+
+    fn __repr__(&self, py: Python<'_>) -> String {
+        let vertices = self
+            .vertices
+            .bind(py)
+            .len()
+            .map_or_else(|_| "?".to_string(), |n| n.to_string());
+        format!(
+            "Mesh(vertices={vertices}, triangles={}, closed={})",
+            self.len,
+            if self.closed { "True" } else { "False" }
+        )
+    }
+}
+
+fn mesh_out(py: Python<'_>, mesh: fluid_surfels::mesh::Mesh) -> PyResult<Mesh> {
+    let closed = mesh.is_closed();
+    let euler_characteristic = mesh.euler_characteristic();
+    let len = mesh.triangles.len();
+    let faces = numpy::PyArray1::from_vec(py, mesh.triangles.into_flattened())
+        .reshape([len, 3])?
+        .into_any()
+        .unbind();
+    Ok(Mesh {
+        vertices: points_out(py, mesh.positions)?,
+        normals: points_out(py, mesh.normals)?,
+        faces,
+        closed,
+        euler_characteristic,
+        len,
+    })
+}
+
 /// One frame through the pipeline: every intermediate that was computed, as NumPy arrays.
 #[pyclass(frozen, module = "fluid_surfels")]
 struct Frame {
@@ -657,6 +718,10 @@ struct Frame {
     /// What a user should know (a radius far off, a grid coarsened to fit the memory budget).
     #[pyo3(get)]
     warnings: Vec<String>,
+    /// The triangle mesh of the surfels' iso-surface, with `mesh=True` (None otherwise, and for
+    /// the renderers that draw spheres).
+    #[pyo3(get)]
+    mesh: Option<Py<Mesh>>,
     particles: usize,
 }
 
@@ -679,7 +744,11 @@ impl Frame {
     }
 }
 
-fn frame_out(py: Python<'_>, frame: pipeline::Frame) -> PyResult<Frame> {
+fn frame_out(
+    py: Python<'_>,
+    frame: pipeline::Frame,
+    mesh: Option<fluid_surfels::mesh::Mesh>,
+) -> PyResult<Frame> {
     let particles = frame.surface.classes.len();
     let surface = frame.surface;
     let classes: Vec<u8> = surface.classes.iter().map(|&c| c as u8).collect();
@@ -760,6 +829,7 @@ fn frame_out(py: Python<'_>, frame: pipeline::Frame) -> PyResult<Frame> {
         image,
         timings: from_toml(py, &timings)?.unbind(),
         warnings: frame.warnings,
+        mesh: mesh.map(|m| Py::new(py, mesh_out(py, m)?)).transpose()?,
         particles,
     })
 }
@@ -852,7 +922,8 @@ impl Pipeline {
     ///
     /// C-contiguous float32 positions and masses and uint32 ids are read where they lie, with
     /// the GIL released: do not write to them from another thread during the call.
-    #[pyo3(signature = (positions, ids=None, velocities=None, *, masses=None, through="surfels"))]
+    #[pyo3(signature = (positions, ids=None, velocities=None, *, masses=None, through="surfels", mesh=false))]
+    #[allow(clippy::too_many_arguments)]
     fn frame<'py>(
         &self,
         py: Python<'py>,
@@ -861,15 +932,20 @@ impl Pipeline {
         velocities: Option<&Bound<'py, PyAny>>,
         masses: Option<&Bound<'py, PyAny>>,
         through: &str,
+        mesh: bool,
     ) -> PyResult<Frame> {
         let through = through_of(through)?;
         let input = FrameIn::new(positions, ids, velocities, masses)?;
         let view = input.view();
-        let frame = py
-            .detach(|| self.lock().frame_through(view, through))
+        let (frame, mesh) = py
+            .detach(|| {
+                let frame = self.lock().frame_through(view, through)?;
+                let m = if mesh { frame.mesh() } else { None };
+                Ok::<_, fluid_surfels::Error>((frame, m))
+            })
             .map_err(crate_error)?;
         warn(py, &frame.warnings)?;
-        frame_out(py, frame)
+        frame_out(py, frame, mesh)
     }
 
     /// The whole chain on one frame, returning its image as an (H, W, 4) uint8 RGBA array:
@@ -1176,6 +1252,50 @@ fn write(
         .map_err(|e| crate_error(e.into()))
 }
 
+/// Writes a triangle mesh as binary PLY or OBJ (by the extension of `path`), atomically:
+/// `vertices` (V, 3), `faces` (F, 3) of vertex indices; the normals are the triangles'
+/// area-weighted ones. An existing file is replaced only with `overwrite=True`.
+#[pyfunction]
+#[pyo3(signature = (path, vertices, faces, *, overwrite=false))]
+fn write_mesh(
+    py: Python<'_>,
+    path: PathBuf,
+    vertices: &Bound<'_, PyAny>,
+    faces: &Bound<'_, PyAny>,
+    overwrite: bool,
+) -> PyResult<()> {
+    let positions = points("vertices", vertices, None)?;
+    let array = ndarray("faces", faces, "shape (F, 3), an integer dtype")?;
+    check_shape("faces", &array, Some(3), None)?;
+    let flat: Vec<i64> = array
+        .call_method1("astype", ("int64",))?
+        .cast_into::<numpy::PyArrayDyn<i64>>()?
+        .readonly()
+        .as_array()
+        .iter()
+        .copied()
+        .collect();
+    if flat.iter().any(|&v| v < 0 || v > i64::from(u32::MAX)) {
+        return Err(value_error(
+            "`faces` must hold vertex indices from 0".into(),
+        ));
+    }
+    let triangles: Vec<[u32; 3]> = flat
+        .chunks_exact(3)
+        .map(|t| [t[0] as u32, t[1] as u32, t[2] as u32])
+        .collect();
+    fluid_surfels::mesh::Mesh::is_ply(&path).map_err(|e| value_error(message_of(&e)))?;
+    if !overwrite && path.exists() {
+        return Err(PyFileExistsError::new_err(format!(
+            "{} exists; pass overwrite=True to replace it",
+            path.display()
+        )));
+    }
+    let mesh = fluid_surfels::mesh::Mesh::new(positions, triangles)
+        .map_err(|e| value_error(message_of(&e)))?;
+    py.detach(|| mesh.write(&path)).map_err(crate_error)
+}
+
 /// The particles of the built-in `column` scene (a collapsing water column, 2,880 particles,
 /// simulated), frames 0 to `last`: a list of dicts with `positions`, `ids`, `masses` and
 /// `velocities`, one per frame.
@@ -1320,8 +1440,10 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Frame>()?;
     m.add_class::<Refined>()?;
     m.add_class::<Surfels>()?;
+    m.add_class::<Mesh>()?;
     m.add_function(wrap_pyfunction!(read, m)?)?;
     m.add_function(wrap_pyfunction!(write, m)?)?;
+    m.add_function(wrap_pyfunction!(write_mesh, m)?)?;
     m.add_function(wrap_pyfunction!(column_frames, m)?)?;
     m.add_function(wrap_pyfunction!(column_params, m)?)?;
     m.add_function(wrap_pyfunction!(plan_of, m)?)?;

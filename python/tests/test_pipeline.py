@@ -386,3 +386,29 @@ def test_the_boundary_calibration_keeps_a_sheets_thickness_at_every_level():
     for steps in range(4):
         assert abs(thickness(steps, "boundary") - 1.0) <= 0.2, steps
     assert thickness(3, "paper") > 2.0
+
+
+def test_the_mesh_of_a_frame_is_closed_and_written_back(tmp_path):
+    """frame(..., mesh=True) gives the chain's mesh (issue 40): closed, its vertices the
+    surfels; write_mesh writes PLY (read back by fs.read) and OBJ; bad input raises."""
+    d = fs.column_frames(0)[0]
+    p = fs.Pipeline(**fs.column_params())
+    frame = p.frame(d["positions"], ids=d["ids"], mesh=True)
+    m = frame.mesh
+    assert m is not None and m.closed and len(m) == m.faces.shape[0] > 0
+    assert m.euler_characteristic == 2
+    assert m.faces.dtype == np.uint32 and m.faces.max() < m.vertices.shape[0]
+    np.testing.assert_array_equal(m.vertices, frame.surfels.positions)
+    assert p.frame(d["positions"], ids=d["ids"]).mesh is None
+    fs.write_mesh(tmp_path / "m.ply", m.vertices, m.faces)
+    back = fs.read(tmp_path / "m.ply")
+    np.testing.assert_array_equal(back["positions"], m.vertices)
+    fs.write_mesh(tmp_path / "m.obj", m.vertices, m.faces)
+    text = (tmp_path / "m.obj").read_text()
+    assert sum(line.startswith("f ") for line in text.splitlines()) == len(m)
+    with pytest.raises(FileExistsError):
+        fs.write_mesh(tmp_path / "m.ply", m.vertices, m.faces)
+    with pytest.raises(ValueError, match="ply"):
+        fs.write_mesh(tmp_path / "m.stl", m.vertices, m.faces)
+    with pytest.raises(ValueError, match="past the"):
+        fs.write_mesh(tmp_path / "bad.ply", m.vertices, m.faces + m.vertices.shape[0])

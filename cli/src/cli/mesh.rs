@@ -69,34 +69,6 @@ impl MeshArgs {
     }
 }
 
-/// Whether `path` names a mesh format: `.ply` (binary) or `.obj` (checked before any work).
-fn mesh_format(path: &Path) -> Result<bool, Error> {
-    let ext = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase);
-    match ext.as_deref() {
-        Some("ply") => Ok(true),
-        Some("obj") => Ok(false),
-        _ => Err(Error::InvalidArgument {
-            argument: "--out",
-            reason: format!(
-                "{}: a mesh is written as .ply (binary) or .obj",
-                path.display()
-            ),
-        }),
-    }
-}
-
-/// Writes `mesh` by the extension of `path`.
-fn write_mesh(mesh: &Mesh, path: &Path) -> Result<(), Error> {
-    if mesh_format(path)? {
-        Ok(mesh.write_ply(path)?)
-    } else {
-        Ok(mesh.write_obj(path)?)
-    }
-}
-
 /// The mesh of one frame through `pipeline`, written to `out` when given.
 fn mesh_frame(
     pipeline: &mut Pipeline,
@@ -114,7 +86,7 @@ fn mesh_frame(
     let mesh = f.mesh().unwrap_or_default();
     let mesh_ms = ms(t);
     if let Some(out) = out {
-        write_mesh(&mesh, out)?;
+        mesh.write(out)?;
     }
     Ok(MeshReport {
         frame,
@@ -155,7 +127,10 @@ pub fn mesh_command(args: &MeshArgs) -> Result<(), Error> {
         });
     }
     if let Some(out) = &args.outputs.out {
-        mesh_format(Path::new(out))?;
+        Mesh::is_ply(Path::new(out)).map_err(|_| Error::InvalidArgument {
+            argument: "--out",
+            reason: format!("{out}: a mesh is written as .ply (binary) or .obj"),
+        })?;
     }
     if let Some(pattern) = args.source.sequence()? {
         return mesh_sequence(args, &pattern);
