@@ -589,7 +589,8 @@ impl Frame {
     /// The triangle mesh of the iso-surface the surfels lie on: marching cubes over the frame's
     /// density grid (dense, or sparse: the blocks near the surface) at the surfels' iso-value
     /// ([`crate::mesh`]), its vertices the surfels themselves (vertex `n` is the crossing surfel
-    /// `n` was projected from: on the exact iso-surface, the kernel's gradient as normal);
+    /// `n` was projected from: on the exact iso-surface, the kernel's gradient as normal; the
+    /// few whose move would fold a triangle stay on their edges, [`crate::mesh::Mesh::move_onto`]);
     /// `None` without a grid (the peer renderers' spheres, or a frame not run through the
     /// surfels).
     #[must_use]
@@ -599,10 +600,10 @@ impl Frame {
         let mut mesh =
             crate::mesh::marching_cubes(grid.spec(), |i, j, k| grid.at(i, j, k), surfels.iso);
         // the same crossings in the same order (tests/pipeline.rs); were they ever not, the
-        // vertices would stay on the grid's edges
+        // vertices would stay on the grid's edges. A vertex whose move would fold or collapse a
+        // triangle stays on its edge.
         if mesh.positions.len() == surfels.len() {
-            mesh.positions.clone_from(&surfels.positions);
-            mesh.normals.clone_from(&surfels.normals);
+            mesh.move_onto(&surfels.positions, &surfels.normals);
         }
         Some(mesh)
     }
