@@ -659,8 +659,10 @@ impl Mesh {
 }
 
 fn mesh_out(py: Python<'_>, mesh: fluid_surfels::mesh::Mesh) -> PyResult<Mesh> {
-    let closed = mesh.is_closed();
-    let euler_characteristic = mesh.euler_characteristic();
+    let fluid_surfels::mesh::Topology {
+        closed,
+        euler_characteristic,
+    } = mesh.topology();
     let len = mesh.triangles.len();
     let faces = numpy::PyArray1::from_vec(py, mesh.triangles.into_flattened())
         .reshape([len, 3])?
@@ -1242,14 +1244,20 @@ fn write(
             });
         }
     }
+    refuse_existing(&path, overwrite)?;
+    py.detach(|| io::write_particles(&path, &set, format))
+        .map_err(|e| crate_error(e.into()))
+}
+
+/// `FileExistsError` for an existing `path` unless `overwrite`.
+fn refuse_existing(path: &Path, overwrite: bool) -> PyResult<()> {
     if !overwrite && path.exists() {
         return Err(PyFileExistsError::new_err(format!(
             "{} exists; pass overwrite=True to replace it",
             path.display()
         )));
     }
-    py.detach(|| io::write_particles(&path, &set, format))
-        .map_err(|e| crate_error(e.into()))
+    Ok(())
 }
 
 /// Writes a triangle mesh as binary PLY or OBJ (by the extension of `path`), atomically:
@@ -1285,12 +1293,7 @@ fn write_mesh(
         .map(|t| [t[0] as u32, t[1] as u32, t[2] as u32])
         .collect();
     fluid_surfels::mesh::Mesh::is_ply(&path).map_err(|e| value_error(message_of(&e)))?;
-    if !overwrite && path.exists() {
-        return Err(PyFileExistsError::new_err(format!(
-            "{} exists; pass overwrite=True to replace it",
-            path.display()
-        )));
-    }
+    refuse_existing(&path, overwrite)?;
     let mesh = fluid_surfels::mesh::Mesh::new(positions, triangles)
         .map_err(|e| value_error(message_of(&e)))?;
     py.detach(|| mesh.write(&path)).map_err(crate_error)

@@ -88,13 +88,14 @@ fn mesh_frame(
     if let Some(out) = out {
         mesh.write(out)?;
     }
+    let topology = mesh.topology();
     Ok(MeshReport {
         frame,
         particles: particles.len(),
         vertices: mesh.positions.len(),
         triangles: mesh.triangles.len(),
-        closed: mesh.is_closed(),
-        euler_characteristic: mesh.euler_characteristic(),
+        closed: topology.closed,
+        euler_characteristic: topology.euler_characteristic,
         surfels_ms,
         mesh_ms,
         output: out.map(|p| p.display().to_string()),
