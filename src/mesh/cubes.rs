@@ -1,5 +1,4 @@
-//! A triangle mesh of the density grid's iso-surface (issue 40, first part): marching cubes
-//! with an indexed, watertight, consistently wound mesh, and writers for binary PLY and OBJ.
+//! Marching cubes that never leaves a hole.
 //!
 //! **The cases.** The classic table of Lorensen and Cline (1987) leaves holes where two cubes
 //! sharing an ambiguous face (two diagonal corners inside) triangulate it differently. Here the
@@ -24,34 +23,13 @@
 //! the area-weighted normals of the triangles around them.
 
 use std::collections::HashSet;
-use std::path::Path;
 use std::sync::OnceLock;
 
 use glam::Vec3;
 use rayon::prelude::*;
 
+use super::{Mesh, vertex_normals};
 use crate::density::GridSpec;
-use crate::io::IoError;
-
-/// An indexed triangle mesh.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct Mesh {
-    /// Vertex positions.
-    pub positions: Vec<Vec3>,
-    /// Unit vertex normals, pointing out of the fluid.
-    pub normals: Vec<Vec3>,
-    /// Triangles: three vertex indices each, counter-clockwise seen from outside.
-    pub triangles: Vec<[u32; 3]>,
-}
-
-/// What [`Mesh::topology`] finds.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Topology {
-    /// Every edge shared by exactly two triangles, once each way.
-    pub closed: bool,
-    /// `V - E + F` over the vertices the triangles use.
-    pub euler_characteristic: i64,
-}
 
 /// Corner `c` of a cube: its offset along x, y and z (bits 0, 1 and 2 of `c`).
 fn corner(c: usize) -> [u32; 3] {
@@ -329,237 +307,10 @@ fn mesh_layer(spec: &GridSpec, iso: f32, k: u32, planes: [&[f32]; 2]) -> Layer {
     layer
 }
 
-/// The area-weighted normals of the triangles around each vertex, unit length.
-fn vertex_normals(positions: &[Vec3], triangles: &[[u32; 3]]) -> Vec<Vec3> {
-    let mut normals = vec![Vec3::ZERO; positions.len()];
-    for t in triangles {
-        let [a, b, c] = t.map(|v| positions[v as usize]);
-        let n = (b - a).cross(c - a);
-        for &v in t {
-            normals[v as usize] += n;
-        }
-    }
-    normals.iter().map(|n| n.normalize_or_zero()).collect()
-}
-
-impl Mesh {
-    /// A mesh of given vertices and triangles (indices checked), its normals the area-weighted
-    /// normals of the triangles around each vertex.
-    pub fn new(positions: Vec<Vec3>, triangles: Vec<[u32; 3]>) -> Result<Self, crate::Error> {
-        let n = positions.len();
-        if let Some(t) = triangles
-            .iter()
-            .find(|t| t.iter().any(|&v| v as usize >= n))
-        {
-            return Err(crate::Error::InvalidArgument {
-                argument: "triangles",
-                reason: format!("the triangle {t:?} names a vertex past the {n} given"),
-            });
-        }
-        if positions.iter().any(|p| !p.is_finite()) {
-            return Err(crate::Error::InvalidArgument {
-                argument: "positions",
-                reason: "a vertex is not finite".into(),
-            });
-        }
-        Ok(Self {
-            normals: vertex_normals(&positions, &triangles),
-            positions,
-            triangles,
-        })
-    }
-
-    /// Whether `path` names a mesh format this crate writes: `.ply` (binary, `true`) or `.obj`
-    /// (`false`); an error naming both otherwise.
-    pub fn is_ply(path: &Path) -> Result<bool, crate::Error> {
-        let ext = path
-            .extension()
-            .and_then(|e| e.to_str())
-            .map(str::to_ascii_lowercase);
-        match ext.as_deref() {
-            Some("ply") => Ok(true),
-            Some("obj") => Ok(false),
-            _ => Err(crate::Error::InvalidArgument {
-                argument: "path",
-                reason: format!(
-                    "{}: a mesh is written as .ply (binary) or .obj",
-                    path.display()
-                ),
-            }),
-        }
-    }
-
-    /// Writes the mesh in the format of `path`'s extension ([`Mesh::is_ply`]), atomically.
-    pub fn write(&self, path: &Path) -> Result<(), crate::Error> {
-        if Self::is_ply(path)? {
-            Ok(self.write_ply(path)?)
-        } else {
-            Ok(self.write_obj(path)?)
-        }
-    }
-
-    /// Moves the vertices to `positions` with `normals` (the surfels projected from the same
-    /// crossings onto the exact iso-surface), but keeps on its grid edge every vertex of a
-    /// triangle that the move would collapse (no area left), turn over (its normal against the
-    /// same triangle's on the edges) or set against its vertices' `normals`, repeated until
-    /// none is; returns how many vertices stayed on their edges. Measured (fixed detail,
-    /// release, 2 cores): the projection alone turns over 14 of the double dam break's 244,444
-    /// triangles and sets 89 against their normals (the dam break: 5 collapsed, 43 turned over,
-    /// 197 against their normals of 565,884); with 177 of 122,208 vertices kept on their edges
-    /// no triangle stands against the mesh's own normals (the dam break: 368 kept, 4 left where
-    /// two sheets nearly touch; 14 on the double dam break when only the collapsed and
-    /// turned-over triangles' vertices are kept).
-    pub fn move_onto(&mut self, positions: &[Vec3], normals: &[Vec3]) -> usize {
-        assert_eq!(
-            positions.len(),
-            self.positions.len(),
-            "one position per vertex"
-        );
-        let on_edges = std::mem::replace(&mut self.positions, positions.to_vec());
-        self.normals = normals.to_vec();
-        let normal_of = |p: &[Vec3], t: &[u32; 3]| {
-            let [a, b, c] = t.map(|v| p[v as usize]);
-            (b - a).cross(c - a)
-        };
-        let mut kept = vec![false; on_edges.len()];
-        for _ in 0..8 {
-            let bad: Vec<u32> = self
-                .triangles
-                .par_iter()
-                .filter(|t| {
-                    let n = normal_of(&self.positions, t);
-                    let given: Vec3 = t.iter().map(|&v| self.normals[v as usize]).sum();
-                    self.is_collapsed(t)
-                        || n.dot(normal_of(&on_edges, t)) <= 0.0
-                        || n.dot(given) <= 0.0
-                })
-                .flat_map_iter(|t| t.iter().copied())
-                .collect();
-            if bad.is_empty() {
-                break;
-            }
-            for v in bad {
-                self.positions[v as usize] = on_edges[v as usize];
-                kept[v as usize] = true;
-            }
-        }
-        kept.iter().filter(|&&k| k).count()
-    }
-
-    /// Whether a triangle has no area left (relative to its longest side from its first
-    /// vertex).
-    #[must_use]
-    pub fn is_collapsed(&self, t: &[u32; 3]) -> bool {
-        let [a, b, c] = t.map(|v| self.positions[v as usize]);
-        let n = (b - a).cross(c - a);
-        let scale = (b - a).length_squared().max((c - a).length_squared());
-        n.length_squared() <= 1e-12 * scale * scale
-    }
-
-    /// Whether the mesh is closed and its Euler characteristic, from one sorted list of its
-    /// directed edges: 41 ms on the dam break's 565,884 triangles (release, 2 cores), where
-    /// maps of every edge took 270 ms, more than making the mesh (156-199 ms).
-    #[must_use]
-    pub fn topology(&self) -> Topology {
-        let key = |a: u32, b: u32| (u64::from(a) << 32) | u64::from(b);
-        let mut directed: Vec<u64> = self
-            .triangles
-            .par_iter()
-            .flat_map_iter(|t| (0..3).map(move |k| key(t[k], t[(k + 1) % 3])))
-            .collect();
-        directed.par_sort_unstable();
-        let unique = directed.windows(2).all(|w| w[0] != w[1]);
-        let closed = unique
-            && directed
-                .par_iter()
-                .all(|&e| directed.binary_search(&e.rotate_right(32)).is_ok());
-        // undirected edges: each once (a pair used both ways counted at its a < b side)
-        let edges = if closed {
-            directed.len() / 2
-        } else {
-            let mut undirected: Vec<u64> = directed
-                .iter()
-                .map(|&e| {
-                    let (a, b) = ((e >> 32) as u32, e as u32);
-                    key(a.min(b), a.max(b))
-                })
-                .collect();
-            undirected.par_sort_unstable();
-            undirected.dedup();
-            undirected.len()
-        };
-        let mut used = vec![false; self.positions.len()];
-        for &v in self.triangles.iter().flatten() {
-            used[v as usize] = true;
-        }
-        let vertices = used.iter().filter(|&&u| u).count();
-        Topology {
-            closed,
-            euler_characteristic: vertices as i64 - edges as i64 + self.triangles.len() as i64,
-        }
-    }
-
-    /// Whether every edge is shared by exactly two triangles, each way once (closed, manifold
-    /// at its edges and consistently wound).
-    #[must_use]
-    pub fn is_closed(&self) -> bool {
-        self.topology().closed
-    }
-
-    /// The Euler characteristic `V - E + F` (2 for a sphere, 0 for a torus, 2 per separate
-    /// closed body without handles).
-    #[must_use]
-    pub fn euler_characteristic(&self) -> i64 {
-        self.topology().euler_characteristic
-    }
-
-    /// Writes the mesh as binary little-endian PLY (`vertex` with `x y z nx ny nz`, `face` with
-    /// `vertex_indices`), atomically.
-    pub fn write_ply(&self, path: &Path) -> Result<(), IoError> {
-        let mut out = format!(
-            "ply\nformat binary_little_endian 1.0\ncomment fluid-surfels mesh\nelement vertex {}\n\
-             property float x\nproperty float y\nproperty float z\n\
-             property float nx\nproperty float ny\nproperty float nz\n\
-             element face {}\nproperty list uchar uint vertex_indices\nend_header\n",
-            self.positions.len(),
-            self.triangles.len()
-        )
-        .into_bytes();
-        for (p, n) in self.positions.iter().zip(&self.normals) {
-            for x in p.to_array().into_iter().chain(n.to_array()) {
-                out.extend_from_slice(&x.to_le_bytes());
-            }
-        }
-        for t in &self.triangles {
-            out.push(3);
-            for v in t {
-                out.extend_from_slice(&v.to_le_bytes());
-            }
-        }
-        crate::io::write_atomically(path, &out)
-    }
-
-    /// Writes the mesh as OBJ (`v`, `vn`, `f v//vn`, 1-based), atomically.
-    pub fn write_obj(&self, path: &Path) -> Result<(), IoError> {
-        use std::fmt::Write;
-        let mut out = String::from("# fluid-surfels mesh\n");
-        for p in &self.positions {
-            let _ = writeln!(out, "v {} {} {}", p.x, p.y, p.z);
-        }
-        for n in &self.normals {
-            let _ = writeln!(out, "vn {} {} {}", n.x, n.y, n.z);
-        }
-        for t in &self.triangles {
-            let [a, b, c] = t.map(|v| v + 1);
-            let _ = writeln!(out, "f {a}//{a} {b}//{b} {c}//{c}");
-        }
-        crate::io::write_atomically(path, out.as_bytes())
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::mesh::Topology;
 
     /// A grid of `n` points a side over [-2, 2]^3 sampling `f`.
     fn mesh_of(n: u32, f: impl Fn(Vec3) -> f32 + Sync) -> (Mesh, GridSpec) {
@@ -686,37 +437,5 @@ mod tests {
         let m = marching_cubes(&spec, at, 0.0);
         assert!(m.triangles.len() > 100);
         assert!(m.is_closed(), "random field: not closed");
-    }
-
-    #[test]
-    fn ply_and_obj_write_what_the_mesh_holds() {
-        let (m, _) = mesh_of(12, |p: Vec3| 1.0 - p.length());
-        let dir = tempfile::tempdir().unwrap();
-        let ply = dir.path().join("m.ply");
-        m.write_ply(&ply).unwrap();
-        let bytes = std::fs::read(&ply).unwrap();
-        let header_end = bytes
-            .windows(11)
-            .position(|w| w == b"end_header\n")
-            .unwrap()
-            + 11;
-        let header = String::from_utf8_lossy(&bytes[..header_end]);
-        assert!(header.contains(&format!("element vertex {}", m.positions.len())));
-        assert!(header.contains(&format!("element face {}", m.triangles.len())));
-        assert_eq!(
-            bytes.len() - header_end,
-            m.positions.len() * 24 + m.triangles.len() * 13
-        );
-        let obj = dir.path().join("m.obj");
-        m.write_obj(&obj).unwrap();
-        let text = std::fs::read_to_string(&obj).unwrap();
-        assert_eq!(
-            text.lines().filter(|l| l.starts_with("v ")).count(),
-            m.positions.len()
-        );
-        assert_eq!(
-            text.lines().filter(|l| l.starts_with("f ")).count(),
-            m.triangles.len()
-        );
     }
 }
