@@ -112,6 +112,21 @@ impl FramePattern {
         }))
     }
 
+    /// The pattern's path without its number and the separator before it (`_`, `-`, `.` or a
+    /// space): `out/mesh_{:04}.usda` -> `out/mesh.usda`, the name of a file that stands for
+    /// the whole sequence; `sequence` when nothing of the name is left (`out/{}.usda` ->
+    /// `out/sequence.usda`).
+    #[must_use]
+    pub fn without_number(&self) -> PathBuf {
+        let prefix = self.prefix.trim_end_matches(['_', '-', '.', ' ']);
+        let name_starts = prefix.rfind(['/', '\\']).map_or(0, |i| i + 1);
+        if prefix.len() == name_starts {
+            PathBuf::from(format!("{prefix}sequence{}", self.suffix))
+        } else {
+            PathBuf::from(format!("{prefix}{}", self.suffix))
+        }
+    }
+
     /// The file name of frame `frame`.
     #[must_use]
     pub fn path(&self, frame: usize) -> PathBuf {

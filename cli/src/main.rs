@@ -39,8 +39,9 @@ enum Command {
     /// a built-in scene.
     Surfels(cli::surfels::SurfelsArgs),
     /// A triangle mesh of the iso-surface the surfels lie on (marching cubes over the chain's
-    /// density grid, the surfels as its vertices), per frame, as binary PLY or OBJ, for
-    /// Blender, Houdini or a game engine.
+    /// density grid, the surfels as its vertices, the particles' velocities interpolated at
+    /// them), per frame, as binary PLY, OBJ, legacy VTK or USD (with a stage that plays a
+    /// sequence), for Blender, Houdini or a game engine.
     Mesh(cli::mesh::MeshArgs),
     /// The surface to a PNG: particles through the pipeline, drawn by EWA surfel splatting
     /// (Botsch et al. 2005; default), particle splatting (Adams et al. 2006), ray casting

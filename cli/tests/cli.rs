@@ -2558,10 +2558,30 @@ fn mesh_writes_closed_meshes_of_files_and_sequences() {
     succeeded(&out);
     assert!(String::from_utf8_lossy(&out.stdout).contains("2 frames meshed, 1 skipped"));
     assert_eq!(std::fs::read(d.join("m_1.ply")).unwrap(), b"kept");
+    // the column's frames have velocities: the meshes carry them, read back with the faces
     for f in [0, 2] {
-        let m = fluid_surfels::io::read_particles(&d.join(format!("m_{f}.ply")), None).unwrap();
-        assert!(m.len() > 1000, "frame {f}");
+        let m = fluid_surfels::mesh::Mesh::read(&d.join(format!("m_{f}.ply"))).unwrap();
+        assert!(m.positions.len() > 1000, "frame {f}");
+        assert!(m.is_closed(), "frame {f}");
+        let v = m.velocities.as_ref().expect("velocities");
+        assert_eq!(v.len(), m.positions.len());
+        assert!(v.iter().all(|v| v.is_finite()), "frame {f}");
     }
+    // the same as legacy VTK, read back equal to the PLY
+    let vtk = d.join("m_0.vtk");
+    succeeded(
+        &bin()
+            .args(["mesh", "--input"])
+            .arg(d.join("c_0.vtk"))
+            .arg("--out")
+            .arg(&vtk)
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(
+        fluid_surfels::mesh::Mesh::read(&vtk).unwrap(),
+        fluid_surfels::mesh::Mesh::read(&d.join("m_0.ply")).unwrap()
+    );
     // an unknown format: refused at once, nothing written
     let bad = bin()
         .args(["mesh", "--input", &input, "--out"])
@@ -2570,9 +2590,80 @@ fn mesh_writes_closed_meshes_of_files_and_sequences() {
         .unwrap();
     assert!(!bad.status.success());
     assert!(
-        stderr_of(&bad).contains(".ply (binary) or .obj"),
+        stderr_of(&bad).contains(".ply (binary), .obj, .vtk (legacy POLYDATA) or .usda"),
         "{}",
         stderr_of(&bad)
     );
     assert!(!d.join("m.stl").exists());
+}
+
+/// `mesh` to USD: a `.usda` frame per frame (time samples at its number) and a stage that
+/// plays them (value clips over every frame of --frames), written once more unchanged by a
+/// resumed run or another shard, refused over a different file; --stage names it.
+#[test]
+fn mesh_writes_a_usd_sequence_and_its_stage() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let mut sim = fluid_surfels::scenes::ColumnSim::new(Default::default()).unwrap();
+    for f in 0..2 {
+        sim.advance_to(f);
+        fluid_surfels::io::write_particles(&d.join(format!("c_{f}.vtk")), sim.particles(), None)
+            .unwrap();
+    }
+    let run = |extra: &[&str]| {
+        bin()
+            .args(["mesh", "--frames", "0..2", "--input"])
+            .arg(d.join("c_{}.vtk"))
+            .arg("--out")
+            .arg(d.join("mesh_{:03}.usda"))
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let out = run(&[]);
+    succeeded(&out);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("wrote the USD stage"), "{stdout}");
+    let stage = std::fs::read_to_string(d.join("mesh.usda")).unwrap();
+    assert!(
+        stage.contains("asset[] assetPaths = [@./mesh_000.usda@, @./mesh_001.usda@]"),
+        "{stage}"
+    );
+    assert!(d.join("mesh.manifest.usda").exists());
+    for f in 0..2 {
+        let text = std::fs::read_to_string(d.join(format!("mesh_{f:03}.usda"))).unwrap();
+        assert!(text.contains(&format!("points.timeSamples = {{\n            {f}: [")));
+        assert!(text.contains("vector3f[] velocities.timeSamples"));
+    }
+    // the second shard of two, run again: its frame kept, the same stage written
+    succeeded(&run(&["--shard", "2/2", "--skip-existing"]));
+    assert_eq!(std::fs::read_to_string(d.join("mesh.usda")).unwrap(), stage);
+    // a different file under the stage's name is not replaced without --force
+    std::fs::write(d.join("mesh.usda"), "mine").unwrap();
+    succeeded(&run(&["--force"]));
+    assert_eq!(std::fs::read_to_string(d.join("mesh.usda")).unwrap(), stage);
+    std::fs::write(d.join("mesh.usda"), "mine").unwrap();
+    let out = bin()
+        .args(["mesh", "--frames", "0..1", "--input"])
+        .arg(d.join("c_{}.vtk"))
+        .arg("--out")
+        .arg(d.join("other_{}.usda"))
+        .arg("--stage")
+        .arg(d.join("mesh.usda"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(stderr_of(&out).contains("mesh.usda"), "{}", stderr_of(&out));
+    assert_eq!(
+        std::fs::read_to_string(d.join("mesh.usda")).unwrap(),
+        "mine"
+    );
+    assert!(!d.join("other_0.usda").exists(), "refused before any work");
+    // --stage without a .usda sequence
+    let out = bin()
+        .args(["mesh", "--scene", "sphere", "--stage", "x.usda"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(stderr_of(&out).contains("--stage"), "{}", stderr_of(&out));
 }

@@ -22,9 +22,11 @@ from ._native import (
     column_params,
     plan_of,
     read,
+    read_mesh,
     render_chunk,
     write,
     write_mesh,
+    write_usd_stage,
 )
 
 INTERIOR, SURFACE, ISOLATED = 0, 1, 2
@@ -46,7 +48,9 @@ __all__ = [
     "column_params",
     "plan_of",
     "read",
+    "read_mesh",
     "render_chunk",
     "write",
     "write_mesh",
+    "write_usd_stage",
 ]

@@ -66,6 +66,9 @@ class Mesh:
     """Whether every edge is shared by two triangles, once each way."""
     euler_characteristic: int
     """V - E + F: 2 per separate body, less 2 per handle."""
+    velocities: Optional[npt.NDArray[np.float32]]
+    """(V, 3) vertex velocities interpolated from the particles' (SPH cubic spline,
+    normalised), or None when the particles had none."""
     def __len__(self) -> int: ...
 
 class Frame:
@@ -139,7 +142,8 @@ class Pipeline:
         """Runs one frame. mesh: also the triangle mesh of the surfels' iso-surface
         (Frame.mesh). positions: (N, 3) float32 or float64, any layout. ids: (N,) integers
         that keep the hysteresis of surface detection with each particle when the order
-        changes. velocities: (N, 3), checked, read by no stage yet. masses: (N,) weights of the
+        changes. velocities: (N, 3), interpolated at the mesh's vertices (Frame.mesh.velocities),
+        read by no other stage. masses: (N,) weights of the
         centre of mass (all equal when absent). through: how far the chain runs.
 
         C-contiguous float32 positions and masses and uint32 ids are read in place, without a
@@ -234,8 +238,29 @@ def write_mesh(
     vertices: _Points,
     faces: npt.NDArray[Any],
     *,
+    velocities: Optional[_Points] = None,
+    time: Optional[float] = None,
     overwrite: bool = False,
 ) -> None:
-    """Writes a triangle mesh as binary PLY or OBJ (by the extension of path), atomically:
-    vertices (V, 3), faces (F, 3) vertex indices; normals from the triangles. An existing file
-    is replaced only with overwrite=True (FileExistsError otherwise)."""
+    """Writes a triangle mesh as binary PLY, OBJ, legacy VTK POLYDATA or USD text (by the
+    extension of path: .ply, .obj, .vtk, .usda), atomically: vertices (V, 3), faces (F, 3)
+    vertex indices, velocities (V, 3) when given (not in OBJ); normals from the triangles.
+    time: a .usda frame of a sequence, its values time samples at that time code (see
+    write_usd_stage). An existing file is replaced only with overwrite=True (FileExistsError
+    otherwise)."""
+
+def read_mesh(path: _Path) -> Mesh:
+    """Reads a mesh from a .ply or .vtk file: vertices, normals (the file's, or the
+    triangles'), velocities when the file has them, faces (polygons split into triangles)."""
+
+def write_usd_stage(
+    path: _Path,
+    frames: list[tuple[float, _Path]],
+    *,
+    fps: float = 24.0,
+    overwrite: bool = False,
+) -> None:
+    """Writes a USD stage (.usda) that plays the .usda frames ((time code, path) pairs, each
+    written by write_mesh(..., time=t)) as an animation through value clips, with its
+    manifest <stem>.manifest.usda beside it. An existing stage is replaced only with
+    overwrite=True (FileExistsError otherwise)."""

@@ -16,6 +16,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
 use fluid_surfels::io::{self, Format, ReadOptions};
+use fluid_surfels::mesh::write::MeshFormat;
 use fluid_surfels::pipeline::{self, Through};
 use fluid_surfels::scenes::{ColumnParams, ColumnSim};
 use fluid_surfels::{Attribute, ParticleSet, ParticleView, ScalarKind};
@@ -340,6 +341,8 @@ struct FrameIn<'py> {
     positions: PointsIn<'py>,
     ids: Option<ColumnIn<'py, u32>>,
     masses: Option<ColumnIn<'py, f32>>,
+    /// read by the mesh's vertex velocities only
+    velocities: Option<PointsIn<'py>>,
 }
 
 impl<'py> FrameIn<'py> {
@@ -357,14 +360,14 @@ impl<'py> FrameIn<'py> {
         let masses = masses
             .map(|m| column_in("masses", MASSES, m, n, |a| floats("masses", a)))
             .transpose()?;
-        if let Some(v) = velocities {
-            // checked for the caller; no stage of the chain reads velocities yet
-            points_in("velocities", v, Some(n))?;
-        }
+        let velocities = velocities
+            .map(|v| points_in("velocities", v, Some(n)))
+            .transpose()?;
         Ok(Self {
             positions,
             ids,
             masses,
+            velocities,
         })
     }
 
@@ -634,6 +637,10 @@ struct Mesh {
     /// V - E + F: 2 per separate body, less 2 per handle.
     #[pyo3(get)]
     euler_characteristic: i64,
+    /// (V, 3) float32 vertex velocities interpolated from the particles' (SPH cubic spline,
+    /// normalised), or None when the particles had none.
+    #[pyo3(get)]
+    velocities: Option<Py<PyAny>>,
     len: usize,
 }
 
@@ -674,6 +681,7 @@ fn mesh_out(py: Python<'_>, mesh: fluid_surfels::mesh::Mesh) -> PyResult<Mesh> {
         faces,
         closed,
         euler_characteristic,
+        velocities: mesh.velocities.map(|v| points_out(py, v)).transpose()?,
         len,
     })
 }
@@ -939,10 +947,14 @@ impl Pipeline {
         let through = through_of(through)?;
         let input = FrameIn::new(positions, ids, velocities, masses)?;
         let view = input.view();
+        let velocities = input.velocities.as_ref().map(PointsIn::as_slice);
         let (frame, mesh) = py
             .detach(|| {
                 let frame = self.lock().frame_through(view, through)?;
-                let m = if mesh { frame.mesh() } else { None };
+                let mut m = if mesh { frame.mesh() } else { None };
+                if let (Some(m), Some(v)) = (&mut m, velocities) {
+                    m.interpolate_velocities(view.positions, v, frame.radius)?;
+                }
                 Ok::<_, fluid_surfels::Error>((frame, m))
             })
             .map_err(crate_error)?;
@@ -1260,19 +1272,26 @@ fn refuse_existing(path: &Path, overwrite: bool) -> PyResult<()> {
     Ok(())
 }
 
-/// Writes a triangle mesh as binary PLY or OBJ (by the extension of `path`), atomically:
-/// `vertices` (V, 3), `faces` (F, 3) of vertex indices; the normals are the triangles'
-/// area-weighted ones. An existing file is replaced only with `overwrite=True`.
+/// Writes a triangle mesh as binary PLY, OBJ, legacy VTK or USD text (by the extension of
+/// `path`: .ply, .obj, .vtk, .usda), atomically: `vertices` (V, 3), `faces` (F, 3) of vertex
+/// indices, `velocities` (V, 3) when given (not in OBJ); the normals are the triangles'
+/// area-weighted ones. `time`: a .usda frame of a sequence, its values time samples at that
+/// time code (see `write_usd_stage`). An existing file is replaced only with `overwrite=True`.
 #[pyfunction]
-#[pyo3(signature = (path, vertices, faces, *, overwrite=false))]
+#[pyo3(signature = (path, vertices, faces, *, velocities=None, time=None, overwrite=false))]
 fn write_mesh(
     py: Python<'_>,
     path: PathBuf,
     vertices: &Bound<'_, PyAny>,
     faces: &Bound<'_, PyAny>,
+    velocities: Option<&Bound<'_, PyAny>>,
+    time: Option<f64>,
     overwrite: bool,
 ) -> PyResult<()> {
     let positions = points("vertices", vertices, None)?;
+    let velocities = velocities
+        .map(|v| points("velocities", v, Some(positions.len())))
+        .transpose()?;
     let array = ndarray("faces", faces, "shape (F, 3), an integer dtype")?;
     check_shape("faces", &array, Some(3), None)?;
     let flat: Vec<i64> = array
@@ -1292,11 +1311,57 @@ fn write_mesh(
         .chunks_exact(3)
         .map(|t| [t[0] as u32, t[1] as u32, t[2] as u32])
         .collect();
-    fluid_surfels::mesh::Mesh::is_ply(&path).map_err(|e| value_error(message_of(&e)))?;
+    let format = MeshFormat::of_path(&path).map_err(|e| value_error(message_of(&e)))?;
+    if time.is_some() && format != MeshFormat::Usda {
+        return Err(value_error(format!(
+            "{}: `time` is for a .usda frame of a sequence",
+            path.display()
+        )));
+    }
+    if time.is_some_and(|t| !t.is_finite()) {
+        return Err(value_error("`time` must be finite".into()));
+    }
     refuse_existing(&path, overwrite)?;
-    let mesh = fluid_surfels::mesh::Mesh::new(positions, triangles)
+    let mut mesh = fluid_surfels::mesh::Mesh::new(positions, triangles)
         .map_err(|e| value_error(message_of(&e)))?;
-    py.detach(|| mesh.write(&path)).map_err(crate_error)
+    mesh.velocities = velocities;
+    py.detach(|| match time {
+        Some(t) => mesh
+            .write_usda(&path, Some(t))
+            .map_err(fluid_surfels::Error::from),
+        None => mesh.write(&path),
+    })
+    .map_err(crate_error)
+}
+
+/// Reads a mesh from a .ply or .vtk file (those `write_mesh` writes, or another tool's):
+/// vertices, normals (from the file, or the triangles'), velocities when the file has them,
+/// faces (polygons split into triangles).
+#[pyfunction]
+fn read_mesh(py: Python<'_>, path: PathBuf) -> PyResult<Mesh> {
+    let mesh = py
+        .detach(|| fluid_surfels::mesh::Mesh::read(&path))
+        .map_err(|e| match e {
+            fluid_surfels::Error::InvalidArgument { .. } => value_error(message_of(&e)),
+            e => crate_error(e),
+        })?;
+    mesh_out(py, mesh)
+}
+
+/// Writes a USD stage (.usda) that plays the .usda frames `frames` ((time code, path) pairs,
+/// each written by `write_mesh(..., time=t)`) as an animation through value clips, with its
+/// manifest `<stem>.manifest.usda` beside it; `fps` frames per second. Atomically; an
+/// existing stage is replaced only with `overwrite=True`.
+#[pyfunction]
+#[pyo3(signature = (path, frames, *, fps=24.0, overwrite=false))]
+fn write_usd_stage(
+    path: PathBuf,
+    frames: Vec<(f64, PathBuf)>,
+    fps: f64,
+    overwrite: bool,
+) -> PyResult<()> {
+    refuse_existing(&path, overwrite)?;
+    fluid_surfels::mesh::write::write_usd_stage(&path, &frames, fps).map_err(crate_error)
 }
 
 /// The particles of the built-in `column` scene (a collapsing water column, 2,880 particles,
@@ -1447,6 +1512,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(read, m)?)?;
     m.add_function(wrap_pyfunction!(write, m)?)?;
     m.add_function(wrap_pyfunction!(write_mesh, m)?)?;
+    m.add_function(wrap_pyfunction!(read_mesh, m)?)?;
+    m.add_function(wrap_pyfunction!(write_usd_stage, m)?)?;
     m.add_function(wrap_pyfunction!(column_frames, m)?)?;
     m.add_function(wrap_pyfunction!(column_params, m)?)?;
     m.add_function(wrap_pyfunction!(plan_of, m)?)?;

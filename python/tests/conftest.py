@@ -71,3 +71,14 @@ def column():
     import fluid_surfels as fs
 
     return fs.column_frames(14)
+
+
+def extra(module: str, install: str):
+    """Imports an optional test dependency (meshio, usd-core's pxr, distributed): skipped when
+    it is missing, except where FLUID_SURFELS_REQUIRE_EXTRAS=1 (scripts/test.sh installs them,
+    so there a missing one fails rather than skips)."""
+    if os.environ.get("FLUID_SURFELS_REQUIRE_EXTRAS") == "1":
+        import importlib
+
+        return importlib.import_module(module)
+    return pytest.importorskip(module, reason=f"an optional test dependency: pip install {install}")

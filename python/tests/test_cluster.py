@@ -11,8 +11,9 @@ from pathlib import Path
 import pytest
 
 import fluid_surfels as fs
+from conftest import extra
 
-distributed = pytest.importorskip("distributed", reason="the dask extra: pip install 'fluid_surfels[dask]'")
+distributed = extra("distributed", "'fluid_surfels[dask]'")
 from fluid_surfels import cluster  # noqa: E402
 
 PARAMS = dict(fs.column_params())

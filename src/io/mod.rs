@@ -692,6 +692,16 @@ pub(crate) fn component_names(a: &crate::particles::Attribute) -> Vec<String> {
     }
 }
 
+/// The faces of a mesh file, flat: each face's vertex count, then all their vertex indices in
+/// order (read by [`ply::parse_with_faces`] and [`vtk::parse_with_polygons`]).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Polygons {
+    /// Vertices of each face.
+    pub counts: Vec<u32>,
+    /// The faces' vertex indices, one face after the other.
+    pub indices: Vec<u32>,
+}
+
 /// Writes `bytes` to `path` through a temporary file in the same folder and a rename, so that a
 /// failed write never leaves a half-written file under the final name.
 pub(crate) fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), IoError> {

@@ -346,6 +346,17 @@ fn int_max(k: ScalarKind) -> f64 {
 
 /// Parses a whole PLY file held in memory; `path` names it in errors.
 pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
+    parse_with_faces(bytes, path, None)
+}
+
+/// [`parse`], with the `face` element's `vertex_indices` (or `vertex_index`) lists appended
+/// to `faces` when given (a mesh read back, [`crate::mesh::Mesh::read`]); each index is checked
+/// against the vertex count.
+pub fn parse_with_faces(
+    bytes: &[u8],
+    path: &Path,
+    mut faces: Option<&mut super::Polygons>,
+) -> Result<ParticleSet, IoError> {
     if !looks_like(bytes) {
         return Err(IoError::WrongFormat {
             path: path.to_owned(),
@@ -414,6 +425,20 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
     };
     let n = vertex.count as usize;
     let mut columns: Vec<Vec<f64>> = vertex.props.iter().map(|_| Vec::with_capacity(n)).collect();
+    // the face element's list of vertex indices, when faces are wanted
+    let face_list = faces.as_ref().and(
+        header
+            .elements
+            .iter()
+            .position(|e| e.name == "face")
+            .and_then(|e| {
+                header.elements[e]
+                    .props
+                    .iter()
+                    .position(|(p, _)| p == "vertex_indices" || p == "vertex_index")
+                    .map(|p| (e, p))
+            }),
+    );
 
     for (e_index, element) in header.elements.iter().enumerate() {
         for record in 0..element.count as usize {
@@ -452,8 +477,23 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                                 len.to_string(),
                             ));
                         }
+                        let wanted = face_list == Some((e_index, p_index));
+                        if wanted && let Some(f) = faces.as_deref_mut() {
+                            f.counts.push(len as u32);
+                        }
                         for _ in 0..len as usize {
-                            reader.next(item, path)?;
+                            let (v, at) = reader.next(item, path)?;
+                            if wanted && let Some(f) = faces.as_deref_mut() {
+                                if !(v >= 0.0 && v < n as f64) {
+                                    return Err(IoError::parse(
+                                        path,
+                                        at,
+                                        format!("a vertex index below {n}"),
+                                        v.to_string(),
+                                    ));
+                                }
+                                f.indices.push(v as u32);
+                            }
                         }
                     }
                 }

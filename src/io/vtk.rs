@@ -259,17 +259,24 @@ fn header(c: &mut Cursor<'_>, path: &Path) -> Result<f32, IoError> {
 
 /// Skips a `CELLS`-like block (the particles need no cells): 5.x `OFFSETS` and `CONNECTIVITY`
 /// arrays of their own type, or the older single list of ints.
-fn skip_cells(
+/// Reads a block of cells; with `polygons`, appends them to it (each cell's vertex count and
+/// its vertex indices, checked against `points`).
+fn read_cells(
     c: &mut Cursor<'_>,
     words: &mut std::str::SplitWhitespace<'_>,
     version: f32,
     binary: bool,
+    polygons: Option<(&mut super::Polygons, u64)>,
 ) -> Result<(), IoError> {
     let a: u64 = number(c, words.next(), "a cell count")?;
     let b: u64 = number(c, words.next(), "a cell list size")?;
-    if version >= 5.0 {
+    let (offsets, connectivity) = if version >= 5.0 {
         // 5.x: OFFSETS <type> (a values) and CONNECTIVITY <type> (b values)
-        for (label, count) in [("OFFSETS", a), ("CONNECTIVITY", b)] {
+        let mut read = [Vec::new(), Vec::new()];
+        for ((label, count), out) in [("OFFSETS", a), ("CONNECTIVITY", b)]
+            .into_iter()
+            .zip(&mut read)
+        {
             c.binary = false;
             let l = c.line()?.unwrap_or("end of file");
             c.binary = binary;
@@ -278,10 +285,49 @@ fn skip_cells(
                 return Err(c.err(format!("`{label} <type>`"), super::quoted(l)));
             }
             let t = data_type(c, w.next())?;
-            c.values(count, t, label)?;
+            *out = c.values(count, t, label)?;
         }
+        let [offsets, connectivity] = read;
+        (offsets, connectivity)
     } else {
-        c.values(b, vtk_type("int").expect("int is a VTK type"), "cell lists")?;
+        let lists = c.values(b, vtk_type("int").expect("int is a VTK type"), "cell lists")?;
+        // count-prefixed lists: the offsets are where each count's cell ends
+        let (mut offsets, mut connectivity) = (vec![0.0], Vec::with_capacity(lists.len()));
+        let mut at = 0usize;
+        for _ in 0..a {
+            let n = lists.get(at).copied().unwrap_or(-1.0);
+            if !(n >= 0.0 && at + 1 + n as usize <= lists.len()) {
+                return Err(c.err(
+                    "cell lists as long as their counts say",
+                    format!("a count of {n}"),
+                ));
+            }
+            connectivity.extend_from_slice(&lists[at + 1..at + 1 + n as usize]);
+            offsets.push(connectivity.len() as f64);
+            at += 1 + n as usize;
+        }
+        (offsets, connectivity)
+    };
+    if let Some((polygons, points)) = polygons {
+        let bad = || {
+            c.err(
+                "cell offsets that rise within the connectivity, and point indices",
+                "others",
+            )
+        };
+        for w in offsets.windows(2) {
+            let (s, e) = (w[0], w[1]);
+            if !(0.0 <= s && s <= e && e as usize <= connectivity.len()) {
+                return Err(bad());
+            }
+            polygons.counts.push((e - s) as u32);
+            for &v in &connectivity[s as usize..e as usize] {
+                if !(v >= 0.0 && (v as u64) < points) {
+                    return Err(bad());
+                }
+                polygons.indices.push(v as u32);
+            }
+        }
     }
     Ok(())
 }
@@ -383,6 +429,16 @@ fn field_arrays(
 
 /// Parses a whole legacy VTK file held in memory; `path` names it in errors.
 pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
+    parse_with_polygons(bytes, path, None)
+}
+
+/// [`parse`], with the `POLYGONS` of a `POLYDATA` file appended to `polygons` when given (a
+/// mesh read back, [`crate::mesh::Mesh::read`]).
+pub fn parse_with_polygons(
+    bytes: &[u8],
+    path: &Path,
+    mut polygons: Option<&mut super::Polygons>,
+) -> Result<ParticleSet, IoError> {
     if !bytes.starts_with(b"# vtk DataFile") {
         return Err(IoError::WrongFormat {
             path: path.to_owned(),
@@ -443,7 +499,11 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<ParticleSet, IoError> {
                 point_count = Some(n);
             }
             "CELLS" | "VERTICES" | "LINES" | "POLYGONS" | "TRIANGLE_STRIPS" => {
-                skip_cells(&mut c, &mut words, version, binary)?;
+                let into = match (&mut polygons, point_count) {
+                    (Some(p), Some(n)) if keyword == "POLYGONS" => Some((&mut **p, n)),
+                    _ => None,
+                };
+                read_cells(&mut c, &mut words, version, binary, into)?;
             }
             "CELL_TYPES" => {
                 let n: u64 = number(&c, words.next(), "a cell type count")?;

@@ -232,6 +232,7 @@ pub fn marching_cubes(
         normals: vertex_normals(&positions, &triangles),
         positions,
         triangles,
+        velocities: None,
     }
 }
 

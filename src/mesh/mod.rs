@@ -5,6 +5,7 @@
 //! writers ([`self::write`]).
 
 pub mod cubes;
+pub mod read;
 pub mod write;
 
 pub use cubes::marching_cubes;
@@ -21,6 +22,9 @@ pub struct Mesh {
     pub normals: Vec<Vec3>,
     /// Triangles: three vertex indices each, counter-clockwise seen from outside.
     pub triangles: Vec<[u32; 3]>,
+    /// Vertex velocities (for motion blur), when the particles had them
+    /// ([`Mesh::interpolate_velocities`]).
+    pub velocities: Option<Vec<Vec3>>,
 }
 
 /// What [`Mesh::topology`] finds.
@@ -69,9 +73,11 @@ impl Mesh {
             normals: vertex_normals(&positions, &triangles),
             positions,
             triangles,
+            velocities: None,
         })
     }
 
+    /// Moves the vertices to `positions` with `normals` (the surfels projected from the same
     /// crossings onto the exact iso-surface), but keeps on its grid edge every vertex of a
     /// triangle that the move would collapse (no area left), turn over (its normal against the
     /// same triangle's on the edges) or set against its vertices' `normals`, repeated until
@@ -184,5 +190,173 @@ impl Mesh {
     #[must_use]
     pub fn euler_characteristic(&self) -> i64 {
         self.topology().euler_characteristic
+    }
+
+    /// Sets [`Mesh::velocities`] to the particles' velocities interpolated at every vertex
+    /// with the SPH cubic spline of support `radius` (the frame's support radius), normalised
+    /// by the kernel's sum (Shepard):
+    ///
+    /// `v(x) = sum_j v_j W(|x - x_j|, h) / sum_j W(|x - x_j|, h)`.
+    ///
+    /// Unnormalised (`sum_j m_j / rho_j v_j W`, the textbook SPH estimate) the velocity would
+    /// fall towards zero at the surface, where the vertices are and half the kernel is empty;
+    /// the normalised sum is exact for a uniform flow and first-order for a sheared one. A
+    /// vertex with no particle within `radius` (none on a surface made from these particles at
+    /// this radius) takes its nearest particle's velocity. Errors: lengths that differ, a radius
+    /// that is not positive and finite, velocities or positions that are not finite, no
+    /// particle for a mesh with vertices.
+    pub fn interpolate_velocities(
+        &mut self,
+        positions: &[Vec3],
+        velocities: &[Vec3],
+        radius: f32,
+    ) -> Result<(), crate::Error> {
+        let invalid = |argument: &'static str, reason: String| crate::Error::InvalidArgument {
+            argument,
+            reason,
+        };
+        if positions.len() != velocities.len() {
+            return Err(invalid(
+                "velocities",
+                format!(
+                    "{} velocities for {} particles",
+                    velocities.len(),
+                    positions.len()
+                ),
+            ));
+        }
+        if let Some(i) = velocities.iter().position(|v| !v.is_finite()) {
+            return Err(invalid(
+                "velocities",
+                format!("the velocity of particle {i} is not finite"),
+            ));
+        }
+        if self.positions.is_empty() {
+            self.velocities = Some(Vec::new());
+            return Ok(());
+        }
+        if positions.is_empty() {
+            return Err(invalid(
+                "positions",
+                "no particle to take the mesh's velocities from".into(),
+            ));
+        }
+        let grid = crate::neighbours::CellGrid::new(positions, radius)
+            .map_err(|e| invalid("positions", e.to_string()))?;
+        let kernel = crate::density::Kernel::CubicSpline;
+        let mut out: Vec<Option<Vec3>> = self
+            .positions
+            .par_iter()
+            .map(|&x| {
+                let (mut sum, mut weight) = (Vec3::ZERO, 0.0f32);
+                grid.for_each_within(x, radius, |j| {
+                    let w = kernel.value_r2(positions[j as usize].distance_squared(x), radius);
+                    sum += velocities[j as usize] * w;
+                    weight += w;
+                });
+                (weight > 0.0).then(|| sum / weight)
+            })
+            .collect();
+        if out.iter().any(Option::is_none) {
+            use kiddo::{ImmutableKdTree, SquaredEuclidean};
+            let points: Vec<[f32; 3]> = positions.iter().map(|p| p.to_array()).collect();
+            let tree = ImmutableKdTree::<f32, 3>::new_from_slice(&points)
+                .map_err(|e| invalid("positions", format!("{e:?}")))?;
+            let one = std::num::NonZeroUsize::MIN;
+            out.par_iter_mut()
+                .zip(&self.positions)
+                .filter(|(v, _)| v.is_none())
+                .for_each(|(v, x)| {
+                    let nearest = tree
+                        .query(&x.to_array())
+                        .nearest_n::<SquaredEuclidean<f32>>(one)
+                        .execute();
+                    *v = nearest.first().map(|nb| velocities[nb.item as usize]);
+                });
+        }
+        self.velocities = Some(out.into_iter().map(Option::unwrap_or_default).collect());
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Particles on a cubic lattice of spacing `s` filling a ball of radius `r`.
+    fn ball(r: f32, s: f32) -> Vec<Vec3> {
+        let n = (r / s).ceil() as i32;
+        let mut out = Vec::new();
+        for i in -n..=n {
+            for j in -n..=n {
+                for k in -n..=n {
+                    let p = Vec3::new(i as f32, j as f32, k as f32) * s;
+                    if p.length() <= r {
+                        out.push(p);
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// The interpolated velocity: exact for a uniform flow (the kernel sum normalised), close
+    /// for a rotation at the surface, the nearest particle's far from every particle; bad
+    /// input refused.
+    #[test]
+    fn velocities_interpolated_from_the_particles() {
+        let (s, h) = (0.1, 0.2);
+        let particles = ball(1.0, s);
+        let mut mesh = Mesh::new(
+            vec![
+                Vec3::new(1.05, 0.0, 0.0),
+                Vec3::new(0.0, -1.05, 0.0),
+                Vec3::new(0.3, 0.7, 0.7),
+                Vec3::new(5.0, 0.0, 0.0),
+            ],
+            vec![[0, 1, 2]],
+        )
+        .unwrap();
+        let uniform = vec![Vec3::new(0.3, -0.2, 1.0); particles.len()];
+        mesh.interpolate_velocities(&particles, &uniform, h)
+            .unwrap();
+        for v in mesh.velocities.as_ref().unwrap() {
+            assert!((*v - uniform[0]).length() < 1e-5, "{v}");
+        }
+        // a rotation about z: v = (-y, x, 0); at the surface the neighbours lie inside, so the
+        // estimate is within the kernel's reach of the truth (first order: a few percent)
+        let rotation: Vec<Vec3> = particles
+            .iter()
+            .map(|p| Vec3::new(-p.y, p.x, 0.0))
+            .collect();
+        mesh.interpolate_velocities(&particles, &rotation, h)
+            .unwrap();
+        let v = mesh.velocities.as_ref().unwrap();
+        for (x, v) in mesh.positions.iter().zip(v).take(3) {
+            let truth = Vec3::new(-x.y, x.x, 0.0);
+            assert!(
+                (*v - truth).length() < 0.1 * truth.length(),
+                "{x}: {v} vs {truth}"
+            );
+        }
+        // far from every particle: the nearest one's, (0, 1, 0) at (1, 0, 0)
+        assert!(
+            (v[3] - Vec3::new(0.0, 1.0, 0.0)).length() < 1e-5,
+            "{}",
+            v[3]
+        );
+        // bad input
+        assert!(
+            mesh.interpolate_velocities(&particles, &rotation[1..], h)
+                .is_err()
+        );
+        let mut nan = rotation.clone();
+        nan[7].x = f32::NAN;
+        assert!(mesh.interpolate_velocities(&particles, &nan, h).is_err());
+        assert!(
+            mesh.interpolate_velocities(&particles, &rotation, 0.0)
+                .is_err()
+        );
+        assert!(mesh.interpolate_velocities(&[], &[], h).is_err());
     }
 }

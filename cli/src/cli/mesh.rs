@@ -1,12 +1,14 @@
 //! `fluid-surfels mesh`: a triangle mesh of the chain's iso-surface (issue 40) per frame, for
 //! Blender, Houdini or a game engine: marching cubes over the density grid the surfels lie on,
-//! its vertices the surfels (on the exact iso-surface), written as binary PLY or OBJ.
+//! its vertices the surfels (on the exact iso-surface), with the particles' velocities
+//! interpolated at the vertices when the input has them, written as binary PLY, OBJ, legacy VTK
+//! or USD (a `.usda` sequence also gets a stage that plays it, with value clips).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use fluid_surfels::Error;
-use fluid_surfels::mesh::Mesh;
+use fluid_surfels::mesh::write::{MeshFormat, usd_stage_text, write_usd_stage};
 use fluid_surfels::pipeline::{
     Calibration, Detail, Pipeline, PipelineParams, SurfelSource, Through,
 };
@@ -33,6 +35,14 @@ pub struct MeshArgs {
     /// Where the surface lies: boundary (default) or paper (eq. 1's sums).
     #[arg(long, value_parser = super::names_parser(&Calibration::ALL, Calibration::as_str))]
     pub calibration: Option<Calibration>,
+    /// The USD stage that plays a `.usda` sequence (value clips of the frames' files, listing
+    /// every frame of --frames, so that the shards of a job array write the same stage); by
+    /// default the --out pattern without its number (`out/mesh_{:04}.usda` -> `out/mesh.usda`).
+    #[arg(long, value_name = "FILE")]
+    pub stage: Option<PathBuf>,
+    /// Frames per second of the USD stage (`timeCodesPerSecond`; velocities are per second).
+    #[arg(long, default_value_t = 24.0)]
+    pub fps: f64,
 }
 
 #[derive(Serialize)]
@@ -43,8 +53,11 @@ struct MeshReport {
     triangles: usize,
     closed: bool,
     euler_characteristic: i64,
+    /// Whether the vertices carry the particles' interpolated velocities.
+    velocities: bool,
     surfels_ms: f64,
     mesh_ms: f64,
+    velocities_ms: f64,
     output: Option<String>,
 }
 
@@ -69,10 +82,13 @@ impl MeshArgs {
     }
 }
 
-/// The mesh of one frame through `pipeline`, written to `out` when given.
+/// The mesh of one frame through `pipeline`, with velocities interpolated from `velocities`
+/// when given and the output holds them, written to `out` when given (a `.usda` frame of a
+/// sequence as time samples at its frame number).
 fn mesh_frame(
     pipeline: &mut Pipeline,
     particles: fluid_surfels::ParticleView<'_>,
+    velocities: Option<&[glam::Vec3]>,
     frame: Option<usize>,
     out: Option<&Path>,
 ) -> Result<MeshReport, Error> {
@@ -83,10 +99,19 @@ fn mesh_frame(
     }
     let surfels_ms = ms(t);
     let t = Instant::now();
-    let mesh = f.mesh().unwrap_or_default();
+    let mut mesh = f.mesh().unwrap_or_default();
     let mesh_ms = ms(t);
+    let format = out.map(MeshFormat::of_path).transpose()?;
+    let t = Instant::now();
+    if let Some(v) = velocities.filter(|_| format.is_none_or(MeshFormat::has_velocities)) {
+        mesh.interpolate_velocities(particles.positions, v, f.radius)?;
+    }
+    let velocities_ms = ms(t);
     if let Some(out) = out {
-        mesh.write(out)?;
+        match (format, frame) {
+            (Some(MeshFormat::Usda), Some(f)) => mesh.write_usda(out, Some(f as f64))?,
+            _ => mesh.write(out)?,
+        }
     }
     let topology = mesh.topology();
     Ok(MeshReport {
@@ -96,8 +121,10 @@ fn mesh_frame(
         triangles: mesh.triangles.len(),
         closed: topology.closed,
         euler_characteristic: topology.euler_characteristic,
+        velocities: mesh.velocities.is_some(),
         surfels_ms,
         mesh_ms,
+        velocities_ms,
         output: out.map(|p| p.display().to_string()),
     })
 }
@@ -124,13 +151,17 @@ pub fn mesh_command(args: &MeshArgs) -> Result<(), Error> {
     if args.outputs.png.is_some() || args.outputs.out_format.is_some() {
         return Err(Error::InvalidArgument {
             argument: "--png/--out-format",
-            reason: "a mesh is written by the extension of --out (.ply or .obj)".into(),
+            reason: "a mesh is written by the extension of --out (.ply, .obj, .vtk or .usda)"
+                .into(),
         });
     }
     if let Some(out) = &args.outputs.out {
-        Mesh::is_ply(Path::new(out)).map_err(|_| Error::InvalidArgument {
-            argument: "--out",
-            reason: format!("{out}: a mesh is written as .ply (binary) or .obj"),
+        MeshFormat::of_path(Path::new(out)).map_err(|e| match e {
+            Error::InvalidArgument { reason, .. } => Error::InvalidArgument {
+                argument: "--out",
+                reason,
+            },
+            e => e,
         })?;
     }
     if let Some(pattern) = args.source.sequence()? {
@@ -142,7 +173,15 @@ pub fn mesh_command(args: &MeshArgs) -> Result<(), Error> {
     if let Some(o) = &out {
         check_output(o, input.as_deref(), args.outputs.force, OutputKind::Single)?;
     }
-    let (_, positions, radius) = super::positions_of(
+    if args.stage.is_some() {
+        return Err(Error::InvalidArgument {
+            argument: "--stage",
+            reason:
+                "a stage plays a sequence: give --input a frame pattern and --out a .usda pattern"
+                    .into(),
+        });
+    }
+    let (_, particles, radius) = super::particles_of(
         input.as_deref(),
         src.scene,
         src.format,
@@ -150,8 +189,14 @@ pub fn mesh_command(args: &MeshArgs) -> Result<(), Error> {
         src.radius,
     )?;
     let mut pipeline = Pipeline::new(args.params(radius))?;
-    let view = fluid_surfels::ParticleView::of_positions(&positions);
-    let report = mesh_frame(&mut pipeline, view, None, out.as_deref())?;
+    let view = fluid_surfels::ParticleView::of_positions(&particles.positions);
+    let report = mesh_frame(
+        &mut pipeline,
+        view,
+        particles.velocities.as_deref(),
+        None,
+        out.as_deref(),
+    )?;
     if args.outputs.json {
         super::print_json(&report);
     } else {
@@ -167,6 +212,7 @@ fn mesh_sequence(args: &MeshArgs, pattern: &FramePattern) -> Result<(), Error> {
         radius,
         ..
     } = super::prepare_sequence(&args.source, &args.outputs, pattern, "mesh")?;
+    let stage = stage_of(args, out.as_ref(), &sequence.frames)?;
     let run = sequence.run_warm(
         || Pipeline::new(args.params(radius)),
         |pipeline, f| {
@@ -176,14 +222,24 @@ fn mesh_sequence(args: &MeshArgs, pattern: &FramePattern) -> Result<(), Error> {
         |pipeline, f| {
             let particles = super::read_particles(&pattern.path(f), args.source.format)?;
             let path = out.as_ref().map(|p| p.path(f));
-            mesh_frame(pipeline, particles.view(), Some(f), path.as_deref())
+            mesh_frame(
+                pipeline,
+                particles.view(),
+                particles.velocities.as_deref(),
+                Some(f),
+                path.as_deref(),
+            )
         },
     )?;
+    if let Some((stage, frames)) = &stage {
+        write_usd_stage(stage, frames, args.fps)?;
+    }
     if args.outputs.json {
         super::print_json(&serde_json::json!({
             "input": args.source.input, "radius": radius, "jobs": run.jobs,
             "processed": run.results.len(), "skipped": run.skipped, "seconds": run.seconds,
             "frames": run.results,
+            "stage": stage.as_ref().map(|(s, _)| s.display().to_string()),
         }));
     } else {
         for r in &run.results {
@@ -195,6 +251,52 @@ fn mesh_sequence(args: &MeshArgs, pattern: &FramePattern) -> Result<(), Error> {
             run.skipped.len(),
             run.seconds
         );
+        if let Some((stage, frames)) = &stage {
+            println!(
+                "wrote the USD stage {} ({} frames, {} fps)",
+                stage.display(),
+                frames.len(),
+                args.fps
+            );
+        }
     }
     Ok(())
+}
+
+/// A USD stage's path and its frames (time code, file).
+type Stage = (PathBuf, Vec<(f64, PathBuf)>);
+
+/// The USD stage of a `.usda` sequence and its frames (every frame of the range, so that
+/// every shard writes the same stage), checked before any work: an existing stage is
+/// replaced only when it is the same text, or with --force or --skip-existing.
+fn stage_of(
+    args: &MeshArgs,
+    out: Option<&FramePattern>,
+    frames: &[usize],
+) -> Result<Option<Stage>, Error> {
+    let usda =
+        out.is_some_and(|p| MeshFormat::of_path(&p.path(0)).is_ok_and(|f| f == MeshFormat::Usda));
+    if !usda {
+        return match args.stage {
+            Some(_) => Err(Error::InvalidArgument {
+                argument: "--stage",
+                reason: "a stage plays a .usda sequence: give --out a .usda pattern".into(),
+            }),
+            None => Ok(None),
+        };
+    }
+    let out = out.expect("a .usda pattern");
+    let stage = args.stage.clone().unwrap_or_else(|| out.without_number());
+    let frames: Vec<(f64, PathBuf)> = frames.iter().map(|&f| (f as f64, out.path(f))).collect();
+    let text = usd_stage_text(&stage, &frames, args.fps)?;
+    let same = std::fs::read(&stage).is_ok_and(|old| old == text.as_bytes());
+    if !same {
+        check_output(
+            &stage,
+            None,
+            args.outputs.force || args.outputs.skip_existing,
+            OutputKind::Single,
+        )?;
+    }
+    Ok(Some((stage, frames)))
 }

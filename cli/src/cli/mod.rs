@@ -286,6 +286,17 @@ pub fn positions_of(
     frame: Option<usize>,
     radius: Option<f32>,
 ) -> Result<(String, Vec<glam::Vec3>, f32), Error> {
+    particles_of(input, scene, format, frame, radius).map(|(what, set, r)| (what, set.positions, r))
+}
+
+/// [`positions_of`] with the whole particle set (velocities and the other attributes).
+pub fn particles_of(
+    input: Option<&Path>,
+    scene: Option<SceneName>,
+    format: Option<Format>,
+    frame: Option<usize>,
+    radius: Option<f32>,
+) -> Result<(String, fluid_surfels::ParticleSet, f32), Error> {
     match (input, scene) {
         (Some(path), _) => {
             let particles = read_particles(path, format)?;
@@ -293,7 +304,7 @@ pub fn positions_of(
                 Some(r) => r,
                 None => fluid_surfels::neighbours::support_radius(&particles.positions)?,
             };
-            Ok((path.display().to_string(), particles.positions, r))
+            Ok((path.display().to_string(), particles, r))
         }
         (None, Some(name)) => {
             let frame = if name == SceneName::Column {
@@ -304,7 +315,7 @@ pub fn positions_of(
             let scene = fluid_surfels::scenes::build(name, frame)?;
             Ok((
                 format!("scene {}", name.as_str()),
-                scene.particles.positions,
+                scene.particles,
                 radius.unwrap_or(scene.support_radius),
             ))
         }
