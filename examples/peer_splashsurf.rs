@@ -2,7 +2,10 @@
 //! same particles with the same kernel, support radius and cell size (`benches/common/peer.rs`):
 //! the time of each reconstruction and their ratio, the peak memory of each, and how far our
 //! surfels lie from splashsurf's mesh (mean and max distance, in cells), so that speed is never
-//! bought with a different surface.
+//! bought with a different surface; then the meshes (issue 40): splashsurf's against ours (the
+//! density grid, surfels and marching cubes), time, triangles, and the mean distance from each
+//! mesh's vertices to the other, with our uniform weights and with splashsurf's per-particle
+//! volumes (`peer::peer_weights`: the same density field).
 //!
 //! ```text
 //! cargo run --release --example peer_splashsurf                 # the 150k block and the real files
@@ -24,7 +27,7 @@ use std::time::Instant;
 
 use fluid_surfels::quality::MeshDistance;
 
-const TOOLS: [&str; 3] = ["splashsurf", "ours-dense", "ours-sparse"];
+const TOOLS: [&str; 4] = ["splashsurf", "ours-dense", "ours-sparse", "ours-mesh"];
 
 fn case_by_name(name: &str) -> peer::Case {
     match name {
@@ -47,6 +50,9 @@ fn child(tool: &str, case: &str, repeat: usize) {
         let n = match tool {
             "splashsurf" => peer::splashsurf(&input, &params).len(),
             "ours-dense" => peer::ours_dense(&c.positions, c.spacing).len(),
+            "ours-mesh" => peer::ours_mesh(&c.positions, c.spacing, true, None)
+                .triangles
+                .len(),
             _ => peer::ours_sparse(&c.positions, c.spacing).len(),
         };
         best = best.min(t.elapsed().as_secs_f64() * 1e3);
@@ -119,6 +125,7 @@ fn main() {
         "", "", "ms", "MiB", "ms", "MiB", "ms", "MiB", "speedup", "speedup"
     );
     let mut own_peaks = true;
+    let mut mesh_rows = Vec::new();
     for name in &names {
         let m: Vec<(f64, f64, bool)> = TOOLS.iter().map(|t| measure(t, name, repeat)).collect();
         own_peaks &= m.iter().all(|x| x.2);
@@ -126,6 +133,34 @@ fn main() {
         let (input, params) = peer::peer_input(&c.positions, c.spacing);
         let (_, cell) = peer::sizes(c.spacing);
         let mesh = MeshDistance::new(peer::splashsurf(&input, &params), cell);
+        let theirs = peer::splashsurf_mesh(&input, &params);
+        let weights = peer::peer_weights(&c.positions, c.spacing);
+        let both_ways = |ours: &fluid_surfels::mesh::Mesh| {
+            (
+                peer::mean_distance(ours, &theirs, cell),
+                peer::mean_distance(&theirs, ours, cell),
+            )
+        };
+        let ours = peer::ours_mesh(&c.positions, c.spacing, true, None);
+        let (u1, u2) = both_ways(&ours);
+        let (w1, w2) = both_ways(&peer::ours_mesh(
+            &c.positions,
+            c.spacing,
+            true,
+            Some(&weights),
+        ));
+        mesh_rows.push(format!(
+            "  {:<17} | {:>7.1} {:>8.1} | {:>7.1} {:>8.1} | {:>7.2}x | {:>8} {:>8} {:>+6.1} % | {u1:.3} / {u2:.3} | {w1:.3} / {w2:.3}",
+            c.name,
+            m[0].0,
+            m[0].1,
+            m[3].0,
+            m[3].1,
+            m[0].0 / m[3].0,
+            theirs.triangles.len(),
+            ours.triangles.len(),
+            100.0 * (ours.triangles.len() as f64 / theirs.triangles.len() as f64 - 1.0),
+        ));
         let stats = |s: fluid_surfels::surfels::Surfels| {
             let d = mesh.distances(&s.positions);
             let mean = d.iter().map(|&x| f64::from(x)).sum::<f64>() / d.len().max(1) as f64;
@@ -147,6 +182,20 @@ fn main() {
             m[0].0 / m[1].0,
             m[0].0 / m[2].0,
         );
+    }
+    println!(
+        "meshes: splashsurf's whole reconstruction against ours (density grid, surfels, marching cubes, vertices moved onto the surfels; uniform weights, the `particles` source)"
+    );
+    println!(
+        "  {:<17} | {:>16} | {:>16} | {:>8} | {:>8} {:>8} {:>8} | mean distance, cells, ours->theirs / theirs->ours",
+        "case", "splashsurf", "ours mesh", "", "triangles", "", "",
+    );
+    println!(
+        "  {:<17} | {:>7} {:>8} | {:>7} {:>8} | {:>8} | {:>8} {:>8} {:>8} | uniform weights | splashsurf's weights (m / rho_j)",
+        "", "ms", "MiB", "ms", "MiB", "speedup", "theirs", "ours", "diff",
+    );
+    for row in &mesh_rows {
+        println!("{row}");
     }
     println!(
         "  (MiB: peak resident set of a process holding the particles while it reconstructs{})",

@@ -8,6 +8,8 @@
 #![allow(dead_code)] // each target uses its part
 
 use fluid_surfels::density::{self, GridSpec, Kernel, Resolution};
+use fluid_surfels::mesh::{Mesh, marching_cubes};
+use fluid_surfels::quality::MeshDistance;
 use fluid_surfels::surfels::{self, SurfelParams, Surfels};
 use fluid_surfels::{io, lnm, neighbours, scenes};
 use glam::Vec3;
@@ -135,4 +137,80 @@ pub fn ours_sparse(p: &[Vec3], spacing: f32) -> Surfels {
     )
     .expect("within memory");
     surfels::extract_sparse(&grid, points, Kernel::CubicSpline, &iso).expect("surfels")
+}
+
+/// splashsurf's weights: its density map is `sum_j V_j W(x - x_j)` with each particle's volume
+/// `V_j = m / rho_j` from its SPH density `rho_j = sum_k m W_jk` (splashsurf_lib 0.14's
+/// `density_map.rs`: `particle_volume = particle_rest_mass / particle_density`), not the rest
+/// volume, so where a particle has fewer neighbours than in the bulk (thin sheets, drops) its
+/// field is stronger. As weights of our sum `sum_j w_j W` at the same iso-value:
+/// `w_j = V_j / s^3 = 1 / (s^3 sum_k W_jk)` (1 in the bulk of a lattice of spacing `s`).
+pub fn peer_weights(p: &[Vec3], spacing: f32) -> Vec<f32> {
+    let (h, _) = sizes(spacing);
+    let grid = neighbours::CellGrid::new(p, h).expect("finite particles");
+    p.iter()
+        .map(|&x| {
+            let mut sum = 0.0f32;
+            grid.for_each_within(x, h, |j| {
+                sum += Kernel::CubicSpline.value_r2(p[j as usize].distance_squared(x), h);
+            });
+            1.0 / (spacing * spacing * spacing * sum)
+        })
+        .collect()
+}
+
+/// Our mesh of the dense grid at the surfels' iso-value (`pipeline::Frame::mesh`'s steps):
+/// marching cubes, then the vertices moved onto the surfels (the exact iso-surface) where that
+/// folds no triangle. `project: false` keeps every vertex on its grid edge (linear
+/// interpolation, as splashsurf's marching cubes leaves them). `weights`: each particle's
+/// weight in the density (splashsurf's, [`peer_weights`]); all 1 without.
+pub fn ours_mesh(p: &[Vec3], spacing: f32, project: bool, weights: Option<&[f32]>) -> Mesh {
+    let (h, cell) = sizes(spacing);
+    let spec = GridSpec::around(p, h, Resolution::CellSize(cell)).expect("a grid");
+    let mut points = density::Points::uniform(p, h);
+    if let Some(w) = weights {
+        points = points.with_weights(w);
+    }
+    let grid =
+        density::points_grid(points, &spec, Kernel::CubicSpline, 1 << 32).expect("within memory");
+    let surfels = surfels::extract_points(&grid, points, Kernel::CubicSpline, &iso(spacing))
+        .expect("surfels");
+    let mut mesh = marching_cubes(&grid.spec, |i, j, k| grid.at(i, j, k), surfels.iso);
+    if project {
+        assert_eq!(mesh.positions.len(), surfels.len(), "a vertex per surfel");
+        mesh.move_onto(&surfels.positions, &surfels.normals);
+    }
+    mesh
+}
+
+/// splashsurf's mesh as a [`Mesh`] (its vertices and triangles).
+pub fn splashsurf_mesh(peer: &[Vector3<f32>], params: &splashsurf_lib::Parameters<f32>) -> Mesh {
+    let r =
+        splashsurf_lib::reconstruct_surface::<i64, f32>(peer, params).expect("a reconstruction");
+    let positions = r
+        .mesh
+        .vertices
+        .iter()
+        .map(|q| Vec3::new(q.x, q.y, q.z))
+        .collect();
+    let triangles = r
+        .mesh
+        .triangles
+        .iter()
+        .map(|t| t.map(|v| v as u32))
+        .collect();
+    Mesh::new(positions, triangles).expect("a valid mesh")
+}
+
+/// The mean distance, in cells, from every vertex of `a` to the surface of `b`.
+pub fn mean_distance(a: &Mesh, b: &Mesh, cell: f32) -> f64 {
+    let near = MeshDistance::new(
+        b.triangles
+            .iter()
+            .map(|t| t.map(|v| b.positions[v as usize]))
+            .collect(),
+        cell,
+    );
+    let d = near.distances(&a.positions);
+    d.iter().map(|&x| f64::from(x)).sum::<f64>() / d.len().max(1) as f64 / f64::from(cell)
 }
