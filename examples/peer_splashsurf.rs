@@ -27,7 +27,13 @@ use std::time::Instant;
 
 use fluid_surfels::quality::MeshDistance;
 
-const TOOLS: [&str; 4] = ["splashsurf", "ours-dense", "ours-sparse", "ours-mesh"];
+const TOOLS: [&str; 5] = [
+    "splashsurf",
+    "ours-dense",
+    "ours-sparse",
+    "ours-mesh",
+    "ours-grid-mesh",
+];
 
 fn case_by_name(name: &str) -> peer::Case {
     match name {
@@ -51,6 +57,9 @@ fn child(tool: &str, case: &str, repeat: usize) {
             "splashsurf" => peer::splashsurf(&input, &params).len(),
             "ours-dense" => peer::ours_dense(&c.positions, c.spacing).len(),
             "ours-mesh" => peer::ours_mesh(&c.positions, c.spacing, true, None)
+                .triangles
+                .len(),
+            "ours-grid-mesh" => peer::ours_grid_mesh(&c.positions, c.spacing)
                 .triangles
                 .len(),
             _ => peer::ours_sparse(&c.positions, c.spacing).len(),
@@ -143,23 +152,27 @@ fn main() {
         };
         let ours = peer::ours_mesh(&c.positions, c.spacing, true, None);
         let (u1, u2) = both_ways(&ours);
-        let (w1, w2) = both_ways(&peer::ours_mesh(
-            &c.positions,
-            c.spacing,
-            true,
-            Some(&weights),
-        ));
+        let weighted = peer::ours_mesh(&c.positions, c.spacing, true, Some(&weights));
+        let (w1, w2) = both_ways(&weighted);
+        let diff = |m: &fluid_surfels::mesh::Mesh| {
+            100.0 * (m.triangles.len() as f64 / theirs.triangles.len() as f64 - 1.0)
+        };
+        let (l1, l2) = both_ways(&peer::ours_grid_mesh(&c.positions, c.spacing));
         mesh_rows.push(format!(
-            "  {:<17} | {:>7.1} {:>8.1} | {:>7.1} {:>8.1} | {:>7.2}x | {:>8} {:>8} {:>+6.1} % | {u1:.3} / {u2:.3} | {w1:.3} / {w2:.3}",
+            "  {:<17} | {:>7.1} {:>8.1} | {:>7.1} {:>8.1} {:>6.2}x | {:>7.1} {:>8.1} {:>6.2}x | {:>8} {:>8} {:>+6.1} % | {u1:.3} / {u2:.3} | {l1:.3} / {l2:.3} | {w1:.3} / {w2:.3}, triangles {:+.1} %",
             c.name,
             m[0].0,
             m[0].1,
             m[3].0,
             m[3].1,
             m[0].0 / m[3].0,
+            m[4].0,
+            m[4].1,
+            m[0].0 / m[4].0,
             theirs.triangles.len(),
             ours.triangles.len(),
-            100.0 * (ours.triangles.len() as f64 / theirs.triangles.len() as f64 - 1.0),
+            diff(&ours),
+            diff(&weighted),
         ));
         let stats = |s: fluid_surfels::surfels::Surfels| {
             let d = mesh.distances(&s.positions);
@@ -184,15 +197,15 @@ fn main() {
         );
     }
     println!(
-        "meshes: splashsurf's whole reconstruction against ours (density grid, surfels, marching cubes, vertices moved onto the surfels; uniform weights, the `particles` source)"
+        "meshes: splashsurf's whole reconstruction against ours: `exact` the density grid, surfels, marching cubes, vertices moved onto the surfels (Frame::mesh, the CLI's); `linear` the density grid and marching cubes alone, vertices on the grid's edges; uniform weights (the `particles` source)"
     );
     println!(
-        "  {:<17} | {:>16} | {:>16} | {:>8} | {:>8} {:>8} {:>8} | mean distance, cells, ours->theirs / theirs->ours",
-        "case", "splashsurf", "ours mesh", "", "triangles", "", "",
+        "  {:<17} | {:>16} | {:>24} | {:>24} | {:>8} {:>8} {:>8} | mean distance, cells, ours->theirs / theirs->ours",
+        "case", "splashsurf", "ours exact", "ours linear", "triangles", "", "",
     );
     println!(
-        "  {:<17} | {:>7} {:>8} | {:>7} {:>8} | {:>8} | {:>8} {:>8} {:>8} | uniform weights | splashsurf's weights (m / rho_j)",
-        "", "ms", "MiB", "ms", "MiB", "speedup", "theirs", "ours", "diff",
+        "  {:<17} | {:>7} {:>8} | {:>7} {:>8} {:>7} | {:>7} {:>8} {:>7} | {:>8} {:>8} {:>8} | exact | linear | exact, splashsurf's weights (m / rho_j)",
+        "", "ms", "MiB", "ms", "MiB", "speedup", "ms", "MiB", "speedup", "theirs", "ours", "diff",
     );
     for row in &mesh_rows {
         println!("{row}");

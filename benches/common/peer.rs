@@ -183,6 +183,18 @@ pub fn ours_mesh(p: &[Vec3], spacing: f32, project: bool, weights: Option<&[f32]
     mesh
 }
 
+/// Our dense density grid and its marching cubes alone, the vertices on the grid's edges
+/// (linear interpolation, as splashsurf's): the library's `mesh::marching_cubes` over
+/// `density::density_grid`, without the surfels.
+pub fn ours_grid_mesh(p: &[Vec3], spacing: f32) -> Mesh {
+    let (h, cell) = sizes(spacing);
+    let spec = GridSpec::around(p, h, Resolution::CellSize(cell)).expect("a grid");
+    let grid =
+        density::density_grid(p, &spec, Kernel::CubicSpline, h, 1 << 32).expect("within memory");
+    let level = iso(spacing).iso_fraction * Kernel::CubicSpline.peak(h);
+    marching_cubes(&grid.spec, |i, j, k| grid.at(i, j, k), level)
+}
+
 /// splashsurf's mesh as a [`Mesh`] (its vertices and triangles).
 pub fn splashsurf_mesh(peer: &[Vector3<f32>], params: &splashsurf_lib::Parameters<f32>) -> Mesh {
     let r =

@@ -255,7 +255,25 @@ fn mesh_layer(spec: &GridSpec, iso: f32, k: u32, planes: [&[f32]; 2]) -> Layer {
     };
     let mut seen: HashSet<u64> = HashSet::new();
     let mut values = [0.0f32; 8];
+    // which sides of the iso-value each row of the two planes holds (bit 0: a value below,
+    // bit 1: one not below); a row of cubes whose four rows of corners lie all on one side
+    // holds no crossing and is skipped: one read a point instead of eight a cube, where most
+    // of a grid is far from the surface (the dam break's mesh took 12 ms of marching cubes
+    // for 44,276 triangles before)
+    let sides = planes.map(|plane| {
+        plane
+            .chunks_exact(nx as usize)
+            .map(|row| {
+                row.iter()
+                    .fold(0u8, |s, &v| s | if v < iso { 1 } else { 2 })
+            })
+            .collect::<Vec<u8>>()
+    });
     for j in 0..ny - 1 {
+        let j_ = j as usize;
+        if sides[0][j_] | sides[0][j_ + 1] | sides[1][j_] | sides[1][j_ + 1] != 3 {
+            continue;
+        }
         for i in 0..nx - 1 {
             let mut inside = 0usize;
             for (c, v) in values.iter_mut().enumerate() {

@@ -101,10 +101,19 @@ impl Mesh {
             (b - a).cross(c - a)
         };
         let mut kept = vec![false; on_edges.len()];
+        // the first pass checks every triangle, each later one only those around the vertices
+        // the pass before put back (a flag read instead of the check: the double dam break's
+        // 244,444 triangles were checked up to eight times over)
+        let mut changed: Option<Vec<bool>> = None;
         for _ in 0..8 {
             let bad: Vec<u32> = self
                 .triangles
                 .par_iter()
+                .filter(|t| {
+                    changed
+                        .as_ref()
+                        .is_none_or(|c| t.iter().any(|&v| c[v as usize]))
+                })
                 .filter(|t| {
                     let n = normal_of(&self.positions, t);
                     let given: Vec3 = t.iter().map(|&v| self.normals[v as usize]).sum();
@@ -113,14 +122,18 @@ impl Mesh {
                         || n.dot(given) <= 0.0
                 })
                 .flat_map_iter(|t| t.iter().copied())
+                .filter(|&v| !kept[v as usize])
                 .collect();
             if bad.is_empty() {
                 break;
             }
+            let mut now = vec![false; on_edges.len()];
             for v in bad {
                 self.positions[v as usize] = on_edges[v as usize];
                 kept[v as usize] = true;
+                now[v as usize] = true;
             }
+            changed = Some(now);
         }
         kept.iter().filter(|&&k| k).count()
     }
