@@ -25,24 +25,26 @@ macro_rules! fields {
     };
 }
 
-/// Every uniform struct of every shader against its Rust twin, reflected with naga: the struct's
-/// size, and each field's offset by name (every WGSL field but padding must exist in Rust at the
-/// same offset). Moving a field in a Rust struct fails here (shown once by hand: swapping
-/// `spacing` and `h` in `RawParams` gave "density_splat.wgsl: Params.spacing at offset 12 in
-/// WGSL, 24 in Rust").
-#[test]
-fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
+/// Every shader's uniform struct with its Rust twin.
+fn twins() -> Vec<Twin> {
     use fluid_surfels::optics::gpu::{RawGeometry, RawOptics, RawView};
     use gpu_density::{RawGatherParams, RawParams};
     use gpu_splat::RawUniforms;
     use pipeline::gpu::RawPresent;
-    let shaders: Vec<Twin> = vec![
+    vec![
         (
             "density_splat.wgsl",
             gpu_density::SHADER,
             "Params",
             std::mem::size_of::<RawParams>(),
             fields!(RawParams; origin, spacing, dims, h, constant, planes, kernel),
+        ),
+        (
+            "surfels.wgsl",
+            fluid_surfels::surfels::gpu::SHADER,
+            "SurfelParams",
+            std::mem::size_of::<fluid_surfels::surfels::gpu::RawSurfelParams>(),
+            fields!(fluid_surfels::surfels::gpu::RawSurfelParams; origin, spacing, dims, iso, bin_origin, bin_size, bins, reach, h, constant, kernel, newton_steps, blocks, converged),
         ),
         (
             "density_gather.wgsl",
@@ -128,7 +130,17 @@ fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
             std::mem::size_of::<RawPresent>(),
             fields!(RawPresent; width, height, srgb_target),
         ),
-    ];
+    ]
+}
+
+/// Every uniform struct of every shader against its Rust twin, reflected with naga: the struct's
+/// size, and each field's offset by name (every WGSL field but padding must exist in Rust at the
+/// same offset). Moving a field in a Rust struct fails here (shown once by hand: swapping
+/// `spacing` and `h` in `RawParams` gave "density_splat.wgsl: Params.spacing at offset 12 in
+/// WGSL, 24 in Rust").
+#[test]
+fn shaders_validate_and_their_structs_match_the_rust_mirrors() {
+    let shaders = twins();
     for (file, source, name, rust_size, rust_fields) in shaders {
         let module = naga::front::wgsl::parse_str(source)
             .unwrap_or_else(|e| panic!("{file}: {}", e.emit_to_string(source)));
@@ -750,4 +762,125 @@ fn pipeline_draw_is_the_shaded_splats_on_either_backend() {
         assert!(db >= 45.0, "{renderer:?}: GPU {db:.1} dB from the CPU");
         assert!(cpu.covered_pixels() > 500, "{renderer:?}");
     }
+}
+
+/// The GPU surfels (issue 37, first part) against the CPU's, on the same grid: the double dam
+/// break (Wyvill, the paper's kernel), the column's splash frame (the cubic spline) and points
+/// with a radius each (the chain's case): the same count, and surfel by surfel (the same order)
+/// positions within 1e-3 of a cell and normals within 1 degree.
+#[test]
+fn gpu_surfels_equal_the_cpus() {
+    use fluid_surfels::density::{GridSpec, Kernel, Resolution};
+    use fluid_surfels::surfels::{self, SurfelParams};
+    let Some(ctx) = gpu::context_or_skip("gpu_surfels_equal_the_cpus").unwrap() else {
+        return;
+    };
+    let ddb = fluid_surfels::io::read_particles(
+        &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data/double_dam_break_frame_26_4732_particles.vtk"),
+        None,
+    )
+    .unwrap()
+    .positions;
+    let column = scenes::build(
+        scenes::SceneName::Column,
+        Some(fluid_surfels::scenes::ColumnParams::SPLASH_FRAME),
+    )
+    .unwrap();
+    let h_ddb = fluid_surfels::neighbours::support_radius(&ddb).unwrap();
+    // radii from 0.7 h to 1.3 h, by position, so that they do not follow the order
+    let radii: Vec<f32> = ddb
+        .iter()
+        .map(|p| h_ddb * (1.0 + 0.3 * (37.0 * p.x + 11.0 * p.z).sin()))
+        .collect();
+    let cases = [
+        (
+            "double dam break",
+            Points::uniform(&ddb, h_ddb),
+            Kernel::Wyvill,
+        ),
+        (
+            "column splash",
+            Points::uniform(&column.particles.positions, column.support_radius),
+            Kernel::CubicSpline,
+        ),
+        (
+            "radius per point",
+            Points::with_radii(&ddb, &radii, h_ddb),
+            Kernel::Wyvill,
+        ),
+    ];
+    let params = SurfelParams::default();
+    for (name, points, kernel) in cases {
+        // the default grid: three cells per (smallest) radius
+        let cell = points.min_radius() / 3.0;
+        let spec = GridSpec::around(
+            points.positions,
+            points.max_radius(),
+            Resolution::CellSize(cell),
+        )
+        .unwrap();
+        let grid = fluid_surfels::density::points_grid(points, &spec, kernel, 1 << 30).unwrap();
+        let cpu = surfels::extract_points(&grid, points, kernel, &params).unwrap();
+        let gpu = surfels::gpu::extract_gpu(&ctx, &grid, points, kernel, &params).unwrap();
+        println!(
+            "{name}: {} CPU, {} GPU surfels on {:?}",
+            cpu.len(),
+            gpu.len(),
+            spec.dims
+        );
+        assert!(cpu.len() > 1000, "{name}: {} surfels", cpu.len());
+        assert_eq!(cpu.len(), gpu.len(), "{name}");
+        assert_eq!(cpu.radii, gpu.radii, "{name}");
+        assert_eq!(cpu.iso, gpu.iso, "{name}");
+        let (mut worst_d, mut worst_a) = (0.0f32, 0.0f32);
+        for i in 0..cpu.len() {
+            let d = cpu.positions[i].distance(gpu.positions[i]) / spec.spacing;
+            let a = cpu.normals[i].angle_between(gpu.normals[i]).to_degrees();
+            worst_d = worst_d.max(d);
+            worst_a = worst_a.max(if a.is_nan() { 0.0 } else { a });
+        }
+        println!("  worst position {worst_d:.2e} cells, worst normal {worst_a:.3} degrees");
+        assert!(
+            worst_d <= 1e-3,
+            "{name}: a surfel {worst_d} cells from the CPU's"
+        );
+        assert!(
+            worst_a <= 1.0,
+            "{name}: a normal {worst_a} degrees from the CPU's"
+        );
+    }
+    // nothing to extract: no surfels, no error
+    let one = [glam::Vec3::ZERO];
+    let points = Points::uniform(&one, 1.0);
+    let spec = GridSpec::around(&one, 1.0, Resolution::CellSize(0.25)).unwrap();
+    let grid = fluid_surfels::density::points_grid(points, &spec, Kernel::Wyvill, 1 << 30).unwrap();
+    let high = SurfelParams {
+        iso_fraction: 2.0,
+        ..SurfelParams::default()
+    };
+    assert!(
+        surfels::gpu::extract_gpu(&ctx, &grid, points, Kernel::Wyvill, &high)
+            .unwrap()
+            .is_empty()
+    );
+    let lone = surfels::gpu::extract_gpu(&ctx, &grid, points, Kernel::Wyvill, &params).unwrap();
+    assert_eq!(
+        lone.len(),
+        surfels::extract_points(&grid, points, Kernel::Wyvill, &params)
+            .unwrap()
+            .len()
+    );
+    // weights are refused, not ignored
+    let w = [2.0f32];
+    assert!(
+        surfels::gpu::extract_gpu(
+            &ctx,
+            &grid,
+            points.with_weights(&w),
+            Kernel::Wyvill,
+            &params
+        )
+        .is_err()
+    );
 }

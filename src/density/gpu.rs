@@ -78,14 +78,14 @@ fn instances(points: &Points<'_>) -> Vec<[f32; 4]> {
 }
 
 /// The shaders' kernel selector.
-fn kernel_code(kernel: Kernel) -> u32 {
+pub(crate) fn kernel_code(kernel: Kernel) -> u32 {
     match kernel {
         Kernel::Wyvill => 0,
         Kernel::CubicSpline => 1,
     }
 }
 
-fn kernel_constant(kernel: Kernel, h: f32) -> f32 {
+pub(crate) fn kernel_constant(kernel: Kernel, h: f32) -> f32 {
     match kernel {
         // the same expressions as `Kernel::value_r2` / `Kernel::value`
         Kernel::Wyvill => 2835.0 / (736.0 * std::f32::consts::PI * h * h * h),
@@ -385,7 +385,7 @@ const MAX_BINS: u64 = 1 << 24;
 
 /// Particles sorted into cubic bins of side >= `h / reach` over the grid's box: the sorted positions,
 /// the start of each bin (one more entry than bins), the bin counts and side.
-fn bin_particles(
+pub(crate) fn bin_particles(
     points: &Points<'_>,
     spec: &GridSpec,
     h: f32,

@@ -1,106 +1,12 @@
-//! Stage 3, second half: sampling the iso-surface of the density grid into surfels
-//! (Iwasaki et al., §4.3), on the CPU.
-//!
-//! Surfels are placed where the density crosses the iso-value along the grid's x, y and z edges
-//! (linear interpolation), then projected onto the exact iso-surface of the particles' density by
-//! Newton steps along the gradient (the grid alone is only accurate to its interpolation). The
-//! normal is the negative density gradient (pointing out of the fluid). The radius is the grid
-//! spacing: every point of the iso-surface inside a grid cube lies within about 0.71 spacing of a
-//! crossing on the cube's edges (a plane through the cube's centre, measured from the centre to the
-//! edge midpoints) and the projection moves points by a fraction of that, so one spacing leaves no
-//! gap (tested on a dense sample of the surface). This replaces the paper's after-the-fact gap
-//! filling, which the edge sampling makes unnecessary.
-//!
-//! Extraction reads the grid plane by plane ([`SurfelExtractor::push_plane`]), so it can run on
-//! the slabs that [`crate::density::splat_slabs`] streams, never holding the whole grid.
+//! Surfels on the CPU: the crossings plane by plane ([`SurfelExtractor`]), projected onto the
+//! exact iso-surface ([`ExactDensity`]); see the [module](super) for the method.
 
 use glam::Vec3;
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
-use crate::density::{DensityError, DensityGrid, GridSpec, Kernel, Points};
+use super::{CONVERGED, SurfelError, SurfelParams, Surfels, iso_of};
+use crate::density::{DensityGrid, GridSpec, Kernel, Points};
 use crate::neighbours::CellGrid;
-
-/// A Newton step shorter than this fraction of a cell ends the projection
-/// ([`SurfelExtractor::finish`]).
-pub const CONVERGED: f32 = 1e-4;
-
-/// Parameters of surfel extraction.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct SurfelParams {
-    /// Iso-value as a fraction of one particle's peak density `F(0, h)`. Default 0.75, so that a
-    /// lone drop still shows (as a sphere of radius about 0.3 h). Measured on a jittered sphere
-    /// of particles with h = 2 spacings, the surface then lies 0.7 spacing outside the boundary
-    /// the particles sample (1.2 outside the outermost centres); 3.0 puts it on that boundary but
-    /// makes every lone particle vanish (a single particle never exceeds 1.0).
-    pub iso_fraction: f32,
-    /// Newton steps projecting each surfel onto the exact iso-surface.
-    pub newton_steps: u32,
-}
-
-impl Default for SurfelParams {
-    fn default() -> Self {
-        Self {
-            iso_fraction: 0.75,
-            newton_steps: 4,
-        }
-    }
-}
-
-/// Errors of surfel extraction.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum SurfelError {
-    /// A parameter is out of range.
-    #[error("invalid surfel parameter `{name}`: {reason}")]
-    InvalidParameter { name: &'static str, reason: String },
-    /// The neighbour grid of the particles could not be built.
-    #[error(transparent)]
-    Neighbours(#[from] crate::neighbours::NeighbourError),
-    /// The points' radii or positions are unusable.
-    #[error(transparent)]
-    Density(#[from] DensityError),
-}
-
-/// Surfels: oriented disks on the iso-surface.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct Surfels {
-    /// Centres, on the iso-surface.
-    pub positions: Vec<Vec3>,
-    /// Unit normals, out of the fluid.
-    pub normals: Vec<Vec3>,
-    /// Disk radii.
-    pub radii: Vec<f32>,
-    /// The iso-value used.
-    pub iso: f32,
-}
-
-impl Surfels {
-    /// Number of surfels.
-    #[must_use]
-    pub fn len(&self) -> usize {
-        self.positions.len()
-    }
-
-    /// True when there is none.
-    #[must_use]
-    pub fn is_empty(&self) -> bool {
-        self.positions.is_empty()
-    }
-
-    /// As a particle set with normals and a `radius` attribute.
-    #[must_use]
-    pub fn to_particle_set(&self) -> crate::ParticleSet {
-        let mut set = crate::ParticleSet::from_positions(self.positions.clone());
-        set.normals = Some(self.normals.clone());
-        set.extra.push(crate::Attribute::scalar(
-            "radius",
-            crate::ScalarKind::F32,
-            self.radii.iter().map(|&r| r as f64).collect(),
-        ));
-        set
-    }
-}
 
 /// The exact density of the particles and its gradient at a point.
 ///
@@ -606,16 +512,6 @@ pub fn extract_sparse(
 }
 
 /// The absolute iso-value of `params`: `iso_fraction` of the peak `F(0, h)`.
-fn iso_of(h: f32, kernel: Kernel, params: &SurfelParams) -> Result<f32, SurfelError> {
-    if !(params.iso_fraction.is_finite() && params.iso_fraction > 0.0) {
-        return Err(SurfelError::InvalidParameter {
-            name: "iso_fraction",
-            reason: format!("must be finite and > 0, got {}", params.iso_fraction),
-        });
-    }
-    Ok(params.iso_fraction * kernel.peak(h))
-}
-
 /// Extracts the surfels of a whole density grid.
 pub fn extract(
     grid: &DensityGrid,

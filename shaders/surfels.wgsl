@@ -1,0 +1,294 @@
+// Surfels on the GPU (issue 37), the twin of src/surfels/cpu.rs: the crossings of the iso-value on
+// the density grid's x, y and z edges, compacted in the CPU's order by a prefix sum, then
+// projected onto the exact iso-surface of the points' density by Newton steps along its
+// analytic gradient.
+//
+// Order: grid point p = i + nx (j + ny k) owns its x edge (to i + 1), its y edge (to j + 1) and
+// its z edge (down to k - 1), in that order: the order in which `SurfelExtractor` finds them, so
+// surfel n is the CPU's surfel n. `count` finds how many crossings each point owns and sums them
+// per block of 256 points; `scan_blocks` turns the block sums into each block's first surfel
+// (one workgroup: a serial sum over each thread's run of blocks, then a scan of the 256 runs);
+// `emit` writes each crossing at its block's first surfel plus its rank within the block;
+// `project` runs the Newton steps.
+
+struct SurfelParams {
+    // grid origin and spacing
+    origin: vec3<f32>,
+    spacing: f32,
+    // grid points along x, y, z; the iso-value
+    dims: vec3<u32>,
+    iso: f32,
+    // bins of the points (sorted by bin on the CPU): origin and side
+    bin_origin: vec3<f32>,
+    bin_size: f32,
+    // bins along x, y, z; bins searched on each side (bin_size * reach >= the largest radius)
+    bins: vec3<u32>,
+    reach: u32,
+    // the reference radius and its kernel constant; 0: Wyvill, 1: cubic spline; Newton steps
+    h: f32,
+    constant: f32,
+    kernel: u32,
+    newton_steps: u32,
+    // blocks of 256 grid points; a Newton step shorter than `converged` cells ends it
+    blocks: u32,
+    converged: f32,
+    _pad0: u32,
+    _pad1: u32,
+}
+
+@group(0) @binding(0) var<uniform> params: SurfelParams;
+// the grid's values, x fastest
+@group(0) @binding(1) var<storage, read> grid: array<f32>;
+// per block of 256 points: its crossings (count), then its first surfel (scan_blocks)
+@group(0) @binding(2) var<storage, read_write> block_sums: array<u32>;
+// [0]: the number of surfels (scan_blocks)
+@group(0) @binding(3) var<storage, read_write> total: array<u32>;
+// surfel positions (w unused): the crossings (emit), projected (project)
+@group(0) @binding(4) var<storage, read_write> positions: array<vec4<f32>>;
+// surfel normals (w unused), out of the fluid (project)
+@group(0) @binding(5) var<storage, read_write> normals: array<vec4<f32>>;
+// the points sorted by bin (xyz, w = radius), and where each bin starts
+@group(0) @binding(6) var<storage, read> points: array<vec4<f32>>;
+@group(0) @binding(7) var<storage, read> bin_start: array<u32>;
+
+var<workgroup> scan: array<u32, 256>;
+
+fn point_count() -> u32 {
+    return params.dims.x * params.dims.y * params.dims.z;
+}
+
+fn grid_point(i: u32, j: u32, k: u32) -> vec3<f32> {
+    return params.origin + vec3<f32>(f32(i), f32(j), f32(k)) * params.spacing;
+}
+
+fn below(v: f32) -> bool {
+    return v < params.iso;
+}
+
+// Which of point p's edges the iso-value crosses: bit 0 its x edge, bit 1 its y edge, bit 2
+// its z edge (to the plane below), as `plane_crossings` tests them.
+fn crossing_mask(p: u32) -> u32 {
+    let nx = params.dims.x;
+    let plane = nx * params.dims.y;
+    let i = p % nx;
+    let j = (p / nx) % params.dims.y;
+    let k = p / plane;
+    let v = below(grid[p]);
+    var m = 0u;
+    if i + 1u < nx && v != below(grid[p + 1u]) {
+        m |= 1u;
+    }
+    if j + 1u < params.dims.y && v != below(grid[p + nx]) {
+        m |= 2u;
+    }
+    if k > 0u && v != below(grid[p - plane]) {
+        m |= 4u;
+    }
+    return m;
+}
+
+// The inclusive prefix sum of `value` over the workgroup (Hillis and Steele); every invocation
+// of the workgroup calls it.
+fn workgroup_scan(local: u32, value: u32) -> u32 {
+    scan[local] = value;
+    workgroupBarrier();
+    for (var offset = 1u; offset < 256u; offset <<= 1u) {
+        var add = 0u;
+        if local >= offset {
+            add = scan[local - offset];
+        }
+        workgroupBarrier();
+        scan[local] += add;
+        workgroupBarrier();
+    }
+    return scan[local];
+}
+
+// The block a workgroup of the two-dimensional dispatch handles.
+fn block_of(wg: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return wg.x + wg.y * groups.x;
+}
+
+@compute @workgroup_size(256)
+fn count(
+    @builtin(local_invocation_index) local: u32,
+    @builtin(workgroup_id) wg: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+) {
+    let block = block_of(wg, groups);
+    let p = block * 256u + local;
+    var n = 0u;
+    if p < point_count() {
+        n = countOneBits(crossing_mask(p));
+    }
+    let inclusive = workgroup_scan(local, n);
+    if local == 255u && block < params.blocks {
+        block_sums[block] = inclusive;
+    }
+}
+
+@compute @workgroup_size(256)
+fn scan_blocks(@builtin(local_invocation_index) local: u32) {
+    let per = (params.blocks + 255u) / 256u;
+    let first = min(local * per, params.blocks);
+    let end = min(first + per, params.blocks);
+    var sum = 0u;
+    for (var b = first; b < end; b++) {
+        sum += block_sums[b];
+    }
+    let inclusive = workgroup_scan(local, sum);
+    var running = inclusive - sum;
+    for (var b = first; b < end; b++) {
+        let s = block_sums[b];
+        block_sums[b] = running;
+        running += s;
+    }
+    if local == 255u {
+        total[0] = inclusive;
+    }
+}
+
+@compute @workgroup_size(256)
+fn emit(
+    @builtin(local_invocation_index) local: u32,
+    @builtin(workgroup_id) wg: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+) {
+    let block = block_of(wg, groups);
+    let p = block * 256u + local;
+    var m = 0u;
+    if p < point_count() {
+        m = crossing_mask(p);
+    }
+    let n = countOneBits(m);
+    let inclusive = workgroup_scan(local, n);
+    if n == 0u {
+        return;
+    }
+    var at = block_sums[block] + inclusive - n;
+    let nx = params.dims.x;
+    let plane = nx * params.dims.y;
+    let i = p % nx;
+    let j = (p / nx) % params.dims.y;
+    let k = p / plane;
+    let here = grid_point(i, j, k);
+    let v = grid[p];
+    // linear interpolation along each crossed edge, as the CPU's `lerp`
+    if (m & 1u) != 0u {
+        let w = grid[p + 1u];
+        let there = grid_point(i + 1u, j, k);
+        positions[at] = vec4<f32>(here + (there - here) * ((params.iso - v) / (w - v)), 0.0);
+        at += 1u;
+    }
+    if (m & 2u) != 0u {
+        let w = grid[p + nx];
+        let there = grid_point(i, j + 1u, k);
+        positions[at] = vec4<f32>(here + (there - here) * ((params.iso - v) / (w - v)), 0.0);
+        at += 1u;
+    }
+    if (m & 4u) != 0u {
+        let u = grid[p - plane];
+        let under = grid_point(i, j, k - 1u);
+        positions[at] = vec4<f32>(under + (here - under) * ((params.iso - u) / (v - u)), 0.0);
+    }
+}
+
+// The points' density at x (w) and its analytic gradient (xyz): `ExactDensity::value_and_gradient`,
+// each point's kernel of its own radius against the reference radius's constant
+// (`Kernel::weighted_and_gradient`).
+fn density_and_gradient(x: vec3<f32>) -> vec4<f32> {
+    let b = vec3<i32>(floor((x - params.bin_origin) / params.bin_size));
+    let last = vec3<i32>(params.bins) - vec3<i32>(1);
+    let reach = vec3<i32>(i32(params.reach));
+    let lo = clamp(b - reach, vec3<i32>(0), last);
+    let hi = clamp(b + reach, vec3<i32>(0), last);
+    var sum = 0.0;
+    var grad = vec3<f32>(0.0);
+    let c = params.constant;
+    for (var bz = lo.z; bz <= hi.z; bz++) {
+        for (var by = lo.y; by <= hi.y; by++) {
+            let row = (u32(bz) * params.bins.y + u32(by)) * params.bins.x;
+            let first = bin_start[row + u32(lo.x)];
+            let end = bin_start[row + u32(hi.x) + 1u];
+            for (var n = first; n < end; n++) {
+                let d = x - points[n].xyz;
+                let hj = points[n].w;
+                let r2 = dot(d, d);
+                if params.kernel == 0u {
+                    let inv = 1.0 / (hj * hj);
+                    let a2 = r2 * inv;
+                    if a2 < 1.0 {
+                        let poly = ((-4.0 / 9.0 * a2 + 17.0 / 9.0) * a2 - 22.0 / 9.0) * a2 + 1.0;
+                        let slope = (-4.0 / 3.0 * a2 + 34.0 / 9.0) * a2 - 22.0 / 9.0;
+                        sum += c * poly;
+                        grad += d * (c * slope * 2.0 * inv);
+                    }
+                } else {
+                    let r = sqrt(r2);
+                    if r < hj {
+                        let q = 2.0 * (r / hj);
+                        var v = 0.0;
+                        var df = 0.0;
+                        if q < 1.0 {
+                            v = c * (1.0 - 1.5 * q * q + 0.75 * q * q * q);
+                            df = -3.0 * q + 2.25 * q * q;
+                        } else {
+                            let t = 2.0 - q;
+                            v = c * 0.25 * t * t * t;
+                            df = -0.75 * t * t;
+                        }
+                        sum += v;
+                        if r > 0.0 {
+                            grad += d * (c * df * 2.0 / (hj * r));
+                        }
+                    }
+                }
+            }
+        }
+    }
+    return vec4<f32>(grad, sum);
+}
+
+@compute @workgroup_size(64)
+fn project(
+    @builtin(local_invocation_index) local: u32,
+    @builtin(workgroup_id) wg: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+) {
+    let s = block_of(wg, groups) * 64u + local;
+    if s >= total[0] {
+        return;
+    }
+    var x = positions[s].xyz;
+    var g = vec3<f32>(0.0);
+    let cap = 0.5 * params.spacing;
+    let done = params.converged * params.spacing;
+    for (var step = 0u; step < params.newton_steps; step++) {
+        let vg = density_and_gradient(x);
+        g = vg.xyz;
+        let g2 = dot(g, g);
+        if g2 <= 1.17549435e-38 {
+            break;
+        }
+        // a Newton step along the gradient, never more than half a cell
+        var st = g * ((params.iso - vg.w) / g2);
+        let len = length(st);
+        if len > cap {
+            st *= cap / len;
+        }
+        x += st;
+        if dot(st, st) < done * done {
+            break;
+        }
+    }
+    if params.newton_steps == 0u {
+        g = density_and_gradient(x).xyz;
+    }
+    positions[s] = vec4<f32>(x, 0.0);
+    var nrm = vec3<f32>(0.0);
+    let g2 = dot(g, g);
+    if g2 > 0.0 {
+        nrm = -g / sqrt(g2);
+    }
+    normals[s] = vec4<f32>(nrm, 0.0);
+}
