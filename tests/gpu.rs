@@ -884,3 +884,92 @@ fn gpu_surfels_equal_the_cpus() {
         .is_err()
     );
 }
+
+/// The density grid filled on the GPU and left there, and the surfels extracted from it
+/// (issue 37): the grid equal to the CPU's (relative 1e-5 of its largest value), and the
+/// surfels against the CPU's from the CPU grid: counts within 0.1 %, every GPU surfel within
+/// 1e-3 of a cell of a CPU surfel whose normal is within 1 degree of its own; the double dam
+/// break and the column's splash frame.
+#[test]
+fn gpu_grid_and_surfels_stay_on_the_gpu() {
+    use fluid_surfels::density::gpu::density_grid_on_gpu;
+    use fluid_surfels::surfels::{self, SurfelParams, gpu::SurfelPasses};
+    let Some(ctx) = gpu::context_or_skip("gpu_grid_and_surfels_stay_on_the_gpu").unwrap() else {
+        return;
+    };
+    let ddb = fluid_surfels::io::read_particles(
+        &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data/double_dam_break_frame_26_4732_particles.vtk"),
+        None,
+    )
+    .unwrap()
+    .positions;
+    let column = scenes::build(
+        scenes::SceneName::Column,
+        Some(fluid_surfels::scenes::ColumnParams::SPLASH_FRAME),
+    )
+    .unwrap();
+    let h_ddb = fluid_surfels::neighbours::support_radius(&ddb).unwrap();
+    let passes = SurfelPasses::new(&ctx.device);
+    let params = SurfelParams::default();
+    for (name, points) in [
+        ("double dam break", Points::uniform(&ddb, h_ddb)),
+        (
+            "column splash",
+            Points::uniform(&column.particles.positions, column.support_radius),
+        ),
+    ] {
+        let spec = GridSpec::around(
+            points.positions,
+            points.h,
+            Resolution::CellSize(points.h / 3.0),
+        )
+        .unwrap();
+        let cpu_grid = density::points_grid(points, &spec, Kernel::Wyvill, 1 << 30).unwrap();
+        let gpu_grid = density_grid_on_gpu(&ctx, points, &spec, Kernel::Wyvill).unwrap();
+        let back = gpu_grid.read(&ctx).unwrap();
+        let top = cpu_grid.values.iter().copied().fold(0.0f32, f32::max);
+        let worst = cpu_grid
+            .values
+            .iter()
+            .zip(&back.values)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst <= 1e-5 * top, "{name}: grid off by {worst} of {top}");
+        let cpu = surfels::extract_points(&cpu_grid, points, Kernel::Wyvill, &params).unwrap();
+        let gpu = passes
+            .extract_on(&ctx, &gpu_grid, points, Kernel::Wyvill, &params)
+            .unwrap();
+        let diff = (cpu.len() as f64 - gpu.len() as f64).abs() / cpu.len() as f64;
+        assert!(
+            cpu.len() > 1000 && diff <= 1e-3,
+            "{name}: {} CPU, {} GPU surfels",
+            cpu.len(),
+            gpu.len()
+        );
+        let near = fluid_surfels::neighbours::CellGrid::new(&cpu.positions, spec.spacing).unwrap();
+        let (mut worst_d, mut worst_a) = (0.0f32, 0.0f32);
+        for (p, n) in gpu.positions.iter().zip(&gpu.normals) {
+            let mut best = (f32::INFINITY, 0usize);
+            near.for_each_within(*p, spec.spacing, |j| {
+                let d = cpu.positions[j as usize].distance(*p);
+                if d < best.0 {
+                    best = (d, j as usize);
+                }
+            });
+            worst_d = worst_d.max(best.0 / spec.spacing);
+            let a = cpu.normals[best.1].angle_between(*n).to_degrees();
+            worst_a = worst_a.max(if a.is_nan() { 0.0 } else { a });
+        }
+        println!(
+            "{name}: grid off by {:.1e} of its largest value; {} CPU, {} GPU surfels, worst {worst_d:.1e} cells, {worst_a:.3} degrees",
+            worst / top,
+            cpu.len(),
+            gpu.len()
+        );
+        assert!(
+            worst_d <= 1e-3 && worst_a <= 1.0,
+            "{name}: {worst_d} cells, {worst_a} degrees"
+        );
+    }
+}

@@ -429,100 +429,106 @@ pub(crate) fn bin_particles(
     (sorted, start, n.to_array(), size)
 }
 
-/// Fills the density grid on the GPU with the compute (gather) variant and hands slabs of
-/// planes to `sink(k0, values)` in increasing z, like [`splat_slabs_gpu`].
-pub fn gather_slabs_gpu(
-    ctx: &GpuContext,
-    points: Points<'_>,
-    spec: &GridSpec,
-    kernel: Kernel,
-    mut sink: impl FnMut(u32, Vec<f32>),
-) -> Result<(), GpuError> {
-    check_inputs(&points)?;
-    let h = points.h;
-    let device = &ctx.device;
-    let limits = device.limits();
-    let [nx, ny, nz] = spec.dims;
-    let plane_bytes = u64::from(nx) * u64::from(ny) * 4;
-    let max_binding = limits
-        .max_storage_buffer_binding_size
-        .min(limits.max_buffer_size);
-    if plane_bytes > max_binding {
-        return Err(GpuError::Validation(format!(
-            "a {nx} x {ny} plane ({plane_bytes} bytes) exceeds the GPU's storage binding limit of {max_binding} bytes"
-        )));
+/// The gather pass's pipeline and the binned points, set up once for a grid.
+struct Gather {
+    pipeline: wgpu::ComputePipeline,
+    particles: wgpu::Buffer,
+    bin_start: wgpu::Buffer,
+    bins: [u32; 3],
+    bin_size: f32,
+    max_binding: u64,
+}
+
+impl Gather {
+    /// Checks the points and the grid's planes against the adapter's limits, bins and uploads
+    /// the points, compiles the pass.
+    fn new(ctx: &GpuContext, points: &Points<'_>, spec: &GridSpec) -> Result<Self, GpuError> {
+        check_inputs(points)?;
+        let device = &ctx.device;
+        let limits = device.limits();
+        let [nx, ny, _] = spec.dims;
+        let plane_bytes = u64::from(nx) * u64::from(ny) * 4;
+        let max_binding = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        if plane_bytes > max_binding {
+            return Err(GpuError::Validation(format!(
+                "a {nx} x {ny} plane ({plane_bytes} bytes) exceeds the GPU's storage binding limit of {max_binding} bytes"
+            )));
+        }
+        // bins sized for the largest radius; each point's kernel uses its own
+        let (sorted, start, bins, bin_size) =
+            bin_particles(points, spec, points.max_radius(), GATHER_REACH);
+        let particle_bytes = (sorted.len().max(1) * 16) as u64;
+        if particle_bytes > max_binding || (start.len() * 4) as u64 > max_binding {
+            return Err(GpuError::Validation(format!(
+                "{} particles exceed the GPU's storage binding limit of {max_binding} bytes; use the splatting method or the CPU path",
+                points.len()
+            )));
+        }
+        use wgpu::util::DeviceExt;
+        let particles = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("binned particles"),
+            contents: bytemuck::cast_slice(if sorted.is_empty() {
+                &[[0.0f32; 4]]
+            } else {
+                &sorted[..]
+            }),
+            usage: wgpu::BufferUsages::STORAGE,
+        });
+        let bin_start = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("bin starts"),
+            contents: bytemuck::cast_slice(&start),
+            usage: wgpu::BufferUsages::STORAGE,
+        });
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("density_gather"),
+            source: wgpu::ShaderSource::Wgsl(GATHER_SHADER.into()),
+        });
+        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("density gather"),
+            layout: None,
+            module: &module,
+            entry_point: Some("gather"),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        Ok(Self {
+            pipeline,
+            particles,
+            bin_start,
+            bins,
+            bin_size,
+            max_binding,
+        })
     }
-    // bins sized for the largest radius; each point's kernel uses its own
-    let (sorted, start, bins, bin_size) =
-        bin_particles(&points, spec, points.max_radius(), GATHER_REACH);
-    let particle_bytes = (sorted.len().max(1) * 16) as u64;
-    if particle_bytes > max_binding || (start.len() * 4) as u64 > max_binding {
-        return Err(GpuError::Validation(format!(
-            "{} particles exceed the GPU's storage binding limit of {max_binding} bytes; use the splatting method or the CPU path",
-            points.len()
-        )));
-    }
-    // planes per dispatch: up to 32 (8 MiB at 256^2), within the binding limit
-    let planes_per = ((max_binding / plane_bytes) as u32)
-        .clamp(1, 32)
-        .min(nz.max(1));
-    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-    use wgpu::util::DeviceExt;
-    let particles = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-        label: Some("binned particles"),
-        contents: bytemuck::cast_slice(if sorted.is_empty() {
-            &[[0.0f32; 4]]
-        } else {
-            &sorted[..]
-        }),
-        usage: wgpu::BufferUsages::STORAGE,
-    });
-    let bin_start = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-        label: Some("bin starts"),
-        contents: bytemuck::cast_slice(&start),
-        usage: wgpu::BufferUsages::STORAGE,
-    });
-    let out_bytes = plane_bytes * u64::from(planes_per);
-    let densities = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("density planes"),
-        size: out_bytes,
-        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-        mapped_at_creation: false,
-    });
-    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-        label: Some("density_gather"),
-        source: wgpu::ShaderSource::Wgsl(GATHER_SHADER.into()),
-    });
-    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-        label: Some("density gather"),
-        layout: None,
-        module: &module,
-        entry_point: Some("gather"),
-        compilation_options: Default::default(),
-        cache: None,
-    });
-    let layout = pipeline.get_bind_group_layout(0);
-    let constant = kernel_constant(kernel, h);
-    let readback = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("density readback"),
-        size: out_bytes,
-        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
-        mapped_at_creation: false,
-    });
-    let groups: Vec<u32> = (0..nz).step_by(planes_per as usize).collect();
-    for &k0 in &groups {
-        let planes = planes_per.min(nz - k0);
+
+    /// Records the pass filling planes `k0 .. k0 + planes` of the grid into `out` (x fastest,
+    /// from plane `k0`).
+    #[allow(clippy::too_many_arguments)]
+    fn record(
+        &self,
+        device: &wgpu::Device,
+        encoder: &mut wgpu::CommandEncoder,
+        spec: &GridSpec,
+        points: &Points<'_>,
+        kernel: Kernel,
+        (k0, planes): (u32, u32),
+        out: &wgpu::Buffer,
+    ) {
+        use wgpu::util::DeviceExt;
+        let h = points.h;
         let raw = RawGatherParams {
             origin: spec.origin.to_array(),
             spacing: spec.spacing,
             dims: spec.dims,
             k0,
             bin_origin: spec.origin.to_array(),
-            bin_size,
-            bins,
+            bin_size: self.bin_size,
+            bins: self.bins,
             planes,
             h,
-            constant,
+            constant: kernel_constant(kernel, h),
             kernel: kernel_code(kernel),
             reach: GATHER_REACH,
         };
@@ -533,7 +539,7 @@ pub fn gather_slabs_gpu(
         });
         let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("gather"),
-            layout: &layout,
+            layout: &self.pipeline.get_bind_group_layout(0),
             entries: &[
                 wgpu::BindGroupEntry {
                     binding: 0,
@@ -541,25 +547,68 @@ pub fn gather_slabs_gpu(
                 },
                 wgpu::BindGroupEntry {
                     binding: 1,
-                    resource: particles.as_entire_binding(),
+                    resource: self.particles.as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
                     binding: 2,
-                    resource: bin_start.as_entire_binding(),
+                    resource: self.bin_start.as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
                     binding: 3,
-                    resource: densities.as_entire_binding(),
+                    resource: out.as_entire_binding(),
                 },
             ],
         });
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, &bind, &[]);
+        pass.dispatch_workgroups(spec.dims[0].div_ceil(8), spec.dims[1].div_ceil(8), planes);
+    }
+}
+
+/// Fills the density grid on the GPU with the compute (gather) variant and hands slabs of
+/// planes to `sink(k0, values)` in increasing z, like [`splat_slabs_gpu`].
+pub fn gather_slabs_gpu(
+    ctx: &GpuContext,
+    points: Points<'_>,
+    spec: &GridSpec,
+    kernel: Kernel,
+    mut sink: impl FnMut(u32, Vec<f32>),
+) -> Result<(), GpuError> {
+    let gather = Gather::new(ctx, &points, spec)?;
+    let device = &ctx.device;
+    let [nx, ny, nz] = spec.dims;
+    let plane_bytes = u64::from(nx) * u64::from(ny) * 4;
+    // planes per dispatch: up to 32 (8 MiB at 256^2), within the binding limit
+    let planes_per = ((gather.max_binding / plane_bytes) as u32)
+        .clamp(1, 32)
+        .min(nz.max(1));
+    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let out_bytes = plane_bytes * u64::from(planes_per);
+    let densities = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("density planes"),
+        size: out_bytes,
+        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        mapped_at_creation: false,
+    });
+    let readback = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("density readback"),
+        size: out_bytes,
+        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+        mapped_at_creation: false,
+    });
+    for k0 in (0..nz).step_by(planes_per as usize) {
+        let planes = planes_per.min(nz - k0);
         let mut encoder = device.create_command_encoder(&Default::default());
-        {
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&pipeline);
-            pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups(nx.div_ceil(8), ny.div_ceil(8), planes);
-        }
+        gather.record(
+            device,
+            &mut encoder,
+            spec,
+            &points,
+            kernel,
+            (k0, planes),
+            &densities,
+        );
         let bytes = plane_bytes * u64::from(planes);
         encoder.copy_buffer_to_buffer(&densities, 0, &readback, 0, bytes);
         ctx.queue.submit([encoder.finish()]);
@@ -583,6 +632,84 @@ pub fn gather_slabs_gpu(
         return Err(GpuError::Validation(e.to_string()));
     }
     Ok(())
+}
+
+/// A density grid that lives on the GPU (issue 37): its values in a storage buffer, x fastest
+/// ([`DensityGrid`]'s layout), for the passes that read it there ([`crate::surfels::gpu`]).
+#[derive(Clone, Debug)]
+pub struct GpuGrid {
+    /// The grid.
+    pub spec: GridSpec,
+    /// One `f32` per grid point, index `i + nx (j + ny k)`.
+    pub values: wgpu::Buffer,
+}
+
+impl GpuGrid {
+    /// The values read back (a wait on the device: for tests and tools, never on a frame's
+    /// path).
+    pub fn read(&self, ctx: &GpuContext) -> Result<DensityGrid, GpuError> {
+        let mut values: Vec<f32> = gpu::read_buffer(ctx, &self.values)?;
+        values.truncate(self.spec.cells() as usize);
+        Ok(DensityGrid {
+            spec: self.spec,
+            values,
+        })
+    }
+}
+
+/// The density grid filled on the GPU by the gather pass and left there: one dispatch over
+/// every plane, recorded and submitted, no read-back. Errors as [`gather_slabs_gpu`], and a
+/// grid beyond the adapter's storage binding limit (the slabs of the read-back paths are not
+/// bound by it).
+pub fn density_grid_on_gpu(
+    ctx: &GpuContext,
+    points: Points<'_>,
+    spec: &GridSpec,
+    kernel: Kernel,
+) -> Result<GpuGrid, GpuError> {
+    let gather = Gather::new(ctx, &points, spec)?;
+    let bytes = spec.cells() * 4;
+    if bytes > u128::from(gather.max_binding) {
+        return Err(GpuError::Validation(format!(
+            "a grid of {} points ({bytes} bytes) exceeds the GPU's storage binding limit of {} bytes; fill it in slabs (density_slabs_gpu) or on the CPU",
+            spec.cells(),
+            gather.max_binding
+        )));
+    }
+    let nz = spec.dims[2];
+    if nz > 65_535 {
+        return Err(GpuError::Validation(format!(
+            "{nz} planes exceed one dispatch's 65,535; fill the grid in slabs (density_slabs_gpu)"
+        )));
+    }
+    let device = &ctx.device;
+    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let values = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("density grid"),
+        size: (bytes as u64).max(16),
+        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        mapped_at_creation: false,
+    });
+    if bytes > 0 {
+        let mut encoder = device.create_command_encoder(&Default::default());
+        gather.record(
+            device,
+            &mut encoder,
+            spec,
+            &points,
+            kernel,
+            (0, nz),
+            &values,
+        );
+        ctx.queue.submit([encoder.finish()]);
+    }
+    if let Some(e) = pollster::block_on(scope.pop()) {
+        return Err(GpuError::Validation(e.to_string()));
+    }
+    Ok(GpuGrid {
+        spec: *spec,
+        values,
+    })
 }
 
 /// Fills the density grid on the GPU by `method`, handing slabs to `sink` in increasing z.

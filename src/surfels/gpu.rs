@@ -6,16 +6,18 @@
 //! crossings each grid point owns, summed per block of 256 points), `scan_blocks` (each block's
 //! first surfel), `emit` (the crossings), `project`.
 //!
-//! This first part takes the grid from the CPU and hands the surfels back (a read-back of the
-//! count between the passes sizes the surfel buffers); the grid resident on the GPU and the
-//! surfels left there for the splatting, with no read-back on the frame path, are the next
-//! parts of issue 37.
+//! The grid comes from the CPU ([`SurfelPasses::extract`]) or stays on the GPU where the gather
+//! pass filled it ([`SurfelPasses::extract_on`] with
+//! [`crate::density::gpu::density_grid_on_gpu`]). The surfels are handed back (a read-back of
+//! the count between the passes sizes their buffers); leaving them on the GPU for the splatting,
+//! with no read-back on the frame path, is the next part of issue 37.
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
 use super::{CONVERGED, SurfelParams, Surfels, iso_of};
-use crate::density::{DensityGrid, Kernel, Points};
+use crate::density::gpu::GpuGrid;
+use crate::density::{DensityGrid, GridSpec, Kernel, Points};
 use crate::gpu::{self, GpuContext, GpuError};
 
 /// The shader's `SurfelParams`, std140-compatible: 96 bytes (checked against the WGSL in a
@@ -150,6 +152,30 @@ impl SurfelPasses {
         kernel: Kernel,
         params: &SurfelParams,
     ) -> Result<Surfels, crate::Error> {
+        self.extract_from(ctx, GridIn::Cpu(grid), points, kernel, params)
+    }
+
+    /// The surfels of a grid that lives on the GPU ([`crate::density::gpu::density_grid_on_gpu`]):
+    /// the grid is read where it is, never copied back.
+    pub fn extract_on(
+        &self,
+        ctx: &GpuContext,
+        grid: &GpuGrid,
+        points: Points<'_>,
+        kernel: Kernel,
+        params: &SurfelParams,
+    ) -> Result<Surfels, crate::Error> {
+        self.extract_from(ctx, GridIn::Gpu(grid), points, kernel, params)
+    }
+
+    fn extract_from(
+        &self,
+        ctx: &GpuContext,
+        grid: GridIn<'_>,
+        points: Points<'_>,
+        kernel: Kernel,
+        params: &SurfelParams,
+    ) -> Result<Surfels, crate::Error> {
         let iso = iso_of(points.h, kernel, params)?;
         let empty = Surfels {
             iso,
@@ -249,7 +275,7 @@ impl SurfelPasses {
         finish(
             scope,
             Surfels {
-                radii: vec![grid.spec.spacing; positions.len()],
+                radii: vec![grid.spec().spacing; positions.len()],
                 positions,
                 normals,
                 iso,
@@ -258,11 +284,29 @@ impl SurfelPasses {
     }
 }
 
+/// Where the passes read the grid.
+#[derive(Clone, Copy)]
+enum GridIn<'a> {
+    /// Values on the CPU, uploaded.
+    Cpu(&'a DensityGrid),
+    /// Values already on the GPU.
+    Gpu(&'a GpuGrid),
+}
+
+impl GridIn<'_> {
+    fn spec(self) -> GridSpec {
+        match self {
+            Self::Cpu(g) => g.spec,
+            Self::Gpu(g) => g.spec,
+        }
+    }
+}
+
 /// Checks the inputs and uploads them; `None` when there is nothing to extract (no grid point
 /// or no point).
 fn upload(
     ctx: &GpuContext,
-    grid: &DensityGrid,
+    grid: GridIn<'_>,
     points: Points<'_>,
     kernel: Kernel,
     params: &SurfelParams,
@@ -275,7 +319,7 @@ fn upload(
         )
         .into());
     }
-    let spec = grid.spec;
+    let spec = grid.spec();
     let n = spec.cells();
     if n == 0 || points.is_empty() {
         return Ok(None);
@@ -288,6 +332,16 @@ fn upload(
     if n * 4 > u128::from(max_binding) || n > u128::from(u32::MAX) {
         return Err(GpuError::Validation(format!(
             "a grid of {n} points exceeds the GPU's storage binding limit of {max_binding} bytes; extract its surfels on the CPU"
+        ))
+        .into());
+    }
+    if let GridIn::Gpu(g) = grid
+        && u128::from(g.values.size()) < n * 4
+    {
+        return Err(GpuError::Validation(format!(
+            "the GPU grid's buffer holds {} bytes, not the {} of its {n} points",
+            g.values.size(),
+            n * 4
         ))
         .into());
     }
@@ -336,11 +390,14 @@ fn upload(
             bytemuck::bytes_of(&raw),
             wgpu::BufferUsages::UNIFORM,
         ),
-        init(
-            "surfel grid",
-            bytemuck::cast_slice(&grid.values),
-            wgpu::BufferUsages::STORAGE,
-        ),
+        match grid {
+            GridIn::Cpu(g) => init(
+                "surfel grid",
+                bytemuck::cast_slice(&g.values),
+                wgpu::BufferUsages::STORAGE,
+            ),
+            GridIn::Gpu(g) => g.values.clone(),
+        },
         storage(
             device,
             "surfel block sums",
