@@ -32,12 +32,15 @@ struct SurfelParams {
     // blocks of 256 grid points; a Newton step shorter than `converged` cells ends it
     blocks: u32,
     converged: f32,
-    _pad0: u32,
-    _pad1: u32,
+    // a sparse grid (src/density/sparse.rs): the side of its blocks of grid points (0: a dense
+    // grid), and the value its inside blocks read as
+    sparse_block: u32,
+    inside: f32,
 }
 
 @group(0) @binding(0) var<uniform> params: SurfelParams;
-// the grid's values, x fastest
+// the grid's values, x fastest; a sparse grid's: its evaluated blocks' values, a block after
+// the other (x fastest within a block)
 @group(0) @binding(1) var<storage, read> grid: array<f32>;
 // per block of 256 points: its crossings (count), then its first surfel (scan_blocks)
 @group(0) @binding(2) var<storage, read_write> block_sums: array<u32>;
@@ -50,6 +53,9 @@ struct SurfelParams {
 // the points sorted by bin (xyz, w = radius), and where each bin starts
 @group(0) @binding(6) var<storage, read> points: array<vec4<f32>>;
 @group(0) @binding(7) var<storage, read> bin_start: array<u32>;
+// a sparse grid's block states (x fastest): empty (0xffffffff, every value 0), inside
+// (0xfffffffe, every value `inside`) or the slot of the block's values in `grid`
+@group(0) @binding(8) var<storage, read> states: array<u32>;
 
 var<workgroup> scan: array<u32, 256>;
 
@@ -59,6 +65,25 @@ fn point_count() -> u32 {
 
 fn grid_point(i: u32, j: u32, k: u32) -> vec3<f32> {
     return params.origin + vec3<f32>(f32(i), f32(j), f32(k)) * params.spacing;
+}
+
+// The value at grid point (i, j, k), from the dense grid or through a sparse grid's blocks
+// (`SparseGrid::at`).
+fn value_at(i: u32, j: u32, k: u32) -> f32 {
+    let s = params.sparse_block;
+    if s == 0u {
+        return grid[i + params.dims.x * (j + params.dims.y * k)];
+    }
+    let bx = (params.dims.x + s - 1u) / s;
+    let by = (params.dims.y + s - 1u) / s;
+    let state = states[i / s + bx * (j / s + by * (k / s))];
+    if state == 0xffffffffu {
+        return 0.0;
+    }
+    if state == 0xfffffffeu {
+        return params.inside;
+    }
+    return grid[state * s * s * s + (i % s) + s * ((j % s) + s * (k % s))];
 }
 
 fn below(v: f32) -> bool {
@@ -73,15 +98,15 @@ fn crossing_mask(p: u32) -> u32 {
     let i = p % nx;
     let j = (p / nx) % params.dims.y;
     let k = p / plane;
-    let v = below(grid[p]);
+    let v = below(value_at(i, j, k));
     var m = 0u;
-    if i + 1u < nx && v != below(grid[p + 1u]) {
+    if i + 1u < nx && v != below(value_at(i + 1u, j, k)) {
         m |= 1u;
     }
-    if j + 1u < params.dims.y && v != below(grid[p + nx]) {
+    if j + 1u < params.dims.y && v != below(value_at(i, j + 1u, k)) {
         m |= 2u;
     }
-    if k > 0u && v != below(grid[p - plane]) {
+    if k > 0u && v != below(value_at(i, j, k - 1u)) {
         m |= 4u;
     }
     return m;
@@ -172,22 +197,22 @@ fn emit(
     let j = (p / nx) % params.dims.y;
     let k = p / plane;
     let here = grid_point(i, j, k);
-    let v = grid[p];
+    let v = value_at(i, j, k);
     // linear interpolation along each crossed edge, as the CPU's `lerp`
     if (m & 1u) != 0u {
-        let w = grid[p + 1u];
+        let w = value_at(i + 1u, j, k);
         let there = grid_point(i + 1u, j, k);
         positions[at] = vec4<f32>(here + (there - here) * ((params.iso - v) / (w - v)), 0.0);
         at += 1u;
     }
     if (m & 2u) != 0u {
-        let w = grid[p + nx];
+        let w = value_at(i, j + 1u, k);
         let there = grid_point(i, j + 1u, k);
         positions[at] = vec4<f32>(here + (there - here) * ((params.iso - v) / (w - v)), 0.0);
         at += 1u;
     }
     if (m & 4u) != 0u {
-        let u = grid[p - plane];
+        let u = value_at(i, j, k - 1u);
         let under = grid_point(i, j, k - 1u);
         positions[at] = vec4<f32>(under + (here - under) * ((params.iso - u) / (v - u)), 0.0);
     }

@@ -44,7 +44,7 @@ fn twins() -> Vec<Twin> {
             fluid_surfels::surfels::gpu::SHADER,
             "SurfelParams",
             std::mem::size_of::<fluid_surfels::surfels::gpu::RawSurfelParams>(),
-            fields!(fluid_surfels::surfels::gpu::RawSurfelParams; origin, spacing, dims, iso, bin_origin, bin_size, bins, reach, h, constant, kernel, newton_steps, blocks, converged),
+            fields!(fluid_surfels::surfels::gpu::RawSurfelParams; origin, spacing, dims, iso, bin_origin, bin_size, bins, reach, h, constant, kernel, newton_steps, blocks, converged, sparse_block, inside),
         ),
         (
             "density_gather.wgsl",
@@ -766,8 +766,9 @@ fn pipeline_draw_is_the_shaded_splats_on_either_backend() {
 
 /// The GPU surfels (issue 37, first part) against the CPU's, on the same grid: the double dam
 /// break (Wyvill, the paper's kernel), the column's splash frame (the cubic spline) and points
-/// with a radius each (the chain's case): the same count, and surfel by surfel (the same order)
-/// positions within 1e-3 of a cell and normals within 1 degree.
+/// with a radius each (the chain's case), on the dense and the sparse grid: the same count, and
+/// surfel by surfel (the same order) positions within 1e-3 of a cell and normals within 1
+/// degree.
 #[test]
 fn gpu_surfels_equal_the_cpus() {
     use fluid_surfels::density::{GridSpec, Kernel, Resolution};
@@ -811,6 +812,7 @@ fn gpu_surfels_equal_the_cpus() {
         ),
     ];
     let params = SurfelParams::default();
+    let passes = surfels::gpu::SurfelPasses::new(&ctx.device);
     for (name, points, kernel) in cases {
         // the default grid: three cells per (smallest) radius
         let cell = points.min_radius() / 3.0;
@@ -822,7 +824,43 @@ fn gpu_surfels_equal_the_cpus() {
         .unwrap();
         let grid = fluid_surfels::density::points_grid(points, &spec, kernel, 1 << 30).unwrap();
         let cpu = surfels::extract_points(&grid, points, kernel, &params).unwrap();
-        let gpu = surfels::gpu::extract_gpu(&ctx, &grid, points, kernel, &params).unwrap();
+        let gpu = passes
+            .extract(&ctx, &grid, points, kernel, &params)
+            .unwrap();
+        // the sparse grid: only the blocks near the surface, the same surfels in the same order
+        let band = fluid_surfels::lnm::narrow_band(
+            points.positions,
+            points.max_radius(),
+            &Default::default(),
+        )
+        .unwrap();
+        let level = params.iso_fraction * kernel.peak(points.h);
+        let sparse = fluid_surfels::density::points_grid_sparse(
+            points,
+            &spec,
+            kernel,
+            1 << 30,
+            &band,
+            level,
+            2.0 * level,
+        )
+        .unwrap();
+        let cpu_sparse = surfels::extract_sparse(&sparse, points, kernel, &params).unwrap();
+        let gpu_sparse = passes
+            .extract_sparse(&ctx, &sparse, points, kernel, &params)
+            .unwrap();
+        assert_eq!(
+            cpu_sparse.len(),
+            cpu.len(),
+            "{name}: the CPU's sparse surfels"
+        );
+        assert_eq!(
+            gpu_sparse.len(),
+            cpu.len(),
+            "{name}: the GPU's sparse surfels"
+        );
+        let (_, _, evaluated) = sparse.counts();
+        println!("  sparse: {evaluated} blocks evaluated");
         println!(
             "{name}: {} CPU, {} GPU surfels on {:?}",
             cpu.len(),
@@ -834,11 +872,13 @@ fn gpu_surfels_equal_the_cpus() {
         assert_eq!(cpu.radii, gpu.radii, "{name}");
         assert_eq!(cpu.iso, gpu.iso, "{name}");
         let (mut worst_d, mut worst_a) = (0.0f32, 0.0f32);
-        for i in 0..cpu.len() {
-            let d = cpu.positions[i].distance(gpu.positions[i]) / spec.spacing;
-            let a = cpu.normals[i].angle_between(gpu.normals[i]).to_degrees();
-            worst_d = worst_d.max(d);
-            worst_a = worst_a.max(if a.is_nan() { 0.0 } else { a });
+        for g in [&gpu, &gpu_sparse] {
+            for i in 0..cpu.len() {
+                let d = cpu.positions[i].distance(g.positions[i]) / spec.spacing;
+                let a = cpu.normals[i].angle_between(g.normals[i]).to_degrees();
+                worst_d = worst_d.max(d);
+                worst_a = worst_a.max(if a.is_nan() { 0.0 } else { a });
+            }
         }
         println!("  worst position {worst_d:.2e} cells, worst normal {worst_a:.3} degrees");
         assert!(

@@ -167,6 +167,13 @@ impl SparseGrid {
         }
     }
 
+    /// The block states (x fastest: `u32::MAX` empty, `u32::MAX - 1` inside, else the slot of
+    /// the block's values) and the evaluated blocks' values (`BLOCK_VALUES` a slot, x fastest
+    /// within a block), as the GPU surfels read them ([`crate::surfels::gpu`]).
+    pub(crate) fn raw(&self) -> (&[u32], &[f32]) {
+        (&self.states, &self.values)
+    }
+
     /// The values of evaluated block `b`, `BLOCK_VALUES` of them, x fastest.
     #[must_use]
     pub fn block_values(&self, b: [u32; 3]) -> Option<&[f32]> {

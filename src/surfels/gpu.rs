@@ -6,7 +6,8 @@
 //! crossings each grid point owns, summed per block of 256 points), `scan_blocks` (each block's
 //! first surfel), `emit` (the crossings), `project`.
 //!
-//! The grid comes from the CPU ([`SurfelPasses::extract`]) or stays on the GPU where the gather
+//! The grid comes from the CPU, dense ([`SurfelPasses::extract`]) or sparse (only its evaluated
+//! blocks, [`SurfelPasses::extract_sparse`]), or stays on the GPU where the gather
 //! pass filled it ([`SurfelPasses::extract_on`] with
 //! [`crate::density::gpu::density_grid_on_gpu`]). The surfels are handed back (a read-back of
 //! the count between the passes sizes their buffers); leaving them on the GPU for the splatting,
@@ -17,7 +18,7 @@ use glam::Vec3;
 
 use super::{CONVERGED, SurfelParams, Surfels, iso_of};
 use crate::density::gpu::GpuGrid;
-use crate::density::{DensityGrid, GridSpec, Kernel, Points};
+use crate::density::{DensityGrid, GridSpec, Kernel, Points, SparseGrid};
 use crate::gpu::{self, GpuContext, GpuError};
 
 /// The shader's `SurfelParams`, std140-compatible: 96 bytes (checked against the WGSL in a
@@ -39,7 +40,8 @@ pub struct RawSurfelParams {
     pub newton_steps: u32,
     pub blocks: u32,
     pub converged: f32,
-    pub _pad: [u32; 2],
+    pub sparse_block: u32,
+    pub inside: f32,
 }
 
 const _: () = assert!(std::mem::size_of::<RawSurfelParams>() == 96);
@@ -102,11 +104,11 @@ pub struct SurfelPasses {
     project: wgpu::ComputePipeline,
 }
 
-/// What the passes read: the parameters, the grid, the binned points and the bins' starts,
-/// uploaded; the block sums and the count, allocated.
+/// What the passes read: the parameters, the grid, the binned points, the bins' starts and a
+/// sparse grid's block states, uploaded; the block sums and the count, allocated.
 struct Inputs {
     raw: RawSurfelParams,
-    buffers: [wgpu::Buffer; 6],
+    buffers: [wgpu::Buffer; 7],
     max_binding: u64,
 }
 
@@ -155,6 +157,19 @@ impl SurfelPasses {
         self.extract_from(ctx, GridIn::Cpu(grid), points, kernel, params)
     }
 
+    /// The surfels of a sparse grid (only its evaluated blocks uploaded, read through its block
+    /// states): the same as [`super::extract_sparse`], in the dense grid's order.
+    pub fn extract_sparse(
+        &self,
+        ctx: &GpuContext,
+        grid: &SparseGrid,
+        points: Points<'_>,
+        kernel: Kernel,
+        params: &SurfelParams,
+    ) -> Result<Surfels, crate::Error> {
+        self.extract_from(ctx, GridIn::Sparse(grid), points, kernel, params)
+    }
+
     /// The surfels of a grid that lives on the GPU ([`crate::density::gpu::density_grid_on_gpu`]):
     /// the grid is read where it is, never copied back.
     pub fn extract_on(
@@ -187,9 +202,17 @@ impl SurfelPasses {
         };
         let device = &ctx.device;
         let bind = |positions: &wgpu::Buffer, normals: &wgpu::Buffer| {
-            let [uniform, values, block_sums, total, binned, bin_start] = &inputs.buffers;
+            let [
+                uniform,
+                values,
+                block_sums,
+                total,
+                binned,
+                bin_start,
+                states,
+            ] = &inputs.buffers;
             let buffers = [
-                uniform, values, block_sums, total, positions, normals, binned, bin_start,
+                uniform, values, block_sums, total, positions, normals, binned, bin_start, states,
             ];
             let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
                 .iter()
@@ -291,6 +314,8 @@ enum GridIn<'a> {
     Cpu(&'a DensityGrid),
     /// Values already on the GPU.
     Gpu(&'a GpuGrid),
+    /// A sparse grid's evaluated blocks and block states, uploaded.
+    Sparse(&'a SparseGrid),
 }
 
 impl GridIn<'_> {
@@ -298,6 +323,7 @@ impl GridIn<'_> {
         match self {
             Self::Cpu(g) => g.spec,
             Self::Gpu(g) => g.spec,
+            Self::Sparse(g) => g.spec,
         }
     }
 }
@@ -329,7 +355,11 @@ fn upload(
     let max_binding = limits
         .max_storage_buffer_binding_size
         .min(limits.max_buffer_size);
-    if n * 4 > u128::from(max_binding) || n > u128::from(u32::MAX) {
+    let value_bytes = match grid {
+        GridIn::Sparse(g) => 4 * g.raw().1.len().max(g.raw().0.len()) as u128,
+        _ => n * 4,
+    };
+    if value_bytes > u128::from(max_binding) || n > u128::from(u32::MAX) {
         return Err(GpuError::Validation(format!(
             "a grid of {n} points exceeds the GPU's storage binding limit of {max_binding} bytes; extract its surfels on the CPU"
         ))
@@ -374,7 +404,14 @@ fn upload(
         newton_steps: params.newton_steps,
         blocks,
         converged: CONVERGED,
-        _pad: [0; 2],
+        sparse_block: match grid {
+            GridIn::Sparse(_) => crate::density::sparse::BLOCK,
+            _ => 0,
+        },
+        inside: match grid {
+            GridIn::Sparse(g) => g.inside,
+            _ => 0.0,
+        },
     };
     use wgpu::util::DeviceExt;
     let init = |label: &str, contents: &[u8], usage: wgpu::BufferUsages| {
@@ -397,6 +434,15 @@ fn upload(
                 wgpu::BufferUsages::STORAGE,
             ),
             GridIn::Gpu(g) => g.values.clone(),
+            GridIn::Sparse(g) => init(
+                "surfel sparse grid",
+                bytemuck::cast_slice(if g.raw().1.is_empty() {
+                    &[0.0f32]
+                } else {
+                    g.raw().1
+                }),
+                wgpu::BufferUsages::STORAGE,
+            ),
         },
         storage(
             device,
@@ -415,6 +461,19 @@ fn upload(
             bytemuck::cast_slice(&start),
             wgpu::BufferUsages::STORAGE,
         ),
+        match grid {
+            GridIn::Sparse(g) => init(
+                "surfel block states",
+                bytemuck::cast_slice(g.raw().0),
+                wgpu::BufferUsages::STORAGE,
+            ),
+            _ => storage(
+                device,
+                "surfel no block states",
+                16,
+                wgpu::BufferUsages::empty(),
+            ),
+        },
     ];
     Ok(Some(Inputs {
         raw,
@@ -432,9 +491,9 @@ fn finish(scope: wgpu::ErrorScopeGuard, surfels: Surfels) -> Result<Surfels, cra
 }
 
 /// The passes' bindings: the parameters, the grid, the block sums, the count, the positions,
-/// the normals, the binned points and the bins' starts.
+/// the normals, the binned points, the bins' starts and a sparse grid's block states.
 fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
-    let read_only = [false, true, false, false, false, false, true, true];
+    let read_only = [false, true, false, false, false, false, true, true, true];
     let entries: Vec<wgpu::BindGroupLayoutEntry> = read_only
         .iter()
         .enumerate()
