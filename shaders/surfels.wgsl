@@ -36,6 +36,11 @@ struct SurfelParams {
     // grid), and the value its inside blocks read as
     sparse_block: u32,
     inside: f32,
+    // surfels the position and normal buffers hold: the crossings past it are left out
+    capacity: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: SurfelParams;
@@ -44,7 +49,8 @@ struct SurfelParams {
 @group(0) @binding(1) var<storage, read> grid: array<f32>;
 // per block of 256 points: its crossings (count), then its first surfel (scan_blocks)
 @group(0) @binding(2) var<storage, read_write> block_sums: array<u32>;
-// [0]: the number of surfels (scan_blocks)
+// [0]: the number of surfels; [1..4]: the workgroups of `project` for the surfels the buffers
+// hold (scan_blocks), for an indirect dispatch
 @group(0) @binding(3) var<storage, read_write> total: array<u32>;
 // surfel positions (w unused): the crossings (emit), projected (project)
 @group(0) @binding(4) var<storage, read_write> positions: array<vec4<f32>>;
@@ -170,6 +176,12 @@ fn scan_blocks(@builtin(local_invocation_index) local: u32) {
     }
     if local == 255u {
         total[0] = inclusive;
+        // `project`'s dispatch: 64 surfels a workgroup, at most 65,535 workgroups a dimension
+        let groups = (min(inclusive, params.capacity) + 63u) / 64u;
+        let x = min(groups, 65535u);
+        total[1] = x;
+        total[2] = select(0u, (groups + x - 1u) / max(x, 1u), groups > 0u);
+        total[3] = 1u;
     }
 }
 
@@ -198,20 +210,24 @@ fn emit(
     let k = p / plane;
     let here = grid_point(i, j, k);
     let v = value_at(i, j, k);
-    // linear interpolation along each crossed edge, as the CPU's `lerp`
+    // linear interpolation along each crossed edge, as the CPU's `lerp`; none past the capacity
     if (m & 1u) != 0u {
         let w = value_at(i + 1u, j, k);
         let there = grid_point(i + 1u, j, k);
-        positions[at] = vec4<f32>(here + (there - here) * ((params.iso - v) / (w - v)), 0.0);
+        if at < params.capacity {
+            positions[at] = vec4<f32>(here + (there - here) * ((params.iso - v) / (w - v)), 0.0);
+        }
         at += 1u;
     }
     if (m & 2u) != 0u {
         let w = value_at(i, j + 1u, k);
         let there = grid_point(i, j + 1u, k);
-        positions[at] = vec4<f32>(here + (there - here) * ((params.iso - v) / (w - v)), 0.0);
+        if at < params.capacity {
+            positions[at] = vec4<f32>(here + (there - here) * ((params.iso - v) / (w - v)), 0.0);
+        }
         at += 1u;
     }
-    if (m & 4u) != 0u {
+    if (m & 4u) != 0u && at < params.capacity {
         let u = value_at(i, j, k - 1u);
         let under = grid_point(i, j, k - 1u);
         positions[at] = vec4<f32>(under + (here - under) * ((params.iso - u) / (v - u)), 0.0);
@@ -281,7 +297,7 @@ fn project(
     @builtin(num_workgroups) groups: vec3<u32>,
 ) {
     let s = block_of(wg, groups) * 64u + local;
-    if s >= total[0] {
+    if s >= min(total[0], params.capacity) {
         return;
     }
     var x = positions[s].xyz;

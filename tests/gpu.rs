@@ -44,7 +44,7 @@ fn twins() -> Vec<Twin> {
             fluid_surfels::surfels::gpu::SHADER,
             "SurfelParams",
             std::mem::size_of::<fluid_surfels::surfels::gpu::RawSurfelParams>(),
-            fields!(fluid_surfels::surfels::gpu::RawSurfelParams; origin, spacing, dims, iso, bin_origin, bin_size, bins, reach, h, constant, kernel, newton_steps, blocks, converged, sparse_block, inside),
+            fields!(fluid_surfels::surfels::gpu::RawSurfelParams; origin, spacing, dims, iso, bin_origin, bin_size, bins, reach, h, constant, kernel, newton_steps, blocks, converged, sparse_block, inside, capacity),
         ),
         (
             "density_gather.wgsl",
@@ -1010,6 +1010,81 @@ fn gpu_grid_and_surfels_stay_on_the_gpu() {
         assert!(
             worst_d <= 1e-3 && worst_a <= 1.0,
             "{name}: {worst_d} cells, {worst_a} degrees"
+        );
+    }
+}
+
+/// The grid and the surfels of a sequence on the GPU, recorded frame after frame into one
+/// encoder each (issue 37): after the first frames nothing is created, no frame waits on the
+/// device or reads back (`gpu::waits` unchanged over the whole sequence: the count arrives
+/// asynchronously), and the last frame's surfels, read back afterwards, are the CPU's.
+#[test]
+fn gpu_grid_and_surfels_record_frames_without_waits() {
+    use fluid_surfels::density::gpu::GridFiller;
+    use fluid_surfels::surfels::{self, SurfelParams, gpu::ResidentSurfels};
+    let Some(ctx) =
+        gpu::context_or_skip("gpu_grid_and_surfels_record_frames_without_waits").unwrap()
+    else {
+        return;
+    };
+    let mut sim = scenes::ColumnSim::new(Default::default()).unwrap();
+    let frames: Vec<Vec<glam::Vec3>> = (6..18)
+        .map(|f| {
+            sim.advance_to(f);
+            sim.particles().positions.clone()
+        })
+        .collect();
+    let h = sim.support_radius();
+    // one grid for the sequence, around every frame (as a sequence fits its views once)
+    let all: Vec<glam::Vec3> = frames.iter().flatten().copied().collect();
+    let spec = GridSpec::around(&all, h, Resolution::CellSize(h / 3.0)).unwrap();
+    let params = SurfelParams::default();
+    let mut filler = GridFiller::new(&ctx.device);
+    let mut surfels = ResidentSurfels::new(&ctx.device);
+    let waits = gpu::waits();
+    let mut created = Vec::new();
+    for positions in &frames {
+        let points = Points::uniform(positions, h);
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        let grid = filler
+            .record(&ctx, &mut encoder, points, &spec, Kernel::Wyvill)
+            .unwrap();
+        surfels
+            .record(&ctx, &mut encoder, &grid, points, Kernel::Wyvill, &params)
+            .unwrap();
+        ctx.queue.submit([encoder.finish()]);
+        surfels.after_submit();
+        created.push(filler.created() + surfels.created());
+    }
+    assert_eq!(gpu::waits(), waits, "a frame waited on the device");
+    println!(
+        "created per frame {created:?}; capacity {}, a recent count {:?}",
+        surfels.capacity(),
+        surfels.last_count()
+    );
+    assert!(created[0] > 0);
+    assert!(
+        created[4..].iter().all(|&c| c == 0),
+        "resources created after the first frames: {created:?}"
+    );
+    assert!(surfels.last_count().is_some(), "the count never arrived");
+    assert!(!surfels.overflowed());
+    // the last frame against the CPU, read back outside the frame path
+    let last = frames.last().unwrap();
+    let points = Points::uniform(last, h);
+    let grid = density::points_grid(points, &spec, Kernel::Wyvill, 1 << 30).unwrap();
+    let cpu = surfels::extract_points(&grid, points, Kernel::Wyvill, &params).unwrap();
+    let gpu = surfels.read(&ctx).unwrap();
+    assert_eq!(gpu.len(), cpu.len());
+    let near = fluid_surfels::neighbours::CellGrid::new(&cpu.positions, spec.spacing).unwrap();
+    for p in &gpu.positions {
+        let mut best = f32::INFINITY;
+        near.for_each_within(*p, spec.spacing, |j| {
+            best = best.min(cpu.positions[j as usize].distance(*p));
+        });
+        assert!(
+            best <= 1e-3 * spec.spacing,
+            "a GPU surfel {best} from the CPU's"
         );
     }
 }

@@ -429,6 +429,22 @@ pub(crate) fn bin_particles(
     (sorted, start, n.to_array(), size)
 }
 
+/// The gather pass's compute pipeline.
+fn gather_pipeline(device: &wgpu::Device) -> wgpu::ComputePipeline {
+    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some("density_gather"),
+        source: wgpu::ShaderSource::Wgsl(GATHER_SHADER.into()),
+    });
+    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some("density gather"),
+        layout: None,
+        module: &module,
+        entry_point: Some("gather"),
+        compilation_options: Default::default(),
+        cache: None,
+    })
+}
+
 /// The gather pass's pipeline and the binned points, set up once for a grid.
 struct Gather {
     pipeline: wgpu::ComputePipeline,
@@ -481,18 +497,7 @@ impl Gather {
             contents: bytemuck::cast_slice(&start),
             usage: wgpu::BufferUsages::STORAGE,
         });
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("density_gather"),
-            source: wgpu::ShaderSource::Wgsl(GATHER_SHADER.into()),
-        });
-        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("density gather"),
-            layout: None,
-            module: &module,
-            entry_point: Some("gather"),
-            compilation_options: Default::default(),
-            cache: None,
-        });
+        let pipeline = gather_pipeline(device);
         Ok(Self {
             pipeline,
             particles,
@@ -710,6 +715,146 @@ pub fn density_grid_on_gpu(
         spec: *spec,
         values,
     })
+}
+
+/// The gather pass kept from frame to frame (issue 37): its pipeline and uniform, and buffers
+/// for the binned points, the bins' starts and the grid that grow when a frame needs more and
+/// are otherwise rewritten in place. [`GridFiller::record`] records the pass into the caller's
+/// encoder and waits on nothing; after the first frames of a sequence (while the buffers grow)
+/// it creates nothing ([`GridFiller::created`]).
+pub struct GridFiller {
+    pipeline: wgpu::ComputePipeline,
+    uniform: wgpu::Buffer,
+    particles: gpu::Grow,
+    bin_start: gpu::Grow,
+    grid: gpu::Grow,
+    bind: Option<wgpu::BindGroup>,
+    created: usize,
+}
+
+impl GridFiller {
+    /// Compiles the pass for `device`.
+    #[must_use]
+    pub fn new(device: &wgpu::Device) -> Self {
+        let storage = wgpu::BufferUsages::STORAGE;
+        Self {
+            pipeline: gather_pipeline(device),
+            uniform: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("gather params"),
+                size: std::mem::size_of::<RawGatherParams>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            particles: gpu::Grow::new("binned particles", storage),
+            bin_start: gpu::Grow::new("bin starts", storage),
+            grid: gpu::Grow::new("density grid", storage | wgpu::BufferUsages::COPY_SRC),
+            bind: None,
+            created: 0,
+        }
+    }
+
+    /// Buffers and bind groups the last [`Self::record`] made (0 once they are large enough).
+    #[must_use]
+    pub fn created(&self) -> usize {
+        self.created
+    }
+
+    /// Records the pass filling the grid of `spec` with `points` into `encoder`; the grid is
+    /// in the returned [`GpuGrid`] once the encoder's work is submitted and done (its buffer is
+    /// this filler's, rewritten by the next `record`). Errors as [`density_grid_on_gpu`].
+    pub fn record(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        points: Points<'_>,
+        spec: &GridSpec,
+        kernel: Kernel,
+    ) -> Result<GpuGrid, GpuError> {
+        check_inputs(&points)?;
+        let (device, queue) = (&ctx.device, &ctx.queue);
+        let limits = device.limits();
+        let max_binding = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        let bytes = spec.cells() * 4;
+        if bytes > u128::from(max_binding) || spec.dims[2] > 65_535 {
+            return Err(GpuError::Validation(format!(
+                "a grid of {} points ({bytes} bytes) exceeds the GPU's storage binding limit of {max_binding} bytes or a dispatch's 65,535 planes; fill it in slabs (density_slabs_gpu) or on the CPU",
+                spec.cells()
+            )));
+        }
+        let (sorted, start, bins, bin_size) =
+            bin_particles(&points, spec, points.max_radius(), GATHER_REACH);
+        if (sorted.len() * 16) as u64 > max_binding || (start.len() * 4) as u64 > max_binding {
+            return Err(GpuError::Validation(format!(
+                "{} particles exceed the GPU's storage binding limit of {max_binding} bytes",
+                points.len()
+            )));
+        }
+        let made = [
+            self.particles
+                .write(device, queue, bytemuck::cast_slice(&sorted)),
+            self.bin_start
+                .write(device, queue, bytemuck::cast_slice(&start)),
+            self.grid.reserve(device, bytes as u64),
+        ];
+        self.created = made.iter().filter(|&&m| m).count();
+        let h = points.h;
+        let raw = RawGatherParams {
+            origin: spec.origin.to_array(),
+            spacing: spec.spacing,
+            dims: spec.dims,
+            k0: 0,
+            bin_origin: spec.origin.to_array(),
+            bin_size,
+            bins,
+            planes: spec.dims[2],
+            h,
+            constant: kernel_constant(kernel, h),
+            kernel: kernel_code(kernel),
+            reach: GATHER_REACH,
+        };
+        queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
+        if self.bind.is_none() || self.created > 0 {
+            self.bind = Some(device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("gather"),
+                layout: &self.pipeline.get_bind_group_layout(0),
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: self.uniform.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: self.particles.buffer().as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 2,
+                        resource: self.bin_start.buffer().as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 3,
+                        resource: self.grid.buffer().as_entire_binding(),
+                    },
+                ],
+            }));
+            self.created += 1;
+        }
+        if bytes > 0 {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, self.bind.as_ref(), &[]);
+            pass.dispatch_workgroups(
+                spec.dims[0].div_ceil(8),
+                spec.dims[1].div_ceil(8),
+                spec.dims[2],
+            );
+        }
+        Ok(GpuGrid {
+            spec: *spec,
+            values: self.grid.buffer().clone(),
+        })
+    }
 }
 
 /// Fills the density grid on the GPU by `method`, handing slabs to `sink` in increasing z.

@@ -311,9 +311,7 @@ pub(crate) fn map_read_and_wait(
     slice.map_async(wgpu::MapMode::Read, move |r| {
         let _ = tx.send(r);
     });
-    device
-        .poll(wgpu::PollType::wait_indefinitely())
-        .map_err(|e| GpuError::Readback(e.to_string()))?;
+    wait(device)?;
     rx.recv()
         .map_err(|e| GpuError::Readback(e.to_string()))?
         .map_err(|e| GpuError::Readback(e.to_string()))
@@ -456,5 +454,84 @@ mod tests {
             (DeviceType::DiscreteGpu, Backend::Vulkan, true),
         ];
         assert_eq!(pick_adapter(&twins), Some(0));
+    }
+}
+
+thread_local! {
+    /// Waits on the device by this crate on this thread ([`waits`]).
+    static WAITS: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
+}
+
+/// How many times this crate has waited on a device (a blocking poll: every read-back and
+/// every timing) on the calling thread: a test of a frame path reads it before and after the
+/// frames and finds it unchanged (issue 37).
+#[must_use]
+pub fn waits() -> usize {
+    WAITS.with(std::cell::Cell::get)
+}
+
+/// Waits until the device has done the work submitted to it, counted in [`waits`].
+pub(crate) fn wait(device: &wgpu::Device) -> Result<(), GpuError> {
+    WAITS.with(|w| w.set(w.get() + 1));
+    device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .map(|_| ())
+        .map_err(|e| GpuError::Readback(e.to_string()))
+}
+
+/// A buffer kept from frame to frame that grows when a frame needs more (by half again, so
+/// that a slowly growing need makes few new buffers) and is otherwise rewritten in place.
+pub(crate) struct Grow {
+    label: &'static str,
+    usage: wgpu::BufferUsages,
+    buffer: Option<wgpu::Buffer>,
+}
+
+impl Grow {
+    pub(crate) fn new(label: &'static str, usage: wgpu::BufferUsages) -> Self {
+        Self {
+            label,
+            usage: usage | wgpu::BufferUsages::COPY_DST,
+            buffer: None,
+        }
+    }
+
+    /// Makes sure the buffer holds `size` bytes (at least 16); whether a new one was made.
+    pub(crate) fn reserve(&mut self, device: &wgpu::Device, size: u64) -> bool {
+        let size = size.max(16).next_multiple_of(4);
+        if self.buffer.as_ref().is_some_and(|b| b.size() >= size) {
+            return false;
+        }
+        let grown = self
+            .buffer
+            .as_ref()
+            .map_or(size, |b| size.max(b.size() / 2 * 3));
+        self.buffer = Some(device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(self.label),
+            size: grown.next_multiple_of(4),
+            usage: self.usage,
+            mapped_at_creation: false,
+        }));
+        true
+    }
+
+    /// Writes `bytes` at the start (through the queue: it takes effect at the next submit),
+    /// growing first when they do not fit; whether a new buffer was made.
+    pub(crate) fn write(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        bytes: &[u8],
+    ) -> bool {
+        let made = self.reserve(device, bytes.len() as u64);
+        if !bytes.is_empty() {
+            queue.write_buffer(self.buffer(), 0, bytes);
+        }
+        made
+    }
+
+    /// The buffer ([`Self::reserve`] or [`Self::write`] first).
+    pub(crate) fn buffer(&self) -> &wgpu::Buffer {
+        self.buffer.as_ref().expect("reserved before use")
     }
 }

@@ -834,9 +834,7 @@ pub fn run_timed(
         }
         let start = Instant::now();
         ctx.queue.submit([encoder.finish()]);
-        device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        crate::gpu::wait(device)?;
         Ok(start.elapsed().as_secs_f64() * 1e3)
     };
     let times = OpticsTimes {

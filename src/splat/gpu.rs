@@ -736,9 +736,7 @@ pub fn render_timed(
         record(&mut encoder);
         let start = Instant::now();
         ctx.queue.submit([encoder.finish()]);
-        device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        crate::gpu::wait(device)?;
         Ok(start.elapsed().as_secs_f64() * 1e3)
     };
     times.visibility_ms = run(&|e| renderer.encode_visibility(e, surfels, &bound.splat))?;

@@ -10,8 +10,13 @@
 //! blocks, [`SurfelPasses::extract_sparse`]), or stays on the GPU where the gather
 //! pass filled it ([`SurfelPasses::extract_on`] with
 //! [`crate::density::gpu::density_grid_on_gpu`]). The surfels are handed back (a read-back of
-//! the count between the passes sizes their buffers); leaving them on the GPU for the splatting,
-//! with no read-back on the frame path, is the next part of issue 37.
+//! the count between the passes sizes their buffers). For a frame path, [`ResidentSurfels`]
+//! keeps them on the GPU: recorded into the caller's encoder with the grid of a
+//! [`crate::density::gpu::GridFiller`], `project` dispatched indirectly, the count read back
+//! asynchronously to grow the buffers, nothing created after the first frames and nothing
+//! waited on. Drawing them from there (`GpuPipeline`) is the next part of issue 37.
+
+use std::sync::{Arc, Mutex};
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
@@ -21,7 +26,7 @@ use crate::density::gpu::GpuGrid;
 use crate::density::{DensityGrid, GridSpec, Kernel, Points, SparseGrid};
 use crate::gpu::{self, GpuContext, GpuError};
 
-/// The shader's `SurfelParams`, std140-compatible: 96 bytes (checked against the WGSL in a
+/// The shader's `SurfelParams`, std140-compatible: 112 bytes (checked against the WGSL in a
 /// test).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
@@ -42,9 +47,11 @@ pub struct RawSurfelParams {
     pub converged: f32,
     pub sparse_block: u32,
     pub inside: f32,
+    pub capacity: u32,
+    pub _pad: [u32; 3],
 }
 
-const _: () = assert!(std::mem::size_of::<RawSurfelParams>() == 96);
+const _: () = assert!(std::mem::size_of::<RawSurfelParams>() == 112);
 
 /// The WGSL source of the passes (`common.wgsl` prepended).
 pub const SHADER: &str = concat!(
@@ -145,6 +152,23 @@ impl SurfelPasses {
         }
     }
 
+    /// The bind group of the passes' nine buffers, in binding order.
+    fn bind(&self, device: &wgpu::Device, buffers: &[&wgpu::Buffer; 9]) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("surfels"),
+            layout: &self.layout,
+            entries: &entries,
+        })
+    }
+
     /// [`extract_gpu`] with these passes.
     pub fn extract(
         &self,
@@ -211,22 +235,13 @@ impl SurfelPasses {
                 bin_start,
                 states,
             ] = &inputs.buffers;
-            let buffers = [
-                uniform, values, block_sums, total, positions, normals, binned, bin_start, states,
-            ];
-            let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
-                .iter()
-                .enumerate()
-                .map(|(i, b)| wgpu::BindGroupEntry {
-                    binding: i as u32,
-                    resource: b.as_entire_binding(),
-                })
-                .collect();
-            device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("surfels"),
-                layout: &self.layout,
-                entries: &entries,
-            })
+            self.bind(
+                device,
+                &[
+                    uniform, values, block_sums, total, positions, normals, binned, bin_start,
+                    states,
+                ],
+            )
         };
         let run = |passes: &[(&wgpu::ComputePipeline, (u32, u32))], bind: &wgpu::BindGroup| {
             let mut encoder = device.create_command_encoder(&Default::default());
@@ -412,6 +427,9 @@ fn upload(
             GridIn::Sparse(g) => g.inside,
             _ => 0.0,
         },
+        // the buffers are sized from the count read back: every surfel fits
+        capacity: u32::MAX,
+        _pad: [0; 3],
     };
     use wgpu::util::DeviceExt;
     let init = |label: &str, contents: &[u8], usage: wgpu::BufferUsages| {
@@ -516,4 +534,305 @@ fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
         label: Some("surfels"),
         entries: &entries,
     })
+}
+
+/// Where the count's read-back stands ([`ResidentSurfels`]): a copy recorded this frame, a
+/// mapping started after the submit (its result set by the callback), or neither.
+enum CountReadback {
+    Idle,
+    Copied,
+    Mapping(Arc<Mutex<Option<Result<(), wgpu::BufferAsyncError>>>>),
+}
+
+/// Surfels extracted into buffers that stay on the GPU (issue 37), for the passes that draw
+/// them: the grid read where it is ([`crate::density::gpu::GridFiller`]), the passes recorded
+/// into the caller's encoder, `project` dispatched indirectly from the count the scan wrote, no
+/// read-back and no wait. The surfel buffers hold [`ResidentSurfels::capacity`] surfels, a first
+/// guess from the grid (its box's faces in cells, times three) that grows from the count read
+/// back asynchronously a few frames later (mapped after a submit, looked at by a later
+/// `record`); until it has grown, the surfels past the capacity are left out
+/// ([`ResidentSurfels::overflowed`]). After the first frames of a sequence `record` creates
+/// nothing ([`ResidentSurfels::created`]).
+pub struct ResidentSurfels {
+    passes: SurfelPasses,
+    uniform: wgpu::Buffer,
+    points: gpu::Grow,
+    bin_start: gpu::Grow,
+    block_sums: gpu::Grow,
+    positions: gpu::Grow,
+    normals: gpu::Grow,
+    total: wgpu::Buffer,
+    args: wgpu::Buffer,
+    states: wgpu::Buffer,
+    readback: wgpu::Buffer,
+    count: CountReadback,
+    bind: Option<(wgpu::BindGroup, wgpu::Buffer)>,
+    capacity: u32,
+    last_count: Option<u32>,
+    created: usize,
+    iso: f32,
+    spacing: f32,
+}
+
+impl ResidentSurfels {
+    /// Compiles the passes and makes the fixed buffers for `device`.
+    #[must_use]
+    pub fn new(device: &wgpu::Device) -> Self {
+        let fixed = |label, size, usage| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        let storage = wgpu::BufferUsages::STORAGE;
+        Self {
+            passes: SurfelPasses::new(device),
+            uniform: fixed(
+                "surfel params",
+                std::mem::size_of::<RawSurfelParams>() as u64,
+                wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            ),
+            points: gpu::Grow::new("surfel points", storage),
+            bin_start: gpu::Grow::new("surfel bins", storage),
+            block_sums: gpu::Grow::new("surfel block sums", storage),
+            positions: gpu::Grow::new("surfel positions", storage | wgpu::BufferUsages::COPY_SRC),
+            normals: gpu::Grow::new("surfel normals", storage | wgpu::BufferUsages::COPY_SRC),
+            total: fixed("surfel count", 16, storage | wgpu::BufferUsages::COPY_SRC),
+            args: fixed(
+                "surfel projection dispatch",
+                16,
+                wgpu::BufferUsages::INDIRECT | wgpu::BufferUsages::COPY_DST,
+            ),
+            states: fixed("surfel no block states", 16, storage),
+            readback: fixed(
+                "surfel count readback",
+                16,
+                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            ),
+            count: CountReadback::Idle,
+            bind: None,
+            capacity: 0,
+            last_count: None,
+            created: 0,
+            iso: 0.0,
+            spacing: 0.0,
+        }
+    }
+
+    /// Surfels the buffers hold.
+    #[must_use]
+    pub fn capacity(&self) -> u32 {
+        self.capacity
+    }
+
+    /// The count of a recent frame, read back asynchronously (`None` until one arrived).
+    #[must_use]
+    pub fn last_count(&self) -> Option<u32> {
+        self.last_count
+    }
+
+    /// Whether that frame had more surfels than the buffers held (some were left out).
+    #[must_use]
+    pub fn overflowed(&self) -> bool {
+        self.last_count.is_some_and(|c| c > self.capacity)
+    }
+
+    /// Buffers and bind groups the last [`Self::record`] made.
+    #[must_use]
+    pub fn created(&self) -> usize {
+        self.created
+    }
+
+    /// The positions (`vec4`, w unused), normals (`vec4`) and count buffer (`u32` count, then
+    /// `project`'s dispatch arguments) the passes write.
+    #[must_use]
+    pub fn buffers(&self) -> (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer) {
+        (self.positions.buffer(), self.normals.buffer(), &self.total)
+    }
+
+    /// Records the passes extracting the surfels of `grid` into `encoder`; call
+    /// [`Self::after_submit`] once the encoder is submitted.
+    pub fn record(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        grid: &GpuGrid,
+        points: Points<'_>,
+        kernel: Kernel,
+        params: &SurfelParams,
+    ) -> Result<(), crate::Error> {
+        let iso = iso_of(points.h, kernel, params)?;
+        points.check()?;
+        if points.weights.is_some_and(|w| w.iter().any(|&x| x != 1.0)) {
+            return Err(GpuError::Validation(
+                "the GPU surfels do not take per-point weights yet; extract these on the CPU"
+                    .into(),
+            )
+            .into());
+        }
+        self.take_count();
+        let (device, queue) = (&ctx.device, &ctx.queue);
+        let spec = grid.spec;
+        let n = spec.cells();
+        if u128::from(grid.values.size()) < n * 4 || n > u128::from(u32::MAX) {
+            return Err(GpuError::Validation(format!(
+                "the GPU grid's buffer holds {} bytes, not the {} of its {n} points",
+                grid.values.size(),
+                n * 4
+            ))
+            .into());
+        }
+        let [nx, ny, nz] = spec.dims.map(u64::from);
+        let guess = (3 * 2 * (nx * ny + ny * nz + nz * nx)).min(u64::from(u32::MAX)) as u32;
+        let wanted = self
+            .last_count
+            .map_or(guess, |c| c.saturating_add(c / 2))
+            .max(self.capacity)
+            .max(1024);
+        self.capacity = wanted;
+        let (sorted, start, bins, bin_size) = crate::density::gpu::bin_particles(
+            &points,
+            &spec,
+            points.max_radius(),
+            crate::density::gpu::GATHER_REACH,
+        );
+        let blocks = (n as u32).div_ceil(BLOCK);
+        let made = [
+            self.points
+                .write(device, queue, bytemuck::cast_slice(&sorted)),
+            self.bin_start
+                .write(device, queue, bytemuck::cast_slice(&start)),
+            self.block_sums.reserve(device, u64::from(blocks) * 4),
+            self.positions.reserve(device, u64::from(wanted) * 16),
+            self.normals.reserve(device, u64::from(wanted) * 16),
+        ];
+        self.created = made.iter().filter(|&&m| m).count();
+        let raw = RawSurfelParams {
+            origin: spec.origin.to_array(),
+            spacing: spec.spacing,
+            dims: spec.dims,
+            iso,
+            bin_origin: spec.origin.to_array(),
+            bin_size,
+            bins,
+            reach: crate::density::gpu::GATHER_REACH,
+            h: points.h,
+            constant: crate::density::gpu::kernel_constant(kernel, points.h),
+            kernel: crate::density::gpu::kernel_code(kernel),
+            newton_steps: params.newton_steps,
+            blocks,
+            converged: CONVERGED,
+            sparse_block: 0,
+            inside: 0.0,
+            capacity: wanted,
+            _pad: [0; 3],
+        };
+        queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
+        let stale = self
+            .bind
+            .as_ref()
+            .is_none_or(|(_, g)| *g != grid.values || self.created > 0);
+        if stale {
+            let buffers = [
+                &self.uniform,
+                &grid.values,
+                self.block_sums.buffer(),
+                &self.total,
+                self.positions.buffer(),
+                self.normals.buffer(),
+                self.points.buffer(),
+                self.bin_start.buffer(),
+                &self.states,
+            ];
+            self.bind = Some((self.passes.bind(device, &buffers), grid.values.clone()));
+            self.created += 1;
+        }
+        let bind = &self.bind.as_ref().expect("made above").0;
+        let points_dispatch = dispatch_size(blocks);
+        for (pipeline, (x, y)) in [
+            (&self.passes.count, points_dispatch),
+            (&self.passes.scan_blocks, (1, 1)),
+            (&self.passes.emit, points_dispatch),
+        ] {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, bind, &[]);
+            pass.dispatch_workgroups(x, y, 1);
+        }
+        // the workgroups `scan_blocks` wrote after the count, into a buffer of their own: the
+        // count's buffer is bound for `project` too, and one dispatch cannot use a buffer both
+        // ways
+        encoder.copy_buffer_to_buffer(&self.total, 4, &self.args, 0, 12);
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.passes.project);
+            pass.set_bind_group(0, bind, &[]);
+            pass.dispatch_workgroups_indirect(&self.args, 0);
+        }
+        if matches!(self.count, CountReadback::Idle) {
+            encoder.copy_buffer_to_buffer(&self.total, 0, &self.readback, 0, 16);
+            self.count = CountReadback::Copied;
+        }
+        self.iso = iso;
+        self.spacing = spec.spacing;
+        Ok(())
+    }
+
+    /// Starts the count's read-back once the encoder that [`Self::record`] filled is submitted
+    /// (no wait: the result is looked at by a later `record`).
+    pub fn after_submit(&mut self) {
+        if matches!(self.count, CountReadback::Copied) {
+            let done = Arc::new(Mutex::new(None));
+            let set = Arc::clone(&done);
+            self.readback
+                .slice(..)
+                .map_async(wgpu::MapMode::Read, move |r| {
+                    if let Ok(mut d) = set.lock() {
+                        *d = Some(r);
+                    }
+                });
+            self.count = CountReadback::Mapping(done);
+        }
+    }
+
+    /// Takes the count of a finished read-back, if one has finished.
+    fn take_count(&mut self) {
+        let CountReadback::Mapping(done) = &self.count else {
+            return;
+        };
+        let result = done.lock().ok().and_then(|mut d| d.take());
+        match result {
+            None => {}
+            Some(Ok(())) => {
+                if let Ok(data) = self.readback.slice(..).get_mapped_range() {
+                    self.last_count = bytemuck::cast_slice::<u8, u32>(&data).first().copied();
+                }
+                self.readback.unmap();
+                self.count = CountReadback::Idle;
+            }
+            Some(Err(_)) => self.count = CountReadback::Idle,
+        }
+    }
+
+    /// The surfels of the last recorded frame, read back (waits on the device: for tests and
+    /// tools, never on a frame's path). At most [`Self::capacity`] of them.
+    pub fn read(&self, ctx: &GpuContext) -> Result<Surfels, crate::Error> {
+        let count = gpu::read_buffer::<u32>(ctx, &self.total)?[0].min(self.capacity) as usize;
+        let xyz = |b: &wgpu::Buffer| -> Result<Vec<Vec3>, GpuError> {
+            let v = gpu::read_buffer::<[f32; 4]>(ctx, b)?;
+            Ok(v[..count]
+                .iter()
+                .map(|p| Vec3::new(p[0], p[1], p[2]))
+                .collect())
+        };
+        let positions = xyz(self.positions.buffer())?;
+        Ok(Surfels {
+            normals: xyz(self.normals.buffer())?,
+            radii: vec![self.spacing; positions.len()],
+            positions,
+            iso: self.iso,
+        })
+    }
 }
