@@ -22,6 +22,13 @@ fn density_kernel_r2(r2: f32, h: f32, constant: f32, kernel: u32) -> f32 {
     return constant * 0.25 * t * t * t;
 }
 
+// A point of the compute passes (density_gather.wgsl, surfels.wgsl), the `RawPoint` of
+// src/density/gpu.rs: position and radius (w), and its weight in the density.
+struct Point {
+    at: vec4<f32>,
+    weight: f32,
+}
+
 // A ray: origin and direction (view space in the splat passes, world space in the optics).
 struct Ray {
     origin: vec3<f32>,

@@ -1,4 +1,5 @@
-// Density grid by gathering (the compute-shader variant of Iwasaki et al. §4.1): the particles are
+// Density grid by gathering (the compute-shader variant of Iwasaki et al. §4.1), each particle
+// weighted (the chain's boundary weights; 1 otherwise): the particles are
 // binned on the CPU into cubic bins of side >= (largest radius) / reach (sorted by bin, with the
 // start of every bin), and one invocation per grid point of a group of planes sums the kernel of
 // each particle's own radius (measured against the reference radius h) over the particles
@@ -30,8 +31,8 @@ struct GatherParams {
 }
 
 @group(0) @binding(0) var<uniform> params: GatherParams;
-// particles sorted by bin (xyz, w = radius)
-@group(0) @binding(1) var<storage, read> particles: array<vec4<f32>>;
+// particles sorted by bin (position, radius and weight)
+@group(0) @binding(1) var<storage, read> particles: array<Point>;
 // bin_start[b] .. bin_start[b + 1]: the particles of bin b (x fastest, then y, then z)
 @group(0) @binding(2) var<storage, read> bin_start: array<u32>;
 // densities of the dispatch's planes, x fastest
@@ -56,9 +57,10 @@ fn gather(@builtin(global_invocation_id) id: vec3<u32>) {
             let first = bin_start[row + u32(lo.x)];
             let end = bin_start[row + u32(hi.x) + 1u];
             for (var i = first; i < end; i++) {
-                let d = x - particles[i].xyz;
+                let d = x - particles[i].at.xyz;
                 let r2 = d.x * d.x + (d.y * d.y + d.z * d.z);
-                sum += density_kernel_r2(r2, particles[i].w, params.constant, params.kernel);
+                sum += particles[i].weight
+                    * density_kernel_r2(r2, particles[i].at.w, params.constant, params.kernel);
             }
         }
     }

@@ -56,8 +56,8 @@ struct SurfelParams {
 @group(0) @binding(4) var<storage, read_write> positions: array<vec4<f32>>;
 // surfel normals (w unused), out of the fluid (project)
 @group(0) @binding(5) var<storage, read_write> normals: array<vec4<f32>>;
-// the points sorted by bin (xyz, w = radius), and where each bin starts
-@group(0) @binding(6) var<storage, read> points: array<vec4<f32>>;
+// the points sorted by bin (position, radius, weight), and where each bin starts
+@group(0) @binding(6) var<storage, read> points: array<Point>;
 @group(0) @binding(7) var<storage, read> bin_start: array<u32>;
 // a sparse grid's block states (x fastest): empty (0xffffffff, every value 0), inside
 // (0xfffffffe, every value `inside`) or the slot of the block's values in `grid`
@@ -236,7 +236,7 @@ fn emit(
 
 // The points' density at x (w) and its analytic gradient (xyz): `ExactDensity::value_and_gradient`,
 // each point's kernel of its own radius against the reference radius's constant
-// (`Kernel::weighted_and_gradient`).
+// (`Kernel::weighted_and_gradient`), times its weight.
 fn density_and_gradient(x: vec3<f32>) -> vec4<f32> {
     let b = vec3<i32>(floor((x - params.bin_origin) / params.bin_size));
     let last = vec3<i32>(params.bins) - vec3<i32>(1);
@@ -252,8 +252,9 @@ fn density_and_gradient(x: vec3<f32>) -> vec4<f32> {
             let first = bin_start[row + u32(lo.x)];
             let end = bin_start[row + u32(hi.x) + 1u];
             for (var n = first; n < end; n++) {
-                let d = x - points[n].xyz;
-                let hj = points[n].w;
+                let d = x - points[n].at.xyz;
+                let hj = points[n].at.w;
+                let wj = points[n].weight;
                 let r2 = dot(d, d);
                 if params.kernel == 0u {
                     let inv = 1.0 / (hj * hj);
@@ -261,8 +262,8 @@ fn density_and_gradient(x: vec3<f32>) -> vec4<f32> {
                     if a2 < 1.0 {
                         let poly = ((-4.0 / 9.0 * a2 + 17.0 / 9.0) * a2 - 22.0 / 9.0) * a2 + 1.0;
                         let slope = (-4.0 / 3.0 * a2 + 34.0 / 9.0) * a2 - 22.0 / 9.0;
-                        sum += c * poly;
-                        grad += d * (c * slope * 2.0 * inv);
+                        sum += wj * (c * poly);
+                        grad += wj * (d * (c * slope * 2.0 * inv));
                     }
                 } else {
                     let r = sqrt(r2);
@@ -278,9 +279,9 @@ fn density_and_gradient(x: vec3<f32>) -> vec4<f32> {
                             v = c * 0.25 * t * t * t;
                             df = -0.75 * t * t;
                         }
-                        sum += v;
+                        sum += wj * v;
                         if r > 0.0 {
-                            grad += d * (c * df * 2.0 / (hj * r));
+                            grad += wj * (d * (c * df * 2.0 / (hj * r)));
                         }
                     }
                 }

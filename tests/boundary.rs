@@ -372,8 +372,9 @@ fn a_lone_particle_is_a_ball_of_its_own_volume() {
 /// The weights the boundary calibration gives the refined points are summed alike on every CPU
 /// path: the streamed dense grid equals the naive reference, the exact density (the surfels'
 /// projection) equals the grid, weights of 1 change nothing bit for bit, and the sparse grid of
-/// the calibrated chain gives the dense grid's surfels. The GPU density refuses weights with a
-/// typed error until it takes them (issue 37).
+/// the calibrated chain gives the dense grid's surfels. The GPU's splatting density (the
+/// default method) refuses weights with a typed error; the gather method sums them (issue 37,
+/// `tests/gpu.rs`).
 #[test]
 fn weighted_points_sum_alike_on_every_cpu_path() {
     use fluid_surfels::density::{self, GridSpec, Kernel, Points, Resolution};

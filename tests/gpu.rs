@@ -40,6 +40,13 @@ fn twins() -> Vec<Twin> {
             fields!(RawParams; origin, spacing, dims, h, constant, planes, kernel),
         ),
         (
+            "density_gather.wgsl",
+            gpu_density::GATHER_SHADER,
+            "Point",
+            std::mem::size_of::<gpu_density::RawPoint>(),
+            fields!(gpu_density::RawPoint; at, weight),
+        ),
+        (
             "surfels.wgsl",
             fluid_surfels::surfels::gpu::SHADER,
             "SurfelParams",
@@ -248,6 +255,34 @@ fn gpu_density_with_a_radius_per_point_matches_the_cpu_path() {
                 &gpu,
             );
         }
+        // weights (the chain's boundary weights): summed by the gather method, refused by
+        // the splatting one
+        let weights: Vec<f32> = points
+            .iter()
+            .map(|p| 1.0 + 0.5 * (13.0 * p.x - 7.0 * p.y).sin())
+            .collect();
+        let weighted = pts.with_weights(&weights);
+        let cpu = density::points_grid(weighted, &spec, kernel, 1 << 30).unwrap();
+        let gpu = gpu_density::density_grid_gpu_with(
+            &ctx,
+            weighted,
+            &spec,
+            kernel,
+            GpuDensityMethod::Gather,
+        )
+        .unwrap();
+        assert_grids_agree(&format!("weights, {kernel:?}, Gather"), &cpu, &gpu);
+        let refused = gpu_density::density_grid_gpu_with(
+            &ctx,
+            weighted,
+            &spec,
+            kernel,
+            GpuDensityMethod::Splat,
+        );
+        assert!(
+            refused.is_err(),
+            "the splatting method summed weights it cannot draw"
+        );
     }
 }
 
@@ -766,7 +801,7 @@ fn pipeline_draw_is_the_shaded_splats_on_either_backend() {
 
 /// The GPU surfels (issue 37, first part) against the CPU's, on the same grid: the double dam
 /// break (Wyvill, the paper's kernel), the column's splash frame (the cubic spline) and points
-/// with a radius each (the chain's case), on the dense and the sparse grid: the same count, and
+/// with a radius each and with weights too (the chain's case), on the dense and the sparse grid: the same count, and
 /// surfel by surfel (the same order) positions within 1e-3 of a cell and normals within 1
 /// degree.
 #[test]
@@ -794,6 +829,11 @@ fn gpu_surfels_equal_the_cpus() {
         .iter()
         .map(|p| h_ddb * (1.0 + 0.3 * (37.0 * p.x + 11.0 * p.z).sin()))
         .collect();
+    // weights from 0.5 to 1.5, as the boundary calibration's
+    let weights: Vec<f32> = ddb
+        .iter()
+        .map(|p| 1.0 + 0.5 * (23.0 * p.y - 5.0 * p.x).sin())
+        .collect();
     let cases = [
         (
             "double dam break",
@@ -809,6 +849,11 @@ fn gpu_surfels_equal_the_cpus() {
             "radius per point",
             Points::with_radii(&ddb, &radii, h_ddb),
             Kernel::Wyvill,
+        ),
+        (
+            "weights",
+            Points::with_radii(&ddb, &radii, h_ddb).with_weights(&weights),
+            Kernel::CubicSpline,
         ),
     ];
     let params = SurfelParams::default();
@@ -890,6 +935,18 @@ fn gpu_surfels_equal_the_cpus() {
             "{name}: a normal {worst_a} degrees from the CPU's"
         );
     }
+}
+
+/// A lone particle on the GPU: no surfels above its peak, the CPU's count at the default
+/// iso-value, and a weight of 2 making it larger, as on the CPU.
+#[test]
+fn gpu_surfels_of_a_lone_particle() {
+    use fluid_surfels::density::{GridSpec, Kernel, Resolution};
+    use fluid_surfels::surfels::{self, SurfelParams};
+    let Some(ctx) = gpu::context_or_skip("gpu_surfels_of_a_lone_particle").unwrap() else {
+        return;
+    };
+    let params = SurfelParams::default();
     // nothing to extract: no surfels, no error
     let one = [glam::Vec3::ZERO];
     let points = Points::uniform(&one, 1.0);
@@ -911,17 +968,17 @@ fn gpu_surfels_equal_the_cpus() {
             .unwrap()
             .len()
     );
-    // weights are refused, not ignored
+    // a weighted lone particle: its weight doubles its density, as on the CPU
     let w = [2.0f32];
-    assert!(
-        surfels::gpu::extract_gpu(
-            &ctx,
-            &grid,
-            points.with_weights(&w),
-            Kernel::Wyvill,
-            &params
-        )
-        .is_err()
+    let heavy = points.with_weights(&w);
+    let grid = fluid_surfels::density::points_grid(heavy, &spec, Kernel::Wyvill, 1 << 30).unwrap();
+    let on_cpu = surfels::extract_points(&grid, heavy, Kernel::Wyvill, &params).unwrap();
+    assert!(on_cpu.len() > lone.len(), "a heavier drop is larger");
+    assert_eq!(
+        surfels::gpu::extract_gpu(&ctx, &grid, heavy, Kernel::Wyvill, &params)
+            .unwrap()
+            .len(),
+        on_cpu.len()
     );
 }
 

@@ -52,20 +52,35 @@ const PLANES: u32 = 4;
 const BATCH: u32 = 8;
 
 /// Both GPU methods refuse what the CPU path refuses (radii <= 0 or not finite, non-finite
-/// positions), as a validation error.
+/// positions or weights), as a validation error.
 fn check_inputs(points: &Points<'_>) -> Result<(), GpuError> {
     points
         .check()
-        .map_err(|e| GpuError::Validation(e.to_string()))?;
-    // the chain's boundary weights (issue 35) are summed on the CPU only so far; the GPU chain
-    // of issue 37 takes them into its instances
+        .map_err(|e| GpuError::Validation(e.to_string()))
+}
+
+/// The splatting method draws instances of `(x, y, z, radius)`: it refuses per-point weights
+/// (the chain's boundary weights, issue 35), which the gather method sums.
+fn refuse_weights(points: &Points<'_>) -> Result<(), GpuError> {
     if points.weights.is_some_and(|w| w.iter().any(|&x| x != 1.0)) {
         return Err(GpuError::Validation(
-            "the GPU density does not take per-point weights yet; fill this grid on the CPU".into(),
+            "the splatting GPU density does not take per-point weights; use the gather method (GpuDensityMethod::Gather) or the CPU".into(),
         ));
     }
     Ok(())
 }
+
+/// A point as the compute passes read it (the WGSL `Point` of `common.wgsl`, 32 bytes): its
+/// position and radius, and its weight in the density.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+pub struct RawPoint {
+    pub at: [f32; 4],
+    pub weight: f32,
+    pub _pad: [f32; 3],
+}
+
+const _: () = assert!(std::mem::size_of::<RawPoint>() == 32);
 
 /// The points as the shaders read them: `(x, y, z, radius)`.
 fn instances(points: &Points<'_>) -> Vec<[f32; 4]> {
@@ -177,6 +192,7 @@ pub fn splat_slabs_gpu(
     mut sink: impl FnMut(u32, Vec<f32>),
 ) -> Result<(), GpuError> {
     check_inputs(&points)?;
+    refuse_weights(&points)?;
     let (h, reach) = (points.h, points.max_radius());
     let device = &ctx.device;
     let [nx, ny, nz] = spec.dims;
@@ -383,14 +399,14 @@ pub const GATHER_REACH: u32 = 2;
 /// Most bins the gather path builds (4 bytes each); beyond, bins grow larger than `h`.
 const MAX_BINS: u64 = 1 << 24;
 
-/// Particles sorted into cubic bins of side >= `h / reach` over the grid's box: the sorted positions,
+/// Particles sorted into cubic bins of side >= `h / reach` over the grid's box: the sorted points,
 /// the start of each bin (one more entry than bins), the bin counts and side.
 pub(crate) fn bin_particles(
     points: &Points<'_>,
     spec: &GridSpec,
     h: f32,
     reach: u32,
-) -> (Vec<[f32; 4]>, Vec<u32>, [u32; 3], f32) {
+) -> (Vec<RawPoint>, Vec<u32>, [u32; 3], f32) {
     let positions = points.positions;
     let extent = spec.spacing
         * Vec3::new(
@@ -420,10 +436,14 @@ pub(crate) fn bin_particles(
         start[i + 1] += start[i];
     }
     let mut next = start.clone();
-    let mut sorted = vec![[0.0f32; 4]; positions.len()];
+    let mut sorted = vec![RawPoint::zeroed(); positions.len()];
     for (i, &p) in positions.iter().enumerate() {
         let b = bin_of(p);
-        sorted[next[b] as usize] = [p.x, p.y, p.z, points.radius(i)];
+        sorted[next[b] as usize] = RawPoint {
+            at: [p.x, p.y, p.z, points.radius(i)],
+            weight: points.weight(i),
+            _pad: [0.0; 3],
+        };
         next[b] += 1;
     }
     (sorted, start, n.to_array(), size)
@@ -475,7 +495,7 @@ impl Gather {
         // bins sized for the largest radius; each point's kernel uses its own
         let (sorted, start, bins, bin_size) =
             bin_particles(points, spec, points.max_radius(), GATHER_REACH);
-        let particle_bytes = (sorted.len().max(1) * 16) as u64;
+        let particle_bytes = (sorted.len().max(1) * 32) as u64;
         if particle_bytes > max_binding || (start.len() * 4) as u64 > max_binding {
             return Err(GpuError::Validation(format!(
                 "{} particles exceed the GPU's storage binding limit of {max_binding} bytes; use the splatting method or the CPU path",
@@ -483,10 +503,11 @@ impl Gather {
             )));
         }
         use wgpu::util::DeviceExt;
+        let placeholder = [RawPoint::zeroed()];
         let particles = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("binned particles"),
             contents: bytemuck::cast_slice(if sorted.is_empty() {
-                &[[0.0f32; 4]]
+                &placeholder[..]
             } else {
                 &sorted[..]
             }),
@@ -785,7 +806,7 @@ impl GridFiller {
         }
         let (sorted, start, bins, bin_size) =
             bin_particles(&points, spec, points.max_radius(), GATHER_REACH);
-        if (sorted.len() * 16) as u64 > max_binding || (start.len() * 4) as u64 > max_binding {
+        if (sorted.len() * 32) as u64 > max_binding || (start.len() * 4) as u64 > max_binding {
             return Err(GpuError::Validation(format!(
                 "{} particles exceed the GPU's storage binding limit of {max_binding} bytes",
                 points.len()

@@ -2,7 +2,7 @@
 //! iso-value on the grid's edges, compacted by a prefix sum in the CPU's order (surfel `n` is
 //! the CPU's surfel `n`), projected onto the exact iso-surface by Newton steps along the
 //! analytic gradient of the points' density (the points binned as the density's gather pass bins
-//! them), radii the grid spacing. Four compute passes (`shaders/surfels.wgsl`): `count` (the
+//! them, each with its radius and weight), radii the grid spacing. Four compute passes (`shaders/surfels.wgsl`): `count` (the
 //! crossings each grid point owns, summed per block of 256 points), `scan_blocks` (each block's
 //! first surfel), `emit` (the crossings), `project`.
 //!
@@ -89,7 +89,7 @@ fn storage(
 
 /// The surfels of `grid` on the GPU: the same as [`super::extract_points`] (counts equal,
 /// positions and normals within float rounding of the sums' order). Errors: the CPU's for bad
-/// parameters or points, points with weights (not on the GPU yet), a grid or points beyond the
+/// parameters or points, a grid or points beyond the
 /// adapter's storage binding limit, and the device's own. Compiles the passes each call; a
 /// sequence keeps a [`SurfelPasses`].
 pub fn extract_gpu(
@@ -354,12 +354,6 @@ fn upload(
     iso: f32,
 ) -> Result<Option<Inputs>, crate::Error> {
     points.check()?;
-    if points.weights.is_some_and(|w| w.iter().any(|&x| x != 1.0)) {
-        return Err(GpuError::Validation(
-            "the GPU surfels do not take per-point weights yet; extract these on the CPU".into(),
-        )
-        .into());
-    }
     let spec = grid.spec();
     let n = spec.cells();
     if n == 0 || points.is_empty() {
@@ -396,7 +390,7 @@ fn upload(
         points.max_radius(),
         crate::density::gpu::GATHER_REACH,
     );
-    if (sorted.len() * 16) as u64 > max_binding || (start.len() * 4) as u64 > max_binding {
+    if (sorted.len() * 32) as u64 > max_binding || (start.len() * 4) as u64 > max_binding {
         return Err(GpuError::Validation(format!(
             "{} points exceed the GPU's storage binding limit of {max_binding} bytes; extract these surfels on the CPU",
             points.len()
@@ -665,13 +659,6 @@ impl ResidentSurfels {
     ) -> Result<(), crate::Error> {
         let iso = iso_of(points.h, kernel, params)?;
         points.check()?;
-        if points.weights.is_some_and(|w| w.iter().any(|&x| x != 1.0)) {
-            return Err(GpuError::Validation(
-                "the GPU surfels do not take per-point weights yet; extract these on the CPU"
-                    .into(),
-            )
-            .into());
-        }
         self.take_count();
         let (device, queue) = (&ctx.device, &ctx.queue);
         let spec = grid.spec;
