@@ -1145,3 +1145,51 @@ fn gpu_grid_and_surfels_record_frames_without_waits() {
         );
     }
 }
+
+/// Bad input on the GPU frame path (issue 37): a grid beyond the adapter's storage binding
+/// limit is a typed error before any work, a frame without particles gives no surfels, a
+/// non-finite position is refused; never a panic or a lost device (the next frame works).
+#[test]
+fn gpu_frame_path_refuses_bad_input_and_goes_on() {
+    use fluid_surfels::density::gpu::GridFiller;
+    use fluid_surfels::surfels::{SurfelParams, gpu::ResidentSurfels};
+    let Some(ctx) = gpu::context_or_skip("gpu_frame_path_refuses_bad_input_and_goes_on").unwrap()
+    else {
+        return;
+    };
+    let mut filler = GridFiller::new(&ctx.device);
+    let mut surfels = ResidentSurfels::new(&ctx.device);
+    let params = SurfelParams::default();
+    let block = scenes::block(&scenes::BlockParams {
+        counts: [6, 6, 6],
+        ..Default::default()
+    })
+    .unwrap();
+    let (p, h) = (&block.particles.positions, block.support_radius);
+    let spec = GridSpec::around(p, h, Resolution::CellSize(h / 3.0)).unwrap();
+    let mut frame =
+        |positions: &[glam::Vec3], spec: &GridSpec| -> Result<usize, fluid_surfels::Error> {
+            let points = Points::uniform(positions, h);
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            let grid = filler.record(&ctx, &mut encoder, points, spec, Kernel::Wyvill)?;
+            surfels.record(&ctx, &mut encoder, &grid, points, Kernel::Wyvill, &params)?;
+            ctx.queue.submit([encoder.finish()]);
+            surfels.after_submit();
+            Ok(surfels.read(&ctx)?.len())
+        };
+    // far too large a grid: refused by size
+    let huge = GridSpec {
+        dims: [4096, 4096, 4096],
+        ..spec
+    };
+    let e = frame(p, &huge).unwrap_err().to_string();
+    assert!(e.contains("storage binding limit"), "{e}");
+    // no particles: no surfels
+    assert_eq!(frame(&[], &spec).unwrap(), 0);
+    // a non-finite position: refused
+    let mut bad = p.clone();
+    bad[3].y = f32::NAN;
+    assert!(frame(&bad, &spec).is_err());
+    // and the device goes on
+    assert!(frame(p, &spec).unwrap() > 100);
+}

@@ -496,9 +496,10 @@ impl Grow {
         }
     }
 
-    /// Makes sure the buffer holds `size` bytes (at least 16); whether a new one was made.
+    /// Makes sure the buffer holds `size` bytes (at least 32: one element of the largest
+    /// runtime array bound, the compute passes' 32-byte points); whether a new one was made.
     pub(crate) fn reserve(&mut self, device: &wgpu::Device, size: u64) -> bool {
-        let size = size.max(16).next_multiple_of(4);
+        let size = size.max(32).next_multiple_of(4);
         if self.buffer.as_ref().is_some_and(|b| b.size() >= size) {
             return false;
         }
