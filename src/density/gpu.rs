@@ -684,58 +684,25 @@ impl GpuGrid {
 }
 
 /// The density grid filled on the GPU by the gather pass and left there: one dispatch over
-/// every plane, recorded and submitted, no read-back. Errors as [`gather_slabs_gpu`], and a
-/// grid beyond the adapter's storage binding limit (the slabs of the read-back paths are not
-/// bound by it).
+/// every plane, recorded and submitted, no read-back (a [`GridFiller`] of its own; a sequence
+/// keeps one). Errors as [`gather_slabs_gpu`], and a grid beyond the adapter's storage binding
+/// limit or a dispatch's 65,535 planes (the slabs of the read-back paths are not bound by
+/// them).
 pub fn density_grid_on_gpu(
     ctx: &GpuContext,
     points: Points<'_>,
     spec: &GridSpec,
     kernel: Kernel,
 ) -> Result<GpuGrid, GpuError> {
-    let gather = Gather::new(ctx, &points, spec)?;
-    let bytes = spec.cells() * 4;
-    if bytes > u128::from(gather.max_binding) {
-        return Err(GpuError::Validation(format!(
-            "a grid of {} points ({bytes} bytes) exceeds the GPU's storage binding limit of {} bytes; fill it in slabs (density_slabs_gpu) or on the CPU",
-            spec.cells(),
-            gather.max_binding
-        )));
-    }
-    let nz = spec.dims[2];
-    if nz > 65_535 {
-        return Err(GpuError::Validation(format!(
-            "{nz} planes exceed one dispatch's 65,535; fill the grid in slabs (density_slabs_gpu)"
-        )));
-    }
     let device = &ctx.device;
     let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-    let values = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("density grid"),
-        size: (bytes as u64).max(16),
-        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-        mapped_at_creation: false,
-    });
-    if bytes > 0 {
-        let mut encoder = device.create_command_encoder(&Default::default());
-        gather.record(
-            device,
-            &mut encoder,
-            spec,
-            &points,
-            kernel,
-            (0, nz),
-            &values,
-        );
-        ctx.queue.submit([encoder.finish()]);
-    }
+    let mut encoder = device.create_command_encoder(&Default::default());
+    let grid = GridFiller::new(device).record(ctx, &mut encoder, points, spec, kernel)?;
+    ctx.queue.submit([encoder.finish()]);
     if let Some(e) = pollster::block_on(scope.pop()) {
         return Err(GpuError::Validation(e.to_string()));
     }
-    Ok(GpuGrid {
-        spec: *spec,
-        values,
-    })
+    Ok(grid)
 }
 
 /// The gather pass kept from frame to frame (issue 37): its pipeline and uniform, and buffers

@@ -53,6 +53,40 @@ pub struct RawSurfelParams {
 
 const _: () = assert!(std::mem::size_of::<RawSurfelParams>() == 112);
 
+impl RawSurfelParams {
+    /// The parameters of a dense grid of `spec` at `iso`, the points binned into `bins` of
+    /// side `bin_size` (`density::gpu::bin_particles`), no capacity (set it).
+    fn new(
+        spec: &GridSpec,
+        iso: f32,
+        (bins, bin_size): ([u32; 3], f32),
+        points: &Points<'_>,
+        kernel: Kernel,
+        params: &SurfelParams,
+    ) -> Self {
+        Self {
+            origin: spec.origin.to_array(),
+            spacing: spec.spacing,
+            dims: spec.dims,
+            iso,
+            bin_origin: spec.origin.to_array(),
+            bin_size,
+            bins,
+            reach: crate::density::gpu::GATHER_REACH,
+            h: points.h,
+            constant: crate::density::gpu::kernel_constant(kernel, points.h),
+            kernel: crate::density::gpu::kernel_code(kernel),
+            newton_steps: params.newton_steps,
+            blocks: (spec.cells().min(u128::from(u32::MAX)) as u32).div_ceil(BLOCK),
+            converged: CONVERGED,
+            sparse_block: 0,
+            inside: 0.0,
+            capacity: 0,
+            _pad: [0; 3],
+        }
+    }
+}
+
 /// The WGSL source of the passes (`common.wgsl` prepended).
 pub const SHADER: &str = concat!(
     include_str!("../../shaders/common.wgsl"),
@@ -399,20 +433,6 @@ fn upload(
     }
     let blocks = (n as u32).div_ceil(BLOCK);
     let raw = RawSurfelParams {
-        origin: spec.origin.to_array(),
-        spacing: spec.spacing,
-        dims: spec.dims,
-        iso,
-        bin_origin: spec.origin.to_array(),
-        bin_size,
-        bins,
-        reach: crate::density::gpu::GATHER_REACH,
-        h: points.h,
-        constant: crate::density::gpu::kernel_constant(kernel, points.h),
-        kernel: crate::density::gpu::kernel_code(kernel),
-        newton_steps: params.newton_steps,
-        blocks,
-        converged: CONVERGED,
         sparse_block: match grid {
             GridIn::Sparse(_) => crate::density::sparse::BLOCK,
             _ => 0,
@@ -423,7 +443,7 @@ fn upload(
         },
         // the buffers are sized from the count read back: every surfel fits
         capacity: u32::MAX,
-        _pad: [0; 3],
+        ..RawSurfelParams::new(&spec, iso, (bins, bin_size), &points, kernel, params)
     };
     use wgpu::util::DeviceExt;
     let init = |label: &str, contents: &[u8], usage: wgpu::BufferUsages| {
@@ -697,24 +717,8 @@ impl ResidentSurfels {
         ];
         self.created = made.iter().filter(|&&m| m).count();
         let raw = RawSurfelParams {
-            origin: spec.origin.to_array(),
-            spacing: spec.spacing,
-            dims: spec.dims,
-            iso,
-            bin_origin: spec.origin.to_array(),
-            bin_size,
-            bins,
-            reach: crate::density::gpu::GATHER_REACH,
-            h: points.h,
-            constant: crate::density::gpu::kernel_constant(kernel, points.h),
-            kernel: crate::density::gpu::kernel_code(kernel),
-            newton_steps: params.newton_steps,
-            blocks,
-            converged: CONVERGED,
-            sparse_block: 0,
-            inside: 0.0,
             capacity: wanted,
-            _pad: [0; 3],
+            ..RawSurfelParams::new(&spec, iso, (bins, bin_size), &points, kernel, params)
         };
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
         let stale = self
