@@ -36,11 +36,24 @@ struct SurfelParams {
     // grid), and the value its inside blocks read as
     sparse_block: u32,
     inside: f32,
-    // surfels the position and normal buffers hold: the crossings past it are left out
+    // surfels the buffer holds: the crossings past it are left out
     capacity: u32,
     _pad0: u32,
     _pad1: u32,
     _pad2: u32,
+    // the surfels' colour (`splat::WATER`)
+    colour: vec4<f32>,
+}
+
+// A surfel as the splatting draws it (`splat::Surfel`, 64 bytes): a circular disk.
+struct Surfel {
+    position: vec3<f32>,
+    radius: f32,
+    normal: vec3<f32>,
+    stretch: f32,
+    tangent: vec3<f32>,
+    _pad: f32,
+    colour: vec4<f32>,
 }
 
 @group(0) @binding(0) var<uniform> params: SurfelParams;
@@ -49,19 +62,19 @@ struct SurfelParams {
 @group(0) @binding(1) var<storage, read> grid: array<f32>;
 // per block of 256 points: its crossings (count), then its first surfel (scan_blocks)
 @group(0) @binding(2) var<storage, read_write> block_sums: array<u32>;
-// [0]: the number of surfels; [1..4]: the workgroups of `project` for the surfels the buffers
-// hold (scan_blocks), for an indirect dispatch
+// [0]: the number of surfels; [1..4]: the workgroups of `project` for the surfels the buffer
+// holds, for an indirect dispatch; [4..8]: the splatting's indirect draw of them (6 vertices an
+// instance) (scan_blocks)
 @group(0) @binding(3) var<storage, read_write> total: array<u32>;
-// surfel positions (w unused): the crossings (emit), projected (project)
-@group(0) @binding(4) var<storage, read_write> positions: array<vec4<f32>>;
-// surfel normals (w unused), out of the fluid (project)
-@group(0) @binding(5) var<storage, read_write> normals: array<vec4<f32>>;
+// the surfels: the crossings' positions (emit), then projected, with normals out of the fluid,
+// radius, colour (project)
+@group(0) @binding(4) var<storage, read_write> surfels: array<Surfel>;
 // the points sorted by bin (position, radius, weight), and where each bin starts
-@group(0) @binding(6) var<storage, read> points: array<Point>;
-@group(0) @binding(7) var<storage, read> bin_start: array<u32>;
+@group(0) @binding(5) var<storage, read> points: array<Point>;
+@group(0) @binding(6) var<storage, read> bin_start: array<u32>;
 // a sparse grid's block states (x fastest): empty (0xffffffff, every value 0), inside
 // (0xfffffffe, every value `inside`) or the slot of the block's values in `grid`
-@group(0) @binding(8) var<storage, read> states: array<u32>;
+@group(0) @binding(7) var<storage, read> states: array<u32>;
 
 var<workgroup> scan: array<u32, 256>;
 
@@ -182,6 +195,10 @@ fn scan_blocks(@builtin(local_invocation_index) local: u32) {
         total[1] = x;
         total[2] = select(0u, (groups + x - 1u) / max(x, 1u), groups > 0u);
         total[3] = 1u;
+        total[4] = 6u;
+        total[5] = min(inclusive, params.capacity);
+        total[6] = 0u;
+        total[7] = 0u;
     }
 }
 
@@ -215,7 +232,7 @@ fn emit(
         let w = value_at(i + 1u, j, k);
         let there = grid_point(i + 1u, j, k);
         if at < params.capacity {
-            positions[at] = vec4<f32>(here + (there - here) * ((params.iso - v) / (w - v)), 0.0);
+            surfels[at].position = here + (there - here) * ((params.iso - v) / (w - v));
         }
         at += 1u;
     }
@@ -223,14 +240,14 @@ fn emit(
         let w = value_at(i, j + 1u, k);
         let there = grid_point(i, j + 1u, k);
         if at < params.capacity {
-            positions[at] = vec4<f32>(here + (there - here) * ((params.iso - v) / (w - v)), 0.0);
+            surfels[at].position = here + (there - here) * ((params.iso - v) / (w - v));
         }
         at += 1u;
     }
     if (m & 4u) != 0u && at < params.capacity {
         let u = value_at(i, j, k - 1u);
         let under = grid_point(i, j, k - 1u);
-        positions[at] = vec4<f32>(under + (here - under) * ((params.iso - u) / (v - u)), 0.0);
+        surfels[at].position = under + (here - under) * ((params.iso - u) / (v - u));
     }
 }
 
@@ -301,7 +318,7 @@ fn project(
     if s >= min(total[0], params.capacity) {
         return;
     }
-    var x = positions[s].xyz;
+    var x = surfels[s].position;
     var g = vec3<f32>(0.0);
     let cap = 0.5 * params.spacing;
     let done = params.converged * params.spacing;
@@ -326,11 +343,11 @@ fn project(
     if params.newton_steps == 0u {
         g = density_and_gradient(x).xyz;
     }
-    positions[s] = vec4<f32>(x, 0.0);
     var nrm = vec3<f32>(0.0);
     let g2 = dot(g, g);
     if g2 > 0.0 {
         nrm = -g / sqrt(g2);
     }
-    normals[s] = vec4<f32>(nrm, 0.0);
+    // a disk of the grid's spacing (`Surfel::disk`)
+    surfels[s] = Surfel(x, params.spacing, nrm, 1.0, vec3<f32>(0.0), 0.0, params.colour);
 }

@@ -40,6 +40,13 @@ fn twins() -> Vec<Twin> {
             fields!(RawParams; origin, spacing, dims, h, constant, planes, kernel),
         ),
         (
+            "surfels.wgsl",
+            fluid_surfels::surfels::gpu::SHADER,
+            "Surfel",
+            std::mem::size_of::<splat::Surfel>(),
+            fields!(splat::Surfel; position, radius, normal, stretch, tangent, colour),
+        ),
+        (
             "density_gather.wgsl",
             gpu_density::GATHER_SHADER,
             "Point",
@@ -51,7 +58,7 @@ fn twins() -> Vec<Twin> {
             fluid_surfels::surfels::gpu::SHADER,
             "SurfelParams",
             std::mem::size_of::<fluid_surfels::surfels::gpu::RawSurfelParams>(),
-            fields!(fluid_surfels::surfels::gpu::RawSurfelParams; origin, spacing, dims, iso, bin_origin, bin_size, bins, reach, h, constant, kernel, newton_steps, blocks, converged, sparse_block, inside, capacity),
+            fields!(fluid_surfels::surfels::gpu::RawSurfelParams; origin, spacing, dims, iso, bin_origin, bin_size, bins, reach, h, constant, kernel, newton_steps, blocks, converged, sparse_block, inside, capacity, colour),
         ),
         (
             "density_gather.wgsl",
@@ -1192,4 +1199,72 @@ fn gpu_frame_path_refuses_bad_input_and_goes_on() {
     assert!(frame(&bad, &spec).is_err());
     // and the device goes on
     assert!(frame(p, &spec).unwrap() > 100);
+}
+
+/// The surfels made on the GPU drawn from where they are (issue 37): the splatting reads the
+/// buffer the surfel passes wrote, with the count they wrote (an indirect draw, no read-back),
+/// and the shaded splats of the column's splash frame equal those of the CPU's surfels drawn
+/// the usual way within 40 dB.
+#[test]
+fn gpu_surfels_are_drawn_from_the_gpu() {
+    use fluid_surfels::density::gpu::GridFiller;
+    use fluid_surfels::surfels::{self, SurfelParams, gpu::ResidentSurfels};
+    let Some(ctx) = gpu::context_or_skip("gpu_surfels_are_drawn_from_the_gpu").unwrap() else {
+        return;
+    };
+    let column = scenes::build(
+        scenes::SceneName::Column,
+        Some(fluid_surfels::scenes::ColumnParams::SPLASH_FRAME),
+    )
+    .unwrap();
+    let (p, h) = (&column.particles.positions, column.support_radius);
+    let points = Points::uniform(p, h);
+    let spec = GridSpec::around(p, h, Resolution::CellSize(h / 3.0)).unwrap();
+    let params = SurfelParams::default();
+    // on the GPU: grid, surfels, no read-back
+    let mut filler = GridFiller::new(&ctx.device);
+    let mut resident = ResidentSurfels::new(&ctx.device);
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    let grid = filler
+        .record(&ctx, &mut encoder, points, &spec, Kernel::Wyvill)
+        .unwrap();
+    resident
+        .record(&ctx, &mut encoder, &grid, points, Kernel::Wyvill, &params)
+        .unwrap();
+    ctx.queue.submit([encoder.finish()]);
+    resident.after_submit();
+    // on the CPU: the same surfels as disks
+    let cpu_grid = density::points_grid(points, &spec, Kernel::Wyvill, 1 << 30).unwrap();
+    let cpu = surfels::extract_points(&cpu_grid, points, Kernel::Wyvill, &params).unwrap();
+    let disks: Vec<splat::Surfel> = cpu
+        .positions
+        .iter()
+        .zip(&cpu.normals)
+        .map(|(&x, &n)| splat::Surfel::disk(x, n, spec.spacing, splat::WATER))
+        .collect();
+    let (lo, hi) = p.iter().fold(
+        (glam::Vec3::INFINITY, glam::Vec3::NEG_INFINITY),
+        |(lo, hi), &q| (lo.min(q), hi.max(q)),
+    );
+    let camera = fluid_surfels::splat::Camera::framing(lo, hi);
+    let view =
+        splat::View::new(&camera, &Default::default(), &Default::default(), 160, 120).unwrap();
+    let renderer =
+        gpu_splat::SplatRenderer::new(&ctx.device, wgpu::TextureFormat::Rgba8Unorm, 160, 120)
+            .unwrap();
+    let from_gpu = gpu_splat::render_timed(&ctx, &renderer, &resident.surfel_buffer(), &view)
+        .unwrap()
+        .0;
+    let uploaded = gpu_splat::SplatRenderer::upload(&ctx.device, &disks);
+    let from_cpu = gpu_splat::render_timed(&ctx, &renderer, &uploaded, &view)
+        .unwrap()
+        .0;
+    let db = splat::psnr(&from_cpu.image, &from_gpu.image);
+    println!(
+        "{} surfels; drawn from the GPU's buffer {db:.1} dB from the CPU's, {} pixels covered",
+        cpu.len(),
+        from_gpu.covered_pixels()
+    );
+    assert!(from_gpu.covered_pixels() > 1000);
+    assert!(db >= 40.0, "{db:.1} dB");
 }

@@ -30,6 +30,9 @@ const DEPTH: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 /// no larger than the device's buffer limit.
 pub struct SurfelBuffer {
     chunks: Vec<(wgpu::Buffer, u32)>,
+    /// Drawn by an indirect draw from this buffer's arguments (surfels made on the GPU,
+    /// [`crate::surfels::gpu::ResidentSurfels`]): the one chunk's count is not known here.
+    indirect: Option<wgpu::Buffer>,
     /// Surfels uploaded.
     pub len: usize,
     /// Surfels skipped as undrawable.
@@ -39,6 +42,19 @@ pub struct SurfelBuffer {
 }
 
 impl SurfelBuffer {
+    /// Surfels that live on the GPU: `instances` (a `VERTEX` buffer of [`Surfel`]s) drawn with
+    /// the arguments in `args` (an `INDIRECT` buffer: 6 vertices, the instance count, 0, 0),
+    /// both written by GPU passes; `capacity` the surfels `instances` holds.
+    #[must_use]
+    pub fn indirect(instances: wgpu::Buffer, args: wgpu::Buffer, capacity: usize) -> Self {
+        Self {
+            chunks: vec![(instances, 0)],
+            indirect: Some(args),
+            len: 0,
+            skipped: 0,
+            capacity,
+        }
+    }
     /// Replaces the surfels for the next submission, reusing the buffer while they fit and
     /// growing it geometrically (to the next power of two) when they do not, so that a sequence
     /// allocates only while its largest frame so far grows. Writes go through
@@ -52,7 +68,7 @@ impl SurfelBuffer {
             *self = SplatRenderer::upload(device, surfels);
             return;
         }
-        if kept.len() > self.capacity || self.chunks.len() != 1 {
+        if kept.len() > self.capacity || self.chunks.len() != 1 || self.indirect.is_some() {
             let capacity = (kept.len().max(1).next_power_of_two() as u64).min(max) as usize;
             let buffer = device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("surfels"),
@@ -61,6 +77,7 @@ impl SurfelBuffer {
                 mapped_at_creation: false,
             });
             self.chunks = vec![(buffer, 0)];
+            self.indirect = None;
             self.capacity = capacity;
         }
         if !kept.is_empty() {
@@ -377,6 +394,7 @@ impl SplatRenderer {
             .collect();
         SurfelBuffer {
             chunks,
+            indirect: None,
             len: kept.len(),
             skipped,
             capacity: 0,
@@ -509,7 +527,10 @@ impl SplatRenderer {
     fn draw_surfels(&self, pass: &mut wgpu::RenderPass<'_>, surfels: &SurfelBuffer) {
         for (buffer, count) in &surfels.chunks {
             pass.set_vertex_buffer(0, buffer.slice(..));
-            pass.draw(0..6, 0..*count);
+            match &surfels.indirect {
+                Some(args) => pass.draw_indirect(args, 0),
+                None => pass.draw(0..6, 0..*count),
+            }
         }
     }
 

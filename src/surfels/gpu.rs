@@ -14,7 +14,8 @@
 //! keeps them on the GPU: recorded into the caller's encoder with the grid of a
 //! [`crate::density::gpu::GridFiller`], `project` dispatched indirectly, the count read back
 //! asynchronously to grow the buffers, nothing created after the first frames and nothing
-//! waited on. Drawing them from there (`GpuPipeline`) is the next part of issue 37.
+//! waited on; [`ResidentSurfels::surfel_buffer`] hands them to the splatting as they are (an
+//! indirect draw). Drawing them in `GpuPipeline` (with its optics) is the next part of issue 37.
 
 use std::sync::{Arc, Mutex};
 
@@ -25,8 +26,10 @@ use super::{CONVERGED, SurfelParams, Surfels, iso_of};
 use crate::density::gpu::GpuGrid;
 use crate::density::{DensityGrid, GridSpec, Kernel, Points, SparseGrid};
 use crate::gpu::{self, GpuContext, GpuError};
+use crate::splat::Surfel;
+use crate::splat::gpu::SurfelBuffer;
 
-/// The shader's `SurfelParams`, std140-compatible: 112 bytes (checked against the WGSL in a
+/// The shader's `SurfelParams`, std140-compatible: 128 bytes (checked against the WGSL in a
 /// test).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
@@ -49,9 +52,10 @@ pub struct RawSurfelParams {
     pub inside: f32,
     pub capacity: u32,
     pub _pad: [u32; 3],
+    pub colour: [f32; 4],
 }
 
-const _: () = assert!(std::mem::size_of::<RawSurfelParams>() == 112);
+const _: () = assert!(std::mem::size_of::<RawSurfelParams>() == 128);
 
 impl RawSurfelParams {
     /// The parameters of a dense grid of `spec` at `iso`, the points binned into `bins` of
@@ -83,6 +87,7 @@ impl RawSurfelParams {
             inside: 0.0,
             capacity: 0,
             _pad: [0; 3],
+            colour: crate::splat::WATER,
         }
     }
 }
@@ -186,8 +191,8 @@ impl SurfelPasses {
         }
     }
 
-    /// The bind group of the passes' nine buffers, in binding order.
-    fn bind(&self, device: &wgpu::Device, buffers: &[&wgpu::Buffer; 9]) -> wgpu::BindGroup {
+    /// The bind group of the passes' eight buffers, in binding order.
+    fn bind(&self, device: &wgpu::Device, buffers: &[&wgpu::Buffer; 8]) -> wgpu::BindGroup {
         let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
             .iter()
             .enumerate()
@@ -259,7 +264,7 @@ impl SurfelPasses {
             return finish(scope, empty);
         };
         let device = &ctx.device;
-        let bind = |positions: &wgpu::Buffer, normals: &wgpu::Buffer| {
+        let bind = |surfels: &wgpu::Buffer| {
             let [
                 uniform,
                 values,
@@ -272,8 +277,7 @@ impl SurfelPasses {
             self.bind(
                 device,
                 &[
-                    uniform, values, block_sums, total, positions, normals, binned, bin_start,
-                    states,
+                    uniform, values, block_sums, total, surfels, binned, bin_start, states,
                 ],
             )
         };
@@ -292,19 +296,19 @@ impl SurfelPasses {
         let placeholder = storage(
             device,
             "surfel placeholder",
-            16,
+            64,
             wgpu::BufferUsages::empty(),
         );
         let points_dispatch = dispatch_size(inputs.raw.blocks);
         run(
             &[(&self.count, points_dispatch), (&self.scan_blocks, (1, 1))],
-            &bind(&placeholder, &placeholder),
+            &bind(&placeholder),
         );
         let surfels = gpu::read_buffer::<u32>(ctx, &inputs.buffers[3])?[0];
         if surfels == 0 {
             return finish(scope, empty);
         }
-        let bytes = u64::from(surfels) * 16;
+        let bytes = u64::from(surfels) * 64;
         if bytes > inputs.max_binding {
             return Err(GpuError::Validation(format!(
                 "{surfels} surfels exceed the GPU's storage binding limit of {} bytes; extract them on the CPU",
@@ -312,18 +316,7 @@ impl SurfelPasses {
             ))
             .into());
         }
-        let positions = storage(
-            device,
-            "surfel positions",
-            bytes,
-            wgpu::BufferUsages::COPY_SRC,
-        );
-        let normals = storage(
-            device,
-            "surfel normals",
-            bytes,
-            wgpu::BufferUsages::COPY_SRC,
-        );
+        let written = storage(device, "surfels", bytes, wgpu::BufferUsages::COPY_SRC);
         run(
             &[
                 (&self.count, points_dispatch),
@@ -334,13 +327,9 @@ impl SurfelPasses {
                     dispatch_size(surfels.div_ceil(PROJECT_GROUP)),
                 ),
             ],
-            &bind(&positions, &normals),
+            &bind(&written),
         );
-        let xyz = |v: Vec<[f32; 4]>| -> Vec<Vec3> {
-            v.iter().map(|p| Vec3::new(p[0], p[1], p[2])).collect()
-        };
-        let positions = xyz(gpu::read_buffer::<[f32; 4]>(ctx, &positions)?);
-        let normals = xyz(gpu::read_buffer::<[f32; 4]>(ctx, &normals)?);
+        let (positions, normals) = split(&gpu::read_buffer::<Surfel>(ctx, &written)?);
         if let Some(bad) = positions.iter().position(|p| !p.is_finite()) {
             return Err(GpuError::Readback(format!("surfel {bad} is not finite")).into());
         }
@@ -482,7 +471,7 @@ fn upload(
             u64::from(blocks) * 4,
             wgpu::BufferUsages::empty(),
         ),
-        storage(device, "surfel count", 16, wgpu::BufferUsages::COPY_SRC),
+        storage(device, "surfel count", 32, wgpu::BufferUsages::COPY_SRC),
         init(
             "surfel points",
             bytemuck::cast_slice(&sorted),
@@ -514,6 +503,14 @@ fn upload(
     }))
 }
 
+/// The positions and normals of surfels as the splatting draws them.
+fn split(surfels: &[Surfel]) -> (Vec<Vec3>, Vec<Vec3>) {
+    surfels
+        .iter()
+        .map(|s| (Vec3::from(s.position), Vec3::from(s.normal)))
+        .unzip()
+}
+
 /// The surfels, or the validation error the device reported meanwhile.
 fn finish(scope: wgpu::ErrorScopeGuard, surfels: Surfels) -> Result<Surfels, crate::Error> {
     match pollster::block_on(scope.pop()) {
@@ -522,10 +519,10 @@ fn finish(scope: wgpu::ErrorScopeGuard, surfels: Surfels) -> Result<Surfels, cra
     }
 }
 
-/// The passes' bindings: the parameters, the grid, the block sums, the count, the positions,
-/// the normals, the binned points, the bins' starts and a sparse grid's block states.
+/// The passes' bindings: the parameters, the grid, the block sums, the count, the surfels, the
+/// binned points, the bins' starts and a sparse grid's block states.
 fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
-    let read_only = [false, true, false, false, false, false, true, true, true];
+    let read_only = [false, true, false, false, false, true, true, true];
     let entries: Vec<wgpu::BindGroupLayoutEntry> = read_only
         .iter()
         .enumerate()
@@ -573,10 +570,10 @@ pub struct ResidentSurfels {
     points: gpu::Grow,
     bin_start: gpu::Grow,
     block_sums: gpu::Grow,
-    positions: gpu::Grow,
-    normals: gpu::Grow,
+    instances: gpu::Grow,
     total: wgpu::Buffer,
     args: wgpu::Buffer,
+    draw: wgpu::Buffer,
     states: wgpu::Buffer,
     readback: wgpu::Buffer,
     count: CountReadback,
@@ -611,11 +608,18 @@ impl ResidentSurfels {
             points: gpu::Grow::new("surfel points", storage),
             bin_start: gpu::Grow::new("surfel bins", storage),
             block_sums: gpu::Grow::new("surfel block sums", storage),
-            positions: gpu::Grow::new("surfel positions", storage | wgpu::BufferUsages::COPY_SRC),
-            normals: gpu::Grow::new("surfel normals", storage | wgpu::BufferUsages::COPY_SRC),
-            total: fixed("surfel count", 16, storage | wgpu::BufferUsages::COPY_SRC),
+            instances: gpu::Grow::new(
+                "surfels",
+                storage | wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_SRC,
+            ),
+            total: fixed("surfel count", 32, storage | wgpu::BufferUsages::COPY_SRC),
             args: fixed(
                 "surfel projection dispatch",
+                16,
+                wgpu::BufferUsages::INDIRECT | wgpu::BufferUsages::COPY_DST,
+            ),
+            draw: fixed(
+                "surfel draw",
                 16,
                 wgpu::BufferUsages::INDIRECT | wgpu::BufferUsages::COPY_DST,
             ),
@@ -659,11 +663,16 @@ impl ResidentSurfels {
         self.created
     }
 
-    /// The positions (`vec4`, w unused), normals (`vec4`) and count buffer (`u32` count, then
-    /// `project`'s dispatch arguments) the passes write.
+    /// The surfels for the splatting: the buffer the passes write ([`Surfel`]s, disks of the
+    /// grid's spacing in [`crate::splat::WATER`]) drawn with the count the scan wrote, by an
+    /// indirect draw; no read-back.
     #[must_use]
-    pub fn buffers(&self) -> (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer) {
-        (self.positions.buffer(), self.normals.buffer(), &self.total)
+    pub fn surfel_buffer(&self) -> SurfelBuffer {
+        SurfelBuffer::indirect(
+            self.instances.buffer().clone(),
+            self.draw.clone(),
+            self.capacity as usize,
+        )
     }
 
     /// Records the passes extracting the surfels of `grid` into `encoder`; call
@@ -712,8 +721,7 @@ impl ResidentSurfels {
             self.bin_start
                 .write(device, queue, bytemuck::cast_slice(&start)),
             self.block_sums.reserve(device, u64::from(blocks) * 4),
-            self.positions.reserve(device, u64::from(wanted) * 16),
-            self.normals.reserve(device, u64::from(wanted) * 16),
+            self.instances.reserve(device, u64::from(wanted) * 64),
         ];
         self.created = made.iter().filter(|&&m| m).count();
         let raw = RawSurfelParams {
@@ -731,8 +739,7 @@ impl ResidentSurfels {
                 &grid.values,
                 self.block_sums.buffer(),
                 &self.total,
-                self.positions.buffer(),
-                self.normals.buffer(),
+                self.instances.buffer(),
                 self.points.buffer(),
                 self.bin_start.buffer(),
                 &self.states,
@@ -756,6 +763,7 @@ impl ResidentSurfels {
         // count's buffer is bound for `project` too, and one dispatch cannot use a buffer both
         // ways
         encoder.copy_buffer_to_buffer(&self.total, 4, &self.args, 0, 12);
+        encoder.copy_buffer_to_buffer(&self.total, 16, &self.draw, 0, 16);
         {
             let mut pass = encoder.begin_compute_pass(&Default::default());
             pass.set_pipeline(&self.passes.project);
@@ -811,16 +819,10 @@ impl ResidentSurfels {
     /// tools, never on a frame's path). At most [`Self::capacity`] of them.
     pub fn read(&self, ctx: &GpuContext) -> Result<Surfels, crate::Error> {
         let count = gpu::read_buffer::<u32>(ctx, &self.total)?[0].min(self.capacity) as usize;
-        let xyz = |b: &wgpu::Buffer| -> Result<Vec<Vec3>, GpuError> {
-            let v = gpu::read_buffer::<[f32; 4]>(ctx, b)?;
-            Ok(v[..count]
-                .iter()
-                .map(|p| Vec3::new(p[0], p[1], p[2]))
-                .collect())
-        };
-        let positions = xyz(self.positions.buffer())?;
+        let all = gpu::read_buffer::<Surfel>(ctx, self.instances.buffer())?;
+        let (positions, normals) = split(&all[..count.min(all.len())]);
         Ok(Surfels {
-            normals: xyz(self.normals.buffer())?,
+            normals,
             radii: vec![self.spacing; positions.len()],
             positions,
             iso: self.iso,
