@@ -9,7 +9,8 @@
 //! software rasteriser, it proves the loop works, not how fast a GPU runs it).
 //!
 //! `--json` prints one object: frames, the CPU milliseconds per frame (the CPU stages plus
-//! recording and submitting; mean and 95th percentile), the GPU milliseconds per frame from
+//! recording and submitting; mean and 95th percentile), those of `prepare` alone
+//! (`cpu_prepare_ms`), the stages that ran on the GPU (`gpu_stages`), the GPU milliseconds per frame from
 //! timestamp queries where the adapter has them (then each frame waits for its timestamps), and
 //! the PSNR of every saved frame against the CPU pipeline, and how many frames reused the
 //! pipeline's GPU resources (all but the first, in the steady state).
@@ -168,6 +169,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         std::fs::create_dir_all(&args.out)?;
     }
     let (mut cpu_ms, mut gpu_ms, mut saved) = (Vec::new(), Vec::new(), Vec::new());
+    let mut prepare_ms = Vec::new();
     let mut reused = 0;
     for f in 0..args.frames {
         let save = args.save.contains(&f);
@@ -176,7 +178,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         if let Some((set, _, _)) = &query {
             encoder.write_timestamp(set, 0);
         }
+        let t_prepare = Instant::now();
         let frame = gpu.prepare(&device, &queue, &mut encoder, sim.particles())?;
+        prepare_ms.push(t_prepare.elapsed().as_secs_f64() * 1e3);
         reused += usize::from(gpu.reused_resources());
         let target = gpu.draw_to_texture(&device, &mut encoder);
         if let Some((set, resolve, read)) = &query {
@@ -223,6 +227,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "size": [args.size.0, args.size.1],
         "cpu_ms_mean": mean(&cpu_ms),
         "cpu_ms_p95": percentile(&cpu_ms, 0.95),
+        "cpu_prepare_ms": mean(&prepare_ms),
+        "cpu_prepare_ms_p95": percentile(&prepare_ms, 0.95),
+        "gpu_stages": gpu.gpu_stages(),
         "gpu_ms_mean": (!gpu_ms.is_empty()).then(|| mean(&gpu_ms)),
         "gpu_ms_p95": (!gpu_ms.is_empty()).then(|| percentile(&gpu_ms, 0.95)),
         "saved": saved,

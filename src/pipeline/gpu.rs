@@ -153,6 +153,16 @@ impl GpuPipeline {
         })
     }
 
+    /// The stages that run on the GPU in [`GpuPipeline::prepare`], by name: today `"splats"`
+    /// (the water's splatting for the light's and the camera's views) and `"optics"`
+    /// (caustics, refraction, reflection, the final image); detection, upsampling, the density
+    /// grid and the surfels run on the CPU (their GPU twins, `density::gpu::GridFiller` and
+    /// `surfels::gpu::ResidentSurfels`, are not on this path yet: issue 37).
+    #[must_use]
+    pub fn gpu_stages(&self) -> &'static [&'static str] {
+        &["splats", "optics"]
+    }
+
     /// Whether the last `prepare` reused the previous frame's GPU resources (the steady state:
     /// nothing created, uniforms and surfels written through the queue); `false` on the first
     /// frame, after a resize, and when the light's screen changed size.
