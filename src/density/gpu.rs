@@ -390,6 +390,56 @@ pub struct RawGatherParams {
 
 const _: () = assert!(std::mem::size_of::<RawGatherParams>() == 80);
 
+impl RawGatherParams {
+    /// The parameters filling planes `k0 .. k0 + planes` of the grid of `spec` with `points`
+    /// binned as `binned` (over the grid's box).
+    fn new(
+        spec: &GridSpec,
+        binned: (&[u32; 3], f32),
+        points: &Points<'_>,
+        kernel: Kernel,
+        (k0, planes): (u32, u32),
+    ) -> Self {
+        let h = points.h;
+        Self {
+            origin: spec.origin.to_array(),
+            spacing: spec.spacing,
+            dims: spec.dims,
+            k0,
+            bin_origin: spec.origin.to_array(),
+            bin_size: binned.1,
+            bins: *binned.0,
+            planes,
+            h,
+            constant: kernel_constant(kernel, h),
+            kernel: kernel_code(kernel),
+            reach: GATHER_REACH,
+        }
+    }
+}
+
+/// The gather pass's bind group: its parameters, the binned points and their bins' starts, and
+/// the grid values it writes.
+fn gather_bind_group(
+    device: &wgpu::Device,
+    pipeline: &wgpu::ComputePipeline,
+    [uniform, points, starts, out]: [&wgpu::Buffer; 4],
+) -> wgpu::BindGroup {
+    let entries: Vec<wgpu::BindGroupEntry<'_>> = [uniform, points, starts, out]
+        .iter()
+        .enumerate()
+        .map(|(i, b)| wgpu::BindGroupEntry {
+            binding: i as u32,
+            resource: b.as_entire_binding(),
+        })
+        .collect();
+    device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("gather"),
+        layout: &pipeline.get_bind_group_layout(0),
+        entries: &entries,
+    })
+}
+
 /// Bins per `h` of the gather path: bins of side `h / GATHER_REACH`, searched `GATHER_REACH`
 /// bins to each side; smaller bins waste fewer kernel evaluations on particles beyond h (a
 /// searched volume of `(2.5 h)^3` instead of `(3 h)^3`, 0.58 as much). On lavapipe (150k particles into 256^3) 1 and 2 measured alike,
@@ -401,7 +451,7 @@ const MAX_BINS: u64 = 1 << 24;
 
 /// Particles sorted into cubic bins of side >= `h / reach` over the grid's box: the sorted points,
 /// the start of each bin (one more entry than bins), the bin counts and side.
-pub(crate) fn bin_particles(
+fn bin_particles(
     points: &Points<'_>,
     spec: &GridSpec,
     h: f32,
@@ -449,6 +499,96 @@ pub(crate) fn bin_particles(
     (sorted, start, n.to_array(), size)
 }
 
+/// Points binned on the CPU and checked against the binding limit `max_binding`: sorted
+/// points, the bins' starts, the bin counts and side ([`bin_particles`] for the largest radius).
+struct Bins {
+    sorted: Vec<RawPoint>,
+    start: Vec<u32>,
+    bins: [u32; 3],
+    size: f32,
+}
+
+impl Bins {
+    fn new(points: &Points<'_>, spec: &GridSpec, max_binding: u64) -> Result<Self, GpuError> {
+        // bins sized for the largest radius; each point's kernel uses its own
+        let (sorted, start, bins, size) =
+            bin_particles(points, spec, points.max_radius(), GATHER_REACH);
+        if (sorted.len().max(1) * 32) as u64 > max_binding || (start.len() * 4) as u64 > max_binding
+        {
+            return Err(GpuError::Validation(format!(
+                "{} points exceed the GPU's storage binding limit of {max_binding} bytes; use the splatting method or the CPU path",
+                points.len()
+            )));
+        }
+        Ok(Self {
+            sorted,
+            start,
+            bins,
+            size,
+        })
+    }
+
+    /// The sorted points as bytes (one zero point when there is none: a binding holds at
+    /// least one).
+    fn point_bytes(&self) -> &[u8] {
+        static NONE: [RawPoint; 1] = [RawPoint {
+            at: [0.0; 4],
+            weight: 0.0,
+            _pad: [0.0; 3],
+        }];
+        bytemuck::cast_slice(if self.sorted.is_empty() {
+            &NONE[..]
+        } else {
+            &self.sorted[..]
+        })
+    }
+}
+
+/// Points binned for the compute passes (the gather density, the GPU surfels' projection),
+/// on the GPU: sorted by cubic bins of side `bin_size` (>= the largest radius /
+/// [`GATHER_REACH`]) over a grid's box from its origin, as `Point`s ([`RawPoint`]), with the
+/// start of every bin (x fastest). A [`GpuGrid`] carries the points it was filled with, so that
+/// the surfels of the grid read them without binning them again.
+#[derive(Clone, Debug)]
+pub struct BinnedPoints {
+    /// The points, sorted by bin.
+    pub points: wgpu::Buffer,
+    /// `starts[b] .. starts[b + 1]`: the points of bin `b`.
+    pub starts: wgpu::Buffer,
+    /// Bins along x, y and z.
+    pub bins: [u32; 3],
+    /// The side of a bin.
+    pub bin_size: f32,
+    /// How many points.
+    pub count: usize,
+}
+
+impl BinnedPoints {
+    /// Bins `points` over the box of `spec` and uploads them.
+    pub fn new(
+        device: &wgpu::Device,
+        points: &Points<'_>,
+        spec: &GridSpec,
+    ) -> Result<Self, GpuError> {
+        let bins = Bins::new(points, spec, gpu::max_binding(device))?;
+        use wgpu::util::DeviceExt;
+        let init = |label, contents| {
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents,
+                usage: wgpu::BufferUsages::STORAGE,
+            })
+        };
+        Ok(Self {
+            points: init("binned points", bins.point_bytes()),
+            starts: init("bin starts", bytemuck::cast_slice(&bins.start)),
+            bins: bins.bins,
+            bin_size: bins.size,
+            count: points.len(),
+        })
+    }
+}
+
 /// The gather pass's compute pipeline.
 fn gather_pipeline(device: &wgpu::Device) -> wgpu::ComputePipeline {
     let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -468,10 +608,7 @@ fn gather_pipeline(device: &wgpu::Device) -> wgpu::ComputePipeline {
 /// The gather pass's pipeline and the binned points, set up once for a grid.
 struct Gather {
     pipeline: wgpu::ComputePipeline,
-    particles: wgpu::Buffer,
-    bin_start: wgpu::Buffer,
-    bins: [u32; 3],
-    bin_size: f32,
+    binned: BinnedPoints,
     max_binding: u64,
 }
 
@@ -481,50 +618,17 @@ impl Gather {
     fn new(ctx: &GpuContext, points: &Points<'_>, spec: &GridSpec) -> Result<Self, GpuError> {
         check_inputs(points)?;
         let device = &ctx.device;
-        let limits = device.limits();
         let [nx, ny, _] = spec.dims;
         let plane_bytes = u64::from(nx) * u64::from(ny) * 4;
-        let max_binding = limits
-            .max_storage_buffer_binding_size
-            .min(limits.max_buffer_size);
+        let max_binding = gpu::max_binding(device);
         if plane_bytes > max_binding {
             return Err(GpuError::Validation(format!(
                 "a {nx} x {ny} plane ({plane_bytes} bytes) exceeds the GPU's storage binding limit of {max_binding} bytes"
             )));
         }
-        // bins sized for the largest radius; each point's kernel uses its own
-        let (sorted, start, bins, bin_size) =
-            bin_particles(points, spec, points.max_radius(), GATHER_REACH);
-        let particle_bytes = (sorted.len().max(1) * 32) as u64;
-        if particle_bytes > max_binding || (start.len() * 4) as u64 > max_binding {
-            return Err(GpuError::Validation(format!(
-                "{} particles exceed the GPU's storage binding limit of {max_binding} bytes; use the splatting method or the CPU path",
-                points.len()
-            )));
-        }
-        use wgpu::util::DeviceExt;
-        let placeholder = [RawPoint::zeroed()];
-        let particles = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("binned particles"),
-            contents: bytemuck::cast_slice(if sorted.is_empty() {
-                &placeholder[..]
-            } else {
-                &sorted[..]
-            }),
-            usage: wgpu::BufferUsages::STORAGE,
-        });
-        let bin_start = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("bin starts"),
-            contents: bytemuck::cast_slice(&start),
-            usage: wgpu::BufferUsages::STORAGE,
-        });
-        let pipeline = gather_pipeline(device);
         Ok(Self {
-            pipeline,
-            particles,
-            bin_start,
-            bins,
-            bin_size,
+            pipeline: gather_pipeline(device),
+            binned: BinnedPoints::new(device, points, spec)?,
             max_binding,
         })
     }
@@ -543,48 +647,24 @@ impl Gather {
         out: &wgpu::Buffer,
     ) {
         use wgpu::util::DeviceExt;
-        let h = points.h;
-        let raw = RawGatherParams {
-            origin: spec.origin.to_array(),
-            spacing: spec.spacing,
-            dims: spec.dims,
-            k0,
-            bin_origin: spec.origin.to_array(),
-            bin_size: self.bin_size,
-            bins: self.bins,
-            planes,
-            h,
-            constant: kernel_constant(kernel, h),
-            kernel: kernel_code(kernel),
-            reach: GATHER_REACH,
-        };
+        let binned = &self.binned;
+        let raw = RawGatherParams::new(
+            spec,
+            (&binned.bins, binned.bin_size),
+            points,
+            kernel,
+            (k0, planes),
+        );
         let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("gather params"),
             contents: bytemuck::bytes_of(&raw),
             usage: wgpu::BufferUsages::UNIFORM,
         });
-        let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("gather"),
-            layout: &self.pipeline.get_bind_group_layout(0),
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: uniform.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: self.particles.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: self.bin_start.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 3,
-                    resource: out.as_entire_binding(),
-                },
-            ],
-        });
+        let bind = gather_bind_group(
+            device,
+            &self.pipeline,
+            [&uniform, &binned.points, &binned.starts, out],
+        );
         let mut pass = encoder.begin_compute_pass(&Default::default());
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &bind, &[]);
@@ -668,6 +748,8 @@ pub struct GpuGrid {
     pub spec: GridSpec,
     /// One `f32` per grid point, index `i + nx (j + ny k)`.
     pub values: wgpu::Buffer,
+    /// The points the grid was filled with, binned (the surfels' projection reads them).
+    pub points: BinnedPoints,
 }
 
 impl GpuGrid {
@@ -760,10 +842,7 @@ impl GridFiller {
     ) -> Result<GpuGrid, GpuError> {
         check_inputs(&points)?;
         let (device, queue) = (&ctx.device, &ctx.queue);
-        let limits = device.limits();
-        let max_binding = limits
-            .max_storage_buffer_binding_size
-            .min(limits.max_buffer_size);
+        let max_binding = gpu::max_binding(device);
         let bytes = spec.cells() * 4;
         if bytes > u128::from(max_binding) || spec.dims[2] > 65_535 {
             return Err(GpuError::Validation(format!(
@@ -771,61 +850,33 @@ impl GridFiller {
                 spec.cells()
             )));
         }
-        let (sorted, start, bins, bin_size) =
-            bin_particles(&points, spec, points.max_radius(), GATHER_REACH);
-        if (sorted.len() * 32) as u64 > max_binding || (start.len() * 4) as u64 > max_binding {
-            return Err(GpuError::Validation(format!(
-                "{} particles exceed the GPU's storage binding limit of {max_binding} bytes",
-                points.len()
-            )));
-        }
+        let bins = Bins::new(&points, spec, max_binding)?;
         let made = [
-            self.particles
-                .write(device, queue, bytemuck::cast_slice(&sorted)),
+            self.particles.write(device, queue, bins.point_bytes()),
             self.bin_start
-                .write(device, queue, bytemuck::cast_slice(&start)),
+                .write(device, queue, bytemuck::cast_slice(&bins.start)),
             self.grid.reserve(device, bytes as u64),
         ];
         self.created = made.iter().filter(|&&m| m).count();
-        let h = points.h;
-        let raw = RawGatherParams {
-            origin: spec.origin.to_array(),
-            spacing: spec.spacing,
-            dims: spec.dims,
-            k0: 0,
-            bin_origin: spec.origin.to_array(),
-            bin_size,
-            bins,
-            planes: spec.dims[2],
-            h,
-            constant: kernel_constant(kernel, h),
-            kernel: kernel_code(kernel),
-            reach: GATHER_REACH,
-        };
+        let raw = RawGatherParams::new(
+            spec,
+            (&bins.bins, bins.size),
+            &points,
+            kernel,
+            (0, spec.dims[2]),
+        );
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
         if self.bind.is_none() || self.created > 0 {
-            self.bind = Some(device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("gather"),
-                layout: &self.pipeline.get_bind_group_layout(0),
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: self.uniform.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: self.particles.buffer().as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 2,
-                        resource: self.bin_start.buffer().as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 3,
-                        resource: self.grid.buffer().as_entire_binding(),
-                    },
+            self.bind = Some(gather_bind_group(
+                device,
+                &self.pipeline,
+                [
+                    &self.uniform,
+                    self.particles.buffer(),
+                    self.bin_start.buffer(),
+                    self.grid.buffer(),
                 ],
-            }));
+            ));
             self.created += 1;
         }
         if bytes > 0 {
@@ -841,6 +892,13 @@ impl GridFiller {
         Ok(GpuGrid {
             spec: *spec,
             values: self.grid.buffer().clone(),
+            points: BinnedPoints {
+                points: self.particles.buffer().clone(),
+                starts: self.bin_start.buffer().clone(),
+                bins: bins.bins,
+                bin_size: bins.size,
+                count: points.len(),
+            },
         })
     }
 }

@@ -470,6 +470,14 @@ pub fn waits() -> usize {
     WAITS.with(std::cell::Cell::get)
 }
 
+/// The largest storage buffer a pass can bind on `device` (its binding and buffer limits).
+pub(crate) fn max_binding(device: &wgpu::Device) -> u64 {
+    let limits = device.limits();
+    limits
+        .max_storage_buffer_binding_size
+        .min(limits.max_buffer_size)
+}
+
 /// Waits until the device has done the work submitted to it, counted in [`waits`].
 pub(crate) fn wait(device: &wgpu::Device) -> Result<(), GpuError> {
     WAITS.with(|w| w.set(w.get() + 1));

@@ -1,21 +1,22 @@
-//! Surfels on the GPU (issue 37, first part), the twin of [`super::cpu`]: the crossings of the
-//! iso-value on the grid's edges, compacted by a prefix sum in the CPU's order (surfel `n` is
-//! the CPU's surfel `n`), projected onto the exact iso-surface by Newton steps along the
-//! analytic gradient of the points' density (the points binned as the density's gather pass bins
-//! them, each with its radius and weight), radii the grid spacing. Four compute passes (`shaders/surfels.wgsl`): `count` (the
-//! crossings each grid point owns, summed per block of 256 points), `scan_blocks` (each block's
-//! first surfel), `emit` (the crossings), `project`.
+//! Surfels on the GPU (issue 37), the twin of [`super::cpu`]: the crossings of the iso-value
+//! on the grid's edges, compacted by a prefix sum in the CPU's order (surfel `n` is the CPU's
+//! surfel `n`), projected onto the exact iso-surface by Newton steps along the analytic
+//! gradient of the points' density (the points binned as the density's gather pass bins them,
+//! [`BinnedPoints`], each with its radius and weight), disks of the grid's spacing. Four
+//! compute passes (`shaders/surfels.wgsl`): `count` (the crossings each grid point owns, summed
+//! per block of 256 points), `scan_blocks` (each block's first surfel), `emit` (the crossings),
+//! `project`.
 //!
-//! The grid comes from the CPU, dense ([`SurfelPasses::extract`]) or sparse (only its evaluated
-//! blocks, [`SurfelPasses::extract_sparse`]), or stays on the GPU where the gather
-//! pass filled it ([`SurfelPasses::extract_on`] with
-//! [`crate::density::gpu::density_grid_on_gpu`]). The surfels are handed back (a read-back of
-//! the count between the passes sizes their buffers). For a frame path, [`ResidentSurfels`]
-//! keeps them on the GPU: recorded into the caller's encoder with the grid of a
-//! [`crate::density::gpu::GridFiller`], `project` dispatched indirectly, the count read back
-//! asynchronously to grow the buffers, nothing created after the first frames and nothing
-//! waited on; [`ResidentSurfels::surfel_buffer`] hands them to the splatting as they are (an
-//! indirect draw). Drawing them in `GpuPipeline` (with its optics) is the next part of issue 37.
+//! The grid ([`SurfelGrid`]) comes from the CPU, dense or sparse (only its evaluated blocks),
+//! or stays on the GPU where the gather pass filled it
+//! ([`crate::density::gpu::density_grid_on_gpu`]), with its points binned there.
+//! [`SurfelPasses::extract`] hands the surfels back (a read-back of the count between the
+//! passes sizes their buffer). For a frame path, [`ResidentSurfels`] keeps them on the GPU:
+//! recorded into the caller's encoder with the grid of a [`crate::density::gpu::GridFiller`],
+//! `project` dispatched indirectly, the count read back asynchronously to grow the buffers,
+//! nothing created after the first frames and nothing waited on;
+//! [`ResidentSurfels::surfel_buffer`] hands them to the splatting as they are (an indirect
+//! draw). Drawing them in `GpuPipeline` (with its optics) is the next part of issue 37.
 
 use std::sync::{Arc, Mutex};
 
@@ -23,7 +24,7 @@ use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
 use super::{CONVERGED, SurfelParams, Surfels, iso_of};
-use crate::density::gpu::GpuGrid;
+use crate::density::gpu::{BinnedPoints, GpuGrid};
 use crate::density::{DensityGrid, GridSpec, Kernel, Points, SparseGrid};
 use crate::gpu::{self, GpuContext, GpuError};
 use crate::splat::Surfel;
@@ -58,12 +59,12 @@ pub struct RawSurfelParams {
 const _: () = assert!(std::mem::size_of::<RawSurfelParams>() == 128);
 
 impl RawSurfelParams {
-    /// The parameters of a dense grid of `spec` at `iso`, the points binned into `bins` of
-    /// side `bin_size` (`density::gpu::bin_particles`), no capacity (set it).
+    /// The parameters of a dense grid of `spec` at `iso`, the points binned as `binned` (over
+    /// the grid's box), no capacity (set it).
     fn new(
         spec: &GridSpec,
         iso: f32,
-        (bins, bin_size): ([u32; 3], f32),
+        binned: &BinnedPoints,
         points: &Points<'_>,
         kernel: Kernel,
         params: &SurfelParams,
@@ -74,8 +75,8 @@ impl RawSurfelParams {
             dims: spec.dims,
             iso,
             bin_origin: spec.origin.to_array(),
-            bin_size,
-            bins,
+            bin_size: binned.bin_size,
+            bins: binned.bins,
             reach: crate::density::gpu::GATHER_REACH,
             h: points.h,
             constant: crate::density::gpu::kernel_constant(kernel, points.h),
@@ -208,52 +209,20 @@ impl SurfelPasses {
         })
     }
 
-    /// [`extract_gpu`] with these passes.
-    pub fn extract(
+    /// The surfels of `grid` (a [`DensityGrid`], a [`SparseGrid`] or a [`GpuGrid`]) of
+    /// `points`, with these passes: [`extract_gpu`]'s surfels. A sparse grid uploads only its
+    /// evaluated blocks and block states (the same surfels as [`super::extract_sparse`], in the
+    /// dense grid's order); a grid on the GPU is read where it is, with the points it was
+    /// filled with as binned there.
+    pub fn extract<'g>(
         &self,
         ctx: &GpuContext,
-        grid: &DensityGrid,
+        grid: impl Into<SurfelGrid<'g>>,
         points: Points<'_>,
         kernel: Kernel,
         params: &SurfelParams,
     ) -> Result<Surfels, crate::Error> {
-        self.extract_from(ctx, GridIn::Cpu(grid), points, kernel, params)
-    }
-
-    /// The surfels of a sparse grid (only its evaluated blocks uploaded, read through its block
-    /// states): the same as [`super::extract_sparse`], in the dense grid's order.
-    pub fn extract_sparse(
-        &self,
-        ctx: &GpuContext,
-        grid: &SparseGrid,
-        points: Points<'_>,
-        kernel: Kernel,
-        params: &SurfelParams,
-    ) -> Result<Surfels, crate::Error> {
-        self.extract_from(ctx, GridIn::Sparse(grid), points, kernel, params)
-    }
-
-    /// The surfels of a grid that lives on the GPU ([`crate::density::gpu::density_grid_on_gpu`]):
-    /// the grid is read where it is, never copied back.
-    pub fn extract_on(
-        &self,
-        ctx: &GpuContext,
-        grid: &GpuGrid,
-        points: Points<'_>,
-        kernel: Kernel,
-        params: &SurfelParams,
-    ) -> Result<Surfels, crate::Error> {
-        self.extract_from(ctx, GridIn::Gpu(grid), points, kernel, params)
-    }
-
-    fn extract_from(
-        &self,
-        ctx: &GpuContext,
-        grid: GridIn<'_>,
-        points: Points<'_>,
-        kernel: Kernel,
-        params: &SurfelParams,
-    ) -> Result<Surfels, crate::Error> {
+        let grid = grid.into();
         let iso = iso_of(points.h, kernel, params)?;
         let empty = Surfels {
             iso,
@@ -345,32 +314,63 @@ impl SurfelPasses {
     }
 }
 
-/// Where the passes read the grid.
-#[derive(Clone, Copy)]
-enum GridIn<'a> {
-    /// Values on the CPU, uploaded.
-    Cpu(&'a DensityGrid),
-    /// Values already on the GPU.
-    Gpu(&'a GpuGrid),
+/// A grid the surfel passes read ([`SurfelPasses::extract`]).
+#[derive(Clone, Copy, Debug)]
+pub enum SurfelGrid<'a> {
+    /// A dense grid on the CPU, uploaded.
+    Dense(&'a DensityGrid),
     /// A sparse grid's evaluated blocks and block states, uploaded.
     Sparse(&'a SparseGrid),
+    /// A grid already on the GPU, with its binned points.
+    Gpu(&'a GpuGrid),
 }
 
-impl GridIn<'_> {
+impl<'a> From<&'a DensityGrid> for SurfelGrid<'a> {
+    fn from(g: &'a DensityGrid) -> Self {
+        Self::Dense(g)
+    }
+}
+
+impl<'a> From<&'a SparseGrid> for SurfelGrid<'a> {
+    fn from(g: &'a SparseGrid) -> Self {
+        Self::Sparse(g)
+    }
+}
+
+impl<'a> From<&'a GpuGrid> for SurfelGrid<'a> {
+    fn from(g: &'a GpuGrid) -> Self {
+        Self::Gpu(g)
+    }
+}
+
+impl SurfelGrid<'_> {
     fn spec(self) -> GridSpec {
         match self {
-            Self::Cpu(g) => g.spec,
-            Self::Gpu(g) => g.spec,
+            Self::Dense(g) => g.spec,
             Self::Sparse(g) => g.spec,
+            Self::Gpu(g) => g.spec,
         }
     }
+}
+
+/// The binned points of a grid on the GPU, checked to be as many as `points` (the points it
+/// was filled with).
+fn binned_of(grid: &GpuGrid, points: &Points<'_>) -> Result<BinnedPoints, GpuError> {
+    if grid.points.count != points.len() {
+        return Err(GpuError::Validation(format!(
+            "the GPU grid was filled with {} points, the surfels are asked of {}",
+            grid.points.count,
+            points.len()
+        )));
+    }
+    Ok(grid.points.clone())
 }
 
 /// Checks the inputs and uploads them; `None` when there is nothing to extract (no grid point
 /// or no point).
 fn upload(
     ctx: &GpuContext,
-    grid: GridIn<'_>,
+    grid: SurfelGrid<'_>,
     points: Points<'_>,
     kernel: Kernel,
     params: &SurfelParams,
@@ -383,12 +383,9 @@ fn upload(
         return Ok(None);
     }
     let device = &ctx.device;
-    let limits = device.limits();
-    let max_binding = limits
-        .max_storage_buffer_binding_size
-        .min(limits.max_buffer_size);
+    let max_binding = gpu::max_binding(device);
     let value_bytes = match grid {
-        GridIn::Sparse(g) => 4 * g.raw().1.len().max(g.raw().0.len()) as u128,
+        SurfelGrid::Sparse(g) => 4 * g.raw().1.len().max(g.raw().0.len()) as u128,
         _ => n * 4,
     };
     if value_bytes > u128::from(max_binding) || n > u128::from(u32::MAX) {
@@ -397,7 +394,7 @@ fn upload(
         ))
         .into());
     }
-    if let GridIn::Gpu(g) = grid
+    if let SurfelGrid::Gpu(g) = grid
         && u128::from(g.values.size()) < n * 4
     {
         return Err(GpuError::Validation(format!(
@@ -407,32 +404,23 @@ fn upload(
         ))
         .into());
     }
-    let (sorted, start, bins, bin_size) = crate::density::gpu::bin_particles(
-        &points,
-        &spec,
-        points.max_radius(),
-        crate::density::gpu::GATHER_REACH,
-    );
-    if (sorted.len() * 32) as u64 > max_binding || (start.len() * 4) as u64 > max_binding {
-        return Err(GpuError::Validation(format!(
-            "{} points exceed the GPU's storage binding limit of {max_binding} bytes; extract these surfels on the CPU",
-            points.len()
-        ))
-        .into());
-    }
+    let binned = match grid {
+        SurfelGrid::Gpu(g) => binned_of(g, &points)?,
+        _ => BinnedPoints::new(device, &points, &spec)?,
+    };
     let blocks = (n as u32).div_ceil(BLOCK);
     let raw = RawSurfelParams {
         sparse_block: match grid {
-            GridIn::Sparse(_) => crate::density::sparse::BLOCK,
+            SurfelGrid::Sparse(_) => crate::density::sparse::BLOCK,
             _ => 0,
         },
         inside: match grid {
-            GridIn::Sparse(g) => g.inside,
+            SurfelGrid::Sparse(g) => g.inside,
             _ => 0.0,
         },
         // the buffers are sized from the count read back: every surfel fits
         capacity: u32::MAX,
-        ..RawSurfelParams::new(&spec, iso, (bins, bin_size), &points, kernel, params)
+        ..RawSurfelParams::new(&spec, iso, &binned, &points, kernel, params)
     };
     use wgpu::util::DeviceExt;
     let init = |label: &str, contents: &[u8], usage: wgpu::BufferUsages| {
@@ -449,13 +437,13 @@ fn upload(
             wgpu::BufferUsages::UNIFORM,
         ),
         match grid {
-            GridIn::Cpu(g) => init(
+            SurfelGrid::Dense(g) => init(
                 "surfel grid",
                 bytemuck::cast_slice(&g.values),
                 wgpu::BufferUsages::STORAGE,
             ),
-            GridIn::Gpu(g) => g.values.clone(),
-            GridIn::Sparse(g) => init(
+            SurfelGrid::Gpu(g) => g.values.clone(),
+            SurfelGrid::Sparse(g) => init(
                 "surfel sparse grid",
                 bytemuck::cast_slice(if g.raw().1.is_empty() {
                     &[0.0f32]
@@ -472,18 +460,10 @@ fn upload(
             wgpu::BufferUsages::empty(),
         ),
         storage(device, "surfel count", 32, wgpu::BufferUsages::COPY_SRC),
-        init(
-            "surfel points",
-            bytemuck::cast_slice(&sorted),
-            wgpu::BufferUsages::STORAGE,
-        ),
-        init(
-            "surfel bins",
-            bytemuck::cast_slice(&start),
-            wgpu::BufferUsages::STORAGE,
-        ),
+        binned.points,
+        binned.starts,
         match grid {
-            GridIn::Sparse(g) => init(
+            SurfelGrid::Sparse(g) => init(
                 "surfel block states",
                 bytemuck::cast_slice(g.raw().0),
                 wgpu::BufferUsages::STORAGE,
@@ -567,8 +547,6 @@ enum CountReadback {
 pub struct ResidentSurfels {
     passes: SurfelPasses,
     uniform: wgpu::Buffer,
-    points: gpu::Grow,
-    bin_start: gpu::Grow,
     block_sums: gpu::Grow,
     instances: gpu::Grow,
     total: wgpu::Buffer,
@@ -577,7 +555,7 @@ pub struct ResidentSurfels {
     states: wgpu::Buffer,
     readback: wgpu::Buffer,
     count: CountReadback,
-    bind: Option<(wgpu::BindGroup, wgpu::Buffer)>,
+    bind: Option<(wgpu::BindGroup, [wgpu::Buffer; 3])>,
     capacity: u32,
     last_count: Option<u32>,
     created: usize,
@@ -605,8 +583,6 @@ impl ResidentSurfels {
                 std::mem::size_of::<RawSurfelParams>() as u64,
                 wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             ),
-            points: gpu::Grow::new("surfel points", storage),
-            bin_start: gpu::Grow::new("surfel bins", storage),
             block_sums: gpu::Grow::new("surfel block sums", storage),
             instances: gpu::Grow::new(
                 "surfels",
@@ -676,7 +652,9 @@ impl ResidentSurfels {
     }
 
     /// Records the passes extracting the surfels of `grid` into `encoder`; call
-    /// [`Self::after_submit`] once the encoder is submitted.
+    /// [`Self::after_submit`] once the encoder is submitted. `points` are those the grid was
+    /// filled with: their binned copy on the GPU ([`GpuGrid::points`]) is read, not binned
+    /// again.
     pub fn record(
         &mut self,
         ctx: &GpuContext,
@@ -708,31 +686,29 @@ impl ResidentSurfels {
             .max(self.capacity)
             .max(1024);
         self.capacity = wanted;
-        let (sorted, start, bins, bin_size) = crate::density::gpu::bin_particles(
-            &points,
-            &spec,
-            points.max_radius(),
-            crate::density::gpu::GATHER_REACH,
-        );
+        // the points as the grid's filler binned and uploaded them: not binned again
+        let binned = binned_of(grid, &points)?;
         let blocks = (n as u32).div_ceil(BLOCK);
         let made = [
-            self.points
-                .write(device, queue, bytemuck::cast_slice(&sorted)),
-            self.bin_start
-                .write(device, queue, bytemuck::cast_slice(&start)),
             self.block_sums.reserve(device, u64::from(blocks) * 4),
             self.instances.reserve(device, u64::from(wanted) * 64),
         ];
         self.created = made.iter().filter(|&&m| m).count();
         let raw = RawSurfelParams {
             capacity: wanted,
-            ..RawSurfelParams::new(&spec, iso, (bins, bin_size), &points, kernel, params)
+            ..RawSurfelParams::new(&spec, iso, &binned, &points, kernel, params)
         };
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
+        // the bind group holds the grid's buffers: made anew when one of them is another
+        let key = [
+            grid.values.clone(),
+            binned.points.clone(),
+            binned.starts.clone(),
+        ];
         let stale = self
             .bind
             .as_ref()
-            .is_none_or(|(_, g)| *g != grid.values || self.created > 0);
+            .is_none_or(|(_, k)| *k != key || self.created > 0);
         if stale {
             let buffers = [
                 &self.uniform,
@@ -740,11 +716,11 @@ impl ResidentSurfels {
                 self.block_sums.buffer(),
                 &self.total,
                 self.instances.buffer(),
-                self.points.buffer(),
-                self.bin_start.buffer(),
+                &binned.points,
+                &binned.starts,
                 &self.states,
             ];
-            self.bind = Some((self.passes.bind(device, &buffers), grid.values.clone()));
+            self.bind = Some((self.passes.bind(device, &buffers), key));
             self.created += 1;
         }
         let bind = &self.bind.as_ref().expect("made above").0;
