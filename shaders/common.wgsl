@@ -29,6 +29,21 @@ struct Point {
     weight: f32,
 }
 
+// The bins of the binned points (`BinnedPoints`) within `reach` bins of the bin holding x on
+// each side, clamped to the bins there are: the lowest and the highest (the gather pass and the
+// surfels' projection search them).
+struct BinRange {
+    lo: vec3<i32>,
+    hi: vec3<i32>,
+}
+
+fn bin_range(x: vec3<f32>, origin: vec3<f32>, size: f32, bins: vec3<u32>, reach: u32) -> BinRange {
+    let b = vec3<i32>(floor((x - origin) / size));
+    let last = vec3<i32>(bins) - vec3<i32>(1);
+    let r = vec3<i32>(i32(reach));
+    return BinRange(clamp(b - r, vec3<i32>(0), last), clamp(b + r, vec3<i32>(0), last));
+}
+
 // A ray: origin and direction (view space in the splat passes, world space in the optics).
 struct Ray {
     origin: vec3<f32>,

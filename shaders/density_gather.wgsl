@@ -45,11 +45,9 @@ fn gather(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     let k = params.k0 + id.z;
     let x = params.origin + vec3<f32>(f32(id.x), f32(id.y), f32(k)) * params.spacing;
-    let b = vec3<i32>(floor((x - params.bin_origin) / params.bin_size));
-    let last = vec3<i32>(params.bins) - vec3<i32>(1);
-    let reach = vec3<i32>(i32(params.reach));
-    let lo = clamp(b - reach, vec3<i32>(0), last);
-    let hi = clamp(b + reach, vec3<i32>(0), last);
+    let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
+    let lo = range.lo;
+    let hi = range.hi;
     var sum = 0.0;
     for (var bz = lo.z; bz <= hi.z; bz++) {
         for (var by = lo.y; by <= hi.y; by++) {

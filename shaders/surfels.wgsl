@@ -255,11 +255,9 @@ fn emit(
 // each point's kernel of its own radius against the reference radius's constant
 // (`Kernel::weighted_and_gradient`), times its weight.
 fn density_and_gradient(x: vec3<f32>) -> vec4<f32> {
-    let b = vec3<i32>(floor((x - params.bin_origin) / params.bin_size));
-    let last = vec3<i32>(params.bins) - vec3<i32>(1);
-    let reach = vec3<i32>(i32(params.reach));
-    let lo = clamp(b - reach, vec3<i32>(0), last);
-    let hi = clamp(b + reach, vec3<i32>(0), last);
+    let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
+    let lo = range.lo;
+    let hi = range.hi;
     var sum = 0.0;
     var grad = vec3<f32>(0.0);
     let c = params.constant;
