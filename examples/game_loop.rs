@@ -5,21 +5,25 @@
 //! compared with the CPU `Pipeline`'s image of the same frame.
 //!
 //! Run: `cargo run --release --example game_loop -- [--frames 60] [--size 320x320]
-//! [--save 0,30,59] [--out DIR] [--json]`. Needs a GPU or Mesa's lavapipe (on lavapipe, a
+//! [--save 0,30,59] [--out DIR] [--json] [--cpu-surfels]`. The density grid and the surfels are
+//! made on the GPU (`PipelineParams::gpu_surfels`); `--cpu-surfels` makes them on the CPU, as
+//! the CPU `Pipeline` does, to compare the two. Needs a GPU or Mesa's lavapipe (on lavapipe, a
 //! software rasteriser, it proves the loop works, not how fast a GPU runs it).
 //!
 //! `--json` prints one object: frames, the CPU milliseconds per frame (the CPU stages plus
 //! recording and submitting; mean and 95th percentile), those of `prepare` alone
-//! (`cpu_prepare_ms`), the stages that ran on the GPU (`gpu_stages`), the GPU milliseconds per frame from
+//! (`cpu_prepare_ms`; `cpu_prepare_stages_ms`: its mean per stage, where the density and surfels
+//! made on the GPU count only their recording), the stages that ran on the GPU (`gpu_stages`), the GPU milliseconds per frame from
 //! timestamp queries where the adapter has them (then each frame waits for its timestamps), and
 //! the PSNR of every saved frame against the CPU pipeline, and how many frames reused the
-//! pipeline's GPU resources (all but the first, in the steady state).
+//! pipeline's GPU resources (all but those whose water needed larger buffers than any frame
+//! before).
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use fluid_surfels::gpu::{GpuContext, REQUIRED_FEATURES};
-use fluid_surfels::pipeline::{GpuPipeline, Pipeline, PipelineParams, Through};
+use fluid_surfels::pipeline::{FrameTimings, GpuPipeline, Pipeline, PipelineParams, Through};
 use fluid_surfels::scenes::{ColumnParams, ColumnSim, column_pool};
 use fluid_surfels::splat::psnr;
 
@@ -29,6 +33,7 @@ struct Args {
     save: Vec<usize>,
     out: PathBuf,
     json: bool,
+    cpu_surfels: bool,
 }
 
 fn args() -> Result<Args, String> {
@@ -38,6 +43,7 @@ fn args() -> Result<Args, String> {
         save: Vec::new(),
         out: PathBuf::from("out/game_loop"),
         json: false,
+        cpu_surfels: false,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -62,6 +68,7 @@ fn args() -> Result<Args, String> {
             }
             "--out" => a.out = PathBuf::from(value()?),
             "--json" => a.json = true,
+            "--cpu-surfels" => a.cpu_surfels = true,
             other => return Err(format!("unknown argument {other}")),
         }
     }
@@ -74,6 +81,21 @@ fn args() -> Result<Args, String> {
     a.save.retain(|&f| f < a.frames);
     a.save.dedup();
     Ok(a)
+}
+
+/// Adds `timings`' share of a mean over `frames` to `mean` (the stages `prepare` runs).
+fn add_share(mean: &mut FrameTimings, timings: &FrameTimings, frames: usize) {
+    let n = frames as f64;
+    for (sum, ms) in [
+        (&mut mean.neighbours_ms, timings.neighbours_ms),
+        (&mut mean.detect_ms, timings.detect_ms),
+        (&mut mean.refine_ms, timings.refine_ms),
+        (&mut mean.calibration_ms, timings.calibration_ms),
+        (&mut mean.density_ms, timings.density_ms),
+        (&mut mean.surfels_ms, timings.surfels_ms),
+    ] {
+        *sum += ms / n;
+    }
 }
 
 fn percentile(v: &[f64], p: f64) -> f64 {
@@ -157,6 +179,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut params = PipelineParams {
         support_radius: Some(sim.support_radius()),
         scene: column_pool(ColumnParams::default().tank),
+        gpu_surfels: !args.cpu_surfels,
         ..Default::default()
     };
     params.scene.optics.image_size = [args.size.0, args.size.1];
@@ -170,6 +193,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     let (mut cpu_ms, mut gpu_ms, mut saved) = (Vec::new(), Vec::new(), Vec::new());
     let mut prepare_ms = Vec::new();
+    let mut stages_ms = FrameTimings::default();
     let mut reused = 0;
     for f in 0..args.frames {
         let save = args.save.contains(&f);
@@ -181,6 +205,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let t_prepare = Instant::now();
         let frame = gpu.prepare(&device, &queue, &mut encoder, sim.particles())?;
         prepare_ms.push(t_prepare.elapsed().as_secs_f64() * 1e3);
+        add_share(&mut stages_ms, &frame.timings, args.frames);
         reused += usize::from(gpu.reused_resources());
         let target = gpu.draw_to_texture(&device, &mut encoder);
         if let Some((set, resolve, read)) = &query {
@@ -189,6 +214,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             encoder.copy_buffer_to_buffer(resolve, 0, read, 0, 16);
         }
         queue.submit([encoder.finish()]);
+        // the surfel count comes back without a wait, to size the GPU's surfel buffer
+        gpu.after_submit();
         cpu_ms.push(t.elapsed().as_secs_f64() * 1e3);
         if let Some((_, _, read)) = &query {
             gpu_ms.push(read_ticks(&device, read)? as f64 * period_ns * 1e-6);
@@ -212,7 +239,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             saved.push(serde_json::json!({
                 "frame": f,
                 "path": path.display().to_string(),
-                "surfels": frame.render_surfels.len(),
+                // made on the GPU: a recent frame's count, read back without a wait
+                "surfels": frame.detail.surfels,
                 "psnr_against_cpu_db": psnr(cpu_image, &image),
             }));
         }
@@ -229,6 +257,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "cpu_ms_p95": percentile(&cpu_ms, 0.95),
         "cpu_prepare_ms": mean(&prepare_ms),
         "cpu_prepare_ms_p95": percentile(&prepare_ms, 0.95),
+        "cpu_prepare_stages_ms": stages_ms,
         "gpu_stages": gpu.gpu_stages(),
         "gpu_ms_mean": (!gpu_ms.is_empty()).then(|| mean(&gpu_ms)),
         "gpu_ms_p95": (!gpu_ms.is_empty()).then(|| percentile(&gpu_ms, 0.95)),

@@ -520,25 +520,26 @@ impl Stage {
     /// Checks the scene, builds the receiver (and its BVH), loads the environment image and sets
     /// up the light's views around the surfels.
     pub fn new(scene: &OpticsScene, surfels: &[Surfel]) -> Result<Self, OpticsError> {
-        Self::fitted(scene, surfels, None)
+        Self::fitted(scene, &WaterShape::of_surfels(surfels), None)
     }
 
-    /// [`Stage::new`] with the pool and the camera fitted to the water's bounds widened to
-    /// `fit` (the union of a sequence's frames, say), so that every frame's water lies inside
-    /// what is fitted; the light's screen still follows this frame's water.
+    /// [`Stage::new`] for water known by its [`WaterShape`] (its surfels may live on a GPU),
+    /// with the pool and the camera fitted to the water's bounds widened to `fit` (the union of
+    /// a sequence's frames, say), so that every frame's water lies inside what is fitted; the
+    /// light's screen still follows this frame's water.
     pub fn fitted(
         scene: &OpticsScene,
-        surfels: &[Surfel],
+        shape: &WaterShape,
         fit: Option<(Vec3, Vec3)>,
     ) -> Result<Self, OpticsError> {
         scene.validate()?;
         let mut scene = scene.clone();
         scene.environment.load()?;
-        let own = crate::splat::bounds(surfels);
+        let own = shape.drawn;
         let water = crate::view::union_boxes(own, fit);
-        let receiver = scene.receiver.build(
-            water.map(|(a, b)| (a, Vec3::new(b.x, pool_wall_top(surfels, a.y, b.y), b.z))),
-        )?;
+        let receiver = scene
+            .receiver
+            .build(water.map(|(a, b)| (a, Vec3::new(b.x, shape.wall_top(a.y, b.y), b.z))))?;
         let (rmin, rmax) = receiver.bounds();
         let (all_min, all_max) = match (scene.optics.scene_bounds, water) {
             (Some([a, b]), _) => (a, b),
@@ -637,23 +638,59 @@ pub fn checker_coordinates(p: Vec3, n: Vec3) -> Vec2 {
     }
 }
 
-/// The top of an automatic pool's walls: 1.2x the water's level above its bottom `floor`, the
-/// level being the median height of the upward-facing surfels (normal within 60 degrees of +y):
-/// the free surface of the water's body, which the few tops of drops and splashes do not move.
-/// The water's bounding box would put the walls halfway up a splash (the dam break's climbs to
-/// 4 over a body 0.6 deep, and walls 2 high hid the water from every camera); at most `top`.
-pub(crate) fn pool_wall_top(surfels: &[Surfel], floor: f32, top: f32) -> f32 {
-    let mut up: Vec<f32> = surfels
-        .iter()
-        .filter(|s| s.is_drawable() && Vec3::from(s.normal).normalize_or_zero().y > 0.5)
-        .map(|s| s.position[1])
-        .collect();
-    if up.is_empty() {
-        return floor + 0.5 * (top - floor);
+/// Where a frame's water is, as the views and the automatic pool are fitted to it: known from
+/// its surfels on the CPU ([`WaterShape::of_surfels`]), or before them from its particles (the
+/// chain on a GPU, whose surfels never come back to the CPU: `pipeline::GpuPipeline`).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct WaterShape {
+    /// The box of what is drawn (the surfels' disks, the spheres of the peer renderers).
+    pub drawn: Option<(Vec3, Vec3)>,
+    /// The box of the water's surface, which an automatic pool's walls meet (the drawn box,
+    /// but for spheres whose iso-surface lies inside them).
+    pub surface: Option<(Vec3, Vec3)>,
+    /// The height of the water's free surface: the median height of its upward-facing part
+    /// (normal within 60 degrees of +y), which the few tops of drops and splashes do not move.
+    pub level: Option<f32>,
+}
+
+impl WaterShape {
+    /// The shape of drawn `surfels`: their box, and the level of the upward-facing ones.
+    #[must_use]
+    pub fn of_surfels(surfels: &[Surfel]) -> Self {
+        let drawn = crate::splat::bounds(surfels);
+        let up = surfels
+            .iter()
+            .filter(|s| s.is_drawable() && Vec3::from(s.normal).normalize_or_zero().y > 0.5)
+            .map(|s| s.position[1]);
+        Self {
+            drawn,
+            surface: drawn,
+            level: median(up.collect()),
+        }
     }
-    let mid = up.len() / 2;
-    let (_, level, _) = up.select_nth_unstable_by(mid, f32::total_cmp);
-    (floor + 1.2 * (*level - floor)).min(top)
+
+    /// The top of an automatic pool's walls: 1.2x the water's level above its bottom `floor`
+    /// (half way to `top` without a level), at most `top`. The water's bounding box would put
+    /// the walls halfway up a splash (the dam break's climbs to 4 over a body 0.6 deep, and
+    /// walls 2 high hid the water from every camera).
+    #[must_use]
+    pub fn wall_top(&self, floor: f32, top: f32) -> f32 {
+        match self.level {
+            None => floor + 0.5 * (top - floor),
+            Some(level) => (floor + 1.2 * (level - floor)).min(top),
+        }
+    }
+}
+
+/// The median of `values` (the upper one of an even count); `None` when there is none.
+#[must_use]
+pub fn median(mut values: Vec<f32>) -> Option<f32> {
+    if values.is_empty() {
+        return None;
+    }
+    let mid = values.len() / 2;
+    let (_, m, _) = values.select_nth_unstable_by(mid, f32::total_cmp);
+    Some(*m)
 }
 
 /// The light's virtual screen (Iwasaki et al. §5.1) around the water's box `water` in a scene

@@ -3,23 +3,45 @@
 //! `prepare` runs the frame's work and records its GPU passes into the caller's encoder, `render`
 //! draws the finished frame into the caller's render pass, `resize` follows the window.
 //!
-//! What runs where, today: surface detection, upsampling, the density grid and the surfels run on
-//! the CPU (the [`Pipeline`] inside; the GPU density grid needs a read-back for the CPU surfel
-//! extraction, which a frame path must not wait on, until extraction moves to the GPU); the
-//! optics stage (the light's splatting of the water, the caustics, the camera's splatting, the
-//! refraction, reflection and the final image) runs on the GPU, and the frame is presented by a
-//! full-screen pass. Nothing is read back and nothing waits on the GPU on the frame path; the
-//! optics stage keeps its targets, buffers and bind groups from frame to frame and updates the
-//! water in place while the views' sizes, the receiver and the environment stay the same
+//! What runs where: surface detection, upsampling and the boundary calibration's weights run on
+//! the CPU (the [`Pipeline`] inside, [`Pipeline::frame_to_grid`]); the density grid is filled on
+//! the GPU by the gather pass ([`crate::density::gpu::GridFiller`]) and the surfels extracted
+//! there ([`crate::surfels::gpu::ResidentSurfels`]: crossings, a prefix sum, the projection onto
+//! the iso-surface), written into the buffer that the splatting draws by an indirect draw;
+//! the optics stage (the light's splatting of the water, the caustics, the camera's splatting,
+//! the refraction, reflection and the final image) runs on the GPU, and the frame is presented
+//! by a full-screen pass. The views are fitted to the particles' box (the surfels never come back
+//! to the CPU: half a spacing around the particles, an [`crate::optics::WaterShape`]). With
+//! [`PipelineParams::gpu_surfels`] off, and for a renderer or source without a density grid,
+//! the grid and the surfels are made on the CPU as [`Pipeline`] makes them and uploaded
+//! ([`GpuPipeline::gpu_stages`] says which ran).
+//!
+//! Nothing is read back and nothing waits on the GPU on the frame path (the surfel count comes
+//! back asynchronously, a few frames late, to size the surfel buffer: call
+//! [`GpuPipeline::after_submit`] once the encoder is submitted); the optics stage keeps its
+//! targets, buffers and bind groups from frame to frame and updates the water in place while
+//! the views' sizes, the receiver and the environment stay the same
 //! ([`GpuPipeline::reused_resources`] says so), and builds them anew only when one changes.
 
-use super::{Frame, Pipeline, PipelineParams, Through};
+use std::time::Instant;
+
+use glam::Vec3;
+
+use super::{Frame, Pipeline, PipelineParams, SurfelSource, Through, ms};
+use crate::density::gpu::GridFiller;
 use crate::gpu::{GpuContext, GpuError, entry};
-use crate::optics::Stage;
 use crate::optics::gpu::{OpticsGpu, PreparedOptics};
+use crate::optics::{Stage, WaterShape};
 use crate::splat::gpu::SplatRenderer;
-use crate::splat::{GpuWaterPass, WaterSurface};
+use crate::splat::water::GpuSurfels;
+use crate::splat::{Drawn, GpuWaterPass, WaterSurface};
+use crate::surfels::gpu::ResidentSurfels;
 use crate::{Error, ParticleView};
+
+/// The stages [`GpuPipeline::prepare`] runs on the GPU with the grid and surfels there.
+const GPU_STAGES: &[&str] = &["density", "surfels", "splats", "optics"];
+/// ... and with them on the CPU.
+const CPU_STAGES: &[&str] = &["splats", "optics"];
 
 /// The WGSL of the presenting pass.
 pub const PRESENT_SHADER: &str = concat!(
@@ -57,6 +79,18 @@ pub struct GpuPipeline {
     /// The shading pass for a water pass that does not shade itself (the ray caster's, the
     /// screen-space renderer's), made on first use.
     shading: Option<SplatRenderer>,
+    /// The density grid and the surfels on the GPU, made on first use.
+    chain: Option<GpuChain>,
+    /// The stages the last `prepare` ran on the GPU.
+    stages: &'static [&'static str],
+}
+
+/// The density grid and the surfels on the GPU, kept from frame to frame, and where the last
+/// frame's water is.
+struct GpuChain {
+    filler: GridFiller,
+    surfels: ResidentSurfels,
+    shape: WaterShape,
 }
 
 impl GpuPipeline {
@@ -138,9 +172,11 @@ impl GpuPipeline {
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Validation(e.to_string()).into());
         }
-        Ok(Self {
+        let mut pipeline = Self {
             pass: None,
             shading: None,
+            chain: None,
+            stages: CPU_STAGES,
             cpu,
             optics,
             format,
@@ -150,22 +186,53 @@ impl GpuPipeline {
             uniform,
             prepared: None,
             reused: false,
-        })
+        };
+        if pipeline.surfels_on_gpu() {
+            pipeline.stages = GPU_STAGES;
+        }
+        Ok(pipeline)
     }
 
-    /// The stages that run on the GPU in [`GpuPipeline::prepare`], by name: today `"splats"`
-    /// (the water's splatting for the light's and the camera's views) and `"optics"`
-    /// (caustics, refraction, reflection, the final image); detection, upsampling, the density
-    /// grid and the surfels run on the CPU (their GPU twins, `density::gpu::GridFiller` and
-    /// `surfels::gpu::ResidentSurfels`, are not on this path yet: issue 37).
+    /// Whether `prepare` makes the density grid and the surfels on the GPU: with
+    /// [`PipelineParams::gpu_surfels`], for the EWA renderer and the chain or particle source.
+    #[must_use]
+    pub fn surfels_on_gpu(&self) -> bool {
+        self.cpu.params().gpu_surfels
+            && self.cpu.params().source != SurfelSource::Refined
+            && self.cpu.water_renderer().drawn() == Drawn::Surfels
+    }
+
+    /// The stages the last [`GpuPipeline::prepare`] ran on the GPU (before the first, those it
+    /// will run), by name: `"density"` (the grid) and `"surfels"` when they run there
+    /// ([`GpuPipeline::surfels_on_gpu`]), `"splats"` (the water's splatting for the light's and
+    /// the camera's views) and `"optics"` (caustics, refraction, reflection, the final image).
+    /// Detection and upsampling always run on the CPU.
     #[must_use]
     pub fn gpu_stages(&self) -> &'static [&'static str] {
-        &["splats", "optics"]
+        self.stages
+    }
+
+    /// Lets the surfel count of the frame just submitted come back (without a wait: it is
+    /// looked at a few frames later, to grow the surfel buffer when a frame needs more): call
+    /// it once the encoder `prepare` recorded into is submitted. Without it the buffer keeps
+    /// its first size, a bound from the grid's faces, and surfels past it are left out (said in
+    /// [`Frame::warnings`]).
+    pub fn after_submit(&mut self) {
+        if let Some(chain) = &mut self.chain {
+            chain.surfels.after_submit();
+        }
+    }
+
+    /// The surfels of the last frame made on the GPU, read back (a wait on the device: for
+    /// tests and tools, outside the frame path); `None` before one.
+    pub fn read_surfels(&self, ctx: &GpuContext) -> Result<Option<crate::surfels::Surfels>, Error> {
+        self.chain.as_ref().map(|c| c.surfels.read(ctx)).transpose()
     }
 
     /// Whether the last `prepare` reused the previous frame's GPU resources (the steady state:
     /// nothing created, uniforms and surfels written through the queue); `false` on the first
-    /// frame, after a resize, and when the light's screen changed size.
+    /// frame, after a resize, when the light's screen changed size, and while the GPU's grid
+    /// and surfel buffers grow (the first frames of a sequence).
     #[must_use]
     pub fn reused_resources(&self) -> bool {
         self.reused
@@ -207,10 +274,12 @@ impl GpuPipeline {
         Ok(())
     }
 
-    /// Runs the frame's CPU stages on `particles` and records its GPU passes (caustics and the
-    /// finished frame) into `encoder`; returns the CPU stages' frame (classes, refined points,
-    /// surfels, timings). Submit the encoder, then [`GpuPipeline::render`] draws the frame.
-    /// `particles`: a `&ParticleSet`, or a [`ParticleView`] of the game's own buffers.
+    /// Runs the frame's CPU stages on `particles` and records its GPU passes (the density grid
+    /// and the surfels when [`GpuPipeline::surfels_on_gpu`], caustics and the finished frame)
+    /// into `encoder`; returns the CPU stages' frame (classes, refined points, timings; the
+    /// surfels when they were made on the CPU, [`Frame::surfels_on_gpu`] otherwise). Submit the
+    /// encoder and call [`GpuPipeline::after_submit`], then [`GpuPipeline::render`] draws the
+    /// frame. `particles`: a `&ParticleSet`, or a [`ParticleView`] of the game's own buffers.
     pub fn prepare<'a>(
         &mut self,
         device: &wgpu::Device,
@@ -218,8 +287,60 @@ impl GpuPipeline {
         encoder: &mut wgpu::CommandEncoder,
         particles: impl Into<ParticleView<'a>>,
     ) -> Result<Frame, Error> {
-        let frame = self.cpu.frame_through(particles, Through::Surfels)?;
-        self.prepare_frame(device, queue, encoder, &frame)?;
+        let particles: ParticleView<'a> = particles.into();
+        if !self.surfels_on_gpu() {
+            self.stages = CPU_STAGES;
+            let frame = self.cpu.frame_through(particles, Through::Surfels)?;
+            self.prepare_frame(device, queue, encoder, &frame)?;
+            return Ok(frame);
+        }
+        let budget = crate::gpu::max_binding(device);
+        let (mut frame, input) = self.cpu.frame_to_grid(particles, budget)?;
+        let Some(input) = input else {
+            // no point: the empty frame the CPU path draws
+            self.prepare_frame(device, queue, encoder, &frame)?;
+            return Ok(frame);
+        };
+        let ctx = GpuContext::from_device(device.clone(), queue.clone());
+        let chain = self.chain.get_or_insert_with(|| GpuChain {
+            filler: GridFiller::new(device),
+            surfels: ResidentSurfels::new(device),
+            shape: WaterShape::default(),
+        });
+        let (params, points) = (self.cpu.params(), input.points());
+        let kernel = params.grid.kernel;
+        let t = Instant::now();
+        let grid = chain
+            .filler
+            .record(&ctx, encoder, points, &input.spec, kernel)?;
+        frame.timings.density_ms = ms(t);
+        let t = Instant::now();
+        chain
+            .surfels
+            .record(&ctx, encoder, &grid, points, kernel, &params.surfels)?;
+        frame.timings.surfels_ms = ms(t);
+        frame.detail.surfels = chain.surfels.last_count().unwrap_or(0) as usize;
+        if chain.surfels.overflowed() {
+            frame.warnings.push(format!(
+                "a recent frame had {} surfels, more than the {} the GPU's surfel buffer held: \
+                 those past it were left out (the buffer has grown since)",
+                frame.detail.surfels,
+                chain.surfels.capacity()
+            ));
+        }
+        chain.shape = Pipeline::particle_shape(particles.positions, &frame.surface, frame.radius);
+        // the disks reach their radius, the grid's cell, past the surface; the automatic pool
+        // is fitted to the disks' box as the CPU `Pipeline` fits it to its surfels'
+        chain.shape.drawn = chain.shape.drawn.map(|(lo, hi)| {
+            let r = Vec3::splat(input.spec.spacing);
+            (lo - r, hi + r)
+        });
+        chain.shape.surface = chain.shape.drawn;
+        let created = chain.filler.created() + chain.surfels.created();
+        frame.surfels_on_gpu = true;
+        self.stages = GPU_STAGES;
+        self.record(device, queue, encoder, &frame, (true, None))?;
+        self.reused &= created == 0;
         Ok(frame)
     }
 
@@ -259,35 +380,56 @@ impl GpuPipeline {
         frame: &Frame,
         (finished, splats): (bool, Option<&wgpu::TextureView>),
     ) -> Result<(), Error> {
-        let points = self.cpu.water_points(&frame.render_surfels);
-        let water = self.cpu.water_of(
-            &frame.render_surfels,
-            points.as_ref(),
-            &frame.render_weights,
-        )?;
+        let points;
+        let water: Box<dyn WaterSurface + '_>;
+        let shape = if frame.surfels_on_gpu {
+            // the surfels the last `prepare` left on the GPU
+            let chain = self.chain.as_ref().ok_or_else(|| Error::InvalidArgument {
+                argument: "frame",
+                reason: "its surfels are on another GpuPipeline's GPU: draw it with the pipeline \
+                         that prepared it"
+                    .into(),
+            })?;
+            water = Box::new(GpuSurfels(chain.surfels.surfel_buffer()));
+            chain.shape
+        } else {
+            points = self.cpu.water_points(&frame.render_surfels);
+            water = self.cpu.water_of(
+                &frame.render_surfels,
+                points.as_ref(),
+                &frame.render_weights,
+            )?;
+            self.cpu.water_shape(&frame.render_surfels, frame.radius)
+        };
         if finished {
-            self.prepare_frame_with(device, queue, encoder, frame, water.as_ref())?;
+            self.prepare_frame_with(
+                device,
+                queue,
+                encoder,
+                (&shape, frame.radius),
+                water.as_ref(),
+            )?;
         }
         match splats {
             Some(target) => {
-                self.encode_splats_with(device, queue, encoder, frame, water.as_ref(), target)
+                self.encode_splats_with(device, queue, encoder, shape.drawn, water.as_ref(), target)
             }
             None => Ok(()),
         }
     }
 
-    /// [`GpuPipeline::prepare_frame`] with the frame's water built.
+    /// [`GpuPipeline::prepare_frame`] with the frame's water built (its `shape`, the support
+    /// radius `radius`).
     fn prepare_frame_with(
         &mut self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
         encoder: &mut wgpu::CommandEncoder,
-        frame: &Frame,
+        (shape, radius): (&WaterShape, f32),
         water: &dyn WaterSurface,
     ) -> Result<(), Error> {
-        let surfels = &frame.render_surfels;
-        let scene = self.cpu.fitted_scene(surfels, frame.radius)?;
-        let stage = Stage::new(&scene, surfels)?;
+        let scene = self.cpu.fitted_scene(shape, radius)?;
+        let stage = Stage::fitted(&scene, shape, None)?;
         // the steady state: last frame's targets fit (the views are kept), only uniforms,
         // receiver and surfels are written
         let reused = match &mut self.prepared {
@@ -344,6 +486,9 @@ impl GpuPipeline {
     /// renderer's [`GpuWaterPass`]: the splats write their surfels into a growing buffer through
     /// the queue and create nothing in the steady state; the ray caster and the screen-space
     /// renderer upload their inputs anew each frame and are shaded by the splats' shading pass.
+    /// A frame whose surfels are on the GPU ([`Frame::surfels_on_gpu`]: the last one
+    /// [`GpuPipeline::prepare`] made) is drawn from their buffer, seen from a camera framing
+    /// the particles' box.
     pub fn encode_splats(
         &mut self,
         device: &wgpu::Device,
@@ -355,17 +500,17 @@ impl GpuPipeline {
         self.record(device, queue, encoder, frame, (false, Some(target)))
     }
 
-    /// [`GpuPipeline::encode_splats`] with the frame's water built.
+    /// [`GpuPipeline::encode_splats`] with the frame's water built (`drawn`: its box).
     fn encode_splats_with(
         &mut self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
         encoder: &mut wgpu::CommandEncoder,
-        frame: &Frame,
+        drawn: Option<(Vec3, Vec3)>,
         water: &dyn WaterSurface,
         target: &wgpu::TextureView,
     ) -> Result<(), Error> {
-        let camera = self.cpu.splat_camera(&frame.render_surfels);
+        let camera = self.cpu.splat_camera(drawn);
         let view = self.cpu.draw_view(&camera, self.size)?;
         let prepared = match &mut self.pass {
             Some(pass) => water.prepare_gpu(device, queue, pass.as_mut(), &view)?,
@@ -413,6 +558,23 @@ impl GpuPipeline {
         let target = self.draw_to_texture(&ctx.device, &mut encoder);
         ctx.queue.submit([encoder.finish()]);
         Ok(crate::gpu::read_rgba8(ctx, &target)?)
+    }
+
+    /// Headless: [`GpuPipeline::prepare`] on `particles`, the finished frame drawn into a
+    /// texture of the pipeline's size and read back (a wait on the device: for the command
+    /// line, tests and the saved frames of a game loop). The pipeline's format must be
+    /// `Rgba8Unorm` or `Rgba8UnormSrgb`.
+    pub fn prepare_image<'a>(
+        &mut self,
+        ctx: &GpuContext,
+        particles: impl Into<ParticleView<'a>>,
+    ) -> Result<(Frame, image::RgbaImage), Error> {
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        let frame = self.prepare(&ctx.device, &ctx.queue, &mut encoder, particles)?;
+        let target = self.draw_to_texture(&ctx.device, &mut encoder);
+        ctx.queue.submit([encoder.finish()]);
+        self.after_submit();
+        Ok((frame, crate::gpu::read_rgba8(ctx, &target)?))
     }
 
     /// Records a render pass of its own that clears `target` (a view of the pipeline's format and

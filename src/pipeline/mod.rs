@@ -38,6 +38,7 @@
 //! # Ok::<(), fluid_surfels::Error>(())
 //! ```
 
+use std::borrow::Cow;
 use std::path::Path;
 use std::time::Instant;
 
@@ -299,6 +300,12 @@ pub struct PipelineParams {
     /// The threads a frame may use (`None`, the default: rayon's global pool, one per core);
     /// a worker of a cluster is told how many cores are its own.
     pub threads: Option<usize>,
+    /// [`GpuPipeline`] makes the density grid and the surfels on the GPU (default): the grid
+    /// filled by the gather pass and the surfels extracted there, drawn from the GPU's buffer,
+    /// nothing read back. Off, on the CPU as [`Pipeline`] makes them (to compare the two in one
+    /// program). Only for the EWA renderer and the chain or particle source (the others have no
+    /// density grid); [`Pipeline`] itself always makes them on the CPU.
+    pub gpu_surfels: bool,
 }
 
 impl Default for PipelineParams {
@@ -319,13 +326,15 @@ impl Default for PipelineParams {
             detail: Detail::Auto,
             detail_px: DEFAULT_DETAIL_PX,
             threads: None,
+            gpu_surfels: true,
         }
     }
 }
 
 /// The keys of a TOML file that belong to the pipeline; every other key is the optics scene's.
-const PIPELINE_KEYS: [&str; 14] = [
+const PIPELINE_KEYS: [&str; 15] = [
     "threads",
+    "gpu_surfels",
     "detail",
     "detail_px",
     "raycast",
@@ -583,6 +592,11 @@ pub struct Frame {
     pub detail: DetailReport,
     /// What a user should know: a grid coarsened to fit the memory budget, for instance.
     pub warnings: Vec<String>,
+    /// The density grid and the surfels were made on the GPU ([`GpuPipeline::prepare`] with
+    /// [`PipelineParams::gpu_surfels`]) and stay there: `grid`, `surfels` and `render_surfels`
+    /// are empty, [`DetailReport::surfels`] is a recent frame's count (read back without a
+    /// wait), [`GpuPipeline::read_surfels`] reads them back.
+    pub surfels_on_gpu: bool,
 }
 
 impl Frame {
@@ -851,6 +865,115 @@ impl Pipeline {
         through: Through,
     ) -> Result<Frame, Error> {
         let total = Instant::now();
+        let (mut frame, mut warnings) = self.detect_and_refine(particles, through)?;
+        if through < Through::Surfels {
+            frame.timings.total_ms = ms(total);
+            frame.warnings = warnings;
+            return Ok(frame);
+        }
+        // stage 3: density grid and iso-surface surfels
+        let SourceStage {
+            render,
+            iso,
+            calibration_ms,
+            weights,
+        } = self.source_stage(
+            self.params.source,
+            particles,
+            &frame.surface,
+            frame.refined.as_ref(),
+            frame.radius,
+        )?;
+        frame.render_surfels = render;
+        frame.render_weights = weights;
+        frame.timings.calibration_ms = calibration_ms;
+        match iso {
+            Some(Some(iso)) => {
+                frame.timings.density_ms = iso.density_ms;
+                frame.timings.surfels_ms = iso.surfels_ms;
+                self.warn(&mut warnings, iso.warning);
+                frame.detail.cell = iso.grid.spec().spacing;
+                frame.detail.surfels = iso.surfels.len();
+                frame.grid = Some(iso.grid);
+                frame.surfels = Some(iso.surfels);
+            }
+            Some(None) => frame.surfels = Some(Surfels::default()),
+            None => {}
+        }
+        if through >= Through::Splats {
+            self.render(&mut frame, through)?;
+        }
+        frame.warnings = warnings;
+        frame.timings.total_ms = ms(total);
+        Ok(frame)
+    }
+
+    /// The chain up to the density grid's input, for a caller that makes the grid and the
+    /// surfels itself ([`GpuPipeline`] on the GPU): detection and upsampling of `particles`
+    /// as [`Pipeline::frame_through`] runs them for a frame made [`Through::Surfels`], then the
+    /// points of the pipeline's source with their kernel radii and weights (the boundary
+    /// calibration) and the grid around them ([`grid_for`] with `budget` as the memory budget
+    /// when it is smaller; a coarsened grid is said in the frame's warnings). `None` instead of
+    /// the points for a source or a renderer that has no density grid (the refined points, the
+    /// peer renderers' spheres) and for a frame without points.
+    pub fn frame_to_grid<'a>(
+        &mut self,
+        particles: impl Into<ParticleView<'a>>,
+        budget: u64,
+    ) -> Result<(Frame, Option<GridInput<'a>>), Error> {
+        let particles: ParticleView<'a> = particles.into();
+        self.in_pool(|p| {
+            let total = Instant::now();
+            let (mut frame, mut warnings) = p.detect_and_refine(particles, Through::Surfels)?;
+            let source = p.params.source;
+            let input = if source == SurfelSource::Refined || p.water.drawn() != Drawn::Surfels {
+                None
+            } else {
+                let t = Instant::now();
+                let (positions, radii, weights) = p.density_points(
+                    source,
+                    particles,
+                    &frame.surface,
+                    frame.refined.as_ref(),
+                    frame.radius,
+                )?;
+                if !weights.is_empty() {
+                    frame.timings.calibration_ms = ms(t);
+                }
+                let points = points_of(&positions, &radii, &weights, frame.radius);
+                if points.is_empty() {
+                    None
+                } else {
+                    points.check()?;
+                    let grid = GridParams {
+                        memory_budget: p.params.grid.memory_budget.min(budget),
+                        ..p.params.grid
+                    };
+                    let (spec, warning) = grid_for(&points, &grid)?;
+                    p.warn(&mut warnings, warning);
+                    frame.detail.cell = spec.spacing;
+                    Some(GridInput {
+                        positions,
+                        radii,
+                        weights,
+                        radius: frame.radius,
+                        spec,
+                    })
+                }
+            };
+            frame.warnings = warnings;
+            frame.timings.total_ms = ms(total);
+            Ok((frame, input))
+        })
+    }
+
+    /// Stages 1 and 2 of a frame made `through`: detection and, where `through` and the
+    /// source need it, upsampling.
+    fn detect_and_refine(
+        &mut self,
+        particles: ParticleView<'_>,
+        through: Through,
+    ) -> Result<(Frame, Vec<String>), Error> {
         particles.validate()?;
         let mut timings = FrameTimings::default();
         let mut warnings = Vec::new();
@@ -876,6 +999,7 @@ impl Pipeline {
             timings,
             detail: DetailReport::default(),
             warnings: Vec::new(),
+            surfels_on_gpu: false,
         };
         // stage 2: upsampling of the surface
         let needs_refined = through >= Through::Refine
@@ -903,46 +1027,7 @@ impl Pipeline {
             frame.refined = Some(refined);
             frame.timings.refine_ms = ms(t);
         }
-        if through < Through::Surfels {
-            frame.timings.total_ms = ms(total);
-            frame.warnings = warnings;
-            return Ok(frame);
-        }
-        // stage 3: density grid and iso-surface surfels
-        let SourceStage {
-            render,
-            iso,
-            calibration_ms,
-            weights,
-        } = self.source_stage(
-            self.params.source,
-            particles,
-            &frame.surface,
-            frame.refined.as_ref(),
-            radius,
-        )?;
-        frame.render_surfels = render;
-        frame.render_weights = weights;
-        frame.timings.calibration_ms = calibration_ms;
-        match iso {
-            Some(Some(iso)) => {
-                frame.timings.density_ms = iso.density_ms;
-                frame.timings.surfels_ms = iso.surfels_ms;
-                self.warn(&mut warnings, iso.warning);
-                frame.detail.cell = iso.grid.spec().spacing;
-                frame.detail.surfels = iso.surfels.len();
-                frame.grid = Some(iso.grid);
-                frame.surfels = Some(iso.surfels);
-            }
-            Some(None) => frame.surfels = Some(Surfels::default()),
-            None => {}
-        }
-        if through >= Through::Splats {
-            self.render(&mut frame, through)?;
-        }
-        frame.warnings = warnings;
-        frame.timings.total_ms = ms(total);
-        Ok(frame)
+        Ok((frame, warnings))
     }
 
     /// Stage 3 for `source` and the pipeline's renderer, from a frame's surface and refined
@@ -995,42 +1080,21 @@ impl Pipeline {
         }
         // stage 3 of the EWA renderer: the refined points themselves, or the iso-surface of
         // the source's density grid
-        let mut weights = Vec::new();
-        let t = Instant::now();
-        let (positions, radii) = match source {
-            SurfelSource::Refined => {
-                let r = refined();
-                let render =
-                    splat::surfels_from(&r.positions, &r.normals, &r.gap_free_radii(), colour);
-                return Ok(SourceStage {
-                    render,
-                    iso: None,
-                    calibration_ms: 0.0,
-                    weights: Vec::new(),
-                });
-            }
-            SurfelSource::Chain | SurfelSource::Particles if boundary => {
-                let c = self.points_at_boundary(source, particles, surface, given, radius)?;
-                weights = c.weights;
-                (std::borrow::Cow::Owned(c.positions), c.radii)
-            }
-            SurfelSource::Chain => {
-                let (p, r) = chain_points(particles, surface, refined(), radius);
-                (std::borrow::Cow::Owned(p), r)
-            }
-            SurfelSource::Particles => {
-                (std::borrow::Cow::Borrowed(particles.positions), Vec::new())
-            }
-        };
-        let calibration_ms = if weights.is_empty() { 0.0 } else { ms(t) };
-        let mut points = if radii.is_empty() {
-            Points::uniform(&positions, radius)
-        } else {
-            Points::with_radii(&positions, &radii, radius)
-        };
-        if !weights.is_empty() {
-            points = points.with_weights(&weights);
+        if source == SurfelSource::Refined {
+            let r = refined();
+            let render = splat::surfels_from(&r.positions, &r.normals, &r.gap_free_radii(), colour);
+            return Ok(SourceStage {
+                render,
+                iso: None,
+                calibration_ms: 0.0,
+                weights: Vec::new(),
+            });
         }
+        let t = Instant::now();
+        let (positions, radii, weights) =
+            self.density_points(source, particles, surface, given, radius)?;
+        let calibration_ms = if weights.is_empty() { 0.0 } else { ms(t) };
+        let points = points_of(&positions, &radii, &weights, radius);
         let buffer = std::mem::take(&mut self.grid_buffer);
         let iso = iso_surfels_in(points, &self.params.grid, &self.params.surfels, buffer)?;
         let render = iso.as_ref().map_or_else(Vec::new, |iso| {
@@ -1046,6 +1110,31 @@ impl Pipeline {
             iso: Some(iso),
             calibration_ms,
             weights: Vec::new(),
+        })
+    }
+
+    /// The points of the density grid of `source` (the chain or the raw particles): positions,
+    /// kernel radii (empty: every one the support radius `radius`) and weights (empty: every
+    /// one 1; the boundary calibration's otherwise).
+    fn density_points<'a>(
+        &self,
+        source: SurfelSource,
+        particles: ParticleView<'a>,
+        surface: &Surface,
+        refined: Option<&Refined>,
+        radius: f32,
+    ) -> Result<SourcePoints<'a>, Error> {
+        if self.params.grid.calibration == Calibration::Boundary {
+            let c = self.points_at_boundary(source, particles, surface, refined, radius)?;
+            return Ok((Cow::Owned(c.positions), c.radii, c.weights));
+        }
+        Ok(match source {
+            SurfelSource::Particles => (Cow::Borrowed(particles.positions), Vec::new(), Vec::new()),
+            _ => {
+                let r = refined.expect("refined above");
+                let (p, r) = chain_points(particles, surface, r, radius);
+                (Cow::Owned(p), r, Vec::new())
+            }
         })
     }
 
@@ -1156,6 +1245,7 @@ impl Pipeline {
             timings: FrameTimings::default(),
             detail: DetailReport::default(),
             warnings: Vec::new(),
+            surfels_on_gpu: false,
         };
         let skipped = frame
             .render_surfels
@@ -1377,9 +1467,10 @@ impl Pipeline {
         let water = self.water_of(surfels, points.as_ref(), &frame.render_weights)?;
         let water = water.as_ref();
         if through == Through::Frame {
-            let scene = self.fitted_scene(surfels, frame.radius)?;
+            let shape = self.water_shape(surfels, frame.radius);
+            let scene = self.fitted_scene(&shape, frame.radius)?;
             let t = Instant::now();
-            let stage = Stage::new(&scene, surfels)?;
+            let stage = Stage::fitted(&scene, &shape, None)?;
             let caustics = optics::caustics_of(&stage, water)?;
             frame.timings.caustics_ms = ms(t);
             let t = Instant::now();
@@ -1395,7 +1486,7 @@ impl Pipeline {
         }
         let camera = match frame.camera {
             Some(c) => c,
-            None => self.splat_camera(surfels),
+            None => self.splat_camera(splat::bounds(surfels)),
         };
         frame.camera = Some(camera);
         if through != Through::Splats {
@@ -1495,11 +1586,11 @@ impl Pipeline {
     }
 
     /// The camera of the shaded splats: the sequence's kept camera, else the scene's, else one
-    /// framing the surfels (then kept, with `keep_views`).
-    pub(crate) fn splat_camera(&mut self, surfels: &[Surfel]) -> Camera {
+    /// framing the water's box `drawn` (then kept, with `keep_views`).
+    pub(crate) fn splat_camera(&mut self, drawn: Option<(Vec3, Vec3)>) -> Camera {
         let camera = self.camera_or(|| {
-            let (lo, hi) = crate::view::union_boxes(splat::bounds(surfels), self.fit)
-                .unwrap_or((Vec3::ZERO, Vec3::ONE));
+            let (lo, hi) =
+                crate::view::union_boxes(drawn, self.fit).unwrap_or((Vec3::ZERO, Vec3::ONE));
             Camera::framing(lo, hi)
         });
         if self.views.is_none() && self.params.keep_views {
@@ -1511,17 +1602,65 @@ impl Pipeline {
         camera
     }
 
-    /// The optics scene of this frame (support radius `radius`): the first rendered frame fits
-    /// the camera, the pool and the scene box, later frames of the sequence keep them.
+    /// Where the water of `surfels` is ([`optics::WaterShape::of_surfels`]); the surface of
+    /// the ray caster's calibrated spheres half a spacing (a quarter of the support radius
+    /// `radius`) outside their centres.
+    pub(crate) fn water_shape(&self, surfels: &[Surfel], radius: f32) -> optics::WaterShape {
+        let mut shape = optics::WaterShape::of_surfels(surfels);
+        if self.water.drawn() == (Drawn::Spheres { calibrated: true })
+            && self.params.grid.calibration == Calibration::Boundary
+            && radius.is_finite()
+            && radius > 0.0
+        {
+            shape.surface = crate::view::widened_bounds(
+                surfels
+                    .iter()
+                    .filter(|s| s.is_drawable())
+                    .map(|s| Vec3::from(s.position)),
+                0.25 * radius,
+            );
+        }
+        shape
+    }
+
+    /// Where the water of a frame made from `positions` (its `surface`, support radius
+    /// `radius`) is before its surfels are known (on a GPU, they never come back): the
+    /// particles' box widened by half a spacing (where the boundary calibration puts the
+    /// surface), and the level of the upward-facing surface particles half a spacing out along
+    /// their normals.
+    pub(crate) fn particle_shape(
+        positions: &[Vec3],
+        surface: &Surface,
+        radius: f32,
+    ) -> optics::WaterShape {
+        let out = 0.25 * radius;
+        let own = crate::view::widened_bounds(positions.iter().copied(), out);
+        let up = surface
+            .classes
+            .iter()
+            .zip(&surface.normals)
+            .zip(positions)
+            .filter(|((c, n), _)| **c == ParticleClass::Surface && n.y > 0.5)
+            .map(|((_, n), p)| p.y + out * n.y);
+        optics::WaterShape {
+            drawn: own,
+            surface: own,
+            level: optics::median(up.collect()),
+        }
+    }
+
+    /// The optics scene of this frame (support radius `radius`, the water's `shape`): the first
+    /// rendered frame fits the camera, the pool and the scene box, later frames of the sequence
+    /// keep them.
     pub(crate) fn fitted_scene(
         &mut self,
-        surfels: &[Surfel],
+        shape: &optics::WaterShape,
         radius: f32,
     ) -> Result<OpticsScene, Error> {
         let mut scene = self.params.scene.clone();
         scene.optics.splat = self.water.splat_params(scene.optics.splat);
         if !self.params.keep_views {
-            if let Some(pool) = self.pool_at_the_water(&scene, surfels, radius) {
+            if let Some(pool) = self.pool_at_the_water(&scene, shape, radius) {
                 scene.receiver = pool;
             }
             return Ok(scene);
@@ -1534,9 +1673,9 @@ impl Pipeline {
             Some(k) => k,
             None => {
                 // a provisional stage fits the pool and the camera around this frame's water
-                let first = Stage::fitted(&scene, surfels, self.fit)?;
+                let first = Stage::fitted(&scene, shape, self.fit)?;
                 let (rmin, rmax) = first.receiver.bounds();
-                let receiver = match self.pool_at_the_water(&scene, surfels, radius) {
+                let receiver = match self.pool_at_the_water(&scene, shape, radius) {
                     Some(pool) => pool,
                     // without a support radius (surfels given as they are): the provisional
                     // stage's automatic pool, kept
@@ -1548,7 +1687,7 @@ impl Pipeline {
                     },
                     None => scene.receiver.clone(),
                 };
-                let water = crate::view::union_boxes(splat::bounds(surfels), self.fit);
+                let water = crate::view::union_boxes(shape.drawn, self.fit);
                 let (lo, hi) =
                     crate::view::union_boxes(water, Some((rmin, rmax))).unwrap_or((rmin, rmax));
                 // room for the water to rise and spread in later frames
@@ -1603,34 +1742,22 @@ impl Pipeline {
     fn pool_at_the_water(
         &self,
         scene: &OpticsScene,
-        surfels: &[Surfel],
+        shape: &optics::WaterShape,
         radius: f32,
     ) -> Option<optics::Receiver> {
         if scene.receiver.kind != ReceiverKind::Auto || !(radius.is_finite() && radius > 0.0) {
             return None;
         }
         // the ray caster's spheres reach a support radius past their centres, its calibrated
-        // surface half a spacing: the box of that surface
-        let own = if self.water.drawn() == (Drawn::Spheres { calibrated: true })
-            && self.params.grid.calibration == Calibration::Boundary
-        {
-            crate::view::widened_bounds(
-                surfels
-                    .iter()
-                    .filter(|s| s.is_drawable())
-                    .map(|s| Vec3::from(s.position)),
-                0.25 * radius,
-            )
-        } else {
-            splat::bounds(surfels)
-        };
-        let (lo, hi) = crate::view::union_boxes(own, self.fit)?;
+        // surface half a spacing: the box of that surface ([`Pipeline::water_shape`])
+        let (lo, hi) = crate::view::union_boxes(shape.surface, self.fit)?;
         let inset = (0.25 * 0.5 * radius).min(0.25 * (hi - lo).min_element());
         let min = lo + Vec3::splat(inset);
         // walls as high over the floor as the former pool's over its own (5 % of the water's
         // size over its bottom, the floor 2 % below it), on a thin sheet's pool
-        let top =
-            optics::pool_wall_top(surfels, lo.y, hi.y).max(min.y + 0.07 * (hi - lo).max_element());
+        let top = shape
+            .wall_top(lo.y, hi.y)
+            .max(min.y + 0.07 * (hi - lo).max_element());
         Some(optics::Receiver {
             kind: ReceiverKind::OpenBox,
             min,
@@ -1789,6 +1916,10 @@ pub fn sphere_points(spheres: &[Surfel]) -> (Vec<Vec3>, Vec<f32>) {
         .unzip()
 }
 
+/// A density grid's points: positions, kernel radii (empty: every one the support radius) and
+/// weights (empty: every one 1).
+type SourcePoints<'a> = (Cow<'a, [Vec3]>, Vec<f32>, Vec<f32>);
+
 /// What [`Pipeline::source_stage`] makes of a frame.
 struct SourceStage {
     /// The surfels to draw (spheres of the source's points for the peer renderers).
@@ -1800,6 +1931,50 @@ struct SourceStage {
     calibration_ms: f64,
     /// The weights of the ray caster's spheres (empty: every one 1).
     weights: Vec<f32>,
+}
+
+/// A frame's density grid input ([`Pipeline::frame_to_grid`]): the source's points with their
+/// kernel radii and weights, and the grid around them.
+#[derive(Clone, Debug)]
+pub struct GridInput<'a> {
+    /// The points' positions (the particles themselves for the raw-particle source).
+    pub positions: Cow<'a, [Vec3]>,
+    /// Each point's kernel radius (empty: every one [`GridInput::radius`]).
+    pub radii: Vec<f32>,
+    /// Each point's weight (empty: every one 1).
+    pub weights: Vec<f32>,
+    /// The support radius.
+    pub radius: f32,
+    /// The grid ([`grid_for`]).
+    pub spec: GridSpec,
+}
+
+impl GridInput<'_> {
+    /// The points as the density stages take them.
+    #[must_use]
+    pub fn points(&self) -> Points<'_> {
+        points_of(&self.positions, &self.radii, &self.weights, self.radius)
+    }
+}
+
+/// Points at `positions` with kernel radii `radii` (empty: every one `radius`) and `weights`
+/// (empty: every one 1).
+fn points_of<'p>(
+    positions: &'p [Vec3],
+    radii: &'p [f32],
+    weights: &'p [f32],
+    radius: f32,
+) -> Points<'p> {
+    let points = if radii.is_empty() {
+        Points::uniform(positions, radius)
+    } else {
+        Points::with_radii(positions, radii, radius)
+    };
+    if weights.is_empty() {
+        points
+    } else {
+        points.with_weights(weights)
+    }
 }
 
 /// What [`iso_surfels`] returns.

@@ -27,7 +27,8 @@ const ACCUMULATION: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
 const DEPTH: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 
 /// Surfels uploaded to the GPU (only the drawable ones; see [`Surfel::is_drawable`]), in chunks
-/// no larger than the device's buffer limit.
+/// no larger than the device's buffer limit. A clone shares the same GPU buffers.
+#[derive(Clone, Debug)]
 pub struct SurfelBuffer {
     chunks: Vec<(wgpu::Buffer, u32)>,
     /// Drawn by an indirect draw from this buffer's arguments (surfels made on the GPU,

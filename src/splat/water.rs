@@ -245,6 +245,61 @@ impl WaterSurface for &[Surfel] {
     }
 }
 
+/// Surfels that live on the GPU (made there by `surfels::gpu::ResidentSurfels`), drawn by the
+/// EWA splatting's passes from their buffer with an indirect draw: nothing uploaded, nothing
+/// read back. They have no CPU picture ([`WaterSurface::render`] refuses; read them back
+/// first).
+pub struct GpuSurfels(pub SurfelBuffer);
+
+impl WaterSurface for GpuSurfels {
+    fn render(&self, _view: &View) -> Result<Render, Error> {
+        Err(Error::InvalidArgument {
+            argument: "water",
+            reason: "surfels that live on the GPU have no CPU picture: read them back first \
+                     (ResidentSurfels::read)"
+                .into(),
+        })
+    }
+
+    fn render_gpu(&self, ctx: &GpuContext, view: &View) -> Result<Render, Error> {
+        let renderer = SplatRenderer::new(
+            &ctx.device,
+            wgpu::TextureFormat::Rgba8Unorm,
+            view.width,
+            view.height,
+        )?;
+        Ok(super::gpu::render_timed(ctx, &renderer, &self.0, view)?.0)
+    }
+
+    fn gpu_pass(
+        &self,
+        device: &wgpu::Device,
+        format: wgpu::TextureFormat,
+        size: (u32, u32),
+    ) -> Result<Box<dyn GpuWaterPass>, Error> {
+        <&[Surfel] as WaterSurface>::gpu_pass(&&[][..], device, format, size)
+    }
+
+    fn prepare_gpu(
+        &self,
+        _device: &wgpu::Device,
+        _queue: &wgpu::Queue,
+        pass: &mut dyn GpuWaterPass,
+        view: &View,
+    ) -> Result<bool, Error> {
+        let Some(pass) = pass.as_any_mut().downcast_mut::<SplatPass>() else {
+            return Ok(false);
+        };
+        if pass.renderer.size() != (view.width, view.height) {
+            return Ok(false);
+        }
+        // the same buffers frame after frame: a clone of the handles, nothing created
+        pass.surfels = self.0.clone();
+        pass.view = Some(*view);
+        Ok(true)
+    }
+}
+
 /// The splats' GPU pass: a [`SplatRenderer`] and its surfel buffer (written in place from frame
 /// to frame).
 pub struct SplatPass {

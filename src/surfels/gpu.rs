@@ -16,7 +16,8 @@
 //! `project` dispatched indirectly, the count read back asynchronously to grow the buffers,
 //! nothing created after the first frames and nothing waited on;
 //! [`ResidentSurfels::surfel_buffer`] hands them to the splatting as they are (an indirect
-//! draw). Drawing them in `GpuPipeline` (with its optics) is the next part of issue 37.
+//! draw). `pipeline::GpuPipeline::prepare` records both into a game's frame, drawn by its
+//! splatting and optics.
 
 use std::sync::{Arc, Mutex};
 
