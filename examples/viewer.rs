@@ -256,12 +256,11 @@ impl Viewer {
             (Some(o), _) => o,
             (None, Some(c)) => Orbit::from(c),
             (None, None) => {
-                let surfels = self
+                let (lo, hi) = self
                     .frame
                     .as_ref()
-                    .map_or(&[][..], |f| &f.render_surfels[..]);
-                let (lo, hi) =
-                    fluid_surfels::splat::bounds(surfels).unwrap_or((Vec3::ZERO, Vec3::ONE));
+                    .and_then(fluid_surfels::pipeline::Frame::water_box)
+                    .unwrap_or((Vec3::ZERO, Vec3::ONE));
                 Orbit::from(
                     self.gpu
                         .cpu()

@@ -100,9 +100,12 @@ fn density_surfaces_have_no_holes_on_a_lattice_block_and_the_real_files() {
         );
         assert!(h.enclosed_fraction() <= 0.001, "{h:?}");
         // the dam break: what is enclosed is background between drop clusters at the top of
-        // the splash (looked at: no hole in the surface), 0.15 % for the chain
+        // the splash (looked at: no hole in the surface), so it follows the camera: 0.157 % for
+        // the chain with the camera framing the surfels' box, 0.200 % framing the particles'
+        // (widened to the surface, issue 37: the views of both pipelines); the particles 0.168
+        // and 0.207 %
         let h = holes_of("dam_break", &read(DAM_BREAK), source, [400, 400]);
-        assert!(h.enclosed_fraction() <= 0.002, "{h:?}");
+        assert!(h.enclosed_fraction() <= 0.0025, "{h:?}");
     }
 }
 

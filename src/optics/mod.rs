@@ -518,7 +518,8 @@ pub struct Stage {
 
 impl Stage {
     /// Checks the scene, builds the receiver (and its BVH), loads the environment image and sets
-    /// up the light's views around the surfels.
+    /// up the light's views around the surfels ([`Stage::fitted`] for water known by its
+    /// shape).
     pub fn new(scene: &OpticsScene, surfels: &[Surfel]) -> Result<Self, OpticsError> {
         Self::fitted(scene, &WaterShape::of_surfels(surfels), None)
     }

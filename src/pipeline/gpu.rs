@@ -85,12 +85,10 @@ pub struct GpuPipeline {
     stages: &'static [&'static str],
 }
 
-/// The density grid and the surfels on the GPU, kept from frame to frame, and where the last
-/// frame's water is.
+/// The density grid and the surfels on the GPU, kept from frame to frame.
 struct GpuChain {
     filler: GridFiller,
     surfels: ResidentSurfels,
-    shape: WaterShape,
 }
 
 impl GpuPipeline {
@@ -305,7 +303,6 @@ impl GpuPipeline {
         let chain = self.chain.get_or_insert_with(|| GpuChain {
             filler: GridFiller::new(device),
             surfels: ResidentSurfels::new(device),
-            shape: WaterShape::default(),
         });
         let (params, points) = (self.cpu.params(), input.points());
         let kernel = params.grid.kernel;
@@ -328,14 +325,21 @@ impl GpuPipeline {
                 chain.surfels.capacity()
             ));
         }
-        chain.shape = Pipeline::particle_shape(particles.positions, &frame.surface, frame.radius);
-        // the disks reach their radius, the grid's cell, past the surface; the automatic pool
-        // is fitted to the disks' box as the CPU `Pipeline` fits it to its surfels'
-        chain.shape.drawn = chain.shape.drawn.map(|(lo, hi)| {
-            let r = Vec3::splat(input.spec.spacing);
-            (lo - r, hi + r)
-        });
-        chain.shape.surface = chain.shape.drawn;
+        // with the paper's calibration the surface lies farther out: the grid's box bounds it
+        let spec = input.spec;
+        frame.shape = self
+            .cpu
+            .grid_water_shape(particles.positions, &frame.surface, frame.radius, &spec)
+            .or_else(|| {
+                let far =
+                    spec.origin + spec.spacing * Vec3::from(spec.dims.map(|d| d as f32 - 1.0));
+                let grid_box = Some((spec.origin, far));
+                Some(WaterShape {
+                    drawn: grid_box,
+                    surface: grid_box,
+                    level: None,
+                })
+            });
         let created = chain.filler.created() + chain.surfels.created();
         frame.surfels_on_gpu = true;
         self.stages = GPU_STAGES;
@@ -382,7 +386,7 @@ impl GpuPipeline {
     ) -> Result<(), Error> {
         let points;
         let water: Box<dyn WaterSurface + '_>;
-        let shape = if frame.surfels_on_gpu {
+        if frame.surfels_on_gpu {
             // the surfels the last `prepare` left on the GPU
             let chain = self.chain.as_ref().ok_or_else(|| Error::InvalidArgument {
                 argument: "frame",
@@ -391,7 +395,6 @@ impl GpuPipeline {
                     .into(),
             })?;
             water = Box::new(GpuSurfels(chain.surfels.surfel_buffer()));
-            chain.shape
         } else {
             points = self.cpu.water_points(&frame.render_surfels);
             water = self.cpu.water_of(
@@ -399,8 +402,8 @@ impl GpuPipeline {
                 points.as_ref(),
                 &frame.render_weights,
             )?;
-            self.cpu.water_shape(&frame.render_surfels, frame.radius)
-        };
+        }
+        let shape = self.cpu.shape_of(frame);
         if finished {
             self.prepare_frame_with(
                 device,
@@ -482,13 +485,13 @@ impl GpuPipeline {
     /// Records the shaded EWA splats of `frame`'s surfels (Blinn-Phong, no optics) into `target`,
     /// a view of a texture of the pipeline's format and size: the other picture `GpuPipeline`
     /// draws, the GPU twin of [`super::Through::Splats`]. Seen from the sequence's kept camera
-    /// (or the scene's, or one framing the surfels, as the CPU pipeline does), drawn by the
+    /// (or the scene's, or one framing the water's shape, [`Frame::shape`], as the CPU
+    /// pipeline does), drawn by the
     /// renderer's [`GpuWaterPass`]: the splats write their surfels into a growing buffer through
     /// the queue and create nothing in the steady state; the ray caster and the screen-space
     /// renderer upload their inputs anew each frame and are shaded by the splats' shading pass.
     /// A frame whose surfels are on the GPU ([`Frame::surfels_on_gpu`]: the last one
-    /// [`GpuPipeline::prepare`] made) is drawn from their buffer, seen from a camera framing
-    /// the particles' box.
+    /// [`GpuPipeline::prepare`] made) is drawn from their buffer.
     pub fn encode_splats(
         &mut self,
         device: &wgpu::Device,

@@ -597,9 +597,23 @@ pub struct Frame {
     /// are empty, [`DetailReport::surfels`] is a recent frame's count (read back without a
     /// wait), [`GpuPipeline::read_surfels`] reads them back.
     pub surfels_on_gpu: bool,
+    /// Where the water is, as the views (camera, pool, the light's screen) are fitted to it,
+    /// for surfels on a density grid with the boundary calibration: from the particles
+    /// ([`Pipeline::grid_water_shape`]), so that the CPU's pictures and [`GpuPipeline`]'s,
+    /// whose surfels stay on the GPU, are seen alike. `None`: fitted to the surfels.
+    pub shape: Option<optics::WaterShape>,
 }
 
 impl Frame {
+    /// The box the pictures of this frame are fitted to: that of its shape ([`Frame::shape`],
+    /// what is drawn where the particles put the water), else that of its drawable surfels.
+    #[must_use]
+    pub fn water_box(&self) -> Option<(Vec3, Vec3)> {
+        self.shape
+            .and_then(|s| s.drawn)
+            .or_else(|| splat::bounds(&self.render_surfels))
+    }
+
     /// The triangle mesh of the iso-surface the surfels lie on: marching cubes over the frame's
     /// density grid (dense, or sparse: the blocks near the surface) at the surfels' iso-value
     /// ([`crate::mesh`]), its vertices the surfels themselves (vertex `n` is the crossing surfel
@@ -900,6 +914,9 @@ impl Pipeline {
             Some(None) => frame.surfels = Some(Surfels::default()),
             None => {}
         }
+        frame.shape = frame.grid.as_ref().and_then(|g| {
+            self.grid_water_shape(particles.positions, &frame.surface, frame.radius, g.spec())
+        });
         if through >= Through::Splats {
             self.render(&mut frame, through)?;
         }
@@ -1000,6 +1017,7 @@ impl Pipeline {
             detail: DetailReport::default(),
             warnings: Vec::new(),
             surfels_on_gpu: false,
+            shape: None,
         };
         // stage 2: upsampling of the surface
         let needs_refined = through >= Through::Refine
@@ -1246,6 +1264,7 @@ impl Pipeline {
             detail: DetailReport::default(),
             warnings: Vec::new(),
             surfels_on_gpu: false,
+            shape: None,
         };
         let skipped = frame
             .render_surfels
@@ -1460,14 +1479,15 @@ impl Pipeline {
     }
 
     /// Stages 4 and 5 on the frame's surfels, with the views kept for the sequence.
+    /// The views are fitted to the frame's shape ([`Frame::shape`]), or to its surfels'.
     fn render(&mut self, frame: &mut Frame, through: Through) -> Result<(), Error> {
         let surfels = &frame.render_surfels;
         let [w, h] = self.params.scene.optics.image_size;
         let points = self.water_points(surfels);
         let water = self.water_of(surfels, points.as_ref(), &frame.render_weights)?;
         let water = water.as_ref();
+        let shape = self.shape_of(frame);
         if through == Through::Frame {
-            let shape = self.water_shape(surfels, frame.radius);
             let scene = self.fitted_scene(&shape, frame.radius)?;
             let t = Instant::now();
             let stage = Stage::fitted(&scene, &shape, None)?;
@@ -1486,7 +1506,7 @@ impl Pipeline {
         }
         let camera = match frame.camera {
             Some(c) => c,
-            None => self.splat_camera(splat::bounds(surfels)),
+            None => self.splat_camera(shape.drawn),
         };
         frame.camera = Some(camera);
         if through != Through::Splats {
@@ -1602,6 +1622,14 @@ impl Pipeline {
         camera
     }
 
+    /// Where the water of `frame` is, as the views are fitted to it: [`Frame::shape`], else
+    /// that of its surfels ([`Pipeline::water_shape`]).
+    pub(crate) fn shape_of(&self, frame: &Frame) -> optics::WaterShape {
+        frame
+            .shape
+            .unwrap_or_else(|| self.water_shape(&frame.render_surfels, frame.radius))
+    }
+
     /// Where the water of `surfels` is ([`optics::WaterShape::of_surfels`]); the surface of
     /// the ray caster's calibrated spheres half a spacing (a quarter of the support radius
     /// `radius`) outside their centres.
@@ -1623,18 +1651,27 @@ impl Pipeline {
         shape
     }
 
-    /// Where the water of a frame made from `positions` (its `surface`, support radius
-    /// `radius`) is before its surfels are known (on a GPU, they never come back): the
-    /// particles' box widened by half a spacing (where the boundary calibration puts the
-    /// surface), and the level of the upward-facing surface particles half a spacing out along
-    /// their normals.
-    pub(crate) fn particle_shape(
+    /// Where the water of a frame is before its surfels are known (on a GPU, they never come
+    /// back), from its particles at `positions` (their `surface`, support radius `radius`) and
+    /// the density grid `grid` the surfels lie on: the particles' box widened by half a spacing
+    /// (where the boundary calibration puts the surface) and by the disks' radius (the grid's
+    /// cell), and the level of the upward-facing surface particles half a spacing out along
+    /// their normals. `None` with the paper's calibration, whose surface lies farther out by an
+    /// amount that depends on the level of detail (the views are then fitted to the surfels).
+    /// Both pipelines fit their views to it: [`GpuPipeline`] cannot read its surfels, and the
+    /// CPU's pictures are then the GPU's.
+    pub fn grid_water_shape(
+        &self,
         positions: &[Vec3],
         surface: &Surface,
         radius: f32,
-    ) -> optics::WaterShape {
+        grid: &GridSpec,
+    ) -> Option<optics::WaterShape> {
+        if self.params.grid.calibration != Calibration::Boundary {
+            return None;
+        }
         let out = 0.25 * radius;
-        let own = crate::view::widened_bounds(positions.iter().copied(), out);
+        let own = crate::view::widened_bounds(positions.iter().copied(), out + grid.spacing);
         let up = surface
             .classes
             .iter()
@@ -1642,11 +1679,11 @@ impl Pipeline {
             .zip(positions)
             .filter(|((c, n), _)| **c == ParticleClass::Surface && n.y > 0.5)
             .map(|((_, n), p)| p.y + out * n.y);
-        optics::WaterShape {
+        Some(optics::WaterShape {
             drawn: own,
             surface: own,
             level: optics::median(up.collect()),
-        }
+        })
     }
 
     /// The optics scene of this frame (support radius `radius`, the water's `shape`): the first
@@ -1725,9 +1762,10 @@ impl Pipeline {
 
     /// The automatic pool (for a scene whose receiver is `auto`) as an open box whose walls and
     /// floor meet the water: a quarter of a spacing (an eighth of the support radius `radius`)
-    /// inside the water's bounds (this frame's surfels, widened to [`Pipeline::fit_to`]'s box),
-    /// the walls up to the automatic pool's top ([`optics::pool_wall_top`]: 1.2x the water's
-    /// level) and at least 7 % of the water's size over the floor. `None` for another receiver,
+    /// inside the water's bounds (the surface's box of its `shape`, [`Frame::shape`] or its
+    /// surfels', widened to [`Pipeline::fit_to`]'s box), the walls up to the automatic pool's
+    /// top ([`optics::WaterShape::wall_top`]: 1.2x the water's level) and at least 7 % of the
+    /// water's size over the floor. `None` for another receiver,
     /// without water, or without a support radius.
     /// A simulation's walls lie at the fluid's boundary, half a spacing outside the particles
     /// next to them, where the water's surface lies too; those particles are not all equally near
@@ -1738,7 +1776,8 @@ impl Pipeline {
     /// (tests/pictures.rs, the speck measure, the surface at the fluid's boundary): walls 2 % of
     /// the water's size outside it (the former margin), 0.99 % of the frame dark specks along
     /// two walls; at the water's bounds, 0.67 %; a quarter spacing inside, 0.38 % and no groove
-    /// (with the paper's sums and the former margin: 0.55 %).
+    /// (with the paper's sums and the former margin: 0.55 %); fitted to the particles' shape
+    /// instead of the surfels' (issue 37), 0.285 %.
     fn pool_at_the_water(
         &self,
         scene: &OpticsScene,

@@ -628,9 +628,14 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     let surfels_ms = ms(t);
     let surfels = &frame.render_surfels;
     save_surfels(args, surfels)?;
-    let camera = args
-        .camera
-        .map_or_else(|| framing(surfels), |c| turned_camera(c, args.up));
+    let camera = args.camera.map_or_else(
+        // the box the pipeline's own pictures frame (the water's shape)
+        || {
+            let (lo, hi) = frame.water_box().unwrap_or((Vec3::ZERO, Vec3::ONE));
+            Camera::framing(lo, hi)
+        },
+        |c| turned_camera(c, args.up),
+    );
     if let Some(path) = &args.level_map {
         let refined = frame
             .refined
