@@ -5,16 +5,19 @@
 //! compared with the CPU `Pipeline`'s image of the same frame.
 //!
 //! Run: `cargo run --release --example game_loop -- [--frames 60] [--size 320x320]
-//! [--save 0,30,59] [--out DIR] [--json] [--cpu-surfels]`. The density grid and the surfels are
-//! made on the GPU (`PipelineParams::gpu_surfels`); `--cpu-surfels` makes them on the CPU, as
-//! the CPU `Pipeline` does, to compare the two. Needs a GPU or Mesa's lavapipe (on lavapipe, a
+//! [--save 0,30,59] [--out DIR] [--json] [--cpu-surfels] [--stage-ms]`. The density grid and
+//! the surfels are made on the GPU (`PipelineParams::gpu_surfels`); `--cpu-surfels` makes them
+//! on the CPU, as the CPU `Pipeline` does, to compare the two. Needs a GPU or Mesa's lavapipe (on lavapipe, a
 //! software rasteriser, it proves the loop works, not how fast a GPU runs it).
 //!
 //! `--json` prints one object: frames, the CPU milliseconds per frame (the CPU stages plus
 //! recording and submitting; mean and 95th percentile), those of `prepare` alone
 //! (`cpu_prepare_ms`; `cpu_prepare_stages_ms`: its mean per stage, where the density and surfels
-//! made on the GPU count only their recording), the stages that ran on the GPU (`gpu_stages`), the GPU milliseconds per frame from
-//! timestamp queries where the adapter has them (then each frame waits for its timestamps), and
+//! made on the GPU count only their recording), the stages that ran on the GPU (`gpu_stages`),
+//! the GPU milliseconds per frame from timestamp queries where the adapter has them (then each
+//! frame waits for its timestamps) and
+//! with `--stage-ms` those of each stage of a recent frame (`gpu_stage_ms`,
+//! `GpuPipeline::time_stages`; they slow lavapipe down, see there), and
 //! the PSNR of every saved frame against the CPU pipeline, and how many frames reused the
 //! pipeline's GPU resources (all but those whose water needed larger buffers than any frame
 //! before).
@@ -34,6 +37,7 @@ struct Args {
     out: PathBuf,
     json: bool,
     cpu_surfels: bool,
+    stage_ms: bool,
 }
 
 fn args() -> Result<Args, String> {
@@ -44,6 +48,7 @@ fn args() -> Result<Args, String> {
         out: PathBuf::from("out/game_loop"),
         json: false,
         cpu_surfels: false,
+        stage_ms: false,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -69,6 +74,7 @@ fn args() -> Result<Args, String> {
             "--out" => a.out = PathBuf::from(value()?),
             "--json" => a.json = true,
             "--cpu-surfels" => a.cpu_surfels = true,
+            "--stage-ms" => a.stage_ms = true,
             other => return Err(format!("unknown argument {other}")),
         }
     }
@@ -184,6 +190,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     params.scene.optics.image_size = [args.size.0, args.size.1];
     let mut gpu = GpuPipeline::new(&device, &queue, format, args.size, &params)?;
+    if args.stage_ms {
+        gpu.time_stages(&device, &queue, true);
+    }
     // the CPU reference, stepped in lockstep (detection every frame for the same hysteresis)
     let mut reference = Pipeline::new(params)?;
     let query = timestamps.then(|| timestamp_query(&device));
@@ -259,6 +268,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "cpu_prepare_ms_p95": percentile(&prepare_ms, 0.95),
         "cpu_prepare_stages_ms": stages_ms,
         "gpu_stages": gpu.gpu_stages(),
+        // a recent frame's GPU ms per stage, by the pipeline's own timestamps (null without them)
+        "gpu_stage_ms": gpu.gpu_stage_ms(),
         "gpu_ms_mean": (!gpu_ms.is_empty()).then(|| mean(&gpu_ms)),
         "gpu_ms_p95": (!gpu_ms.is_empty()).then(|| percentile(&gpu_ms, 0.95)),
         "saved": saved,

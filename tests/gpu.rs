@@ -1408,8 +1408,10 @@ fn gpu_pipeline_frames_on_the_gpu_wait_on_nothing() {
         &params,
     )
     .unwrap();
+    let timed = gpu.time_stages(&ctx.device, &ctx.queue, true);
+    let mut sim = scenes::ColumnSim::new(scenes::ColumnParams::default()).unwrap();
     for pass in 0..2 {
-        let mut sim = scenes::ColumnSim::new(scenes::ColumnParams::default()).unwrap();
+        sim = scenes::ColumnSim::new(scenes::ColumnParams::default()).unwrap();
         gpu.cpu_mut().reset();
         let (mut reused, mut waited, mut counts) = (Vec::new(), Vec::new(), Vec::new());
         for f in 6..11 {
@@ -1444,6 +1446,32 @@ fn gpu_pipeline_frames_on_the_gpu_wait_on_nothing() {
     }
     let read = gpu.read_surfels(&ctx).unwrap().unwrap();
     assert!(read.len() > 1000, "{} surfels", read.len());
+    // the GPU time of each stage, by timestamps read back as the count is (the test polls the
+    // device here, as a game's presents would)
+    assert_eq!(
+        timed,
+        ctx.device.features().contains(gpu::TIMESTAMP_FEATURES)
+    );
+    if timed {
+        ctx.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .unwrap();
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        gpu.prepare(&ctx.device, &ctx.queue, &mut encoder, sim.particles())
+            .unwrap();
+        ctx.queue.submit([encoder.finish()]);
+        gpu.after_submit();
+        let ms = gpu
+            .gpu_stage_ms()
+            .expect("the stages' timestamps never arrived");
+        println!("GPU ms per stage (lavapipe, 96x96): {ms:?}");
+        assert!(
+            ms.density > 0.0 && ms.surfels > 0.0 && ms.caustics > 0.0 && ms.image > 0.0,
+            "{ms:?}"
+        );
+    } else {
+        println!("no timestamp queries on this device");
+    }
 }
 
 /// `GpuPipeline::prepare` with the grid and surfels on the GPU on bad frames (issue 37): a

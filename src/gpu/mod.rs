@@ -6,6 +6,9 @@
 //! Shaders live in `shaders/*.wgsl` and are compiled into the crate; a unit test validates them
 //! with naga.
 
+pub mod timer;
+pub use timer::TIMESTAMP_FEATURES;
+
 use serde::Serialize;
 
 /// Errors of the GPU stages.
@@ -112,9 +115,11 @@ impl GpuContext {
             .nth(index)
             .expect("an index of the list");
         let info = infos.into_iter().nth(index).expect("an index of the list");
+        // the timestamps of `GpuPipeline::gpu_stage_ms` where the adapter has them
+        let optional = adapter.features() & TIMESTAMP_FEATURES;
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("fluid-surfels"),
-            required_features: REQUIRED_FEATURES,
+            required_features: REQUIRED_FEATURES | optional,
             required_limits: adapter.limits(),
             ..Default::default()
         }))
@@ -542,5 +547,93 @@ impl Grow {
     /// The buffer ([`Self::reserve`] or [`Self::write`] first).
     pub(crate) fn buffer(&self) -> &wgpu::Buffer {
         self.buffer.as_ref().expect("reserved before use")
+    }
+}
+
+/// A small buffer read back without a wait (issue 37): a copy recorded into a frame's encoder
+/// when no read is under way, mapped once that encoder is submitted
+/// ([`AsyncRead::after_submit`]), and its bytes taken by a later frame once the map is done (a
+/// few frames late: the caller's submits and presents poll the device). Nothing waits.
+pub(crate) struct AsyncRead {
+    buffer: wgpu::Buffer,
+    state: ReadState,
+}
+
+/// Where an [`AsyncRead`] stands: a copy recorded this frame, a mapping started after the
+/// submit (its result set by the callback), or neither.
+enum ReadState {
+    Idle,
+    Copied,
+    Mapping(std::sync::Arc<std::sync::Mutex<Option<Result<(), wgpu::BufferAsyncError>>>>),
+}
+
+impl AsyncRead {
+    /// A read-back buffer of `size` bytes.
+    pub(crate) fn new(device: &wgpu::Device, label: &'static str, size: u64) -> Self {
+        Self {
+            buffer: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            state: ReadState::Idle,
+        }
+    }
+
+    /// Records a copy of the buffer's size from `source` at `offset` into `encoder` when no read
+    /// is under way; whether it did.
+    pub(crate) fn copy(
+        &mut self,
+        encoder: &mut wgpu::CommandEncoder,
+        source: &wgpu::Buffer,
+        offset: u64,
+    ) -> bool {
+        if !matches!(self.state, ReadState::Idle) {
+            return false;
+        }
+        encoder.copy_buffer_to_buffer(source, offset, &self.buffer, 0, self.buffer.size());
+        self.state = ReadState::Copied;
+        true
+    }
+
+    /// Starts the mapping of a copy recorded into an encoder that is now submitted.
+    pub(crate) fn after_submit(&mut self) {
+        if matches!(self.state, ReadState::Copied) {
+            let done = std::sync::Arc::new(std::sync::Mutex::new(None));
+            let set = std::sync::Arc::clone(&done);
+            self.buffer
+                .slice(..)
+                .map_async(wgpu::MapMode::Read, move |r| {
+                    if let Ok(mut d) = set.lock() {
+                        *d = Some(r);
+                    }
+                });
+            self.state = ReadState::Mapping(done);
+        }
+    }
+
+    /// The bytes of a finished read, if one has finished (a failed one gives nothing); a new
+    /// copy may then be recorded.
+    pub(crate) fn take(&mut self) -> Option<Vec<u8>> {
+        let ReadState::Mapping(done) = &self.state else {
+            return None;
+        };
+        let result = done.lock().ok().and_then(|mut d| d.take())?;
+        let bytes = match result {
+            Ok(()) => {
+                let bytes = self
+                    .buffer
+                    .slice(..)
+                    .get_mapped_range()
+                    .ok()
+                    .map(|data| data.to_vec());
+                self.buffer.unmap();
+                bytes
+            }
+            Err(_) => None,
+        };
+        self.state = ReadState::Idle;
+        bytes
     }
 }

@@ -29,6 +29,7 @@ use glam::Vec3;
 
 use super::{Frame, Pipeline, PipelineParams, SurfelSource, Through, ms};
 use crate::density::gpu::GridFiller;
+use crate::gpu::timer::StageTimer;
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::optics::gpu::{OpticsGpu, PreparedOptics};
 use crate::optics::{Stage, WaterShape};
@@ -83,6 +84,23 @@ pub struct GpuPipeline {
     chain: Option<GpuChain>,
     /// The stages the last `prepare` ran on the GPU.
     stages: &'static [&'static str],
+    /// Timestamps between the stages, when asked for ([`GpuPipeline::time_stages`]) and the
+    /// device has them.
+    timer: Option<StageTimer>,
+}
+
+/// The GPU milliseconds of each stage of a recent frame ([`GpuPipeline::gpu_stage_ms`]), by
+/// timestamp queries written between the stages' passes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct GpuStageMs {
+    /// Filling the density grid (0 when the CPU made it).
+    pub density: f64,
+    /// Extracting the surfels (0 when the CPU made them).
+    pub surfels: f64,
+    /// The light's splatting of the water and the caustics.
+    pub caustics: f64,
+    /// The camera's splatting, the refraction and reflection, the final image.
+    pub image: f64,
 }
 
 /// The density grid and the surfels on the GPU, kept from frame to frame.
@@ -175,6 +193,7 @@ impl GpuPipeline {
             shading: None,
             chain: None,
             stages: CPU_STAGES,
+            timer: None,
             cpu,
             optics,
             format,
@@ -218,6 +237,53 @@ impl GpuPipeline {
     pub fn after_submit(&mut self) {
         if let Some(chain) = &mut self.chain {
             chain.surfels.after_submit();
+        }
+        if let Some(timer) = &mut self.timer {
+            timer.after_submit();
+        }
+    }
+
+    /// Times each stage of the frames from the next `prepare` on (`on`), by timestamp queries
+    /// written between the stages' passes, where the device has
+    /// [`crate::gpu::TIMESTAMP_FEATURES`]; whether it can. Off by default: timestamps inside
+    /// an encoder cost some drivers dearly (lavapipe: 1.9 s a frame of 96x96 became 3.5 s, the
+    /// passes no longer overlapping).
+    pub fn time_stages(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, on: bool) -> bool {
+        self.timer = if on {
+            StageTimer::new(device, queue)
+        } else {
+            None
+        };
+        self.timer.is_some()
+    }
+
+    /// The GPU milliseconds of each stage of a recent finished frame, by timestamp queries read
+    /// back without a wait (a few frames late, once [`GpuPipeline::after_submit`] was called
+    /// for it and the device was polled, as a game's submits and presents do); `None` without
+    /// [`GpuPipeline::time_stages`] and before the first arrives.
+    #[must_use]
+    pub fn gpu_stage_ms(&self) -> Option<GpuStageMs> {
+        let ms = self.timer.as_ref()?.last_ms(5)?;
+        Some(GpuStageMs {
+            density: ms[0],
+            surfels: ms[1],
+            caustics: ms[2],
+            image: ms[3],
+        })
+    }
+
+    /// Starts a frame's timestamps.
+    fn begin_timing(&mut self) {
+        if let Some(timer) = &mut self.timer {
+            timer.begin();
+        }
+    }
+
+    /// Writes the frame's timestamps up to `index`: 0 before the grid, 1 after it, 2 after
+    /// the surfels, 3 after the caustics, 4 after the image.
+    fn mark(&mut self, encoder: &mut wgpu::CommandEncoder, index: u32) {
+        if let Some(timer) = &mut self.timer {
+            timer.mark_to(encoder, index);
         }
     }
 
@@ -286,6 +352,7 @@ impl GpuPipeline {
         particles: impl Into<ParticleView<'a>>,
     ) -> Result<Frame, Error> {
         let particles: ParticleView<'a> = particles.into();
+        self.begin_timing();
         if !self.surfels_on_gpu() {
             self.stages = CPU_STAGES;
             let frame = self.cpu.frame_through(particles, Through::Surfels)?;
@@ -306,15 +373,24 @@ impl GpuPipeline {
         });
         let (params, points) = (self.cpu.params(), input.points());
         let kernel = params.grid.kernel;
+        let mut timer = self.timer.as_mut();
+        let mut mark = |encoder: &mut wgpu::CommandEncoder, index| {
+            if let Some(t) = timer.as_deref_mut() {
+                t.mark_to(encoder, index);
+            }
+        };
         let t = Instant::now();
+        mark(encoder, 0);
         let grid = chain
             .filler
             .record(&ctx, encoder, points, &input.spec, kernel)?;
+        mark(encoder, 1);
         frame.timings.density_ms = ms(t);
         let t = Instant::now();
         chain
             .surfels
             .record(&ctx, encoder, &grid, points, kernel, &params.surfels)?;
+        mark(encoder, 2);
         frame.timings.surfels_ms = ms(t);
         frame.detail.surfels = chain.surfels.last_count().unwrap_or(0) as usize;
         if chain.surfels.overflowed() {
@@ -357,6 +433,7 @@ impl GpuPipeline {
         encoder: &mut wgpu::CommandEncoder,
         frame: &Frame,
     ) -> Result<(), Error> {
+        self.begin_timing();
         self.record(device, queue, encoder, frame, (true, None))
     }
 
@@ -465,9 +542,16 @@ impl GpuPipeline {
             });
             self.prepared = Some((prepared, bind));
         }
+        self.mark(encoder, 2);
         let (prepared, _) = self.prepared.as_ref().expect("prepared above");
         prepared.encode_caustics(queue, &self.optics, encoder)?;
+        self.mark(encoder, 3);
+        let (prepared, _) = self.prepared.as_ref().expect("prepared above");
         prepared.encode_frame(queue, &self.optics, encoder)?;
+        self.mark(encoder, 4);
+        if let Some(timer) = &mut self.timer {
+            timer.end(encoder);
+        }
         let (w, h) = self.size;
         queue.write_buffer(
             &self.uniform,
@@ -560,6 +644,7 @@ impl GpuPipeline {
         self.prepare_frame(&ctx.device, &ctx.queue, &mut encoder, frame)?;
         let target = self.draw_to_texture(&ctx.device, &mut encoder);
         ctx.queue.submit([encoder.finish()]);
+        self.after_submit();
         Ok(crate::gpu::read_rgba8(ctx, &target)?)
     }
 

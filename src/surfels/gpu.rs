@@ -19,8 +19,6 @@
 //! draw). `pipeline::GpuPipeline::prepare` records both into a game's frame, drawn by its
 //! splatting and optics.
 
-use std::sync::{Arc, Mutex};
-
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
@@ -528,14 +526,6 @@ fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
     })
 }
 
-/// Where the count's read-back stands ([`ResidentSurfels`]): a copy recorded this frame, a
-/// mapping started after the submit (its result set by the callback), or neither.
-enum CountReadback {
-    Idle,
-    Copied,
-    Mapping(Arc<Mutex<Option<Result<(), wgpu::BufferAsyncError>>>>),
-}
-
 /// Surfels extracted into buffers that stay on the GPU (issue 37), for the passes that draw
 /// them: the grid read where it is ([`crate::density::gpu::GridFiller`]), the passes recorded
 /// into the caller's encoder, `project` dispatched indirectly from the count the scan wrote, no
@@ -554,8 +544,7 @@ pub struct ResidentSurfels {
     args: wgpu::Buffer,
     draw: wgpu::Buffer,
     states: wgpu::Buffer,
-    readback: wgpu::Buffer,
-    count: CountReadback,
+    readback: gpu::AsyncRead,
     bind: Option<(wgpu::BindGroup, [wgpu::Buffer; 3])>,
     capacity: u32,
     last_count: Option<u32>,
@@ -601,12 +590,7 @@ impl ResidentSurfels {
                 wgpu::BufferUsages::INDIRECT | wgpu::BufferUsages::COPY_DST,
             ),
             states: fixed("surfel no block states", 16, storage),
-            readback: fixed(
-                "surfel count readback",
-                16,
-                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            ),
-            count: CountReadback::Idle,
+            readback: gpu::AsyncRead::new(device, "surfel count readback", 16),
             bind: None,
             capacity: 0,
             last_count: None,
@@ -747,10 +731,7 @@ impl ResidentSurfels {
             pass.set_bind_group(0, bind, &[]);
             pass.dispatch_workgroups_indirect(&self.args, 0);
         }
-        if matches!(self.count, CountReadback::Idle) {
-            encoder.copy_buffer_to_buffer(&self.total, 0, &self.readback, 0, 16);
-            self.count = CountReadback::Copied;
-        }
+        self.readback.copy(encoder, &self.total, 0);
         self.iso = iso;
         self.spacing = spec.spacing;
         Ok(())
@@ -759,36 +740,15 @@ impl ResidentSurfels {
     /// Starts the count's read-back once the encoder that [`Self::record`] filled is submitted
     /// (no wait: the result is looked at by a later `record`).
     pub fn after_submit(&mut self) {
-        if matches!(self.count, CountReadback::Copied) {
-            let done = Arc::new(Mutex::new(None));
-            let set = Arc::clone(&done);
-            self.readback
-                .slice(..)
-                .map_async(wgpu::MapMode::Read, move |r| {
-                    if let Ok(mut d) = set.lock() {
-                        *d = Some(r);
-                    }
-                });
-            self.count = CountReadback::Mapping(done);
-        }
+        self.readback.after_submit();
     }
 
     /// Takes the count of a finished read-back, if one has finished.
     fn take_count(&mut self) {
-        let CountReadback::Mapping(done) = &self.count else {
-            return;
-        };
-        let result = done.lock().ok().and_then(|mut d| d.take());
-        match result {
-            None => {}
-            Some(Ok(())) => {
-                if let Ok(data) = self.readback.slice(..).get_mapped_range() {
-                    self.last_count = bytemuck::cast_slice::<u8, u32>(&data).first().copied();
-                }
-                self.readback.unmap();
-                self.count = CountReadback::Idle;
-            }
-            Some(Err(_)) => self.count = CountReadback::Idle,
+        if let Some(bytes) = self.readback.take() {
+            self.last_count = bytes
+                .get(..4)
+                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]));
         }
     }
 
