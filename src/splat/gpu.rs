@@ -721,14 +721,22 @@ pub fn render_view_gpu(
     view: &View,
 ) -> Result<Render, crate::Error> {
     crate::splat::check_cost(surfels.len(), crate::splat::fragments(surfels, view), view)?;
+    render_buffer_gpu(ctx, &SplatRenderer::upload(&ctx.device, surfels), view)
+}
+
+/// [`render_view_gpu`] of surfels already on the GPU (an indirect [`SurfelBuffer`] too).
+pub fn render_buffer_gpu(
+    ctx: &GpuContext,
+    surfels: &SurfelBuffer,
+    view: &View,
+) -> Result<Render, crate::Error> {
     let renderer = SplatRenderer::new(
         &ctx.device,
         wgpu::TextureFormat::Rgba8Unorm,
         view.width,
         view.height,
     )?;
-    let buffer = SplatRenderer::upload(&ctx.device, surfels);
-    Ok(render_timed(ctx, &renderer, &buffer, view)?.0)
+    Ok(render_timed(ctx, &renderer, surfels, view)?.0)
 }
 
 /// Renders headless with each pass submitted and waited for on its own (for benchmarks), and

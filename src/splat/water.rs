@@ -233,12 +233,9 @@ impl WaterSurface for &[Surfel] {
         pass: &mut dyn GpuWaterPass,
         view: &View,
     ) -> Result<bool, Error> {
-        let Some(pass) = pass.as_any_mut().downcast_mut::<SplatPass>() else {
+        let Some(pass) = SplatPass::of_size(pass, view) else {
             return Ok(false);
         };
-        if pass.renderer.size() != (view.width, view.height) {
-            return Ok(false);
-        }
         pass.surfels.write(device, queue, self);
         pass.view = Some(*view);
         Ok(true)
@@ -262,13 +259,7 @@ impl WaterSurface for GpuSurfels {
     }
 
     fn render_gpu(&self, ctx: &GpuContext, view: &View) -> Result<Render, Error> {
-        let renderer = SplatRenderer::new(
-            &ctx.device,
-            wgpu::TextureFormat::Rgba8Unorm,
-            view.width,
-            view.height,
-        )?;
-        Ok(super::gpu::render_timed(ctx, &renderer, &self.0, view)?.0)
+        super::gpu::render_buffer_gpu(ctx, &self.0, view)
     }
 
     fn gpu_pass(
@@ -287,12 +278,9 @@ impl WaterSurface for GpuSurfels {
         pass: &mut dyn GpuWaterPass,
         view: &View,
     ) -> Result<bool, Error> {
-        let Some(pass) = pass.as_any_mut().downcast_mut::<SplatPass>() else {
+        let Some(pass) = SplatPass::of_size(pass, view) else {
             return Ok(false);
         };
-        if pass.renderer.size() != (view.width, view.height) {
-            return Ok(false);
-        }
         // the same buffers frame after frame: a clone of the handles, nothing created
         pass.surfels = self.0.clone();
         pass.view = Some(*view);
@@ -306,6 +294,15 @@ pub struct SplatPass {
     renderer: SplatRenderer,
     surfels: SurfelBuffer,
     view: Option<View>,
+}
+
+impl SplatPass {
+    /// `pass` as the splats' pass, when it is one made for the size of `view`.
+    fn of_size<'p>(pass: &'p mut dyn GpuWaterPass, view: &View) -> Option<&'p mut Self> {
+        pass.as_any_mut()
+            .downcast_mut::<Self>()
+            .filter(|p| p.renderer.size() == (view.width, view.height))
+    }
 }
 
 impl GpuWaterPass for SplatPass {
