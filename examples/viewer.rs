@@ -1,5 +1,8 @@
 //! A viewer: plays a particle sequence (files with a frame pattern, or the built-in `column`
-//! simulation) through `GpuPipeline` in a window, with an orbit camera.
+//! simulation) through `GpuPipeline` in a window, with an orbit camera. Each played frame runs
+//! `GpuPipeline::prepare` once (with the EWA renderer and the chain or particle source the
+//! density grid and the surfels are made on the GPU and stay there); a paused frame is redrawn
+//! from its surfels where they are as the camera moves.
 //!
 //! ```text
 //! cargo run --release --example viewer                          # the column scene
@@ -21,9 +24,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use fluid_surfels::gpu::{GpuContext, REQUIRED_FEATURES};
-use fluid_surfels::pipeline::{
-    Frame, GpuPipeline, PipelineParams, Renderer, SurfelSource, Through,
-};
+use fluid_surfels::pipeline::{Frame, GpuPipeline, PipelineParams, Renderer, SurfelSource};
 use fluid_surfels::scenes::{ColumnParams, ColumnSim, column_pool};
 use fluid_surfels::sequence::FramePattern;
 use fluid_surfels::splat::Camera;
@@ -211,6 +212,9 @@ struct Viewer {
     queue: wgpu::Queue,
     gpu: GpuPipeline,
     source: Source,
+    /// The particles of the current played frame, and whether the pipeline has run on them yet.
+    particles: Option<(ParticleSet, bool)>,
+    /// The last frame the pipeline made (its surfels on the GPU, or the CPU's).
     frame: Option<Frame>,
     orbit: Option<Orbit>,
     show_splats: bool,
@@ -232,6 +236,7 @@ impl Viewer {
             queue,
             gpu,
             source,
+            particles: None,
             frame: None,
             orbit: None,
             show_splats,
@@ -239,14 +244,10 @@ impl Viewer {
         })
     }
 
-    /// The CPU stages on the current particles (once per played frame).
+    /// Takes the current particles (once per played frame); the next `draw` runs the pipeline
+    /// on them.
     fn update(&mut self) -> Result<()> {
-        let particles = self.source.particles()?;
-        let frame = self
-            .gpu
-            .cpu_mut()
-            .frame_through(&particles, Through::Surfels)?;
-        self.frame = Some(frame);
+        self.particles = Some((self.source.particles()?, false));
         Ok(())
     }
 
@@ -275,14 +276,33 @@ impl Viewer {
         orbit.camera()
     }
 
-    /// Records the current frame into `encoder`, drawn into `target`.
+    /// Records the current frame into `encoder`, drawn into `target`: on new particles the
+    /// whole pipeline (`GpuPipeline::prepare`: the density grid and the surfels on the GPU where
+    /// the renderer and source have them), else the last frame from the current camera. Call
+    /// `GpuPipeline::after_submit` once the encoder is submitted.
     fn draw(
         &mut self,
         encoder: &mut wgpu::CommandEncoder,
         target: &wgpu::TextureView,
     ) -> Result<()> {
-        let camera = self.camera();
-        self.gpu.cpu_mut().set_camera(camera);
+        // before the first frame the pipeline fits its own camera
+        if self.frame.is_some() {
+            let camera = self.camera();
+            self.gpu.cpu_mut().set_camera(camera);
+        }
+        if let Some((particles, done)) = self.particles.as_mut()
+            && !*done
+        {
+            *done = true;
+            let frame = self
+                .gpu
+                .prepare(&self.device, &self.queue, encoder, &*particles)?;
+            self.frame = Some(frame);
+            if !self.show_splats {
+                self.gpu.draw_into(encoder, target);
+                return Ok(());
+            }
+        }
         let Some(frame) = self.frame.as_ref() else {
             return Ok(());
         };
@@ -351,12 +371,17 @@ fn headless(args: &Args) -> Result<()> {
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         viewer.draw(&mut encoder, &view)?;
         ctx.queue.submit([encoder.finish()]);
+        viewer.gpu.after_submit();
         let path = args.out.join(format!("frame_{f:04}.png"));
         fluid_surfels::gpu::read_rgba8(&ctx, &texture)?.save(&path)?;
         println!(
             "wrote {} ({} surfels, {})",
             path.display(),
-            viewer.frame.as_ref().map_or(0, |f| f.render_surfels.len()),
+            viewer.frame.as_ref().map_or(0, |f| if f.surfels_on_gpu {
+                f.detail.surfels
+            } else {
+                f.render_surfels.len()
+            }),
             if args.splats {
                 "shaded splats"
             } else {
@@ -460,6 +485,7 @@ impl Windowed {
         let mut encoder = viewer.device.create_command_encoder(&Default::default());
         viewer.draw(&mut encoder, &view)?;
         viewer.queue.submit([encoder.finish()]);
+        viewer.gpu.after_submit();
         window.pre_present_notify();
         viewer.queue.present(texture);
         Ok(())
