@@ -2,8 +2,9 @@
 // pass's z-cluster is drawn as a screen-aligned square covering its influence disk on the grid
 // plane; each fragment (one grid point in x, y) adds the particle's kernel value for the four
 // planes to the R, G, B and A channels of a float target with additive blending. Each instance
-// is (x, y, z, radius): its square is its own radius wide, and its kernel is measured against the
-// reference radius h (`constant` is h's), as the CPU path's `Kernel::weighted_r2` does.
+// is (x, y, z, radius) and a weight: its square is its own radius wide, its kernel is measured
+// against the reference radius h (`constant` is h's), as the CPU path's `Kernel::weighted_r2`
+// does, times its weight (the boundary calibration's, issue 35; 1 otherwise).
 //
 // The arithmetic is the CPU path's (src/density/cpu.rs): grid point x = origin.x + i * spacing,
 // r^2 = dx^2 + (dy^2 + dz^2); the kernels are in common.wgsl, prepended.
@@ -21,9 +22,10 @@ struct Params {
     planes: vec4<f32>,
     // 0: Wyvill, 1: cubic spline
     kernel: u32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
+    // the pass's first plane and how many of its four lie in the grid (`cs_unpack`)
+    first_plane: u32,
+    plane_count: u32,
+    _pad: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -31,10 +33,15 @@ struct Params {
 struct VertexOut {
     @builtin(position) position: vec4<f32>,
     @location(0) @interpolate(flat) centre: vec4<f32>,
+    @location(1) @interpolate(flat) weight: f32,
 }
 
 @vertex
-fn vs_main(@builtin(vertex_index) vertex: u32, @location(0) particle: vec4<f32>) -> VertexOut {
+fn vs_main(
+    @builtin(vertex_index) vertex: u32,
+    @location(0) particle: vec4<f32>,
+    @location(1) weight: f32,
+) -> VertexOut {
     // two triangles over the square [x - r, x + r] x [y - r, y + r] of the instance's radius r,
     // in framebuffer pixels where grid point i sits at the centre of pixel i
     let corners = array<vec2<f32>, 6>(vec2(-1.0, -1.0), vec2(1.0, -1.0), vec2(1.0, 1.0), vec2(-1.0, -1.0), vec2(1.0, 1.0), vec2(-1.0, 1.0));
@@ -45,6 +52,7 @@ fn vs_main(@builtin(vertex_index) vertex: u32, @location(0) particle: vec4<f32>)
     var out: VertexOut;
     out.position = vec4<f32>(ndc, 0.0, 1.0);
     out.centre = particle;
+    out.weight = weight;
     return out;
 }
 
@@ -62,5 +70,23 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     let dyz2 = vec4<f32>(dy * dy) + dz * dz;
     let r2 = vec4<f32>(dx * dx) + dyz2;
     let r = in.centre.w;
-    return vec4<f32>(kernel_r2(r2.x, r), kernel_r2(r2.y, r), kernel_r2(r2.z, r), kernel_r2(r2.w, r));
+    return in.weight * vec4<f32>(kernel_r2(r2.x, r), kernel_r2(r2.y, r), kernel_r2(r2.z, r), kernel_r2(r2.w, r));
+}
+
+// For a grid that stays on the GPU (issue 37): the pass's four planes copied from the target
+// into the grid's buffer (x fastest, as `DensityGrid`), channel c into plane first_plane + c.
+@group(0) @binding(1) var planes_in: texture_2d<f32>;
+@group(0) @binding(2) var<storage, read_write> grid_out: array<f32>;
+
+@compute @workgroup_size(8, 8, 1)
+fn cs_unpack(@builtin(global_invocation_id) id: vec3<u32>) {
+    let nx = u32(params.dims.x);
+    let ny = u32(params.dims.y);
+    if id.x >= nx || id.y >= ny {
+        return;
+    }
+    let v = textureLoad(planes_in, vec2<i32>(id.xy), 0);
+    for (var c = 0u; c < params.plane_count; c++) {
+        grid_out[id.x + nx * (id.y + ny * (params.first_plane + c))] = v[c];
+    }
 }

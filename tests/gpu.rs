@@ -37,7 +37,7 @@ fn twins() -> Vec<Twin> {
             gpu_density::SHADER,
             "Params",
             std::mem::size_of::<RawParams>(),
-            fields!(RawParams; origin, spacing, dims, h, constant, planes, kernel),
+            fields!(RawParams; origin, spacing, dims, h, constant, planes, kernel, first_plane, plane_count),
         ),
         (
             "surfels.wgsl",
@@ -262,34 +262,33 @@ fn gpu_density_with_a_radius_per_point_matches_the_cpu_path() {
                 &gpu,
             );
         }
-        // weights (the chain's boundary weights): summed by the gather method, refused by
-        // the splatting one
+        // weights (the chain's boundary weights): summed by both methods, and by the grid
+        // that stays on the GPU (GridFiller, either method: the splatting's groups of planes
+        // unpacked into the grid's buffer)
         let weights: Vec<f32> = points
             .iter()
             .map(|p| 1.0 + 0.5 * (13.0 * p.x - 7.0 * p.y).sin())
             .collect();
         let weighted = pts.with_weights(&weights);
         let cpu = density::points_grid(weighted, &spec, kernel, 1 << 30).unwrap();
-        let gpu = gpu_density::density_grid_gpu_with(
-            &ctx,
-            weighted,
-            &spec,
-            kernel,
-            GpuDensityMethod::Gather,
-        )
-        .unwrap();
-        assert_grids_agree(&format!("weights, {kernel:?}, Gather"), &cpu, &gpu);
-        let refused = gpu_density::density_grid_gpu_with(
-            &ctx,
-            weighted,
-            &spec,
-            kernel,
-            GpuDensityMethod::Splat,
-        );
-        assert!(
-            refused.is_err(),
-            "the splatting method summed weights it cannot draw"
-        );
+        for method in [GpuDensityMethod::Splat, GpuDensityMethod::Gather] {
+            let gpu =
+                gpu_density::density_grid_gpu_with(&ctx, weighted, &spec, kernel, method).unwrap();
+            assert_grids_agree(&format!("weights, {kernel:?}, {method:?}"), &cpu, &gpu);
+            let mut filler = gpu_density::GridFiller::with_method(&ctx.device, method);
+            assert_eq!(filler.method(), method);
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            let grid = filler
+                .record(&ctx, &mut encoder, weighted, &spec, kernel)
+                .unwrap();
+            ctx.queue.submit([encoder.finish()]);
+            let resident = grid.read(&ctx).unwrap();
+            assert_grids_agree(
+                &format!("weights, {kernel:?}, {method:?} on the GPU"),
+                &cpu,
+                &resident,
+            );
+        }
     }
 }
 

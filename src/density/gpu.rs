@@ -29,10 +29,34 @@ pub struct RawParams {
     pub constant: f32,
     pub planes: [f32; 4],
     pub kernel: u32,
-    pub _pad: [u32; 3],
+    /// The pass's first plane and how many of its four lie in the grid (the unpacking of a grid
+    /// that stays on the GPU).
+    pub first_plane: u32,
+    pub plane_count: u32,
+    pub _pad: u32,
 }
 
 const _: () = assert!(std::mem::size_of::<RawParams>() == 64);
+
+impl RawParams {
+    /// The uniform of the group of four planes from plane `k0` of the grid `spec`, the kernel
+    /// measured against the reference radius `h`.
+    fn group(spec: &GridSpec, h: f32, kernel: Kernel, k0: u32) -> Self {
+        let [nx, ny, nz] = spec.dims;
+        Self {
+            origin: spec.origin.to_array(),
+            spacing: spec.spacing,
+            dims: [nx as f32, ny as f32],
+            h,
+            constant: kernel_constant(kernel, h),
+            planes: std::array::from_fn(|c| spec.origin.z + (k0 + c as u32) as f32 * spec.spacing),
+            kernel: kernel_code(kernel),
+            first_plane: k0,
+            plane_count: PLANES.min(nz - k0),
+            _pad: 0,
+        }
+    }
+}
 
 /// The WGSL source of the splatting pass (`common.wgsl` prepended).
 pub const SHADER: &str = concat!(
@@ -59,17 +83,6 @@ fn check_inputs(points: &Points<'_>) -> Result<(), GpuError> {
         .map_err(|e| GpuError::Validation(e.to_string()))
 }
 
-/// The splatting method draws instances of `(x, y, z, radius)`: it refuses per-point weights
-/// (the chain's boundary weights, issue 35), which the gather method sums.
-fn refuse_weights(points: &Points<'_>) -> Result<(), GpuError> {
-    if points.weights.is_some_and(|w| w.iter().any(|&x| x != 1.0)) {
-        return Err(GpuError::Validation(
-            "the splatting GPU density does not take per-point weights; use the gather method (GpuDensityMethod::Gather) or the CPU".into(),
-        ));
-    }
-    Ok(())
-}
-
 /// A point as the compute passes read it (the WGSL `Point` of `common.wgsl`, 32 bytes): its
 /// position and radius, and its weight in the density.
 #[repr(C)]
@@ -82,14 +95,22 @@ pub struct RawPoint {
 
 const _: () = assert!(std::mem::size_of::<RawPoint>() == 32);
 
-/// The points as the shaders read them: `(x, y, z, radius)`.
-fn instances(points: &Points<'_>) -> Vec<[f32; 4]> {
-    points
+/// The points as the splatting pass draws them: `(x, y, z, radius)` and the weight, sorted by
+/// z (each group of planes then draws a contiguous instance range, §4.2), and their z.
+fn sorted_instances(points: &Points<'_>) -> (Vec<RawPoint>, Vec<f32>) {
+    let mut sorted: Vec<RawPoint> = points
         .positions
         .iter()
         .enumerate()
-        .map(|(i, p)| [p.x, p.y, p.z, points.radius(i)])
-        .collect()
+        .map(|(i, p)| RawPoint {
+            at: [p.x, p.y, p.z, points.radius(i)],
+            weight: points.weights.map_or(1.0, |w| w[i]),
+            _pad: [0.0; 3],
+        })
+        .collect();
+    sorted.sort_by(|a, b| a.at[2].total_cmp(&b.at[2]));
+    let zs = sorted.iter().map(|p| p.at[2]).collect();
+    (sorted, zs)
 }
 
 /// The shaders' kernel selector.
@@ -108,22 +129,27 @@ pub(crate) fn kernel_constant(kernel: Kernel, h: f32) -> f32 {
     }
 }
 
-/// The points as instances `(x, y, z, radius)` sorted by z, uploaded, and their z in that order.
+/// The points as instances sorted by z ([`sorted_instances`]), uploaded, and their z in that
+/// order.
 fn upload_sorted(device: &wgpu::Device, points: &Points<'_>) -> (wgpu::Buffer, Vec<f32>) {
-    let mut sorted = instances(points);
-    sorted.sort_by(|a, b| a[2].total_cmp(&b[2]));
-    let zs: Vec<f32> = sorted.iter().map(|p| p[2]).collect();
+    let (sorted, zs) = sorted_instances(points);
     use wgpu::util::DeviceExt;
     let instances = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
         label: Some("particles"),
-        contents: bytemuck::cast_slice(if sorted.is_empty() {
-            &[[0.0f32; 4]]
-        } else {
-            &sorted[..]
-        }),
+        contents: instance_bytes(&sorted),
         usage: wgpu::BufferUsages::VERTEX,
     });
     (instances, zs)
+}
+
+/// Instances as bytes (one zero point when there is none: a buffer is never empty).
+fn instance_bytes(sorted: &[RawPoint]) -> &[u8] {
+    static NONE: [RawPoint; 1] = [RawPoint {
+        at: [0.0; 4],
+        weight: 0.0,
+        _pad: [0.0; 3],
+    }];
+    bytemuck::cast_slice(if sorted.is_empty() { &NONE[..] } else { sorted })
 }
 
 /// The splatting pass (§4.1): one instanced quad per particle and plane group, additive
@@ -155,9 +181,9 @@ fn splat_pipeline(device: &wgpu::Device) -> (wgpu::RenderPipeline, wgpu::BindGro
             entry_point: Some("vs_main"),
             compilation_options: Default::default(),
             buffers: &[Some(wgpu::VertexBufferLayout {
-                array_stride: 16,
+                array_stride: std::mem::size_of::<RawPoint>() as u64,
                 step_mode: wgpu::VertexStepMode::Instance,
-                attributes: &wgpu::vertex_attr_array![0 => Float32x4],
+                attributes: &wgpu::vertex_attr_array![0 => Float32x4, 1 => Float32],
             })],
         },
         primitive: wgpu::PrimitiveState::default(),
@@ -192,7 +218,6 @@ pub fn splat_slabs_gpu(
     mut sink: impl FnMut(u32, Vec<f32>),
 ) -> Result<(), GpuError> {
     check_inputs(&points)?;
-    refuse_weights(&points)?;
     let (h, reach) = (points.h, points.max_radius());
     let device = &ctx.device;
     let [nx, ny, nz] = spec.dims;
@@ -218,7 +243,6 @@ pub fn splat_slabs_gpu(
     let row_bytes = (nx as u64 * 16).div_ceil(256) * 256;
     let group_bytes = row_bytes * ny as u64;
     let groups: Vec<u32> = (0..nz).step_by(PLANES as usize).collect();
-    let constant = kernel_constant(kernel, h);
     for batch in groups.chunks(BATCH as usize) {
         let readback = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("density readback"),
@@ -231,18 +255,7 @@ pub fn splat_slabs_gpu(
         });
         let mut keep = Vec::new();
         for (slot, &k0) in batch.iter().enumerate() {
-            let planes: [f32; 4] =
-                std::array::from_fn(|c| spec.origin.z + (k0 + c as u32) as f32 * spec.spacing);
-            let raw = RawParams {
-                origin: spec.origin.to_array(),
-                spacing: spec.spacing,
-                dims: [nx as f32, ny as f32],
-                h,
-                constant,
-                planes,
-                kernel: kernel_code(kernel),
-                _pad: [0; 3],
-            };
+            let raw = RawParams::group(spec, h, kernel, k0);
             let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("density params"),
                 contents: bytemuck::bytes_of(&raw),
@@ -355,20 +368,7 @@ pub fn density_grid_gpu(
     density_grid_gpu_with(ctx, points, spec, kernel, GpuDensityMethod::default())
 }
 
-/// How the GPU fills the density grid.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum GpuDensityMethod {
-    /// The paper's method: particles drawn as point sprites into four planes per RGBA pass with
-    /// additive blending ([`splat_slabs_gpu`]). The default: the faster of the two on lavapipe,
-    /// the only adapter measured so far (150,000 particles into 256^3: 2.0-2.4 s against
-    /// 5.1-6.2 s for the gather; see docs/design.md).
-    #[default]
-    Splat,
-    /// A compute shader: particles binned by the CPU, one invocation per grid point gathers the
-    /// bins around it ([`gather_slabs_gpu`]); no blending and no atomics, a fixed summation order.
-    Gather,
-}
+pub use super::GpuDensityMethod;
 
 /// The compute shader's `GatherParams` (80 bytes, checked against the WGSL in a test).
 #[repr(C)]
@@ -531,16 +531,7 @@ impl Bins {
     /// The sorted points as bytes (one zero point when there is none: a binding holds at
     /// least one).
     fn point_bytes(&self) -> &[u8] {
-        static NONE: [RawPoint; 1] = [RawPoint {
-            at: [0.0; 4],
-            weight: 0.0,
-            _pad: [0.0; 3],
-        }];
-        bytemuck::cast_slice(if self.sorted.is_empty() {
-            &NONE[..]
-        } else {
-            &self.sorted[..]
-        })
+        instance_bytes(&self.sorted)
     }
 }
 
@@ -800,6 +791,181 @@ pub struct GridFiller {
     grid: gpu::Grow,
     bind: Option<wgpu::BindGroup>,
     created: usize,
+    /// The splatting method's passes ([`GridFiller::with_method`]); `None`: the gather pass.
+    splat: Option<SplatPasses>,
+}
+
+/// The paper's splatting (§4.1) into a grid that stays on the GPU: per group of four planes a
+/// render pass draws the group's z-cluster of points (instances sorted by z, §4.2) into an
+/// `Rgba32Float` target with additive blending, and a compute pass (`cs_unpack`) copies the
+/// four planes into the grid's buffer; the instances, the groups' uniforms (one aligned slot a
+/// group), the target and the bind groups are kept from frame to frame.
+struct SplatPasses {
+    pipeline: wgpu::RenderPipeline,
+    layout: wgpu::BindGroupLayout,
+    unpack: wgpu::ComputePipeline,
+    instances: gpu::Grow,
+    uniforms: gpu::Grow,
+    target: Option<(wgpu::Texture, wgpu::TextureView)>,
+    /// Per group: the splat's and the unpacking's bind groups.
+    binds: Vec<(wgpu::BindGroup, wgpu::BindGroup)>,
+}
+
+impl SplatPasses {
+    fn new(device: &wgpu::Device) -> Self {
+        let (pipeline, layout) = splat_pipeline(device);
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("density_splat unpack"),
+            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+        });
+        let unpack = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("density unpack"),
+            layout: None,
+            module: &module,
+            entry_point: Some("cs_unpack"),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        Self {
+            pipeline,
+            layout,
+            unpack,
+            instances: gpu::Grow::new("splatted particles", wgpu::BufferUsages::VERTEX),
+            uniforms: gpu::Grow::new("density groups", wgpu::BufferUsages::UNIFORM),
+            target: None,
+            binds: Vec::new(),
+        }
+    }
+
+    /// Records the groups' passes filling `grid` (the buffer of `spec`'s values); how many
+    /// buffers, textures and bind groups it made.
+    fn record(
+        &mut self,
+        (device, queue): (&wgpu::Device, &wgpu::Queue),
+        encoder: &mut wgpu::CommandEncoder,
+        (points, spec, kernel): (&Points<'_>, &GridSpec, Kernel),
+        (grid, grid_new): (&wgpu::Buffer, bool),
+    ) -> Result<usize, GpuError> {
+        let [nx, ny, nz] = spec.dims;
+        let max_dim = device.limits().max_texture_dimension_2d;
+        if nx > max_dim || ny > max_dim {
+            return Err(GpuError::Validation(format!(
+                "a {nx} x {ny} plane exceeds the GPU's {max_dim} texture size; use the gather method"
+            )));
+        }
+        let (sorted, zs) = sorted_instances(points);
+        let mut created = usize::from(self.instances.write(device, queue, instance_bytes(&sorted)));
+        let groups: Vec<u32> = (0..nz).step_by(PLANES as usize).collect();
+        let stride = u64::from(device.limits().min_uniform_buffer_offset_alignment)
+            .max(std::mem::size_of::<RawParams>() as u64);
+        created += usize::from(
+            self.uniforms
+                .reserve(device, stride * groups.len().max(1) as u64),
+        );
+        let (h, reach) = (points.h, points.max_radius());
+        for (g, &k0) in groups.iter().enumerate() {
+            let raw = RawParams::group(spec, h, kernel, k0);
+            queue.write_buffer(
+                self.uniforms.buffer(),
+                stride * g as u64,
+                bytemuck::bytes_of(&raw),
+            );
+        }
+        // the target grows to the largest planes of the sequence; each pass draws into its
+        // corner of the grid's size (the viewport)
+        let (w, h) = self
+            .target
+            .as_ref()
+            .map_or((0, 0), |(t, _)| (t.width(), t.height()));
+        if w < nx || h < ny {
+            let texture = gpu::texture_2d(
+                device,
+                "density planes",
+                (w.max(nx), h.max(ny)),
+                wgpu::TextureFormat::Rgba32Float,
+                wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+            );
+            let view = texture.create_view(&Default::default());
+            self.target = Some((texture, view));
+            created += 1;
+        }
+        let (_, view) = self.target.as_ref().expect("made above");
+        if created > 0 || grid_new || self.binds.len() < groups.len() {
+            let slot = |g: usize| wgpu::BufferBinding {
+                buffer: self.uniforms.buffer(),
+                offset: stride * g as u64,
+                size: std::num::NonZeroU64::new(std::mem::size_of::<RawParams>() as u64),
+            };
+            let unpack_layout = self.unpack.get_bind_group_layout(0);
+            self.binds = (0..groups.len().max(self.binds.len()))
+                .map(|g| {
+                    let splat = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some("density group"),
+                        layout: &self.layout,
+                        entries: &[wgpu::BindGroupEntry {
+                            binding: 0,
+                            resource: wgpu::BindingResource::Buffer(slot(g)),
+                        }],
+                    });
+                    let unpack = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some("density unpack"),
+                        layout: &unpack_layout,
+                        entries: &[
+                            wgpu::BindGroupEntry {
+                                binding: 0,
+                                resource: wgpu::BindingResource::Buffer(slot(g)),
+                            },
+                            wgpu::BindGroupEntry {
+                                binding: 1,
+                                resource: wgpu::BindingResource::TextureView(view),
+                            },
+                            wgpu::BindGroupEntry {
+                                binding: 2,
+                                resource: grid.as_entire_binding(),
+                            },
+                        ],
+                    });
+                    (splat, unpack)
+                })
+                .collect();
+            created += 1;
+        }
+        for (&k0, (splat, unpack)) in groups.iter().zip(&self.binds) {
+            // the z-cluster of the four planes (§4.2)
+            let last = (k0 + PLANES - 1).min(nz - 1);
+            let z_lo = spec.origin.z + k0 as f32 * spec.spacing - reach;
+            let z_hi = spec.origin.z + last as f32 * spec.spacing + reach;
+            let a = zs.partition_point(|&z| z <= z_lo) as u32;
+            let b = zs.partition_point(|&z| z < z_hi) as u32;
+            {
+                let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                    label: Some("density planes"),
+                    color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                        view,
+                        depth_slice: None,
+                        resolve_target: None,
+                        ops: wgpu::Operations {
+                            load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                            store: wgpu::StoreOp::Store,
+                        },
+                    })],
+                    ..Default::default()
+                });
+                pass.set_viewport(0.0, 0.0, nx as f32, ny as f32, 0.0, 1.0);
+                if b > a {
+                    pass.set_pipeline(&self.pipeline);
+                    pass.set_bind_group(0, splat, &[]);
+                    pass.set_vertex_buffer(0, self.instances.buffer().slice(..));
+                    pass.draw(0..6, a..b);
+                }
+            }
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.unpack);
+            pass.set_bind_group(0, unpack, &[]);
+            pass.dispatch_workgroups(nx.div_ceil(8), ny.div_ceil(8), 1);
+        }
+        Ok(created)
+    }
 }
 
 impl GridFiller {
@@ -820,6 +986,29 @@ impl GridFiller {
             grid: gpu::Grow::new("density grid", storage | wgpu::BufferUsages::COPY_SRC),
             bind: None,
             created: 0,
+            splat: None,
+        }
+    }
+
+    /// [`GridFiller::new`] filling the grid by `method`: the compute gather pass, or the
+    /// paper's splatting of four planes per RGBA pass (§4.1), each group of planes unpacked into
+    /// the grid's buffer where the surfels read it.
+    #[must_use]
+    pub fn with_method(device: &wgpu::Device, method: GpuDensityMethod) -> Self {
+        let mut filler = Self::new(device);
+        if method == GpuDensityMethod::Splat {
+            filler.splat = Some(SplatPasses::new(device));
+        }
+        filler
+    }
+
+    /// The method it fills the grid by.
+    #[must_use]
+    pub fn method(&self) -> GpuDensityMethod {
+        if self.splat.is_some() {
+            GpuDensityMethod::Splat
+        } else {
+            GpuDensityMethod::Gather
         }
     }
 
@@ -879,7 +1068,17 @@ impl GridFiller {
             ));
             self.created += 1;
         }
-        if bytes > 0 {
+        if let Some(splat) = self.splat.as_mut()
+            && bytes > 0
+        {
+            let grid_new = made[2];
+            self.created += splat.record(
+                (device, queue),
+                encoder,
+                (&points, spec, kernel),
+                (self.grid.buffer(), grid_new),
+            )?;
+        } else if bytes > 0 {
             let mut pass = encoder.begin_compute_pass(&Default::default());
             pass.set_pipeline(&self.pipeline);
             pass.set_bind_group(0, self.bind.as_ref(), &[]);

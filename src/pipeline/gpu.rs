@@ -368,7 +368,7 @@ impl GpuPipeline {
         };
         let ctx = GpuContext::from_device(device.clone(), queue.clone());
         let chain = self.chain.get_or_insert_with(|| GpuChain {
-            filler: GridFiller::new(device),
+            filler: GridFiller::with_method(device, self.cpu.params().grid.gpu_method),
             surfels: ResidentSurfels::new(device),
         });
         let (params, points) = (self.cpu.params(), input.points());

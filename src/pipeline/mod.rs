@@ -218,6 +218,12 @@ pub struct GridParams {
     /// `boundary` (the refined points weighted so that it lies half a spacing outside the
     /// outermost particle centres at every level, [`boundary_weights`]). Default `boundary`.
     pub calibration: Calibration,
+    /// How [`GpuPipeline`] fills the grid on the GPU ([`PipelineParams::gpu_surfels`]): `splat`
+    /// (default; the paper's §4.1: four planes per RGBA pass with additive blending, the
+    /// points' z-clusters drawn per group, each group unpacked into the grid's buffer) or
+    /// `gather` (a compute pass summing the binned points around each grid point, in a fixed
+    /// order).
+    pub gpu_method: density::GpuDensityMethod,
 }
 
 /// Where the chain's iso-surface lies ([`GridParams::calibration`]).
@@ -254,6 +260,7 @@ impl Default for GridParams {
             memory_budget: crate::memory::DEFAULT_MEMORY_BUDGET,
             narrow_band: false,
             calibration: Calibration::Boundary,
+            gpu_method: density::GpuDensityMethod::Splat,
         }
     }
 }
