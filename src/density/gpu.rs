@@ -83,8 +83,9 @@ fn check_inputs(points: &Points<'_>) -> Result<(), GpuError> {
         .map_err(|e| GpuError::Validation(e.to_string()))
 }
 
-/// A point as the compute passes read it (the WGSL `Point` of `common.wgsl`, 32 bytes): its
-/// position and radius, and its weight in the density.
+/// A point as the compute passes read it (the WGSL `Point` of `common.wgsl`, 32 bytes) and the
+/// splatting pass draws it (an instance: `at` at location 0, `weight` at 1): its position and
+/// radius, and its weight in the density.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 pub struct RawPoint {
@@ -150,6 +151,38 @@ fn instance_bytes(sorted: &[RawPoint]) -> &[u8] {
         _pad: [0.0; 3],
     }];
     bytemuck::cast_slice(if sorted.is_empty() { &NONE[..] } else { sorted })
+}
+
+/// Records the splatting pass of the group of four planes from plane `k0` of the grid `spec`
+/// into `target` (cleared, drawn through a viewport of the grid's planes: a target kept at the
+/// largest planes of a sequence may be larger): only the points of the group's z-cluster
+/// (§4.2), found in `zs`, the instances' z in their sorted order, with `reach` the largest
+/// radius.
+fn encode_group(
+    encoder: &mut wgpu::CommandEncoder,
+    target: &wgpu::TextureView,
+    (pipeline, bind, instances): (&wgpu::RenderPipeline, &wgpu::BindGroup, &wgpu::Buffer),
+    (spec, k0): (&GridSpec, u32),
+    (zs, reach): (&[f32], f32),
+) {
+    let [nx, ny, nz] = spec.dims;
+    let last = (k0 + PLANES - 1).min(nz - 1);
+    let z_lo = spec.origin.z + k0 as f32 * spec.spacing - reach;
+    let z_hi = spec.origin.z + last as f32 * spec.spacing + reach;
+    let a = zs.partition_point(|&z| z <= z_lo) as u32;
+    let b = zs.partition_point(|&z| z < z_hi) as u32;
+    let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: Some("density planes"),
+        color_attachments: &[gpu::cleared(target)],
+        ..Default::default()
+    });
+    pass.set_viewport(0.0, 0.0, nx as f32, ny as f32, 0.0, 1.0);
+    if b > a {
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, bind, &[]);
+        pass.set_vertex_buffer(0, instances.slice(..));
+        pass.draw(0..6, a..b);
+    }
 }
 
 /// The splatting pass (§4.1): one instanced quad per particle and plane group, additive
@@ -269,33 +302,13 @@ pub fn splat_slabs_gpu(
                     resource: uniform.as_entire_binding(),
                 }],
             });
-            // z-cluster of the four planes (§4.2)
-            let last = (k0 + PLANES - 1).min(nz - 1);
-            let z_lo = spec.origin.z + k0 as f32 * spec.spacing - reach;
-            let z_hi = spec.origin.z + last as f32 * spec.spacing + reach;
-            let a = zs.partition_point(|&z| z <= z_lo) as u32;
-            let b = zs.partition_point(|&z| z < z_hi) as u32;
-            {
-                let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                    label: Some("density planes"),
-                    color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                        view: &view,
-                        depth_slice: None,
-                        resolve_target: None,
-                        ops: wgpu::Operations {
-                            load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                            store: wgpu::StoreOp::Store,
-                        },
-                    })],
-                    ..Default::default()
-                });
-                if b > a {
-                    pass.set_pipeline(&pipeline);
-                    pass.set_bind_group(0, &bind, &[]);
-                    pass.set_vertex_buffer(0, instances.slice(..));
-                    pass.draw(0..6, a..b);
-                }
-            }
+            encode_group(
+                &mut encoder,
+                &view,
+                (&pipeline, &bind, &instances),
+                (spec, k0),
+                (&zs, reach),
+            );
             encoder.copy_texture_to_buffer(
                 wgpu::TexelCopyTextureInfo {
                     texture: &target,
@@ -423,21 +436,14 @@ impl RawGatherParams {
 fn gather_bind_group(
     device: &wgpu::Device,
     pipeline: &wgpu::ComputePipeline,
-    [uniform, points, starts, out]: [&wgpu::Buffer; 4],
+    buffers: [&wgpu::Buffer; 4],
 ) -> wgpu::BindGroup {
-    let entries: Vec<wgpu::BindGroupEntry<'_>> = [uniform, points, starts, out]
-        .iter()
-        .enumerate()
-        .map(|(i, b)| wgpu::BindGroupEntry {
-            binding: i as u32,
-            resource: b.as_entire_binding(),
-        })
-        .collect();
-    device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some("gather"),
-        layout: &pipeline.get_bind_group_layout(0),
-        entries: &entries,
-    })
+    gpu::buffers_bind_group(
+        device,
+        "gather",
+        &pipeline.get_bind_group_layout(0),
+        &buffers,
+    )
 }
 
 /// Bins per `h` of the gather path: bins of side `h / GATHER_REACH`, searched `GATHER_REACH`
@@ -863,14 +869,13 @@ impl SplatPasses {
                 .reserve(device, stride * groups.len().max(1) as u64),
         );
         let (h, reach) = (points.h, points.max_radius());
-        for (g, &k0) in groups.iter().enumerate() {
+        // every group's uniform in its aligned slot, in one write
+        let mut slots = vec![0u8; stride as usize * groups.len()];
+        for (slot, &k0) in slots.chunks_exact_mut(stride as usize).zip(&groups) {
             let raw = RawParams::group(spec, h, kernel, k0);
-            queue.write_buffer(
-                self.uniforms.buffer(),
-                stride * g as u64,
-                bytemuck::bytes_of(&raw),
-            );
+            slot[..std::mem::size_of::<RawParams>()].copy_from_slice(bytemuck::bytes_of(&raw));
         }
+        queue.write_buffer(self.uniforms.buffer(), 0, &slots);
         // the target grows to the largest planes of the sequence; each pass draws into its
         // corner of the grid's size (the viewport)
         let (w, h) = self
@@ -931,34 +936,13 @@ impl SplatPasses {
             created += 1;
         }
         for (&k0, (splat, unpack)) in groups.iter().zip(&self.binds) {
-            // the z-cluster of the four planes (§4.2)
-            let last = (k0 + PLANES - 1).min(nz - 1);
-            let z_lo = spec.origin.z + k0 as f32 * spec.spacing - reach;
-            let z_hi = spec.origin.z + last as f32 * spec.spacing + reach;
-            let a = zs.partition_point(|&z| z <= z_lo) as u32;
-            let b = zs.partition_point(|&z| z < z_hi) as u32;
-            {
-                let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                    label: Some("density planes"),
-                    color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                        view,
-                        depth_slice: None,
-                        resolve_target: None,
-                        ops: wgpu::Operations {
-                            load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                            store: wgpu::StoreOp::Store,
-                        },
-                    })],
-                    ..Default::default()
-                });
-                pass.set_viewport(0.0, 0.0, nx as f32, ny as f32, 0.0, 1.0);
-                if b > a {
-                    pass.set_pipeline(&self.pipeline);
-                    pass.set_bind_group(0, splat, &[]);
-                    pass.set_vertex_buffer(0, self.instances.buffer().slice(..));
-                    pass.draw(0..6, a..b);
-                }
-            }
+            encode_group(
+                encoder,
+                view,
+                (&self.pipeline, splat, self.instances.buffer()),
+                (spec, k0),
+                (&zs, reach),
+            );
             let mut pass = encoder.begin_compute_pass(&Default::default());
             pass.set_pipeline(&self.unpack);
             pass.set_bind_group(0, unpack, &[]);

@@ -492,6 +492,41 @@ pub(crate) fn wait(device: &wgpu::Device) -> Result<(), GpuError> {
         .map_err(|e| GpuError::Readback(e.to_string()))
 }
 
+/// A colour attachment of `view` cleared to transparent black and stored.
+pub(crate) fn cleared(view: &wgpu::TextureView) -> Option<wgpu::RenderPassColorAttachment<'_>> {
+    Some(wgpu::RenderPassColorAttachment {
+        view,
+        depth_slice: None,
+        resolve_target: None,
+        ops: wgpu::Operations {
+            load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+            store: wgpu::StoreOp::Store,
+        },
+    })
+}
+
+/// A bind group of `layout` binding each of `buffers` whole at its index.
+pub(crate) fn buffers_bind_group(
+    device: &wgpu::Device,
+    label: &str,
+    layout: &wgpu::BindGroupLayout,
+    buffers: &[&wgpu::Buffer],
+) -> wgpu::BindGroup {
+    let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
+        .iter()
+        .enumerate()
+        .map(|(i, b)| wgpu::BindGroupEntry {
+            binding: i as u32,
+            resource: b.as_entire_binding(),
+        })
+        .collect();
+    device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some(label),
+        layout,
+        entries: &entries,
+    })
+}
+
 /// A buffer kept from frame to frame that grows when a frame needs more (by half again, so
 /// that a slowly growing need makes few new buffers) and is otherwise rewritten in place.
 pub(crate) struct Grow {

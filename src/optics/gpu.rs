@@ -693,20 +693,9 @@ impl PreparedOptics {
         target: &GeometryTarget,
     ) {
         let [position, normal, depth] = &target.views;
-        let clear = |v| {
-            Some(wgpu::RenderPassColorAttachment {
-                view: v,
-                depth_slice: None,
-                resolve_target: None,
-                ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                    store: wgpu::StoreOp::Store,
-                },
-            })
-        };
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("optics geometry"),
-            color_attachments: &[clear(position), clear(normal)],
+            color_attachments: &[crate::gpu::cleared(position), crate::gpu::cleared(normal)],
             depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                 view: depth,
                 depth_ops: Some(wgpu::Operations {

@@ -571,22 +571,11 @@ impl SplatRenderer {
         surfels: &SurfelBuffer,
         bind: &wgpu::BindGroup,
     ) {
-        let clear = |view| {
-            Some(wgpu::RenderPassColorAttachment {
-                view,
-                depth_slice: None,
-                resolve_target: None,
-                ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                    store: wgpu::StoreOp::Store,
-                },
-            })
-        };
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("splat attributes"),
             color_attachments: &[
-                clear(&self.targets.colour_view),
-                clear(&self.targets.normal_view),
+                crate::gpu::cleared(&self.targets.colour_view),
+                crate::gpu::cleared(&self.targets.normal_view),
             ],
             depth_stencil_attachment: Some(self.depth_attachment(false)),
             ..Default::default()

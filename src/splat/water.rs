@@ -217,13 +217,9 @@ impl WaterSurface for &[Surfel] {
         &self,
         device: &wgpu::Device,
         format: wgpu::TextureFormat,
-        (w, h): (u32, u32),
+        size: (u32, u32),
     ) -> Result<Box<dyn GpuWaterPass>, Error> {
-        Ok(Box::new(SplatPass {
-            renderer: SplatRenderer::new(device, format, w, h)?,
-            surfels: SplatRenderer::upload(device, &[]),
-            view: None,
-        }))
+        SplatPass::boxed(device, format, size)
     }
 
     fn prepare_gpu(
@@ -268,7 +264,7 @@ impl WaterSurface for GpuSurfels {
         format: wgpu::TextureFormat,
         size: (u32, u32),
     ) -> Result<Box<dyn GpuWaterPass>, Error> {
-        <&[Surfel] as WaterSurface>::gpu_pass(&&[][..], device, format, size)
+        SplatPass::boxed(device, format, size)
     }
 
     fn prepare_gpu(
@@ -297,6 +293,19 @@ pub struct SplatPass {
 }
 
 impl SplatPass {
+    /// A pass for views of `size` shading into `format`, with no surfels yet.
+    fn boxed(
+        device: &wgpu::Device,
+        format: wgpu::TextureFormat,
+        (w, h): (u32, u32),
+    ) -> Result<Box<dyn GpuWaterPass>, Error> {
+        Ok(Box::new(Self {
+            renderer: SplatRenderer::new(device, format, w, h)?,
+            surfels: SplatRenderer::upload(device, &[]),
+            view: None,
+        }))
+    }
+
     /// `pass` as the splats' pass, when it is one made for the size of `view`.
     fn of_size<'p>(pass: &'p mut dyn GpuWaterPass, view: &View) -> Option<&'p mut Self> {
         pass.as_any_mut()

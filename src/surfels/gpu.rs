@@ -193,19 +193,7 @@ impl SurfelPasses {
 
     /// The bind group of the passes' eight buffers, in binding order.
     fn bind(&self, device: &wgpu::Device, buffers: &[&wgpu::Buffer; 8]) -> wgpu::BindGroup {
-        let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
-            .iter()
-            .enumerate()
-            .map(|(i, b)| wgpu::BindGroupEntry {
-                binding: i as u32,
-                resource: b.as_entire_binding(),
-            })
-            .collect();
-        device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("surfels"),
-            layout: &self.layout,
-            entries: &entries,
-        })
+        gpu::buffers_bind_group(device, "surfels", &self.layout, buffers)
     }
 
     /// The surfels of `grid` (a [`DensityGrid`], a [`SparseGrid`] or a [`GpuGrid`]) of
