@@ -5,9 +5,11 @@
 //! compared with the CPU `Pipeline`'s image of the same frame.
 //!
 //! Run: `cargo run --release --example game_loop -- [--frames 60] [--size 320x320]
-//! [--save 0,30,59] [--out DIR] [--json] [--cpu-surfels] [--stage-ms]`. The density grid and
-//! the surfels are made on the GPU (`PipelineParams::gpu_surfels`); `--cpu-surfels` makes them
-//! on the CPU, as the CPU `Pipeline` does, to compare the two. Needs a GPU or Mesa's lavapipe (on lavapipe, a
+//! [--save 0,30,59] [--out DIR] [--json] [--cpu-surfels] [--narrow-band] [--stage-ms]`. The
+//! density grid and the surfels are made on the GPU (`PipelineParams::gpu_surfels`);
+//! `--cpu-surfels` makes them on the CPU, as the CPU `Pipeline` does, to compare the two;
+//! `--narrow-band` makes the grid sparse (`grid.narrow_band`: the blocks near the surface
+//! chosen on the CPU, filled on the GPU). Needs a GPU or Mesa's lavapipe (on lavapipe, a
 //! software rasteriser, it proves the loop works, not how fast a GPU runs it).
 //!
 //! `--json` prints one object: frames, the CPU milliseconds per frame (the CPU stages plus
@@ -18,7 +20,8 @@
 //! frame waits for its timestamps) and
 //! with `--stage-ms` those of each stage of a recent frame (`gpu_stage_ms`,
 //! `GpuPipeline::time_stages`; they slow lavapipe down, see there), and
-//! the PSNR of every saved frame against the CPU pipeline, and how many frames reused the
+//! the PSNR of every saved frame against the CPU pipeline, the largest grid the GPU held
+//! (`gpu_grid_mib_max`, `GpuPipeline::gpu_grid_bytes`), and how many frames reused the
 //! pipeline's GPU resources (all but those whose water needed larger buffers than any frame
 //! before).
 
@@ -37,6 +40,7 @@ struct Args {
     out: PathBuf,
     json: bool,
     cpu_surfels: bool,
+    narrow_band: bool,
     stage_ms: bool,
 }
 
@@ -48,6 +52,7 @@ fn args() -> Result<Args, String> {
         out: PathBuf::from("out/game_loop"),
         json: false,
         cpu_surfels: false,
+        narrow_band: false,
         stage_ms: false,
     };
     let mut it = std::env::args().skip(1);
@@ -74,6 +79,7 @@ fn args() -> Result<Args, String> {
             "--out" => a.out = PathBuf::from(value()?),
             "--json" => a.json = true,
             "--cpu-surfels" => a.cpu_surfels = true,
+            "--narrow-band" => a.narrow_band = true,
             "--stage-ms" => a.stage_ms = true,
             other => return Err(format!("unknown argument {other}")),
         }
@@ -189,6 +195,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ..Default::default()
     };
     params.scene.optics.image_size = [args.size.0, args.size.1];
+    params.grid.narrow_band = args.narrow_band;
     let mut gpu = GpuPipeline::new(&device, &queue, format, args.size, &params)?;
     if args.stage_ms {
         gpu.time_stages(&device, &queue, true);
@@ -203,7 +210,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (mut cpu_ms, mut gpu_ms, mut saved) = (Vec::new(), Vec::new(), Vec::new());
     let mut prepare_ms = Vec::new();
     let mut stages_ms = FrameTimings::default();
-    let mut reused = 0;
+    let (mut reused, mut grid_bytes) = (0, 0u64);
     for f in 0..args.frames {
         let save = args.save.contains(&f);
         let t = Instant::now();
@@ -216,6 +223,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         prepare_ms.push(t_prepare.elapsed().as_secs_f64() * 1e3);
         add_share(&mut stages_ms, &frame.timings, args.frames);
         reused += usize::from(gpu.reused_resources());
+        grid_bytes = grid_bytes.max(gpu.gpu_grid_bytes().unwrap_or(0));
         let target = gpu.draw_to_texture(&device, &mut encoder);
         if let Some((set, resolve, read)) = &query {
             encoder.write_timestamp(set, 1);
@@ -268,6 +276,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "cpu_prepare_ms_p95": percentile(&prepare_ms, 0.95),
         "cpu_prepare_stages_ms": stages_ms,
         "gpu_stages": gpu.gpu_stages(),
+        "gpu_grid_mib_max": grid_bytes as f64 / f64::from(1 << 20),
         // a recent frame's GPU ms per stage, by the pipeline's own timestamps (null without them)
         "gpu_stage_ms": gpu.gpu_stage_ms(),
         "gpu_ms_mean": (!gpu_ms.is_empty()).then(|| mean(&gpu_ms)),

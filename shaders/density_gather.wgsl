@@ -17,7 +17,7 @@ struct GatherParams {
     // bin grid origin and side
     bin_origin: vec3<f32>,
     bin_size: f32,
-    // bins along x, y, z; planes in this dispatch
+    // bins along x, y, z; planes in this dispatch (`gather_blocks`: the evaluated blocks)
     bins: vec3<u32>,
     planes: u32,
     // the reference radius
@@ -38,13 +38,13 @@ struct GatherParams {
 // densities of the dispatch's planes, x fastest
 @group(0) @binding(3) var<storage, read_write> densities: array<f32>;
 
-@compute @workgroup_size(8, 8, 1)
-fn gather(@builtin(global_invocation_id) id: vec3<u32>) {
-    if id.x >= params.dims.x || id.y >= params.dims.y || id.z >= params.planes {
-        return;
-    }
-    let k = params.k0 + id.z;
-    let x = params.origin + vec3<f32>(f32(id.x), f32(id.y), f32(k)) * params.spacing;
+// a sparse grid's evaluated blocks (`gather_blocks`): each block's index, x fastest over the
+// grid's blocks of 8^3 points (src/density/sparse.rs), in slot order
+@group(0) @binding(4) var<storage, read> evaluated: array<u32>;
+
+// The density at grid point (i, j, k): the particles of the bins around it, in sorted order.
+fn density_at(i: u32, j: u32, k: u32) -> f32 {
+    let x = params.origin + vec3<f32>(f32(i), f32(j), f32(k)) * params.spacing;
     let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
     let lo = range.lo;
     let hi = range.hi;
@@ -54,13 +54,49 @@ fn gather(@builtin(global_invocation_id) id: vec3<u32>) {
             let row = (u32(bz) * params.bins.y + u32(by)) * params.bins.x;
             let first = bin_start[row + u32(lo.x)];
             let end = bin_start[row + u32(hi.x) + 1u];
-            for (var i = first; i < end; i++) {
-                let d = x - particles[i].at.xyz;
+            for (var n = first; n < end; n++) {
+                let d = x - particles[n].at.xyz;
                 let r2 = d.x * d.x + (d.y * d.y + d.z * d.z);
-                sum += particles[i].weight
-                    * density_kernel_r2(r2, particles[i].at.w, params.constant, params.kernel);
+                sum += particles[n].weight
+                    * density_kernel_r2(r2, particles[n].at.w, params.constant, params.kernel);
             }
         }
     }
-    densities[(id.z * params.dims.y + id.y) * params.dims.x + id.x] = sum;
+    return sum;
+}
+
+@compute @workgroup_size(8, 8, 1)
+fn gather(@builtin(global_invocation_id) id: vec3<u32>) {
+    if id.x >= params.dims.x || id.y >= params.dims.y || id.z >= params.planes {
+        return;
+    }
+    densities[(id.z * params.dims.y + id.y) * params.dims.x + id.x] =
+        density_at(id.x, id.y, params.k0 + id.z);
+}
+
+// A sparse grid (issue 37): one workgroup per plane of an evaluated block (workgroup x: the
+// plane within the block, y + z * 65,535: the block's slot), its values written at the slot's
+// 512 values, x fastest within the block; the points past the grid's last planes stay 0, as
+// the CPU's `SparseGrid` keeps them.
+@compute @workgroup_size(8, 8, 1)
+fn gather_blocks(
+    @builtin(local_invocation_id) local: vec3<u32>,
+    @builtin(workgroup_id) wg: vec3<u32>,
+) {
+    let slot = wg.y + wg.z * 65535u;
+    if slot >= params.planes {
+        return;
+    }
+    let b = evaluated[slot];
+    let bx = (params.dims.x + 7u) / 8u;
+    let by = (params.dims.y + 7u) / 8u;
+    let block = vec3<u32>(b % bx, (b / bx) % by, b / (bx * by));
+    let i = block.x * 8u + local.x;
+    let j = block.y * 8u + local.y;
+    let k = block.z * 8u + wg.x;
+    var value = 0.0;
+    if i < params.dims.x && j < params.dims.y && k < params.dims.z {
+        value = density_at(i, j, k);
+    }
+    densities[slot * 512u + local.x + 8u * (local.y + 8u * wg.x)] = value;
 }

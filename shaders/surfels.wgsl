@@ -105,6 +105,23 @@ fn value_at(i: u32, j: u32, k: u32) -> f32 {
     return grid[state * s * s * s + (i % s) + s * ((j % s) + s * (k % s))];
 }
 
+// The value at grid point (i, j, k) where a crossing edge ends: a sparse grid's inside block
+// reads as `inside`, which says no more than "above the iso-value" (the blocks the GPU fills,
+// `GridFiller::record_sparse`, are not made exact at their crossings as the CPU's
+// `exact_ends` makes them); there the points' density at the grid point, the dense grid's
+// value, places the surfel where the dense grid does.
+fn end_value(i: u32, j: u32, k: u32) -> f32 {
+    let s = params.sparse_block;
+    if s != 0u {
+        let bx = (params.dims.x + s - 1u) / s;
+        let by = (params.dims.y + s - 1u) / s;
+        if states[i / s + bx * (j / s + by * (k / s))] == 0xfffffffeu {
+            return density_and_gradient(grid_point(i, j, k)).w;
+        }
+    }
+    return value_at(i, j, k);
+}
+
 fn below(v: f32) -> bool {
     return v < params.iso;
 }
@@ -226,10 +243,10 @@ fn emit(
     let j = (p / nx) % params.dims.y;
     let k = p / plane;
     let here = grid_point(i, j, k);
-    let v = value_at(i, j, k);
+    let v = end_value(i, j, k);
     // linear interpolation along each crossed edge, as the CPU's `lerp`; none past the capacity
     if (m & 1u) != 0u {
-        let w = value_at(i + 1u, j, k);
+        let w = end_value(i + 1u, j, k);
         let there = grid_point(i + 1u, j, k);
         if at < params.capacity {
             surfels[at].position = here + (there - here) * ((params.iso - v) / (w - v));
@@ -237,7 +254,7 @@ fn emit(
         at += 1u;
     }
     if (m & 2u) != 0u {
-        let w = value_at(i, j + 1u, k);
+        let w = end_value(i, j + 1u, k);
         let there = grid_point(i, j + 1u, k);
         if at < params.capacity {
             surfels[at].position = here + (there - here) * ((params.iso - v) / (w - v));
@@ -245,7 +262,7 @@ fn emit(
         at += 1u;
     }
     if (m & 4u) != 0u && at < params.capacity {
-        let u = value_at(i, j, k - 1u);
+        let u = end_value(i, j, k - 1u);
         let under = grid_point(i, j, k - 1u);
         surfels[at].position = under + (here - under) * ((params.iso - u) / (v - u));
     }

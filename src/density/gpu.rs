@@ -15,6 +15,7 @@
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
+use super::sparse::{BLOCK, BLOCK_VALUES, SparseLayout};
 use super::{DensityGrid, GridSpec, Kernel, Points};
 use crate::gpu::{self, GpuContext, GpuError};
 
@@ -586,8 +587,9 @@ impl BinnedPoints {
     }
 }
 
-/// The gather pass's compute pipeline.
-fn gather_pipeline(device: &wgpu::Device) -> wgpu::ComputePipeline {
+/// The gather pass's compute pipeline (entry point `gather`, or `gather_blocks` for a sparse
+/// grid's evaluated blocks).
+fn gather_pipeline_of(device: &wgpu::Device, entry: &str) -> wgpu::ComputePipeline {
     let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some("density_gather"),
         source: wgpu::ShaderSource::Wgsl(GATHER_SHADER.into()),
@@ -596,10 +598,15 @@ fn gather_pipeline(device: &wgpu::Device) -> wgpu::ComputePipeline {
         label: Some("density gather"),
         layout: None,
         module: &module,
-        entry_point: Some("gather"),
+        entry_point: Some(entry),
         compilation_options: Default::default(),
         cache: None,
     })
+}
+
+/// The gather pass's compute pipeline over whole planes.
+fn gather_pipeline(device: &wgpu::Device) -> wgpu::ComputePipeline {
+    gather_pipeline_of(device, "gather")
 }
 
 /// The gather pass's pipeline and the binned points, set up once for a grid.
@@ -738,26 +745,68 @@ pub fn gather_slabs_gpu(
 }
 
 /// A density grid that lives on the GPU (issue 37): its values in a storage buffer, x fastest
-/// ([`DensityGrid`]'s layout), for the passes that read it there ([`crate::surfels::gpu`]).
+/// ([`DensityGrid`]'s layout), or a sparse grid's evaluated blocks ([`GpuGrid::sparse`]), for
+/// the passes that read it there ([`crate::surfels::gpu`]).
 #[derive(Clone, Debug)]
 pub struct GpuGrid {
     /// The grid.
     pub spec: GridSpec,
-    /// One `f32` per grid point, index `i + nx (j + ny k)`.
+    /// Dense: one `f32` per grid point, index `i + nx (j + ny k)`. Sparse: [`BLOCK_VALUES`] per
+    /// evaluated block in slot order, x fastest within a block.
     pub values: wgpu::Buffer,
     /// The points the grid was filled with, binned (the surfels' projection reads them).
     pub points: BinnedPoints,
+    /// The block states of a sparse grid ([`GridFiller::record_sparse`]); `None`: dense.
+    pub sparse: Option<GpuSparse>,
+}
+
+/// The blocks of a sparse grid on the GPU ([`GpuGrid::sparse`]).
+#[derive(Clone, Debug)]
+pub struct GpuSparse {
+    /// Per block of [`super::sparse::BLOCK`]^3 grid points (x fastest): `u32::MAX` empty (its
+    /// values 0), `u32::MAX - 1` inside (its values read as `inside`), else the slot of its
+    /// values.
+    pub states: wgpu::Buffer,
+    /// The value the inside blocks read as (above the iso-value; the surfels compute the exact
+    /// value where a crossing ends in one).
+    pub inside: f32,
+    /// Evaluated blocks.
+    pub evaluated: u32,
 }
 
 impl GpuGrid {
     /// The values read back (a wait on the device: for tests and tools, never on a frame's
-    /// path).
+    /// path); a sparse grid's as a dense grid (the inside blocks' values `inside`).
     pub fn read(&self, ctx: &GpuContext) -> Result<DensityGrid, GpuError> {
         let mut values: Vec<f32> = gpu::read_buffer(ctx, &self.values)?;
-        values.truncate(self.spec.cells() as usize);
+        let Some(sparse) = &self.sparse else {
+            values.truncate(self.spec.cells() as usize);
+            return Ok(DensityGrid {
+                spec: self.spec,
+                values,
+            });
+        };
+        let states: Vec<u32> = gpu::read_buffer(ctx, &sparse.states)?;
+        let [nx, ny, nz] = self.spec.dims;
+        let bx = nx.div_ceil(BLOCK);
+        let by = ny.div_ceil(BLOCK);
+        let mut dense = vec![0.0f32; self.spec.cells() as usize];
+        for k in 0..nz {
+            for j in 0..ny {
+                for i in 0..nx {
+                    let b = (i / BLOCK + bx * (j / BLOCK + by * (k / BLOCK))) as usize;
+                    let l = (i % BLOCK + BLOCK * (j % BLOCK + BLOCK * (k % BLOCK))) as usize;
+                    dense[(i + nx * (j + ny * k)) as usize] = match states[b] {
+                        u32::MAX => 0.0,
+                        s if s == u32::MAX - 1 => sparse.inside,
+                        slot => values[slot as usize * BLOCK_VALUES + l],
+                    };
+                }
+            }
+        }
         Ok(DensityGrid {
             spec: self.spec,
-            values,
+            values: dense,
         })
     }
 }
@@ -799,6 +848,17 @@ pub struct GridFiller {
     created: usize,
     /// The splatting method's passes ([`GridFiller::with_method`]); `None`: the gather pass.
     splat: Option<SplatPasses>,
+    /// A sparse grid's pass ([`GridFiller::record_sparse`]), made on first use.
+    sparse: Option<SparseFill>,
+}
+
+/// The gather over a sparse grid's evaluated blocks (`gather_blocks`), its block states and
+/// evaluated blocks uploaded into buffers kept from frame to frame.
+struct SparseFill {
+    pipeline: wgpu::ComputePipeline,
+    states: gpu::Grow,
+    evaluated: gpu::Grow,
+    bind: Option<wgpu::BindGroup>,
 }
 
 /// The paper's splatting (§4.1) into a grid that stays on the GPU: per group of four planes a
@@ -971,6 +1031,7 @@ impl GridFiller {
             bind: None,
             created: 0,
             splat: None,
+            sparse: None,
         }
     }
 
@@ -1023,14 +1084,7 @@ impl GridFiller {
                 spec.cells()
             )));
         }
-        let bins = Bins::new(&points, spec, max_binding)?;
-        let made = [
-            self.particles.write(device, queue, bins.point_bytes()),
-            self.bin_start
-                .write(device, queue, bytemuck::cast_slice(&bins.start)),
-            self.grid.reserve(device, bytes as u64),
-        ];
-        self.created = made.iter().filter(|&&m| m).count();
+        let (bins, made) = self.upload(ctx, &points, spec, bytes as u64)?;
         let raw = RawGatherParams::new(
             spec,
             (&bins.bins, bins.size),
@@ -1072,7 +1126,40 @@ impl GridFiller {
                 spec.dims[2],
             );
         }
-        Ok(GpuGrid {
+        Ok(self.grid_of(spec, &bins, points.len(), None))
+    }
+
+    /// Bins `points` over the grid of `spec` and uploads them, and makes sure the grid's buffer
+    /// holds `bytes`; which of the three buffers were made anew (counted in
+    /// [`Self::created`]).
+    fn upload(
+        &mut self,
+        ctx: &GpuContext,
+        points: &Points<'_>,
+        spec: &GridSpec,
+        bytes: u64,
+    ) -> Result<(Bins, [bool; 3]), GpuError> {
+        let (device, queue) = (&ctx.device, &ctx.queue);
+        let bins = Bins::new(points, spec, gpu::max_binding(device))?;
+        let made = [
+            self.particles.write(device, queue, bins.point_bytes()),
+            self.bin_start
+                .write(device, queue, bytemuck::cast_slice(&bins.start)),
+            self.grid.reserve(device, bytes),
+        ];
+        self.created = made.iter().filter(|&&m| m).count();
+        Ok((bins, made))
+    }
+
+    /// The grid in this filler's buffers.
+    fn grid_of(
+        &self,
+        spec: &GridSpec,
+        bins: &Bins,
+        count: usize,
+        sparse: Option<GpuSparse>,
+    ) -> GpuGrid {
+        GpuGrid {
             spec: *spec,
             values: self.grid.buffer().clone(),
             points: BinnedPoints {
@@ -1080,9 +1167,92 @@ impl GridFiller {
                 starts: self.bin_start.buffer().clone(),
                 bins: bins.bins,
                 bin_size: bins.size,
-                count: points.len(),
+                count,
             },
-        })
+            sparse,
+        }
+    }
+
+    /// Records the pass filling the evaluated blocks of the sparse grid `layout` (from
+    /// [`super::sparse_layout`]) with `points` into `encoder`, by the gather (whatever
+    /// [`Self::method`]: the splatting draws whole planes), every grid point of an evaluated
+    /// block given its value (the dense grid's: the CPU's sparse grid reads the points in the
+    /// band's interior voxels as `inside` instead); the inside blocks read as `inside`. The
+    /// grid's buffer holds the evaluated blocks only: its memory follows the surface. Errors as
+    /// [`Self::record`], for the evaluated blocks' values against the binding limit.
+    pub fn record_sparse(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        points: Points<'_>,
+        (layout, inside): (&SparseLayout, f32),
+        kernel: Kernel,
+    ) -> Result<GpuGrid, GpuError> {
+        check_inputs(&points)?;
+        let (device, queue) = (&ctx.device, &ctx.queue);
+        let max_binding = gpu::max_binding(device);
+        let spec = &layout.spec;
+        let bytes = layout.value_bytes();
+        let state_bytes = layout.states.len() as u64 * 4;
+        if bytes > max_binding || state_bytes > max_binding || spec.cells() > u128::from(u32::MAX) {
+            return Err(GpuError::Validation(format!(
+                "a sparse grid of {} evaluated blocks ({bytes} bytes) and {} block states exceeds the GPU's storage binding limit of {max_binding} bytes; make it on the CPU",
+                layout.evaluated.len(),
+                layout.states.len()
+            )));
+        }
+        if !inside.is_finite() {
+            return Err(GpuError::Validation(format!(
+                "the inside value {inside} of a sparse grid must be finite"
+            )));
+        }
+        let (bins, made) = self.upload(ctx, &points, spec, bytes)?;
+        let fill = self.sparse.get_or_insert_with(|| SparseFill {
+            pipeline: gather_pipeline_of(device, "gather_blocks"),
+            states: gpu::Grow::new(
+                "sparse block states",
+                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            ),
+            evaluated: gpu::Grow::new("sparse evaluated blocks", wgpu::BufferUsages::STORAGE),
+            bind: None,
+        });
+        let lists = [
+            fill.states
+                .write(device, queue, bytemuck::cast_slice(&layout.states)),
+            fill.evaluated
+                .write(device, queue, bytemuck::cast_slice(&layout.evaluated)),
+        ];
+        self.created += lists.iter().filter(|&&m| m).count();
+        let slots = layout.evaluated.len() as u32;
+        let raw = RawGatherParams::new(spec, (&bins.bins, bins.size), &points, kernel, (0, slots));
+        queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
+        if fill.bind.is_none() || made.contains(&true) || lists.contains(&true) {
+            fill.bind = Some(gpu::buffers_bind_group(
+                device,
+                "gather blocks",
+                &fill.pipeline.get_bind_group_layout(0),
+                &[
+                    &self.uniform,
+                    self.particles.buffer(),
+                    self.bin_start.buffer(),
+                    self.grid.buffer(),
+                    fill.evaluated.buffer(),
+                ],
+            ));
+            self.created += 1;
+        }
+        if slots > 0 {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&fill.pipeline);
+            pass.set_bind_group(0, fill.bind.as_ref(), &[]);
+            pass.dispatch_workgroups(BLOCK, slots.min(65_535), slots.div_ceil(65_535));
+        }
+        let sparse = GpuSparse {
+            states: fill.states.buffer().clone(),
+            inside,
+            evaluated: slots,
+        };
+        Ok(self.grid_of(spec, &bins, points.len(), Some(sparse)))
     }
 }
 

@@ -33,7 +33,7 @@ pub use cpu::{
     density_grid, density_naive, points_grid, points_grid_in, points_naive, splat_points_slabs,
     splat_slabs,
 };
-pub use sparse::{SparseGrid, points_grid_sparse};
+pub use sparse::{SparseGrid, SparseLayout, points_grid_sparse, sparse_layout};
 
 /// The density function of a particle.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]

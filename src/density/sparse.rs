@@ -229,56 +229,19 @@ pub fn points_grid_sparse(
     iso: f32,
     inside: f32,
 ) -> Result<SparseGrid, DensityError> {
-    points.check()?;
-    if !(iso.is_finite() && inside.is_finite() && inside >= iso) {
-        return Err(DensityError::InvalidGrid {
-            name: "iso",
-            reason: format!(
-                "the inside value {inside} must be finite and at least the iso-value {iso}"
-            ),
-        });
-    }
-    let reach = points.max_radius();
-    if band.voxel_of.len() != points.len() {
-        return Err(DensityError::InvalidGrid {
-            name: "narrow band",
-            reason: format!(
-                "a band of {} particles with voxels of {} for {} points of radius up to {}",
-                band.voxel_of.len(),
-                band.edge,
-                points.len(),
-                reach
-            ),
-        });
-    }
+    check_sparse(&points, band, iso, inside)?;
     let blocks = spec.dims.map(|n| n.div_ceil(BLOCK));
     let count = blocks.iter().map(|&b| b as u128).product::<u128>();
-    let too_large = |bytes: u128| {
-        let [nx, ny, nz] = spec.dims.map(u64::from);
-        Err(DensityError::TooLarge {
-            nx,
-            ny,
-            nz,
-            cells: spec.cells(),
-            bytes,
-            limit: memory_limit,
-        })
-    };
+    let too_large = |bytes: u128| too_large(spec, bytes, memory_limit);
     // per block: its state (4 bytes), its first point (4) and its interior voxel count (2)
     if count * 10 > u128::from(memory_limit) {
         return too_large(count * 10);
     }
     let b = Blocks::new(points, spec, band, blocks.map(|b| b as usize));
-    let mut states = b.states(&b.interior_seen());
-    let evaluated: Vec<u32> = (0..b.count as u32)
-        .filter(|&k| states[k as usize] == 0)
-        .collect();
+    let (states, evaluated) = b.layout();
     let bytes = evaluated.len() as u128 * BLOCK_VALUES as u128 * 4;
     if bytes > u128::from(memory_limit) {
         return too_large(bytes);
-    }
-    for (slot, &k) in evaluated.iter().enumerate() {
-        states[k as usize] = slot as u32;
     }
     let columns: Vec<f32> = (0..spec.dims[0]).map(|i| column(spec, i)).collect();
     let (values, interior) = b.evaluate(kernel, inside, &columns, &evaluated);
@@ -293,6 +256,105 @@ pub fn points_grid_sparse(
     };
     exact_ends(&mut grid, &b, kernel, &columns, iso);
     Ok(grid)
+}
+
+/// Which blocks of a sparse grid are evaluated, without their values: what the GPU fills
+/// ([`crate::density::gpu::GridFiller::record_sparse`], issue 37). The states and the
+/// evaluated blocks of [`points_grid_sparse`] before it makes the crossings' inside ends
+/// exact (the GPU computes those where it meets them).
+#[derive(Clone, Debug, PartialEq)]
+pub struct SparseLayout {
+    /// The grid.
+    pub spec: GridSpec,
+    /// Blocks along x, y and z (`ceil(dims / BLOCK)`).
+    pub blocks: [u32; 3],
+    /// Per block (x fastest): `u32::MAX` empty, `u32::MAX - 1` inside, else its slot (its
+    /// index in `evaluated`).
+    pub states: Vec<u32>,
+    /// The evaluated blocks' indices (x fastest), in block order.
+    pub evaluated: Vec<u32>,
+}
+
+impl SparseLayout {
+    /// Bytes of the evaluated blocks' values (4 per grid point).
+    #[must_use]
+    pub fn value_bytes(&self) -> u64 {
+        self.evaluated.len() as u64 * BLOCK_VALUES as u64 * 4
+    }
+}
+
+/// The blocks [`points_grid_sparse`] would evaluate for the same arguments, and the states of
+/// the others; refused as it refuses (a layout or values over `memory_limit` bytes).
+pub fn sparse_layout(
+    points: Points<'_>,
+    spec: &GridSpec,
+    memory_limit: u64,
+    band: &NarrowBand,
+) -> Result<SparseLayout, DensityError> {
+    check_sparse(&points, band, 0.0, 0.0)?;
+    let blocks = spec.dims.map(|n| n.div_ceil(BLOCK));
+    let count = blocks.iter().map(|&b| b as u128).product::<u128>();
+    // per block: its state (4 bytes), its first point (4) and its interior voxel count (2)
+    if count * 10 > u128::from(memory_limit) {
+        return too_large(spec, count * 10, memory_limit);
+    }
+    let b = Blocks::new(points, spec, band, blocks.map(|b| b as usize));
+    let (states, evaluated) = b.layout();
+    let layout = SparseLayout {
+        spec: *spec,
+        blocks,
+        states,
+        evaluated,
+    };
+    if u128::from(layout.value_bytes()) > u128::from(memory_limit) {
+        return too_large(spec, u128::from(layout.value_bytes()), memory_limit);
+    }
+    Ok(layout)
+}
+
+/// The checks of [`points_grid_sparse`]: the points, an inside value above the iso-value, a
+/// band of these points.
+fn check_sparse(
+    points: &Points<'_>,
+    band: &NarrowBand,
+    iso: f32,
+    inside: f32,
+) -> Result<(), DensityError> {
+    points.check()?;
+    if !(iso.is_finite() && inside.is_finite() && inside >= iso) {
+        return Err(DensityError::InvalidGrid {
+            name: "iso",
+            reason: format!(
+                "the inside value {inside} must be finite and at least the iso-value {iso}"
+            ),
+        });
+    }
+    if band.voxel_of.len() != points.len() {
+        return Err(DensityError::InvalidGrid {
+            name: "narrow band",
+            reason: format!(
+                "a band of {} particles with voxels of {} for {} points of radius up to {}",
+                band.voxel_of.len(),
+                band.edge,
+                points.len(),
+                points.max_radius()
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// The error of a sparse grid of `spec` that needs `bytes`, over `limit`.
+fn too_large<T>(spec: &GridSpec, bytes: u128, limit: u64) -> Result<T, DensityError> {
+    let [nx, ny, nz] = spec.dims.map(u64::from);
+    Err(DensityError::TooLarge {
+        nx,
+        ny,
+        nz,
+        cells: spec.cells(),
+        bytes,
+        limit,
+    })
 }
 
 /// The blocks of a grid, the points sorted into them and the band's interior: what the phases of
@@ -473,6 +535,19 @@ impl<'a> Blocks<'a> {
                 if reached { 0 } else { EMPTY }
             })
             .collect()
+    }
+
+    /// The blocks' states with the evaluated ones' slots, and the evaluated blocks in block
+    /// order.
+    fn layout(&self) -> (Vec<u32>, Vec<u32>) {
+        let mut states = self.states(&self.interior_seen());
+        let evaluated: Vec<u32> = (0..self.count as u32)
+            .filter(|&k| states[k as usize] == 0)
+            .collect();
+        for (slot, &k) in evaluated.iter().enumerate() {
+            states[k as usize] = slot as u32;
+        }
+        (states, evaluated)
     }
 
     /// The values and interior masks of the `evaluated` blocks, from their candidates in index

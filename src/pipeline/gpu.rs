@@ -107,6 +107,9 @@ pub struct GpuStageMs {
 struct GpuChain {
     filler: GridFiller,
     surfels: ResidentSurfels,
+    /// The bytes of the last grid's values: every point's, or a sparse grid's evaluated
+    /// blocks'.
+    grid_bytes: u64,
 }
 
 impl GpuPipeline {
@@ -217,6 +220,18 @@ impl GpuPipeline {
         self.cpu.params().gpu_surfels
             && self.cpu.params().source != SurfelSource::Refined
             && self.cpu.water_renderer().drawn() == Drawn::Surfels
+    }
+
+    /// The bytes of the density grid's values the last [`GpuPipeline::prepare`] filled on the
+    /// GPU: 4 per grid point, or with [`crate::pipeline::GridParams::narrow_band`] 4 per point
+    /// of the evaluated blocks only (the memory follows the surface); `None` before the first
+    /// such frame or when the CPU makes the grid.
+    #[must_use]
+    pub fn gpu_grid_bytes(&self) -> Option<u64> {
+        self.chain
+            .as_ref()
+            .filter(|_| self.surfels_on_gpu())
+            .map(|c| c.grid_bytes)
     }
 
     /// The stages the last [`GpuPipeline::prepare`] ran on the GPU (before the first, those it
@@ -359,7 +374,14 @@ impl GpuPipeline {
             self.prepare_frame(device, queue, encoder, &frame)?;
             return Ok(frame);
         }
-        let budget = crate::gpu::max_binding(device);
+        // a dense grid is one storage binding; a sparse one's evaluated blocks are (checked
+        // when they are known), its grid bounded by the memory budget as on the CPU
+        let sparse = self.cpu.params().grid.narrow_band;
+        let budget = if sparse {
+            u64::MAX
+        } else {
+            crate::gpu::max_binding(device)
+        };
         let (mut frame, input) = self.cpu.frame_to_grid(particles, budget)?;
         let Some(input) = input else {
             // no point: the empty frame the CPU path draws
@@ -370,6 +392,7 @@ impl GpuPipeline {
         let chain = self.chain.get_or_insert_with(|| GpuChain {
             filler: GridFiller::with_method(device, self.cpu.params().grid.gpu_method),
             surfels: ResidentSurfels::new(device),
+            grid_bytes: 0,
         });
         let (params, points) = (self.cpu.params(), input.points());
         let kernel = params.grid.kernel;
@@ -381,9 +404,26 @@ impl GpuPipeline {
         };
         let t = Instant::now();
         mark(encoder, 0);
-        let grid = chain
-            .filler
-            .record(&ctx, encoder, points, &input.spec, kernel)?;
+        let grid = if sparse {
+            // which blocks to fill, on the CPU (the LNM band of the points, their blocks);
+            // their values on the GPU
+            let band = super::sparse_band(&points)?;
+            let limit = params
+                .grid
+                .memory_budget
+                .min(crate::gpu::max_binding(device));
+            let layout = crate::density::sparse_layout(points, &input.spec, limit, &band)?;
+            let inside = super::sparse_inside(kernel, &params.surfels, points.h);
+            chain.grid_bytes = layout.value_bytes();
+            chain
+                .filler
+                .record_sparse(&ctx, encoder, points, (&layout, inside), kernel)?
+        } else {
+            chain.grid_bytes = input.spec.bytes() as u64;
+            chain
+                .filler
+                .record(&ctx, encoder, points, &input.spec, kernel)?
+        };
         mark(encoder, 1);
         frame.timings.density_ms = ms(t);
         let t = Instant::now();

@@ -211,7 +211,9 @@ pub struct GridParams {
     /// ([`crate::lnm`], voxels of the largest radius) or that no point reaches are not
     /// evaluated; the same surfels, in the same order, as the dense grid (tested), in less
     /// memory (measured: 19 against 87 MiB on the dam break's chain, as fast as the dense grid
-    /// there; 1.3-1.7x faster on `bench density`'s 150k block). Default off.
+    /// there; 1.3-1.7x faster on `bench density`'s 150k block). In [`GpuPipeline`] the blocks
+    /// are chosen on the CPU and filled on the GPU, whose grid buffer then holds the evaluated
+    /// blocks only ([`GpuPipeline::gpu_grid_bytes`]). Default off.
     pub narrow_band: bool,
     /// Where the chain's iso-surface lies: `paper` (every point's term as Iwasaki et al. eq. 1
     /// sums it; the surface 0.3-2.6 spacings outside the fluid below three refinement steps) or
@@ -2100,14 +2102,8 @@ pub fn iso_surfels_in(
     let (spec, warning) = grid_for(&points, grid)?;
     let t = Instant::now();
     let values = if grid.narrow_band {
-        let band = crate::lnm::narrow_band(
-            points.positions,
-            points.max_radius(),
-            &crate::lnm::LnmParams::default(),
-        )?;
-        // inside: well above the iso-value
+        let band = sparse_band(&points)?;
         let iso = params.iso_fraction * grid.kernel.peak(points.h);
-        let inside = 2.0 * params.iso_fraction.max(1.0) * grid.kernel.peak(points.h);
         Grid::Sparse(density::points_grid_sparse(
             points,
             &spec,
@@ -2115,7 +2111,7 @@ pub fn iso_surfels_in(
             grid.memory_budget,
             &band,
             iso,
-            inside,
+            sparse_inside(grid.kernel, params, points.h),
         )?)
     } else {
         Grid::Dense(density::points_grid_in(
@@ -2140,6 +2136,22 @@ pub fn iso_surfels_in(
         warning,
     }))
 }
+/// The LNM narrow band a sparse grid of `points` takes its inside blocks from
+/// ([`GridParams::narrow_band`]): voxels of the largest radius.
+pub(crate) fn sparse_band(points: &Points<'_>) -> Result<crate::lnm::NarrowBand, Error> {
+    Ok(crate::lnm::narrow_band(
+        points.positions,
+        points.max_radius(),
+        &crate::lnm::LnmParams::default(),
+    )?)
+}
+
+/// The value a sparse grid's inside blocks read as: well above the iso-value (twice the larger
+/// of the iso-value and one point's peak, of the reference radius `h`).
+pub(crate) fn sparse_inside(kernel: Kernel, params: &SurfelParams, h: f32) -> f32 {
+    2.0 * params.iso_fraction.max(1.0) * kernel.peak(h)
+}
+
 /// Mean neighbour counts outside which the support radius is probably wrong: SPH kernels are
 /// made for about 30-60 neighbours (h = 2 spacings gives 33); under 10 the surface detection
 /// sees every particle as a surface one and the grid breaks up into drops, over 200 the radius

@@ -353,6 +353,14 @@ fn binned_of(grid: &GpuGrid, points: &Points<'_>) -> Result<BinnedPoints, GpuErr
     Ok(grid.points.clone())
 }
 
+/// The block side and inside value of a grid on the GPU for [`RawSurfelParams`]: `(0, 0)`
+/// for a dense grid.
+fn sparse_of(grid: &GpuGrid) -> (u32, f32) {
+    grid.sparse
+        .as_ref()
+        .map_or((0, 0.0), |s| (crate::density::sparse::BLOCK, s.inside))
+}
+
 /// Checks the inputs and uploads them; `None` when there is nothing to extract (no grid point
 /// or no point).
 fn upload(
@@ -382,6 +390,7 @@ fn upload(
         .into());
     }
     if let SurfelGrid::Gpu(g) = grid
+        && g.sparse.is_none()
         && u128::from(g.values.size()) < n * 4
     {
         return Err(GpuError::Validation(format!(
@@ -396,15 +405,14 @@ fn upload(
         _ => BinnedPoints::new(device, &points, &spec)?,
     };
     let blocks = (n as u32).div_ceil(BLOCK);
+    let (sparse_block, inside) = match grid {
+        SurfelGrid::Sparse(g) => (crate::density::sparse::BLOCK, g.inside),
+        SurfelGrid::Gpu(g) => sparse_of(g),
+        SurfelGrid::Dense(_) => (0, 0.0),
+    };
     let raw = RawSurfelParams {
-        sparse_block: match grid {
-            SurfelGrid::Sparse(_) => crate::density::sparse::BLOCK,
-            _ => 0,
-        },
-        inside: match grid {
-            SurfelGrid::Sparse(g) => g.inside,
-            _ => 0.0,
-        },
+        sparse_block,
+        inside,
         // the buffers are sized from the count read back: every surfel fits
         capacity: u32::MAX,
         ..RawSurfelParams::new(&spec, iso, &binned, &points, kernel, params)
@@ -455,6 +463,10 @@ fn upload(
                 bytemuck::cast_slice(g.raw().0),
                 wgpu::BufferUsages::STORAGE,
             ),
+            SurfelGrid::Gpu(GpuGrid {
+                sparse: Some(sparse),
+                ..
+            }) => sparse.states.clone(),
             _ => storage(
                 device,
                 "surfel no block states",
@@ -533,7 +545,7 @@ pub struct ResidentSurfels {
     draw: wgpu::Buffer,
     states: wgpu::Buffer,
     readback: gpu::AsyncRead,
-    bind: Option<(wgpu::BindGroup, [wgpu::Buffer; 3])>,
+    bind: Option<(wgpu::BindGroup, [wgpu::Buffer; 4])>,
     capacity: u32,
     last_count: Option<u32>,
     created: usize,
@@ -643,7 +655,9 @@ impl ResidentSurfels {
         let (device, queue) = (&ctx.device, &ctx.queue);
         let spec = grid.spec;
         let n = spec.cells();
-        if u128::from(grid.values.size()) < n * 4 || n > u128::from(u32::MAX) {
+        if (grid.sparse.is_none() && u128::from(grid.values.size()) < n * 4)
+            || n > u128::from(u32::MAX)
+        {
             return Err(GpuError::Validation(format!(
                 "the GPU grid's buffer holds {} bytes, not the {} of its {n} points",
                 grid.values.size(),
@@ -667,16 +681,21 @@ impl ResidentSurfels {
             self.instances.reserve(device, u64::from(wanted) * 64),
         ];
         self.created = made.iter().filter(|&&m| m).count();
+        let (sparse_block, inside) = sparse_of(grid);
         let raw = RawSurfelParams {
             capacity: wanted,
+            sparse_block,
+            inside,
             ..RawSurfelParams::new(&spec, iso, &binned, &points, kernel, params)
         };
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
+        let states = grid.sparse.as_ref().map_or(&self.states, |s| &s.states);
         // the bind group holds the grid's buffers: made anew when one of them is another
         let key = [
             grid.values.clone(),
             binned.points.clone(),
             binned.starts.clone(),
+            states.clone(),
         ];
         let stale = self
             .bind
@@ -691,7 +710,7 @@ impl ResidentSurfels {
                 self.instances.buffer(),
                 &binned.points,
                 &binned.starts,
-                &self.states,
+                states,
             ];
             self.bind = Some((self.passes.bind(device, &buffers), key));
             self.created += 1;
