@@ -629,6 +629,13 @@ impl PreparedOptics {
         self.update_water(device, queue, stage, &surfels)
     }
 
+    /// Buffers and bind groups the water's passes made in the last [`Self::update_water`] (0 in
+    /// the steady state of a sequence: every renderer writes its inputs into kept buffers).
+    #[must_use]
+    pub fn water_created(&self) -> usize {
+        self.water.light.created() + self.water.camera.created()
+    }
+
     /// [`Self::update`] with the water drawn from `water`; `false` too when it is drawn another
     /// way than the prepared stage's.
     pub fn update_water(

@@ -309,9 +309,10 @@ impl GpuPipeline {
     }
 
     /// Whether the last `prepare` reused the previous frame's GPU resources (the steady state:
-    /// nothing created, uniforms and surfels written through the queue); `false` on the first
-    /// frame, after a resize, when the light's screen changed size, and while the GPU's grid
-    /// and surfel buffers grow (the first frames of a sequence).
+    /// nothing created, uniforms, surfels and every renderer's inputs written through the
+    /// queue); `false` on the first frame, after a resize, when the light's screen changed
+    /// size, and while the GPU's grid, surfel or water buffers grow (the first frames of a
+    /// sequence).
     #[must_use]
     pub fn reused_resources(&self) -> bool {
         self.reused
@@ -552,14 +553,19 @@ impl GpuPipeline {
         let stage = Stage::fitted(&scene, shape, None)?;
         // the steady state: last frame's targets fit (the views are kept), only uniforms,
         // receiver and surfels are written
-        let reused = match &mut self.prepared {
+        let updated = match &mut self.prepared {
             Some((prepared, _)) if prepared.image_buffer().map(|(_, s)| s) == Some(self.size) => {
                 prepared.update_water(device, queue, &stage, water)?
             }
             _ => false,
         };
-        self.reused = reused;
-        if !reused {
+        // reused: updated in place, and the water's passes grew no buffer
+        self.reused = updated
+            && self
+                .prepared
+                .as_ref()
+                .is_some_and(|(p, _)| p.water_created() == 0);
+        if !updated {
             let prepared =
                 self.optics
                     .prepare_water(device, queue, &stage, water, Some(self.size))?;
@@ -613,7 +619,7 @@ impl GpuPipeline {
     /// pipeline does), drawn by the
     /// renderer's [`GpuWaterPass`]: the splats write their surfels into a growing buffer through
     /// the queue and create nothing in the steady state; the ray caster and the screen-space
-    /// renderer upload their inputs anew each frame and are shaded by the splats' shading pass.
+    /// renderer write their inputs into buffers they keep and are shaded by the splats' shading pass.
     /// A frame whose surfels are on the GPU ([`Frame::surfels_on_gpu`]: the last one
     /// [`GpuPipeline::prepare`] made) is drawn from their buffer.
     pub fn encode_splats(

@@ -225,7 +225,68 @@ struct Frame {
     /// iterations any pixel needs over [`BUDGET`]); the runs after the last pixel is done
     /// dispatch no workgroups (`cs_args`).
     runs: u64,
-    _buffers: Vec<wgpu::Buffer>,
+}
+
+/// The inputs' buffers, kept from view to view: the uniforms, the points, the tiles, the
+/// grids' cells, the weights (grown when a view needs more), and the bands' uniforms (fixed by
+/// the size) with their workgroups.
+struct Inputs {
+    uniforms: wgpu::Buffer,
+    grid_uniforms: wgpu::Buffer,
+    points: crate::gpu::Grow,
+    tile_start: crate::gpu::Grow,
+    tile_items: crate::gpu::Grow,
+    cells: crate::gpu::Grow,
+    weights: crate::gpu::Grow,
+    bands: Vec<(wgpu::Buffer, (u32, u32))>,
+}
+
+impl Inputs {
+    fn new(device: &wgpu::Device, width: u32, height: u32) -> Self {
+        let uniform = |label, size: usize| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: size as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        let band_rows = band_rows(width);
+        let group_x = width.div_ceil(8);
+        let mut bands = Vec::new();
+        let mut y0 = 0;
+        while y0 < height {
+            let rows = band_rows.min(height - y0);
+            let groups = (group_x, rows.div_ceil(8));
+            let band = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("raycast band"),
+                contents: bytemuck::bytes_of(&RawBand {
+                    y0,
+                    rows,
+                    budget: BUDGET,
+                    groups_x: groups.0,
+                    groups_y: groups.1,
+                    _pad0: 0,
+                    _pad1: 0,
+                    _pad2: 0,
+                }),
+                usage: wgpu::BufferUsages::UNIFORM,
+            });
+            bands.push((band, groups));
+            y0 += rows;
+        }
+        let storage = wgpu::BufferUsages::STORAGE;
+        Self {
+            uniforms: uniform("raycast params", std::mem::size_of::<RawCastParams>()),
+            grid_uniforms: uniform("raycast grids", std::mem::size_of::<RawGrids>()),
+            points: crate::gpu::Grow::new("raycast points", storage),
+            tile_start: crate::gpu::Grow::new("raycast tile starts", storage),
+            tile_items: crate::gpu::Grow::new("raycast tile items", storage),
+            cells: crate::gpu::Grow::new("raycast cells", storage),
+            weights: crate::gpu::Grow::new("raycast weights", storage),
+            bands,
+        }
+    }
 }
 
 struct Band {
@@ -255,6 +316,8 @@ pub struct GpuCaster {
     colour: wgpu::Texture,
     normal_depth: wgpu::Texture,
     views: (wgpu::TextureView, wgpu::TextureView),
+    inputs: Inputs,
+    created: usize,
     frame: Option<Frame>,
 }
 
@@ -328,6 +391,8 @@ impl GpuCaster {
             colour,
             normal_depth,
             views,
+            inputs: Inputs::new(device, width, height),
+            created: 0,
             frame: None,
         };
         if let Some(e) = pollster::block_on(scope.pop()) {
@@ -351,10 +416,13 @@ impl GpuCaster {
     }
 
     /// Uploads the caster's points, their screen tiles in `view` and the grids, for the next
-    /// [`Self::encode`]. `view` must have this caster's size.
+    /// [`Self::encode`], through `queue` into buffers kept from view to view (grown when a view
+    /// needs more; the bind groups made anew only then, [`Self::created`]). `view` must have
+    /// this caster's size.
     pub fn prepare(
         &mut self,
         device: &wgpu::Device,
+        queue: &wgpu::Queue,
         caster: &Caster<'_>,
         view: &View,
     ) -> Result<(), crate::Error> {
@@ -366,20 +434,27 @@ impl GpuCaster {
             .into());
         }
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let frame = self.upload(device, caster, view)?;
+        self.upload(device, queue, caster, view)?;
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Validation(e.to_string()).into());
         }
-        self.frame = Some(frame);
         Ok(())
     }
 
+    /// Buffers and bind groups the last [`Self::prepare`] made (0 in the steady state of a
+    /// sequence: the inputs written into the kept buffers).
+    #[must_use]
+    pub fn created(&self) -> usize {
+        self.created
+    }
+
     fn upload(
-        &self,
+        &mut self,
         device: &wgpu::Device,
+        queue: &wgpu::Queue,
         caster: &Caster<'_>,
         v: &View,
-    ) -> Result<Frame, crate::Error> {
+    ) -> Result<(), crate::Error> {
         let points = caster.density().points();
         let params = &caster.params;
         let (tw, tiles) = bin_spheres(caster, v)?;
@@ -400,34 +475,44 @@ impl GpuCaster {
         let grids = grids_of(caster, pca_reach);
         let (cells, raw_grids) = pack_grids(&grids);
         let raw = raw_params(caster, v, tw, (reach, pca_reach), grids.len());
-        // storage bindings may not be empty: one unused element each at least
-        let storage = |label, bytes: &[u8]| {
-            let mut contents = bytes.to_vec();
-            contents.resize(contents.len().max(16), 0);
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: &contents,
-                usage: wgpu::BufferUsages::STORAGE,
-            })
-        };
-        let uniform = |label, bytes: &[u8]| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: bytes,
-                usage: wgpu::BufferUsages::UNIFORM,
-            })
-        };
-        let uniforms = uniform("raycast params", bytemuck::bytes_of(&raw));
-        let grid_uniforms = uniform("raycast grids", bytemuck::bytes_of(&raw_grids));
-        let inputs = [
-            storage("raycast points", bytemuck::cast_slice(&point_data)),
-            storage("raycast tile starts", bytemuck::cast_slice(&tile_start)),
-            storage("raycast tile items", bytemuck::cast_slice(&tile_items)),
-            storage("raycast cells", bytemuck::cast_slice(&cells)),
-            storage("raycast weights", bytemuck::cast_slice(&weights)),
+        let inputs = &mut self.inputs;
+        queue.write_buffer(&inputs.uniforms, 0, bytemuck::bytes_of(&raw));
+        queue.write_buffer(&inputs.grid_uniforms, 0, bytemuck::bytes_of(&raw_grids));
+        let made = [
+            inputs
+                .points
+                .write(device, queue, bytemuck::cast_slice(&point_data)),
+            inputs
+                .tile_start
+                .write(device, queue, bytemuck::cast_slice(&tile_start)),
+            inputs
+                .tile_items
+                .write(device, queue, bytemuck::cast_slice(&tile_items)),
+            inputs
+                .cells
+                .write(device, queue, bytemuck::cast_slice(&cells)),
+            inputs
+                .weights
+                .write(device, queue, bytemuck::cast_slice(&weights)),
         ];
+        self.created = made.iter().filter(|&&m| m).count();
         let most = iteration_bound(caster, &tiles, &grids, raw.b[1]);
         let runs = most.div_ceil(u64::from(BUDGET)) + 1;
+        match &mut self.frame {
+            Some(frame) if self.created == 0 => {
+                frame.view = *v;
+                frame.runs = runs;
+            }
+            _ => {
+                self.frame = Some(self.bind_groups(device, *v, runs));
+                self.created += 1;
+            }
+        }
+        Ok(())
+    }
+
+    /// The bind groups of the kept buffers, for a frame of `runs` runs seen in `v`.
+    fn bind_groups(&self, device: &wgpu::Device, v: View, runs: u64) -> Frame {
         let bind = |pipeline: &wgpu::ComputePipeline,
                     entries: &[(u32, wgpu::BindingResource<'_>)]| {
             let entries: Vec<wgpu::BindGroupEntry<'_>> = entries
@@ -443,45 +528,27 @@ impl GpuCaster {
                 entries: &entries,
             })
         };
-        let band_rows = band_rows(v.width);
-        let group_x = v.width.div_ceil(8);
-        let mut bands = Vec::new();
-        let mut buffers = Vec::new();
-        let mut y0 = 0;
-        while y0 < v.height {
-            let rows = band_rows.min(v.height - y0);
-            let groups = (group_x, rows.div_ceil(8));
-            let band = uniform(
-                "raycast band",
-                bytemuck::bytes_of(&RawBand {
-                    y0,
-                    rows,
-                    budget: BUDGET,
-                    groups_x: groups.0,
-                    groups_y: groups.1,
-                    _pad0: 0,
-                    _pad1: 0,
-                    _pad2: 0,
-                }),
-            );
-
-            bands.push(Band {
+        let i = &self.inputs;
+        let bands = i
+            .bands
+            .iter()
+            .map(|(band, groups)| Band {
                 init: bind(
                     &self.init,
                     &[
-                        (0, whole(&uniforms)),
-                        (2, whole(&inputs[1])),
+                        (0, whole(&i.uniforms)),
+                        (2, whole(i.tile_start.buffer())),
                         (6, whole(&self.hits)),
                         (7, whole(&self.extra)),
                         (9, whole(&self.state)),
-                        (10, whole(&band)),
+                        (10, whole(band)),
                         (11, whole(&self.unfinished)),
                     ],
                 ),
                 args: bind(
                     &self.args,
                     &[
-                        (10, whole(&band)),
+                        (10, whole(band)),
                         (11, whole(&self.unfinished)),
                         (13, whole(&self.indirect)),
                     ],
@@ -489,43 +556,38 @@ impl GpuCaster {
                 step: bind(
                     &self.step,
                     &[
-                        (0, whole(&uniforms)),
-                        (1, whole(&inputs[0])),
-                        (3, whole(&inputs[2])),
-                        (4, whole(&inputs[3])),
+                        (0, whole(&i.uniforms)),
+                        (1, whole(i.points.buffer())),
+                        (3, whole(i.tile_items.buffer())),
+                        (4, whole(i.cells.buffer())),
                         (6, whole(&self.hits)),
                         (7, whole(&self.extra)),
                         (9, whole(&self.state)),
-                        (10, whole(&band)),
+                        (10, whole(band)),
                         (11, whole(&self.unfinished)),
-                        (12, whole(&grid_uniforms)),
-                        (16, whole(&inputs[4])),
+                        (12, whole(&i.grid_uniforms)),
+                        (16, whole(i.weights.buffer())),
                     ],
                 ),
-                groups,
-            });
-            buffers.push(band);
-            y0 += rows;
-        }
+                groups: *groups,
+            })
+            .collect();
         let filter = bind(
             &self.filter,
             &[
-                (0, uniforms.as_entire_binding()),
-                (6, self.hits.as_entire_binding()),
-                (7, self.extra.as_entire_binding()),
+                (0, whole(&i.uniforms)),
+                (6, whole(&self.hits)),
+                (7, whole(&self.extra)),
                 (14, wgpu::BindingResource::TextureView(&self.views.0)),
                 (15, wgpu::BindingResource::TextureView(&self.views.1)),
             ],
         );
-        buffers.extend(inputs);
-        buffers.extend([uniforms, grid_uniforms]);
-        Ok(Frame {
-            view: *v,
+        Frame {
+            view: v,
             bands,
             filter,
             runs,
-            _buffers: buffers,
-        })
+        }
     }
 
     /// Records the cast of the prepared frame into `encoder`: the colour and normal-depth
@@ -624,7 +686,7 @@ pub fn render_view_gpu(
     v: &View,
 ) -> Result<RayCast, crate::Error> {
     let mut gpu = GpuCaster::new(&ctx.device, v.width, v.height)?;
-    gpu.prepare(&ctx.device, caster, v)?;
+    gpu.prepare(&ctx.device, &ctx.queue, caster, v)?;
     let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
     let mut encoder = ctx.device.create_command_encoder(&Default::default());
     gpu.encode(&mut encoder)?;
@@ -764,6 +826,9 @@ impl crate::splat::GpuWaterPass for GpuCaster {
             .as_ref()
             .map(|f| &f.view)
             .ok_or_else(crate::splat::water::unprepared)
+    }
+    fn created(&self) -> usize {
+        GpuCaster::created(self)
     }
     fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
         self

@@ -479,7 +479,7 @@ impl WaterSurface for Caster<'_> {
     fn prepare_gpu(
         &self,
         device: &wgpu::Device,
-        _queue: &wgpu::Queue,
+        queue: &wgpu::Queue,
         pass: &mut dyn GpuWaterPass,
         view: &View,
     ) -> Result<bool, Error> {
@@ -489,7 +489,7 @@ impl WaterSurface for Caster<'_> {
         if cast.size() != (view.width, view.height) {
             return Ok(false);
         }
-        cast.prepare(device, self, view)?;
+        cast.prepare(device, queue, self, view)?;
         Ok(true)
     }
 }

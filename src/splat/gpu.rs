@@ -59,17 +59,24 @@ impl SurfelBuffer {
     /// Replaces the surfels for the next submission, reusing the buffer while they fit and
     /// growing it geometrically (to the next power of two) when they do not, so that a sequence
     /// allocates only while its largest frame so far grows. Writes go through
-    /// `queue.write_buffer`, so they take effect at the next submit.
-    pub fn write(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, surfels: &[Surfel]) {
+    /// `queue.write_buffer`, so they take effect at the next submit. Whether it made a new
+    /// buffer.
+    pub fn write(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        surfels: &[Surfel],
+    ) -> bool {
         let (kept, skipped) = crate::splat::drawable(surfels);
         let size = std::mem::size_of::<Surfel>() as u64;
         let max = device.limits().max_buffer_size / size;
         if kept.len() as u64 > max {
             // more than one buffer can hold: chunked, as `upload` makes them
             *self = SplatRenderer::upload(device, surfels);
-            return;
+            return true;
         }
-        if kept.len() > self.capacity || self.chunks.len() != 1 || self.indirect.is_some() {
+        let grown = kept.len() > self.capacity || self.chunks.len() != 1 || self.indirect.is_some();
+        if grown {
             let capacity = (kept.len().max(1).next_power_of_two() as u64).min(max) as usize;
             let buffer = device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("surfels"),
@@ -87,6 +94,7 @@ impl SurfelBuffer {
         self.chunks[0].1 = kept.len() as u32;
         self.len = kept.len();
         self.skipped = skipped;
+        grown
     }
 }
 

@@ -162,6 +162,11 @@ pub trait GpuWaterPass: Any + Send + Sync {
     }
     /// The view last prepared.
     fn view(&self) -> Result<&View, Error>;
+    /// Buffers and bind groups the last [`WaterSurface::prepare_gpu`] made for it (0 in the
+    /// steady state of a sequence, when the frame's inputs were written into kept buffers).
+    fn created(&self) -> usize {
+        0
+    }
     /// For [`WaterSurface::prepare_gpu`]'s downcast to the concrete pass.
     fn as_any_mut(&mut self) -> &mut dyn Any;
 }
@@ -232,7 +237,7 @@ impl WaterSurface for &[Surfel] {
         let Some(pass) = SplatPass::of_size(pass, view) else {
             return Ok(false);
         };
-        pass.surfels.write(device, queue, self);
+        pass.created = usize::from(pass.surfels.write(device, queue, self));
         pass.view = Some(*view);
         Ok(true)
     }
@@ -279,6 +284,7 @@ impl WaterSurface for GpuSurfels {
         };
         // the same buffers frame after frame: a clone of the handles, nothing created
         pass.surfels = self.0.clone();
+        pass.created = 0;
         pass.view = Some(*view);
         Ok(true)
     }
@@ -290,6 +296,8 @@ pub struct SplatPass {
     renderer: SplatRenderer,
     surfels: SurfelBuffer,
     view: Option<View>,
+    /// Buffers the last prepare made (the surfel buffer grown).
+    created: usize,
 }
 
 impl SplatPass {
@@ -303,6 +311,7 @@ impl SplatPass {
             renderer: SplatRenderer::new(device, format, w, h)?,
             surfels: SplatRenderer::upload(device, &[]),
             view: None,
+            created: 0,
         }))
     }
 
@@ -341,6 +350,9 @@ impl GpuWaterPass for SplatPass {
     }
     fn view(&self) -> Result<&View, Error> {
         self.view.as_ref().ok_or_else(unprepared)
+    }
+    fn created(&self) -> usize {
+        self.created
     }
     fn as_any_mut(&mut self) -> &mut dyn Any {
         self

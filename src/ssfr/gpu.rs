@@ -5,8 +5,6 @@
 //! buffers; the shading after the read-back is the CPU's (`splat::shade`), as for the ray
 //! caster. Tests compare every pass with the CPU's.
 
-use wgpu::util::DeviceExt;
-
 use super::cpu::{ScreenSpace, SsfrRender, SsfrTimings, depth_image, project_sources};
 use super::{DepthFilter, FilterScales, SsfrError};
 use crate::gpu::{GpuContext, GpuError};
@@ -55,7 +53,40 @@ pub struct GpuSsfr {
     thickness_filter: wgpu::ComputePipeline,
     shade: wgpu::ComputePipeline,
     targets: Option<Targets>,
+    inputs: Inputs,
+    created: usize,
     frame: Option<Frame>,
+}
+
+/// A view's inputs, in buffers kept from view to view (grown when a view needs more).
+struct Inputs {
+    uniform: wgpu::Buffer,
+    spheres: crate::gpu::Grow,
+    tile_starts: crate::gpu::Grow,
+    tile_items: crate::gpu::Grow,
+    sources: crate::gpu::Grow,
+    source_starts: crate::gpu::Grow,
+    source_items: crate::gpu::Grow,
+}
+
+impl Inputs {
+    fn new(device: &wgpu::Device) -> Self {
+        let storage = |label| crate::gpu::Grow::new(label, wgpu::BufferUsages::STORAGE);
+        Self {
+            uniform: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("ssfr params"),
+                size: std::mem::size_of::<RawSsfrParams>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            spheres: storage("ssfr spheres"),
+            tile_starts: storage("ssfr tile starts"),
+            tile_items: storage("ssfr tile items"),
+            sources: storage("ssfr sources"),
+            source_starts: storage("ssfr source starts"),
+            source_items: storage("ssfr source items"),
+        }
+    }
 }
 
 /// The per-size buffers and textures.
@@ -214,6 +245,8 @@ impl GpuSsfr {
             thickness_filter,
             shade,
             targets: None,
+            inputs: Inputs::new(device),
+            created: 0,
             frame: None,
         };
         if let Some(e) = pollster::block_on(scope.pop()) {
@@ -238,10 +271,13 @@ impl GpuSsfr {
     }
 
     /// Uploads `screen`'s spheres and thickness Gaussians for view `v` (binned into tiles on the
-    /// host, as the CPU bins them) and makes the targets for its size when they differ.
+    /// host, as the CPU bins them) through `queue` into buffers kept from view to view (grown
+    /// when a view needs more; the bind groups made anew only then or when the filter or the
+    /// size changes, [`Self::created`]) and makes the targets for its size when they differ.
     pub fn prepare(
         &mut self,
         device: &wgpu::Device,
+        queue: &wgpu::Queue,
         screen: &ScreenSpace<'_>,
         v: &View,
     ) -> Result<(), crate::Error> {
@@ -268,51 +304,28 @@ impl GpuSsfr {
         let (source_starts, source_items) = csr(&source_tiles)?;
         let uniforms = raw_params(screen, v, tw);
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let mut created = 0;
         if self.size() != (w, h) {
             self.targets = Some(Targets::new(device, w, h));
+            created += 1;
         }
-        let t = self.targets.as_ref().ok_or_else(unprepared)?;
-        let init = |label, contents: &[u8]| {
-            let padded;
-            let contents = if contents.is_empty() {
-                padded = [0u8; 16];
-                &padded[..]
-            } else {
-                contents
-            };
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents,
-                usage: wgpu::BufferUsages::STORAGE,
-            })
-        };
-        let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("ssfr params"),
-            contents: bytemuck::bytes_of(&uniforms),
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
-        let sphere_buf = init("ssfr spheres", bytemuck::cast_slice(&spheres));
-        let tile_starts = init("ssfr tile starts", bytemuck::cast_slice(&tile_starts));
-        let tile_items = init("ssfr tile items", bytemuck::cast_slice(&tile_items));
-        let source_buf = init("ssfr sources", bytemuck::cast_slice(&projected));
-        let source_starts = init("ssfr source starts", bytemuck::cast_slice(&source_starts));
-        let source_items = init("ssfr source items", bytemuck::cast_slice(&source_items));
-        let group = |p: &wgpu::ComputePipeline, entries: &[(u32, wgpu::BindingResource<'_>)]| {
-            crate::gpu::bind_group(device, p, entries)
-        };
-        fn b(buffer: &wgpu::Buffer) -> wgpu::BindingResource<'_> {
-            buffer.as_entire_binding()
-        }
-        let depth = group(
-            &self.depth,
-            &[
-                (0, b(&uniform)),
-                (1, b(&sphere_buf)),
-                (2, b(&tile_starts)),
-                (3, b(&tile_items)),
-                (6, b(&t.depth[0])),
-            ],
-        );
+        let i = &mut self.inputs;
+        queue.write_buffer(&i.uniform, 0, bytemuck::bytes_of(&uniforms));
+        let made = [
+            i.spheres
+                .write(device, queue, bytemuck::cast_slice(&spheres)),
+            i.tile_starts
+                .write(device, queue, bytemuck::cast_slice(&tile_starts)),
+            i.tile_items
+                .write(device, queue, bytemuck::cast_slice(&tile_items)),
+            i.sources
+                .write(device, queue, bytemuck::cast_slice(&projected)),
+            i.source_starts
+                .write(device, queue, bytemuck::cast_slice(&source_starts)),
+            i.source_items
+                .write(device, queue, bytemuck::cast_slice(&source_items)),
+        ];
+        created += made.iter().filter(|&&m| m).count();
         let iterations = params.filter_iterations() as usize;
         let index = match params.filter {
             DepthFilter::NarrowRange => Some(0),
@@ -322,6 +335,67 @@ impl GpuSsfr {
             DepthFilter::None => None,
         }
         .filter(|_| iterations > 0);
+        // the bind groups hold the buffers and targets: kept while none of them is new and the
+        // filter is the same
+        if let Some(f) = &mut self.frame
+            && created == 0
+            && f.filter.as_ref().map(|(k, _)| *k) == index
+            && f.iterations == iterations
+        {
+            f.view = *v;
+            self.created = 0;
+            if let Some(e) = pollster::block_on(scope.pop()) {
+                return Err(GpuError::Validation(e.to_string()).into());
+            }
+            return Ok(());
+        }
+        let frame = self.frame_of(device, v, index, iterations)?;
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Validation(e.to_string()).into());
+        }
+        self.frame = Some(frame);
+        self.created = created + 1;
+        Ok(())
+    }
+
+    /// The bind groups of view `v` over the kept inputs and targets, with the depth filter
+    /// `index` (into the filters) run `iterations` times.
+    fn frame_of(
+        &self,
+        device: &wgpu::Device,
+        v: &View,
+        index: Option<usize>,
+        iterations: usize,
+    ) -> Result<Frame, GpuError> {
+        let t = self.targets.as_ref().ok_or_else(unprepared)?;
+        let i = &self.inputs;
+        let uniform = &i.uniform;
+        let (sphere_buf, tile_starts, tile_items) = (
+            i.spheres.buffer(),
+            i.tile_starts.buffer(),
+            i.tile_items.buffer(),
+        );
+        let (source_buf, source_starts, source_items) = (
+            i.sources.buffer(),
+            i.source_starts.buffer(),
+            i.source_items.buffer(),
+        );
+        let group = |p: &wgpu::ComputePipeline, entries: &[(u32, wgpu::BindingResource<'_>)]| {
+            crate::gpu::bind_group(device, p, entries)
+        };
+        fn b(buffer: &wgpu::Buffer) -> wgpu::BindingResource<'_> {
+            buffer.as_entire_binding()
+        }
+        let depth = group(
+            &self.depth,
+            &[
+                (0, b(uniform)),
+                (1, b(sphere_buf)),
+                (2, b(tile_starts)),
+                (3, b(tile_items)),
+                (6, b(&t.depth[0])),
+            ],
+        );
         let filter = index.map(|k| {
             let f = &self.filters[k];
             (
@@ -329,11 +403,11 @@ impl GpuSsfr {
                 [
                     group(
                         f,
-                        &[(0, b(&uniform)), (5, b(&t.depth[0])), (6, b(&t.depth[1]))],
+                        &[(0, b(uniform)), (5, b(&t.depth[0])), (6, b(&t.depth[1]))],
                     ),
                     group(
                         f,
-                        &[(0, b(&uniform)), (5, b(&t.depth[1])), (6, b(&t.depth[0]))],
+                        &[(0, b(uniform)), (5, b(&t.depth[1])), (6, b(&t.depth[0]))],
                     ),
                 ],
             )
@@ -343,17 +417,17 @@ impl GpuSsfr {
         let thickness = group(
             &self.thickness,
             &[
-                (0, b(&uniform)),
-                (2, b(&source_starts)),
-                (3, b(&source_items)),
-                (4, b(&source_buf)),
+                (0, b(uniform)),
+                (2, b(source_starts)),
+                (3, b(source_items)),
+                (4, b(source_buf)),
                 (6, b(&t.thick_raw)),
             ],
         );
         let thickness_filter = group(
             &self.thickness_filter,
             &[
-                (0, b(&uniform)),
+                (0, b(uniform)),
                 (5, b(&t.depth[last])),
                 (6, b(&t.thick)),
                 (7, b(&t.thick_raw)),
@@ -362,17 +436,14 @@ impl GpuSsfr {
         let shade = group(
             &self.shade,
             &[
-                (0, b(&uniform)),
+                (0, b(uniform)),
                 (5, b(&t.depth[last])),
                 (7, b(&t.thick)),
                 (8, wgpu::BindingResource::TextureView(&t.views.0)),
                 (9, wgpu::BindingResource::TextureView(&t.views.1)),
             ],
         );
-        if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Validation(e.to_string()).into());
-        }
-        self.frame = Some(Frame {
+        Ok(Frame {
             view: *v,
             depth,
             filter,
@@ -381,8 +452,14 @@ impl GpuSsfr {
             thickness,
             thickness_filter,
             shade,
-        });
-        Ok(())
+        })
+    }
+
+    /// Buffers, targets and bind groups the last [`Self::prepare`] made (0 in the steady state
+    /// of a sequence).
+    #[must_use]
+    pub fn created(&self) -> usize {
+        self.created
     }
 
     /// Records the prepared view's passes into `encoder`.
@@ -468,7 +545,7 @@ impl GpuSsfr {
         v: &View,
     ) -> Result<SsfrRender, crate::Error> {
         let started = std::time::Instant::now();
-        self.prepare(&ctx.device, screen, v)?;
+        self.prepare(&ctx.device, &ctx.queue, screen, v)?;
         let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         self.encode(&mut encoder)?;
@@ -515,6 +592,9 @@ impl crate::splat::GpuWaterPass for GpuSsfr {
             .as_ref()
             .map(|f| &f.view)
             .ok_or_else(crate::splat::water::unprepared)
+    }
+    fn created(&self) -> usize {
+        GpuSsfr::created(self)
     }
     fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
         self

@@ -717,14 +717,14 @@ impl WaterSurface for ScreenSpace<'_> {
     fn prepare_gpu(
         &self,
         device: &wgpu::Device,
-        _queue: &wgpu::Queue,
+        queue: &wgpu::Queue,
         pass: &mut dyn GpuWaterPass,
         view: &View,
     ) -> Result<bool, Error> {
         let Some(passes) = pass.as_any_mut().downcast_mut::<gpu::GpuSsfr>() else {
             return Ok(false);
         };
-        passes.prepare(device, self, view)?;
+        passes.prepare(device, queue, self, view)?;
         Ok(true)
     }
 }
