@@ -547,12 +547,15 @@ fn gpu_pipeline_with_the_peer_renderers_equals_the_cpu_pipeline() {
         assert!(frame.grid.is_none(), "{renderer:?} needs no grid");
         let mut gpu = GpuPipeline::new(&ctx.device, &ctx.queue, format, size, &params).unwrap();
         let image = gpu.render_frame_image(&ctx, &frame).unwrap();
-        // the steady state: the second frame rewrites every renderer's inputs (the spheres, the
-        // ray caster's tiles and grids, the screen-space tiles) into the kept buffers, creating
-        // nothing, and draws the same picture
-        let again = gpu.render_frame_image(&ctx, &frame).unwrap();
-        assert!(gpu.reused_resources(), "{renderer:?}: resources not reused");
-        assert_eq!(again, image, "{renderer:?}: the reused frame differs");
+        // the steady state: the second frame rewrites the renderer's inputs (the spheres, the
+        // screen-space tiles) into the kept buffers, creating nothing, and draws the same
+        // picture (the ray caster's kept buffers are tests/raycast.rs's: a second cast here
+        // costs lavapipe 20 s)
+        if renderer != pipeline::Renderer::RayCast {
+            let again = gpu.render_frame_image(&ctx, &frame).unwrap();
+            assert!(gpu.reused_resources(), "{renderer:?}: resources not reused");
+            assert_eq!(again, image, "{renderer:?}: the reused frame differs");
+        }
         let cpu_image = &frame.finished.as_ref().unwrap().image;
         let db = splat::psnr(cpu_image, &image);
         // the CPU's shaded picture of the frame's spheres and their weights (the ray caster's

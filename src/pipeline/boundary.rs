@@ -62,8 +62,9 @@ pub const BAND: f32 = 0.2;
 pub const WEIGHT_STEPS: u32 = 3;
 
 /// The most targets whose sheet terms [`boundary_weights`] lists once for its Jacobi steps
-/// (about 70 terms of 4 bytes each: 56 MB at this many; beyond, every step searches the cells
-/// again, the same sums).
+/// (their nonzero terms, 47 a target on the dam break at two steps, of 8 bytes each, a code
+/// and a kernel: about 75 MB at this many; beyond, every step searches the cells again, the
+/// same sums).
 pub const LISTED_TARGETS: usize = 200_000;
 
 /// Targets per list chunk of the Jacobi steps' terms.
@@ -196,7 +197,10 @@ fn weights_listing(
     // sums bit for bit, without the cell searches: the dam break's calibration at two steps,
     // 88,902 refined points, 202 -> 145 ms; the column's splash frame 115-138 -> 92 ms), where
     // they fit [`LISTED_TARGETS`]; the first step's sums come from the same visit as the lists
-    // (its weights are the ones the sheet was indexed with: 8 ms less at two steps)
+    // (its weights are the ones the sheet was indexed with: 8 ms less at two steps); with each
+    // term's kernel listed beside it and the zero terms left out, the later steps only multiply
+    // by the new weights (the dam break's steps 2 and 3 at two steps: about 22 -> 5.4 ms for
+    // 4.16 M terms)
     let terms = (targets.len() <= listed)
         .then(|| {
             let lists: Vec<Listed> = targets
@@ -205,12 +209,13 @@ fn weights_listing(
                     let mut l = Listed {
                         ends: Vec::with_capacity(chunk.len() + 1),
                         codes: Vec::new(),
+                        kernels: Vec::new(),
                         first: Vec::with_capacity(chunk.len()),
                     };
                     l.ends.push(0);
                     for t in chunk {
                         let first = if t.alone < 1.0 {
-                            sheet_density.value_and_terms(t.at, &mut l.codes)?
+                            sheet_density.value_and_kernels(t.at, &mut l.codes, &mut l.kernels)?
                         } else {
                             0.0
                         };
@@ -230,7 +235,8 @@ fn weights_listing(
             if step == 0 {
                 l.first[k]
             } else {
-                density.value_of_terms(x, &l.codes[l.ends[k] as usize..l.ends[k + 1] as usize])
+                let range = l.ends[k] as usize..l.ends[k + 1] as usize;
+                density.value_of_kernels(&l.codes[range.clone()], &l.kernels[range])
             }
         }
         None => density.value(x),
@@ -275,11 +281,12 @@ fn weights_listing(
 }
 
 /// The sheet's terms at a chunk of targets ([`TERMS_CHUNK`]): target `k`'s are
-/// `codes[ends[k]..ends[k + 1]]` ([`ExactDensity::value_and_terms`]), `first[k]` their sum with the
-/// weights the sheet was indexed with (the first Jacobi step's).
+/// `codes[ends[k]..ends[k + 1]]` with their kernels in `kernels` ([`ExactDensity::value_and_kernels`]),
+/// `first[k]` their sum with the weights the sheet was indexed with (the first Jacobi step's).
 struct Listed {
     ends: Vec<u32>,
     codes: Vec<u32>,
+    kernels: Vec<f32>,
     first: Vec<f32>,
 }
 

@@ -22,8 +22,8 @@ pub struct ExactDensity<'a> {
 
 impl Group {
     /// The term at `x` of the point in cell-order `slot` (at `q`): its weight times its kernel,
-    /// `h` the reference radius (one expression for [`ExactDensity::value`] and
-    /// [`ExactDensity::value_of_terms`], which must agree bit for bit).
+    /// `h` the reference radius (the expression [`ExactDensity::value_and_kernels`] splits, which
+    /// must agree with [`ExactDensity::value`] bit for bit).
     #[inline]
     fn term(&self, kernel: Kernel, h: f32, slot: usize, q: Vec3, x: Vec3) -> f32 {
         let r = self.cell_radii.as_ref().map_or(h, |r| r[slot]);
@@ -32,7 +32,7 @@ impl Group {
     }
 }
 
-/// Bits of a term code ([`ExactDensity::value_and_terms`]) that name the group.
+/// Bits of a term code ([`ExactDensity::value_and_kernels`]) that name the group.
 const TERM_GROUP_BITS: u32 = 4;
 
 /// Points of similar radius in a cell grid of the largest of them.
@@ -188,12 +188,19 @@ impl<'a> ExactDensity<'a> {
         self.kernel
     }
 
-    /// [`Self::value`] at `x`, appending to `out` the terms it sums, in the order it visits them,
-    /// as codes ([`ExactDensity::value_of_terms`] reads them): for sums at the same place with
-    /// weights that change ([`Self::reweight`]), each then without the cell search. `None`,
-    /// appending nothing, when the points lie in more groups or slots than a code holds (16
-    /// groups of radius, 2^28 points a group).
-    pub fn value_and_terms(&self, x: Vec3, out: &mut Vec<u32>) -> Option<f32> {
+    /// [`Self::value`] at `x`, bit for bit, appending the terms it sums whose kernel is not
+    /// zero, in the order it visits them: each as a code (its group and slot) to `codes` and
+    /// its kernel (the term without its weight) to `kernels`, which
+    /// [`ExactDensity::value_of_kernels`] sums again with the weights as they are then: for sums
+    /// at the same place with weights that change ([`Self::reweight`]), each then without the
+    /// cell search and the kernels. `None`, appending nothing, when the points lie in more
+    /// groups or slots than a code holds (16 groups of radius, 2^28 points a group).
+    pub fn value_and_kernels(
+        &self,
+        x: Vec3,
+        codes: &mut Vec<u32>,
+        kernels: &mut Vec<f32>,
+    ) -> Option<f32> {
         if !self.codes_fit() {
             return None;
         }
@@ -201,14 +208,22 @@ impl<'a> ExactDensity<'a> {
         let h = self.points.h;
         for (gi, g) in self.groups.iter().enumerate() {
             g.grid.for_each_slot_within(x, g.reach, |slot, q| {
-                sum += g.term(self.kernel, h, slot, q, x);
-                out.push(((slot as u32) << TERM_GROUP_BITS) | gi as u32);
+                let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
+                let w = g.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
+                // `Group::term`'s product, split
+                let k = self.kernel.weighted_r2(q.distance_squared(x), r, h);
+                sum += w * k;
+                // a zero kernel adds +0 to a sum of terms >= 0: left out, the sums unchanged
+                if k != 0.0 {
+                    codes.push(((slot as u32) << TERM_GROUP_BITS) | gi as u32);
+                    kernels.push(k);
+                }
             });
         }
         Some(sum)
     }
 
-    /// Whether every point's term fits a code of [`Self::value_and_terms`].
+    /// Whether every point's term fits a code of [`Self::value_and_kernels`].
     fn codes_fit(&self) -> bool {
         self.groups.len() <= 1 << TERM_GROUP_BITS
             && self
@@ -217,16 +232,17 @@ impl<'a> ExactDensity<'a> {
                 .all(|g| g.members.len() < 1 << (32 - TERM_GROUP_BITS))
     }
 
-    /// [`Self::value`] at `x` over the terms [`Self::value_and_terms`] listed there, with the weights as
-    /// they are now: the same terms in the same order, so the same sum bit for bit.
+    /// [`Self::value`] at the place where [`Self::value_and_kernels`] listed `codes` and
+    /// `kernels`, with the weights as they are now: the same nonzero terms in the same order,
+    /// so the same sum bit for bit.
     #[must_use]
-    pub fn value_of_terms(&self, x: Vec3, terms: &[u32]) -> f32 {
+    pub fn value_of_kernels(&self, codes: &[u32], kernels: &[f32]) -> f32 {
         let mut sum = 0.0;
-        let h = self.points.h;
-        for &code in terms {
+        for (&code, &k) in codes.iter().zip(kernels) {
             let g = &self.groups[(code & ((1 << TERM_GROUP_BITS) - 1)) as usize];
             let slot = (code >> TERM_GROUP_BITS) as usize;
-            sum += g.term(self.kernel, h, slot, g.grid.sorted()[slot], x);
+            let w = g.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
+            sum += w * k;
         }
         sum
     }
@@ -477,7 +493,7 @@ impl SurfelExtractor {
                     let step = (grad * ((iso - v) / g2)).clamp_length_max(0.5 * spacing);
                     x += step;
                     // converged: Newton's steps shrink quadratically, so the next would move
-                    // the point by less than 1e-8 cells
+                    // the point by about 1e-4 cells ([`CONVERGED`])
                     if step.length_squared() < (CONVERGED * spacing).powi(2) {
                         break;
                     }
