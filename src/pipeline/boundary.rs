@@ -298,11 +298,16 @@ struct Target {
     lone: f32,
 }
 
-/// A particle set's positions under one cell grid (cells of two spacings, the support radius)
-/// for [`Fluid::burial`] and [`Fluid::flat_normal`].
+/// A particle set's positions under two cell grids: cells of two spacings (the support
+/// radius) for [`Fluid::flat_normal`] and [`Fluid::average`], and cells of the burial's reach
+/// for [`Fluid::burial`].
 pub struct Fluid<'a> {
     positions: &'a [Vec3],
     grid: CellGrid,
+    /// Cells of `(BURIED + BAND)` spacings: the 27 cells a burial query visits hold about 9x
+    /// fewer particles than those of the support radius (the cells' volume; the dam break's
+    /// refined points' burial at two steps 12.3-13.3 -> 10.1-10.6 ms, the same values).
+    near: CellGrid,
     spacing: f32,
 }
 
@@ -312,6 +317,7 @@ impl<'a> Fluid<'a> {
         Ok(Self {
             positions,
             grid: CellGrid::new(positions, 2.0 * spacing)?,
+            near: CellGrid::new(positions, (BURIED + BAND) * spacing)?,
             spacing,
         })
     }
@@ -374,7 +380,9 @@ impl<'a> Fluid<'a> {
         let (lo, hi) = ((BURIED - BAND) * s, (BURIED + BAND) * s);
         let t = x + n * (0.5 * s);
         let mut b = 0f32;
-        self.grid.for_each_within(t, hi, |p| {
+        // a particle beyond `hi` of the target adds 0 to the maximum: the finer grid visits the
+        // same nonzero terms
+        self.near.for_each_within(t, hi, |p| {
             let p = self.positions[p as usize];
             let near = 1.0 - smoothstep(lo, hi, p.distance(t));
             let far = smoothstep(lo, hi, p.distance(x));

@@ -77,10 +77,11 @@ impl<'a> ExactDensity<'a> {
             Some(radii) => {
                 // quarter octaves of the radius, so a group's cells are at most 19 % too large
                 let key = |r: f32| (r.log2() * 4.0).floor() as i32;
+                // each point's key once (a key per comparison cost a logarithm each)
+                let keys: Vec<i32> = radii.iter().map(|&r| key(r)).collect();
                 let mut order: Vec<u32> = (0..points.len() as u32).collect();
-                order.sort_by_key(|&i| (key(radii[i as usize]), i));
-                for run in order.chunk_by(|&a, &b| key(radii[a as usize]) == key(radii[b as usize]))
-                {
+                order.sort_unstable_by_key(|&i| (keys[i as usize], i));
+                for run in order.chunk_by(|&a, &b| keys[a as usize] == keys[b as usize]) {
                     let reach = run.iter().map(|&i| radii[i as usize]).fold(0.0, f32::max);
                     let pos: Vec<Vec3> =
                         run.iter().map(|&i| points.positions[i as usize]).collect();
