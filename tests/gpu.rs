@@ -1027,6 +1027,23 @@ fn gpu_surfels_of_a_lone_particle() {
     );
 }
 
+/// The sparse grid of `layout` (its inside blocks reading `inside`) filled on the GPU with
+/// `points` (Wyvill's kernel) and submitted.
+fn sparse_on_gpu(
+    ctx: &gpu::GpuContext,
+    points: Points<'_>,
+    layout: &density::SparseLayout,
+    inside: f32,
+) -> density::gpu::GpuGrid {
+    let mut filler = density::gpu::GridFiller::new(&ctx.device);
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    let sparse = filler
+        .record_sparse(ctx, &mut encoder, points, (layout, inside), Kernel::Wyvill)
+        .unwrap();
+    ctx.queue.submit([encoder.finish()]);
+    sparse
+}
+
 /// The density grid filled on the GPU and left there, and the surfels extracted from it
 /// (issue 37): the grid equal to the CPU's (relative 1e-5 of its largest value), and the
 /// surfels against the CPU's from the CPU grid: counts within 0.1 %, every GPU surfel within
@@ -1034,7 +1051,7 @@ fn gpu_surfels_of_a_lone_particle() {
 /// break and the column's splash frame.
 #[test]
 fn gpu_grid_and_surfels_stay_on_the_gpu() {
-    use fluid_surfels::density::gpu::{GridFiller, density_grid_on_gpu};
+    use fluid_surfels::density::gpu::density_grid_on_gpu;
     use fluid_surfels::surfels::{self, SurfelParams, gpu::SurfelPasses};
     let Some(ctx) = gpu::context_or_skip("gpu_grid_and_surfels_stay_on_the_gpu").unwrap() else {
         return;
@@ -1105,18 +1122,7 @@ fn gpu_grid_and_surfels_stay_on_the_gpu() {
             .unwrap();
         let layout = density::sparse_layout(points, &spec, 1 << 30, &band).unwrap();
         let inside = 2.0 * Kernel::Wyvill.peak(points.h);
-        let mut filler = GridFiller::new(&ctx.device);
-        let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        let sparse = filler
-            .record_sparse(
-                &ctx,
-                &mut encoder,
-                points,
-                (&layout, inside),
-                Kernel::Wyvill,
-            )
-            .unwrap();
-        ctx.queue.submit([encoder.finish()]);
+        let sparse = sparse_on_gpu(&ctx, points, &layout, inside);
         let values = sparse.read(&ctx).unwrap();
         // every value of an evaluated block is the dense grid's; an inside block's is `inside`
         let level = Kernel::Wyvill.peak(points.h) * params.iso_fraction;
@@ -1172,7 +1178,6 @@ fn gpu_grid_and_surfels_stay_on_the_gpu() {
 /// dense grid's, in count and place.
 #[test]
 fn gpu_sparse_surfels_are_exact_where_crossings_end_in_inside_blocks() {
-    use fluid_surfels::density::gpu::GridFiller;
     use fluid_surfels::density::sparse::BLOCK;
     use fluid_surfels::surfels::{self, SurfelParams, gpu::SurfelPasses};
     let Some(ctx) = gpu::context_or_skip("gpu_sparse_surfels_exact_ends").unwrap() else {
@@ -1242,18 +1247,7 @@ fn gpu_sparse_surfels_are_exact_where_crossings_end_in_inside_blocks() {
         layout.states[b as usize] = slot as u32;
     }
     let inside = 2.0 * Kernel::Wyvill.peak(points.h);
-    let mut filler = GridFiller::new(&ctx.device);
-    let mut encoder = ctx.device.create_command_encoder(&Default::default());
-    let sparse = filler
-        .record_sparse(
-            &ctx,
-            &mut encoder,
-            points,
-            (&layout, inside),
-            Kernel::Wyvill,
-        )
-        .unwrap();
-    ctx.queue.submit([encoder.finish()]);
+    let sparse = sparse_on_gpu(&ctx, points, &layout, inside);
     let cpu = surfels::extract_points(&grid, points, Kernel::Wyvill, &params).unwrap();
     let gpu = SurfelPasses::new(&ctx.device)
         .extract(&ctx, &sparse, points, Kernel::Wyvill, &params)

@@ -494,9 +494,14 @@ fn cast_both(
     camera: &Camera,
 ) -> (raycast::RayCast, raycast::RayCast) {
     let (light, splat) = (Light::default(), SplatParams::default());
-    let cpu = raycast::render_cpu(caster, camera, &light, &splat, SIZE, SIZE).unwrap();
     let gpu = raycast::gpu::render_gpu(ctx, caster, camera, &light, &splat, SIZE, SIZE).unwrap();
-    (cpu, gpu)
+    (cast_cpu(caster, camera), gpu)
+}
+
+/// The CPU reference's cast of `caster` from `camera` at `SIZE` x `SIZE`, default light.
+fn cast_cpu(caster: &Caster<'_>, camera: &Camera) -> raycast::RayCast {
+    let (light, splat) = (Light::default(), SplatParams::default());
+    raycast::render_cpu(caster, camera, &light, &splat, SIZE, SIZE).unwrap()
 }
 
 /// The GPU twin casts the same rays as the CPU reference: PSNR >= 40 dB on a particle sphere
@@ -556,15 +561,7 @@ fn gpu_and_cpu_ray_casts_agree() {
             };
             let caster =
                 Caster::new(Points::uniform(positions, *h), Kernel::Wyvill, &params).unwrap();
-            let cpu = raycast::render_cpu(
-                &caster,
-                &camera,
-                &Light::default(),
-                &SplatParams::default(),
-                SIZE,
-                SIZE,
-            )
-            .unwrap();
+            let cpu = cast_cpu(&caster, &camera);
             let (gpu, _) = cast_kept(&caster, &camera);
             last = Some((positions, *h, params, camera, gpu.render.image.clone()));
             gpu.render.validate().unwrap();

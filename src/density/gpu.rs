@@ -1216,17 +1216,19 @@ impl GridFiller {
             evaluated: gpu::Grow::new("sparse evaluated blocks", wgpu::BufferUsages::STORAGE),
             bind: None,
         });
-        let lists = [
-            fill.states
-                .write(device, queue, bytemuck::cast_slice(&layout.states)),
-            fill.evaluated
-                .write(device, queue, bytemuck::cast_slice(&layout.evaluated)),
-        ];
-        self.created += lists.iter().filter(|&&m| m).count();
+        let lists = gpu::write_grown(
+            device,
+            queue,
+            [
+                (&mut fill.states, bytemuck::cast_slice(&layout.states)),
+                (&mut fill.evaluated, bytemuck::cast_slice(&layout.evaluated)),
+            ],
+        );
+        self.created += lists;
         let slots = layout.evaluated.len() as u32;
         let raw = RawGatherParams::new(spec, (&bins.bins, bins.size), &points, kernel, (0, slots));
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
-        if fill.bind.is_none() || made.contains(&true) || lists.contains(&true) {
+        if fill.bind.is_none() || made.contains(&true) || lists > 0 {
             fill.bind = Some(gpu::buffers_bind_group(
                 device,
                 "gather blocks",

@@ -585,6 +585,19 @@ impl Grow {
     }
 }
 
+/// Writes each byte slice of `writes` into its buffer ([`Grow::write`]); how many buffers were
+/// made anew (the bind groups holding them are stale then).
+pub(crate) fn write_grown<const N: usize>(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    writes: [(&mut Grow, &[u8]); N],
+) -> usize {
+    writes
+        .into_iter()
+        .map(|(grow, bytes)| usize::from(grow.write(device, queue, bytes)))
+        .sum()
+}
+
 /// A small buffer read back without a wait (issue 37): a copy recorded into a frame's encoder
 /// when no read is under way, mapped once that encoder is submitted
 /// ([`AsyncRead::after_submit`]), and its bytes taken by a later frame once the map is done (a

@@ -478,24 +478,17 @@ impl GpuCaster {
         let inputs = &mut self.inputs;
         queue.write_buffer(&inputs.uniforms, 0, bytemuck::bytes_of(&raw));
         queue.write_buffer(&inputs.grid_uniforms, 0, bytemuck::bytes_of(&raw_grids));
-        let made = [
-            inputs
-                .points
-                .write(device, queue, bytemuck::cast_slice(&point_data)),
-            inputs
-                .tile_start
-                .write(device, queue, bytemuck::cast_slice(&tile_start)),
-            inputs
-                .tile_items
-                .write(device, queue, bytemuck::cast_slice(&tile_items)),
-            inputs
-                .cells
-                .write(device, queue, bytemuck::cast_slice(&cells)),
-            inputs
-                .weights
-                .write(device, queue, bytemuck::cast_slice(&weights)),
-        ];
-        self.created = made.iter().filter(|&&m| m).count();
+        self.created = crate::gpu::write_grown(
+            device,
+            queue,
+            [
+                (&mut inputs.points, bytemuck::cast_slice(&point_data)),
+                (&mut inputs.tile_start, bytemuck::cast_slice(&tile_start)),
+                (&mut inputs.tile_items, bytemuck::cast_slice(&tile_items)),
+                (&mut inputs.cells, bytemuck::cast_slice(&cells)),
+                (&mut inputs.weights, bytemuck::cast_slice(&weights)),
+            ],
+        );
         let most = iteration_bound(caster, &tiles, &grids, raw.b[1]);
         let runs = most.div_ceil(u64::from(BUDGET)) + 1;
         match &mut self.frame {

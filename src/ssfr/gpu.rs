@@ -311,21 +311,18 @@ impl GpuSsfr {
         }
         let i = &mut self.inputs;
         queue.write_buffer(&i.uniform, 0, bytemuck::bytes_of(&uniforms));
-        let made = [
-            i.spheres
-                .write(device, queue, bytemuck::cast_slice(&spheres)),
-            i.tile_starts
-                .write(device, queue, bytemuck::cast_slice(&tile_starts)),
-            i.tile_items
-                .write(device, queue, bytemuck::cast_slice(&tile_items)),
-            i.sources
-                .write(device, queue, bytemuck::cast_slice(&projected)),
-            i.source_starts
-                .write(device, queue, bytemuck::cast_slice(&source_starts)),
-            i.source_items
-                .write(device, queue, bytemuck::cast_slice(&source_items)),
-        ];
-        created += made.iter().filter(|&&m| m).count();
+        created += crate::gpu::write_grown(
+            device,
+            queue,
+            [
+                (&mut i.spheres, bytemuck::cast_slice(&spheres)),
+                (&mut i.tile_starts, bytemuck::cast_slice(&tile_starts)),
+                (&mut i.tile_items, bytemuck::cast_slice(&tile_items)),
+                (&mut i.sources, bytemuck::cast_slice(&projected)),
+                (&mut i.source_starts, bytemuck::cast_slice(&source_starts)),
+                (&mut i.source_items, bytemuck::cast_slice(&source_items)),
+            ],
+        );
         let iterations = params.filter_iterations() as usize;
         let index = match params.filter {
             DepthFilter::NarrowRange => Some(0),
