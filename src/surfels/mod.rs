@@ -43,7 +43,12 @@ pub struct SurfelParams {
     /// the particles sample (1.2 outside the outermost centres); 3.0 puts it on that boundary but
     /// makes every lone particle vanish (a single particle never exceeds 1.0).
     pub iso_fraction: f32,
-    /// Newton steps projecting each surfel onto the exact iso-surface.
+    /// The most Newton steps projecting a surfel onto the exact iso-surface (it stops earlier
+    /// once a step is under [`CONVERGED`] cells: most surfels take two or three). Default 16:
+    /// with 4, 11 of the dam break's 283,114 chain surfels and 9 of the double dam break's
+    /// 122,208 stopped 0.4-0.6 cells off the surface (steps capped at half a cell, where the
+    /// density's gradient is weak); with 16 every one lies within 6.5e-4 cells
+    /// (tests/surfels.rs), at no measurable cost (the others stop as before).
     pub newton_steps: u32,
 }
 
@@ -51,7 +56,7 @@ impl Default for SurfelParams {
     fn default() -> Self {
         Self {
             iso_fraction: 0.75,
-            newton_steps: 4,
+            newton_steps: 16,
         }
     }
 }
