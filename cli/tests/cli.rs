@@ -2608,7 +2608,8 @@ fn mesh_writes_closed_meshes_of_files_and_sequences() {
         .unwrap();
     assert!(!bad.status.success());
     assert!(
-        stderr_of(&bad).contains(".ply (binary), .obj, .vtk (legacy POLYDATA) or .usda"),
+        stderr_of(&bad)
+            .contains(".ply (binary), .obj, .vtk (legacy POLYDATA), .vtu (VTK XML) or .usda"),
         "{}",
         stderr_of(&bad)
     );

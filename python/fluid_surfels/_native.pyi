@@ -242,8 +242,9 @@ def write_mesh(
     time: Optional[float] = None,
     overwrite: bool = False,
 ) -> None:
-    """Writes a triangle mesh as binary PLY, OBJ, legacy VTK POLYDATA or USD text (by the
-    extension of path: .ply, .obj, .vtk, .usda), atomically: vertices (V, 3), faces (F, 3)
+    """Writes a triangle mesh as binary PLY, OBJ, legacy VTK POLYDATA, VTK XML (an
+    unstructured grid of triangles, which meshio reads) or USD text (by the extension of path:
+    .ply, .obj, .vtk, .vtu, .usda), atomically: vertices (V, 3), faces (F, 3)
     vertex indices, velocities (V, 3) when given (not in OBJ); normals from the triangles.
     time: a .usda frame of a sequence, its values time samples at that time code (see
     write_usd_stage). An existing file is replaced only with overwrite=True (FileExistsError

@@ -1272,8 +1272,8 @@ fn refuse_existing(path: &Path, overwrite: bool) -> PyResult<()> {
     Ok(())
 }
 
-/// Writes a triangle mesh as binary PLY, OBJ, legacy VTK or USD text (by the extension of
-/// `path`: .ply, .obj, .vtk, .usda), atomically: `vertices` (V, 3), `faces` (F, 3) of vertex
+/// Writes a triangle mesh as binary PLY, OBJ, legacy VTK, VTK XML or USD text (by the
+/// extension of `path`: .ply, .obj, .vtk, .vtu, .usda), atomically: `vertices` (V, 3), `faces` (F, 3) of vertex
 /// indices, `velocities` (V, 3) when given (not in OBJ); the normals are the triangles'
 /// area-weighted ones. `time`: a .usda frame of a sequence, its values time samples at that
 /// time code (see `write_usd_stage`). An existing file is replaced only with `overwrite=True`.

@@ -1,8 +1,8 @@
 """Meshes out to other tools (issue 40): the frame's mesh with velocities, written as PLY,
-OBJ, legacy VTK and USD, and read back by meshio (PLY, OBJ), usd-core (the USD stage and its
-value clips) and fluid_surfels' own reader (PLY, VTK: meshio 5.3 reads legacy VTK only as
-UNSTRUCTURED_GRID, and this writer writes the POLYDATA that ParaView, VTK and Houdini take for
-polygon meshes)."""
+OBJ, legacy VTK, VTK XML and USD, and read back by meshio (PLY, OBJ, VTK XML), usd-core (the
+USD stage and its value clips) and fluid_surfels' own reader (PLY, VTK: meshio 5.3 reads legacy
+VTK only as UNSTRUCTURED_GRID, and this writer writes the POLYDATA that ParaView, VTK and
+Houdini take for polygon meshes; the .vtu unstructured grid is the VTK file meshio reads)."""
 
 import numpy as np
 import pytest
@@ -57,6 +57,20 @@ def test_ply_and_obj_read_back_by_meshio(meshes, tmp_path):
     back = meshio.read(tmp_path / "m.obj")
     np.testing.assert_allclose(back.points, m.vertices, rtol=1e-6, atol=1e-6)
     np.testing.assert_array_equal(back.cells_dict["triangle"], m.faces)
+
+
+def test_vtu_read_back_by_meshio(meshes, tmp_path):
+    """The VTK XML unstructured grid of triangles: points, triangles, normals and velocities."""
+    meshio = extra("meshio", "meshio")
+    _, _, m = meshes[1]
+    fs.write_mesh(tmp_path / "m.vtu", m.vertices, m.faces, velocities=m.velocities)
+    back = meshio.read(tmp_path / "m.vtu")
+    np.testing.assert_array_equal(back.points, m.vertices)
+    np.testing.assert_array_equal(back.cells_dict["triangle"], m.faces)
+    np.testing.assert_array_equal(back.point_data["velocity"], m.velocities)
+    normals = back.point_data["Normals"]
+    assert normals.shape == m.vertices.shape
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
 
 
 def test_ply_and_vtk_read_back_by_our_reader(meshes, tmp_path):

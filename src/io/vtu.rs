@@ -13,6 +13,7 @@ use std::path::Path;
 
 use base64::Engine as _;
 use base64::engine::general_purpose::STANDARD as BASE64;
+use glam::Vec3;
 use quick_xml::events::{BytesStart, Event};
 
 use super::{
@@ -784,21 +785,11 @@ fn read_block(
 #[must_use]
 pub fn to_bytes_with(set: &ParticleSet, encoding: Encoding) -> Vec<u8> {
     let n = set.len();
-    let mut arrays: Vec<(String, ScalarKind, usize, Vec<f64>)> = Vec::new();
-    let section_split = 1; // arrays[0] is the points
-    arrays.push((
-        "Points".into(),
-        ScalarKind::F32,
-        3,
-        set.positions
-            .iter()
-            .flat_map(|p| p.to_array().map(f64::from))
-            .collect(),
-    ));
-    for a in named_arrays(set) {
-        arrays.push((a.name, a.kind, a.components, a.values));
-    }
-    let cells: [(&str, ScalarKind, Vec<f64>); 3] = [
+    let point_data: Vec<Array> = named_arrays(set)
+        .into_iter()
+        .map(|a| (a.name, a.kind, a.components, a.values))
+        .collect();
+    let cells = [
         (
             "connectivity",
             ScalarKind::I32,
@@ -811,6 +802,69 @@ pub fn to_bytes_with(set: &ParticleSet, encoding: Encoding) -> Vec<u8> {
         ),
         ("types", ScalarKind::U8, vec![1.0; n]),
     ];
+    unstructured_grid(&set.positions, &point_data, (n, &cells), encoding)
+}
+
+/// A named array of a written file: name, type, components, values.
+type Array = (String, ScalarKind, usize, Vec<f64>);
+
+/// A grid's cells as written: the connectivity, offsets and types arrays (name, type, values).
+type Cells<'a> = [(&'a str, ScalarKind, Vec<f64>); 3];
+
+/// Serialises a triangle mesh as a VTK XML unstructured grid of triangle cells (VTK type 5),
+/// with `point_data` (name and one vector a point each, such as normals and velocities), as
+/// ParaView and meshio read it.
+#[must_use]
+pub fn triangles_to_bytes(
+    positions: &[Vec3],
+    triangles: &[[u32; 3]],
+    point_data: &[(&str, &[Vec3])],
+    encoding: Encoding,
+) -> Vec<u8> {
+    let arrays: Vec<Array> = point_data
+        .iter()
+        .map(|(name, values)| {
+            (
+                (*name).to_string(),
+                ScalarKind::F32,
+                3,
+                values
+                    .iter()
+                    .flat_map(|v| v.to_array().map(f64::from))
+                    .collect(),
+            )
+        })
+        .collect();
+    let t = triangles.len();
+    let cells = [
+        (
+            "connectivity",
+            ScalarKind::I32,
+            triangles.iter().flatten().map(|&v| f64::from(v)).collect(),
+        ),
+        (
+            "offsets",
+            ScalarKind::I32,
+            (1..=t).map(|i| (3 * i) as f64).collect(),
+        ),
+        ("types", ScalarKind::U8, vec![5.0; t]),
+    ];
+    unstructured_grid(positions, &arrays, (t, &cells), encoding)
+}
+
+/// An `UnstructuredGrid` file of `positions` with `point_data` and `cells` (its count, and its
+/// connectivity, offsets and types arrays).
+fn unstructured_grid(
+    positions: &[Vec3],
+    point_data: &[Array],
+    (cell_count, cells): (usize, &Cells<'_>),
+    encoding: Encoding,
+) -> Vec<u8> {
+    let n = positions.len();
+    let points: Vec<f64> = positions
+        .iter()
+        .flat_map(|p| p.to_array().map(f64::from))
+        .collect();
     let mut xml = String::new();
     let mut appended: Vec<u8> = Vec::new();
     let mut data_array =
@@ -856,16 +910,15 @@ pub fn to_bytes_with(set: &ParticleSet, encoding: Encoding) -> Vec<u8> {
         };
     xml.push_str("<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"1.0\" byte_order=\"LittleEndian\" header_type=\"UInt32\">\n<UnstructuredGrid>\n");
     xml.push_str(&format!(
-        "<Piece NumberOfPoints=\"{n}\" NumberOfCells=\"{n}\">\n<PointData>\n"
+        "<Piece NumberOfPoints=\"{n}\" NumberOfCells=\"{cell_count}\">\n<PointData>\n"
     ));
-    for (name, kind, components, values) in &arrays[section_split..] {
+    for (name, kind, components, values) in point_data {
         data_array(&mut xml, name, *kind, *components, values);
     }
     xml.push_str("</PointData>\n<Points>\n");
-    let (name, kind, components, values) = &arrays[0];
-    data_array(&mut xml, name, *kind, *components, values);
+    data_array(&mut xml, "Points", ScalarKind::F32, 3, &points);
     xml.push_str("</Points>\n<Cells>\n");
-    for (name, kind, values) in &cells {
+    for (name, kind, values) in cells {
         data_array(&mut xml, name, *kind, 1, values);
     }
     xml.push_str("</Cells>\n</Piece>\n</UnstructuredGrid>\n");

@@ -1,5 +1,6 @@
-//! Writers of [`Mesh`]: binary PLY, OBJ, legacy VTK POLYDATA and USD (`.usda` text, one
-//! mesh a frame, and a stage that sequences the frames with value clips, [`write_usd_stage`]).
+//! Writers of [`Mesh`]: binary PLY, OBJ, legacy VTK POLYDATA, VTK XML unstructured grids and
+//! USD (`.usda` text, one mesh a frame, and a stage that sequences the frames with value clips,
+//! [`write_usd_stage`]).
 //! Every file is written atomically (a temporary file renamed over the name).
 
 use std::fmt::Write as _;
@@ -24,11 +25,14 @@ pub enum MeshFormat {
     /// `.usda`: USD text, a `Mesh` prim `/fluid/surface` with `points`, `normals` (vertex
     /// interpolation), `velocities`, `extent` and the faces.
     Usda,
+    /// `.vtu`: VTK XML `UnstructuredGrid` of triangle cells, raw appended binary, point data
+    /// `Normals` (and `velocity`): the VTK file meshio reads (it refuses legacy `POLYDATA`).
+    Vtu,
 }
 
 impl MeshFormat {
     /// Every format, in the order the errors list them.
-    pub const ALL: [Self; 4] = [Self::Ply, Self::Obj, Self::Vtk, Self::Usda];
+    pub const ALL: [Self; 5] = [Self::Ply, Self::Obj, Self::Vtk, Self::Vtu, Self::Usda];
 
     /// The extension naming the format.
     #[must_use]
@@ -38,6 +42,7 @@ impl MeshFormat {
             Self::Obj => "obj",
             Self::Vtk => "vtk",
             Self::Usda => "usda",
+            Self::Vtu => "vtu",
         }
     }
 
@@ -59,7 +64,7 @@ impl MeshFormat {
             .ok_or_else(|| crate::Error::InvalidArgument {
                 argument: "path",
                 reason: format!(
-                    "{}: a mesh is written as .ply (binary), .obj, .vtk (legacy POLYDATA) or .usda",
+                    "{}: a mesh is written as .ply (binary), .obj, .vtk (legacy POLYDATA), .vtu (VTK XML) or .usda",
                     path.display()
                 ),
             })
@@ -75,6 +80,7 @@ impl Mesh {
             MeshFormat::Ply => self.write_ply(path)?,
             MeshFormat::Obj => self.write_obj(path)?,
             MeshFormat::Vtk => self.write_vtk(path)?,
+            MeshFormat::Vtu => self.write_vtu(path)?,
             MeshFormat::Usda => self.write_usda(path, None)?,
         }
         Ok(())
@@ -168,6 +174,23 @@ impl Mesh {
             vec3s(&mut out, v);
         }
         crate::io::write_atomically(path, &out)
+    }
+
+    /// Writes the mesh as a VTK XML `UnstructuredGrid` of triangle cells (raw appended binary
+    /// data), with point data `Normals` and, with velocities, `velocity`; atomically. ParaView,
+    /// VTK and meshio read it.
+    pub fn write_vtu(&self, path: &Path) -> Result<(), IoError> {
+        let mut point_data: Vec<(&str, &[Vec3])> = vec![("Normals", &self.normals)];
+        if let Some(v) = &self.velocities {
+            point_data.push(("velocity", v));
+        }
+        let bytes = crate::io::vtu::triangles_to_bytes(
+            &self.positions,
+            &self.triangles,
+            &point_data,
+            crate::io::vtu::Encoding::RawAppended,
+        );
+        crate::io::write_atomically(path, &bytes)
     }
 
     /// Writes the mesh as USD text: a stage whose default prim `/fluid` (an `Xform`) holds the
@@ -413,6 +436,23 @@ mod tests {
             text.lines().filter(|l| l.starts_with("f ")).count(),
             m.triangles.len()
         );
+    }
+
+    /// A `.vtu` mesh read back by the crate's VTK XML reader (which reads points and point
+    /// data, not cells): every position, normal and velocity; the file says its triangle cells.
+    #[test]
+    fn vtu_reads_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let m = swirling(12);
+        let path = dir.path().join("m.vtu");
+        m.write(&path).unwrap();
+        let back = crate::io::read_particles(&path, None).unwrap();
+        assert_eq!(back.positions, m.positions);
+        assert_eq!(back.normals.as_ref(), Some(&m.normals));
+        assert_eq!(back.velocities, m.velocities);
+        let text = String::from_utf8_lossy(&std::fs::read(&path).unwrap()).into_owned();
+        assert!(text.contains(&format!("NumberOfCells=\"{}\"", m.triangles.len())));
+        assert_eq!(MeshFormat::of_path(&path).unwrap(), MeshFormat::Vtu);
     }
 
     /// A sphere with a swirling velocity (`v = (-y, x, 0.5)`) at its vertices.

@@ -151,7 +151,7 @@ pub fn mesh_command(args: &MeshArgs) -> Result<(), Error> {
     if args.outputs.png.is_some() || args.outputs.out_format.is_some() {
         return Err(Error::InvalidArgument {
             argument: "--png/--out-format",
-            reason: "a mesh is written by the extension of --out (.ply, .obj, .vtk or .usda)"
+            reason: "a mesh is written by the extension of --out (.ply, .obj, .vtk, .vtu or .usda)"
                 .into(),
         });
     }
