@@ -93,9 +93,7 @@ fn value_at(i: u32, j: u32, k: u32) -> f32 {
     if s == 0u {
         return grid[i + params.dims.x * (j + params.dims.y * k)];
     }
-    let bx = (params.dims.x + s - 1u) / s;
-    let by = (params.dims.y + s - 1u) / s;
-    let state = states[i / s + bx * (j / s + by * (k / s))];
+    let state = block_state(i, j, k);
     if state == 0xffffffffu {
         return 0.0;
     }
@@ -105,19 +103,22 @@ fn value_at(i: u32, j: u32, k: u32) -> f32 {
     return grid[state * s * s * s + (i % s) + s * ((j % s) + s * (k % s))];
 }
 
+// A sparse grid's state of the block holding grid point (i, j, k) (`params.sparse_block` > 0).
+fn block_state(i: u32, j: u32, k: u32) -> u32 {
+    let s = params.sparse_block;
+    let bx = (params.dims.x + s - 1u) / s;
+    let by = (params.dims.y + s - 1u) / s;
+    return states[i / s + bx * (j / s + by * (k / s))];
+}
+
 // The value at grid point (i, j, k) where a crossing edge ends: a sparse grid's inside block
 // reads as `inside`, which says no more than "above the iso-value" (the blocks the GPU fills,
 // `GridFiller::record_sparse`, are not made exact at their crossings as the CPU's
 // `exact_ends` makes them); there the points' density at the grid point, the dense grid's
 // value, places the surfel where the dense grid does.
 fn end_value(i: u32, j: u32, k: u32) -> f32 {
-    let s = params.sparse_block;
-    if s != 0u {
-        let bx = (params.dims.x + s - 1u) / s;
-        let by = (params.dims.y + s - 1u) / s;
-        if states[i / s + bx * (j / s + by * (k / s))] == 0xfffffffeu {
-            return density_and_gradient(grid_point(i, j, k)).w;
-        }
+    if params.sparse_block != 0u && block_state(i, j, k) == 0xfffffffeu {
+        return density_and_gradient(grid_point(i, j, k)).w;
     }
     return value_at(i, j, k);
 }

@@ -395,12 +395,7 @@ fn weighted_points_sum_alike_on_every_cpu_path() {
     let dense = density::points_grid(points, &spec, kernel, 1 << 30).unwrap();
     let naive = density::points_naive(points, &spec, kernel).unwrap();
     let max = naive.max();
-    let worst = dense
-        .values
-        .iter()
-        .zip(&naive.values)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0f32, f32::max);
+    let worst = largest_difference(&dense.values, &naive.values);
     assert!(worst <= 1e-5 * max, "{worst} of {max}");
     let exact = ExactDensity::of(points, kernel).unwrap();
     let [nx, ny, nz] = spec.dims;
@@ -437,12 +432,7 @@ fn weighted_points_sum_alike_on_every_cpu_path() {
     if let Some(ctx) = fluid_surfels::gpu::context_or_skip("weighted_points").unwrap() {
         // the GPU's default method (the splatting) sums the weights too (issue 37)
         let gpu = density::gpu::density_grid_gpu(&ctx, points, &spec, kernel).unwrap();
-        let worst = gpu
-            .values
-            .iter()
-            .zip(&naive.values)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0f32, f32::max);
+        let worst = largest_difference(&gpu.values, &naive.values);
         assert!(worst <= 1e-5 * max, "GPU: {worst} of {max}");
     }
 }
@@ -590,4 +580,12 @@ fn the_real_files_levels_agree_at_the_boundary() {
             "{name}: {boundary} against {paper} dB"
         );
     }
+}
+
+/// The largest absolute difference between two grids' values.
+fn largest_difference(a: &[f32], b: &[f32]) -> f32 {
+    a.iter()
+        .zip(b)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max)
 }

@@ -647,14 +647,7 @@ fn gpu_pipeline_reuses_its_resources_across_a_sequence() {
     let size = (96, 96);
     let (mut sim, params) = column_setup(size);
     let mut cpu = Pipeline::new(params.clone()).unwrap();
-    let mut gpu = GpuPipeline::new(
-        &ctx.device,
-        &ctx.queue,
-        wgpu::TextureFormat::Rgba8Unorm,
-        size,
-        &params,
-    )
-    .unwrap();
+    let mut gpu = unorm_pipeline(&ctx, size, &params);
     let mut reused = Vec::new();
     let mut last = None;
     for f in 10..=13 {
@@ -817,6 +810,18 @@ fn double_dam_break() -> Vec<glam::Vec3> {
     )
     .unwrap()
     .positions
+}
+
+/// A `GpuPipeline` drawing `size` frames into `Rgba8Unorm` targets.
+fn unorm_pipeline(ctx: &gpu::GpuContext, size: (u32, u32), params: &PipelineParams) -> GpuPipeline {
+    GpuPipeline::new(
+        &ctx.device,
+        &ctx.queue,
+        wgpu::TextureFormat::Rgba8Unorm,
+        size,
+        params,
+    )
+    .unwrap()
 }
 
 /// The column scene's splash frame.
@@ -1605,14 +1610,7 @@ fn gpu_pipeline_frames_on_the_gpu_wait_on_nothing() {
     let mut sparse = dense.clone();
     sparse.grid.narrow_band = true;
     for params in [dense, sparse] {
-        let mut gpu = GpuPipeline::new(
-            &ctx.device,
-            &ctx.queue,
-            wgpu::TextureFormat::Rgba8Unorm,
-            size,
-            &params,
-        )
-        .unwrap();
+        let mut gpu = unorm_pipeline(&ctx, size, &params);
         let timed = gpu.time_stages(&ctx.device, &ctx.queue, true);
         let mut sim = scenes::ColumnSim::new(scenes::ColumnParams::default()).unwrap();
         for pass in 0..2 {
@@ -1803,14 +1801,7 @@ fn gpu_pipeline_on_the_gpu_draws_the_real_files_as_the_cpu() {
             None,
         )
         .unwrap();
-        let mut gpu = GpuPipeline::new(
-            &ctx.device,
-            &ctx.queue,
-            wgpu::TextureFormat::Rgba8Unorm,
-            size,
-            params,
-        )
-        .unwrap();
+        let mut gpu = unorm_pipeline(&ctx, size, params);
         let (frame, image) = gpu.prepare_image(&ctx, &particles).unwrap();
         bytes.push(gpu.gpu_grid_bytes().unwrap());
         let mut cpu = Pipeline::new(params.clone()).unwrap();

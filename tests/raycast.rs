@@ -562,7 +562,10 @@ fn gpu_and_cpu_ray_casts_agree() {
             let caster =
                 Caster::new(Points::uniform(positions, *h), Kernel::Wyvill, &params).unwrap();
             let cpu = cast_cpu(&caster, &camera);
-            let (gpu, _) = cast_kept(&caster, &camera);
+            let (gpu, created) = cast_kept(&caster, &camera);
+            if last.is_none() {
+                assert!(created > 0, "the first cast made no buffers");
+            }
             last = Some((positions, *h, params, camera, gpu.render.image.clone()));
             gpu.render.validate().unwrap();
             let psnr = fluid_surfels::splat::psnr(&cpu.render.image, &gpu.render.image);
@@ -576,7 +579,7 @@ fn gpu_and_cpu_ray_casts_agree() {
             assert!(psnr >= 40.0, "{name} ({normals:?}): {psnr:.1} dB");
         }
     }
-    // the last case again: nothing created, the same picture
+    // the last case again: nothing created, the same picture (the first case made the buffers)
     let (positions, h, params, camera, image) = last.unwrap();
     let caster = Caster::new(Points::uniform(positions, h), Kernel::Wyvill, &params).unwrap();
     let (again, created) = cast_kept(&caster, &camera);
@@ -585,6 +588,10 @@ fn gpu_and_cpu_ray_casts_agree() {
         "the kept caster made buffers for the same inputs"
     );
     assert_eq!(again.render.image, image);
+    // and the kept buffers (written over by six cases of other sizes) draw what fresh ones do
+    let (_, fresh) = cast_both(&ctx, &caster, &camera);
+    assert_eq!(again.render.image, fresh.render.image);
+    assert_eq!(again.samples, fresh.samples);
 }
 
 /// The same on the column splash frame's chain points (50,849 points of radii 0.016-0.05,

@@ -456,6 +456,11 @@ fn gpu_passes_match_the_cpu_reference_for_every_filter() {
     let screen = ScreenSpace::new(p, &radii, h, &params).unwrap();
     let first = gpu.render(&ctx, &screen, &ortho).unwrap();
     let again = gpu.render(&ctx, &screen, &ortho).unwrap();
+    // fresh passes make their buffers and draw what the kept ones draw
+    let mut fresh = fluid_surfels::ssfr::gpu::GpuSsfr::new(&ctx.device).unwrap();
+    let new = fresh.render(&ctx, &screen, &ortho).unwrap();
+    assert!(fresh.created() > 0);
+    assert_eq!(new.render.image, first.render.image);
     assert_eq!(
         gpu.created(),
         0,
