@@ -79,13 +79,16 @@ fn density_surfaces_have_no_holes_on_a_lattice_block_and_the_real_files() {
     .unwrap()
     .particles;
     // no spray on the block: the closing's count is the measure itself. The chain's outline is
-    // smooth (0.012 %); the raw particles' grid follows the jittered lattice, and its bumpy
-    // outline has 1-2 px notches that the closing fills (0.17 %, none enclosed)
+    // smooth (0.018 %); the raw particles' grid follows the jittered lattice, and its bumpy
+    // outline has 1-2 px notches that the closing fills, none enclosed: how many depends on
+    // where the block lies on the grid's lattice (the world's, `GridSpec::for_box`) and the
+    // pixels; measured over 8 shifts of the block by an eighth of a spacing, 0.06-0.40 %
+    // (the chain 0.02-0.09 %), 0.345 % here
     let h = holes_of("block", &block, SurfelSource::Chain, [200, 200]);
     assert!(h.fraction() <= 0.001, "block chain: {h:?}");
     let h = holes_of("block", &block, SurfelSource::Particles, [200, 200]);
     assert!(
-        h.fraction() <= 0.003 && h.enclosed == 0,
+        h.fraction() <= 0.005 && h.enclosed == 0,
         "block particles: {h:?}"
     );
     // the real files have spray: the closing also fills the gaps between drops (painted cyan in
@@ -249,5 +252,51 @@ fn finished_frames_of_the_real_files_match_their_golden_images_without_specks() 
             isolated_fraction <= 0.0015,
             "{name}: {isolated} isolated specks"
         );
+    }
+}
+
+/// A drop far outside the view widens the particles' box; the density grid lies on the world's
+/// lattice (`GridSpec::for_box`), so the water in view keeps its grid points and is drawn as
+/// before. Shaded splats of both real files with the camera and support radius of the frame
+/// without the drop, the drop behind the camera (measured: the same image, infinite PSNR. Before,
+/// 43.4 and 38.5 dB: the grid was anchored at the box's corner and the refinement's order
+/// quantised over the surface particles' box, so the spray's drops and the surface's fine
+/// shading moved with the box; the grid on the lattice alone gave the dam break 42.9 dB).
+#[test]
+fn a_drop_outside_the_view_leaves_the_picture_as_it_was() {
+    for name in [DAM_BREAK, DOUBLE_DAM_BREAK] {
+        let mut set = read(name);
+        // attributes the pipeline does not read, each as long as the positions
+        (set.normals, set.colours) = (None, None);
+        set.extra.clear();
+        let mut first = Pipeline::new(params(SurfelSource::Chain, [320, 240])).unwrap();
+        first.frame_through(&set, Through::Splats).unwrap();
+        let (camera, radius) = (first.camera().unwrap(), first.support_radius().unwrap());
+        let draw = |set: &ParticleSet| {
+            let mut p = params(SurfelSource::Chain, [320, 240]);
+            p.scene.camera = Some(camera);
+            p.support_radius = Some(radius);
+            let mut pipeline = Pipeline::new(p).unwrap();
+            let f = pipeline.frame_through(set, Through::Splats).unwrap();
+            f.splats.expect("through the splats").image
+        };
+        let mut with_drop = set.clone();
+        // behind the camera, 37.3 support radii out along the view axis and off it
+        let back = (camera.eye - camera.target).normalize();
+        let drop = camera.eye + back * (37.3 * radius) + Vec3::new(0.31, -0.17, 0.23) * radius;
+        with_drop.positions.push(drop);
+        if let Some(ids) = &mut with_drop.ids {
+            ids.push(ids.iter().max().map_or(0, |m| m + 1));
+        }
+        if let Some(v) = &mut with_drop.velocities {
+            v.push(Vec3::ZERO);
+        }
+        if let Some(m) = &mut with_drop.masses {
+            m.push(m[0]);
+        }
+        let (a, b) = (draw(&set), draw(&with_drop));
+        let db = fluid_surfels::splat::psnr(&a, &b);
+        println!("{name}: a drop behind the camera changes the splats by {db:.1} dB");
+        assert!(db >= 60.0, "{name}: {db} dB");
     }
 }

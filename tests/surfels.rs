@@ -709,8 +709,88 @@ fn the_mesh_agrees_with_splashsurfs() {
             if weighted || c.name == "150k block" {
                 assert!(to_theirs <= 0.25 && to_ours <= 0.25, "{}", c.name);
             }
+            // the same field on the same lattice (both grids on the world's lattice of the
+            // cell size): marching cubes make the same triangles (measured: equal counts on
+            // both cases)
+            if weighted {
+                let diff = ours.triangles.len().abs_diff(theirs.triangles.len());
+                assert!(
+                    diff * 1000 <= theirs.triangles.len(),
+                    "{}: {} against {} triangles",
+                    c.name,
+                    ours.triangles.len(),
+                    theirs.triangles.len()
+                );
+            }
         }
     }
+}
+
+/// A grid at a cell size lies on the world's lattice (`GridSpec::for_box`), so a drop far away
+/// that widens the box leaves a body's grid points, and so its surfels, where they were: the
+/// same count, each within 1e-3 cells (the surfels' own accuracy: the grid points' coordinates
+/// round differently from another origin, and Newton's projection stops within
+/// `surfels::CONVERGED`; measured 8.4e-5). A grid anchored at the box's
+/// corner instead (the layout before) moves under the body by a fraction of a cell and changes
+/// its surfels, which this test also checks so that it cannot pass by accident.
+#[test]
+fn a_far_drop_leaves_a_bodys_surfels_where_they_were() {
+    let scene = scenes::sphere(&scenes::SphereParams {
+        radius_in_spacings: 5.0,
+        jitter: 0.0,
+        ..Default::default()
+    })
+    .unwrap();
+    let body = scene.particles.positions.clone();
+    let s = scene.spacing;
+    let (h, cell) = (2.0 * s, 0.5 * s);
+    // a lone drop 20 spacings out, off the lattice in every axis
+    let mut with_drop = body.clone();
+    with_drop.push(Vec3::new(-20.37, -19.71, -20.13) * s);
+    let near_body = |x: &Vec3| x.length() < 8.0 * s;
+    let surfels_in = |p: &[Vec3], spec: &GridSpec| -> Vec<Vec3> {
+        let grid = density::density_grid(p, spec, Kernel::Wyvill, h, 1 << 32).unwrap();
+        let s = surfels::extract(&grid, p, Kernel::Wyvill, h, &SurfelParams::default()).unwrap();
+        s.positions.into_iter().filter(near_body).collect()
+    };
+    let alone_spec = GridSpec::around(&body, h, Resolution::CellSize(cell)).unwrap();
+    let with_spec = GridSpec::around(&with_drop, h, Resolution::CellSize(cell)).unwrap();
+    for (a, b) in [(alone_spec, with_spec), (with_spec, alone_spec)] {
+        let offset = (a.origin - b.origin) / cell;
+        assert!(
+            (offset - offset.round()).abs().max_element() < 1e-3,
+            "the grids share a lattice: {offset}"
+        );
+    }
+    let alone = surfels_in(&body, &alone_spec);
+    let with = surfels_in(&with_drop, &with_spec);
+    assert!(alone.len() > 1000);
+    assert_eq!(alone.len(), with.len(), "the body's surfels");
+    let worst = alone
+        .iter()
+        .zip(&with)
+        .map(|(a, b)| a.distance(*b) / cell)
+        .fold(0.0f32, f32::max);
+    println!(
+        "a far drop: the body's {} surfels at most {worst:.2e} cells from where they were",
+        alone.len()
+    );
+    assert!(worst < 1e-3, "{worst} cells");
+    // anchored at the widened box's corner, the grid moves under the body
+    let anchored = GridSpec {
+        origin: with_drop
+            .iter()
+            .fold(Vec3::splat(f32::MAX), |lo, p| lo.min(*p))
+            - Vec3::splat(h),
+        ..with_spec
+    };
+    let moved = surfels_in(&with_drop, &anchored);
+    let same = moved.len() == alone.len()
+        && moved
+            .iter()
+            .zip(&alone)
+            .all(|(a, b)| a.distance(*b) / cell < 1e-3);
+    assert!(!same, "a grid off the lattice moves the surfels");
 }
 
 /// The surfels lie on the exact iso-surface of the chain's points (Newton's projection with the

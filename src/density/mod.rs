@@ -421,6 +421,24 @@ impl GridSpec {
                 });
             }
         };
+        // A cell size puts the grid on the world's lattice `spacing * Z^3` (as splashsurf does,
+        // "to get consistent results between frames"): the grid points near a body stay where
+        // they were when a drop far away widens the box, so that body's surfels and mesh do not
+        // shift with it. An axis resolution fits its spacing to this box and keeps `lo`.
+        let lo = match resolution {
+            Resolution::CellSize(_) => {
+                let mut o = (lo / spacing).floor() * spacing;
+                // rounding may leave a lattice point a hair above `lo`
+                for a in 0..3 {
+                    if o[a] > lo[a] {
+                        o[a] -= spacing;
+                    }
+                }
+                o
+            }
+            Resolution::LongestAxis(_) => lo,
+        };
+        let extent = hi - lo;
         // a hair of tolerance so that `LongestAxis(n)` gives n points despite rounding
         let dims_f = (extent / spacing * (1.0 + 1e-6)).floor() + Vec3::ONE;
         let dims_u = [dims_f.x as f64, dims_f.y as f64, dims_f.z as f64];

@@ -1858,31 +1858,29 @@ fn ms(t: Instant) -> f64 {
 }
 
 /// Indices of the particles the upsampling refines: surface and isolated ones, in an order of
-/// their positions alone (Morton order of the positions quantised to 2^10 steps per axis over
-/// their bounding box, ties by the exact coordinates, then by index), so that the same particles
+/// their own positions alone (Morton order of the coordinates' order-preserving bit patterns,
+/// their top 21 bits, ties by the exact coordinates, then by index), so that the same particles
 /// in another order are refined alike: the upsampling's collision handling (Solenthaler et al.
 /// §3.3) accepts candidates first come, first served, and the input order would otherwise decide
-/// which of two colliding children stays. Spatial order also keeps neighbours near in memory.
+/// which of two colliding children stays. No particle's key depends on the others (a key
+/// quantised over their bounding box made a drop far outside the view reorder, and so refine
+/// anew, the whole surface: the dam break's shaded splats 42.9 dB from themselves). Spatial order
+/// also keeps neighbours near in memory: the keys follow each axis monotonically, in steps of
+/// 2^-12 of a coordinate's magnitude.
 #[must_use]
 pub fn refined_indices(surface: &Surface, positions: &[Vec3]) -> Vec<u32> {
     let mut indices: Vec<u32> = (0..surface.classes.len() as u32)
         .filter(|&i| surface.classes[i as usize] != ParticleClass::Interior)
         .collect();
-    let (lo, hi) = indices.iter().fold(
-        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
-        |(lo, hi), &i| {
-            let p = positions[i as usize];
-            (lo.min(p), hi.max(p))
-        },
-    );
-    // one point (or all at one place): every key 0, the coordinates decide
-    let extent = (hi - lo).max_element();
-    let scale = if extent > 0.0 { 1023.0 / extent } else { 0.0 };
     let key = |i: u32| {
-        let q = ((positions[i as usize] - lo) * scale).clamp(Vec3::ZERO, Vec3::splat(1023.0));
-        morton3(q.x as u32, q.y as u32, q.z as u32)
+        let p = positions[i as usize];
+        morton3_21(
+            ordered_bits(p.x) >> 11,
+            ordered_bits(p.y) >> 11,
+            ordered_bits(p.z) >> 11,
+        )
     };
-    let mut keyed: Vec<(u32, u32)> = indices.iter().map(|&i| (key(i), i)).collect();
+    let mut keyed: Vec<(u64, u32)> = indices.iter().map(|&i| (key(i), i)).collect();
     rayon::slice::ParallelSliceMut::par_sort_unstable_by(
         keyed.as_mut_slice(),
         |&(ka, a), &(kb, b)| {
@@ -1899,14 +1897,22 @@ pub fn refined_indices(surface: &Surface, positions: &[Vec3]) -> Vec<u32> {
     indices
 }
 
-/// The Morton code of three 10-bit coordinates (their bits interleaved, x lowest).
-fn morton3(x: u32, y: u32, z: u32) -> u32 {
+/// A float's bits as an unsigned integer in the floats' order (negative ones flipped whole,
+/// positive ones with the sign bit set), as `f32::total_cmp` orders them.
+fn ordered_bits(v: f32) -> u32 {
+    let b = v.to_bits();
+    if b >> 31 == 1 { !b } else { b | 0x8000_0000 }
+}
+
+/// The Morton code of three 21-bit coordinates (their bits interleaved, x lowest).
+fn morton3_21(x: u32, y: u32, z: u32) -> u64 {
     let spread = |v: u32| {
-        let mut v = v & 0x3ff;
-        v = (v | (v << 16)) & 0x0300_00ff;
-        v = (v | (v << 8)) & 0x0300_f00f;
-        v = (v | (v << 4)) & 0x030c_30c3;
-        (v | (v << 2)) & 0x0924_9249
+        let mut v = u64::from(v) & 0x1f_ffff;
+        v = (v | (v << 32)) & 0x001f_0000_0000_ffff;
+        v = (v | (v << 16)) & 0x001f_0000_ff00_00ff;
+        v = (v | (v << 8)) & 0x100f_00f0_0f00_f00f;
+        v = (v | (v << 4)) & 0x10c3_0c30_c30c_30c3;
+        (v | (v << 2)) & 0x1249_2492_4924_9249
     };
     spread(x) | (spread(y) << 1) | (spread(z) << 2)
 }
