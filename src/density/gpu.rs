@@ -499,7 +499,9 @@ fn bin_particles(
         sorted[next[b] as usize] = RawPoint {
             at: [p.x, p.y, p.z, points.radius(i)],
             weight: points.weight(i),
-            _pad: [0.0; 3],
+            // the point's index, for passes that tell the points apart (the boundary
+            // calibration's, `pipeline::boundary::gpu`); the others leave it unread
+            _pad: [f32::from_bits(i as u32), 0.0, 0.0],
         };
         next[b] += 1;
     }

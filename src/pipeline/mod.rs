@@ -59,7 +59,7 @@ use crate::surface::{ParticleClass, Surface, SurfaceDetector, SurfaceParams};
 use crate::surfels::{self, SurfelParams, Surfels};
 use crate::{Error, ParticleView};
 
-mod boundary;
+pub mod boundary;
 mod detail;
 pub mod gpu;
 mod plan;

@@ -31,6 +31,8 @@
 //! its own term at the iso-value there. Weights are kept in `[0, MAX_WEIGHT]`: where the interior
 //! alone passes the iso-value at the target (a concave fold) a point adds nothing.
 
+pub mod gpu;
+
 use glam::Vec3;
 use rayon::prelude::*;
 
