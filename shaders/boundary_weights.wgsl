@@ -158,3 +158,20 @@ fn step(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     w_out[j] = alone * t.lone + (1.0 - alone) * boundary;
 }
+
+// the binned points again, written (`apply` alone binds them so)
+@group(0) @binding(7) var<storage, read_write> binned_rw: array<IndexedPoint>;
+
+// Per binned point: a sheet point's weight in the density becomes its own times its solved one
+// (`w_in`), in place, before the grid is filled from the same points.
+@compute @workgroup_size(64)
+fn apply(@builtin(global_invocation_id) id: vec3<u32>) {
+    let n = sheet_index(id);
+    if n >= params.interior + params.sheet {
+        return;
+    }
+    let index = binned_rw[n].index;
+    if index >= params.interior {
+        binned_rw[n].weight *= w_in[index - params.interior];
+    }
+}

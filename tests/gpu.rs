@@ -1549,6 +1549,11 @@ fn gpu_pipeline_makes_the_grid_and_surfels_on_the_gpu() {
         on_sparse.len()
     );
     assert!(sparse_bytes < dense_bytes);
+    // the sparse grid is gathered from the binned points: the boundary weights solved there
+    assert_eq!(
+        sparse.gpu_stages(),
+        ["calibration", "density", "surfels", "splats", "optics"]
+    );
     assert!(
         (on_sparse.len() as f64 - on_cpu.len() as f64).abs() <= 1e-3 * on_cpu.len() as f64,
         "{} sparse GPU against {} CPU surfels",

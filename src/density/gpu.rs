@@ -1014,6 +1014,10 @@ impl SplatPasses {
     }
 }
 
+/// A pass [`GridFiller::record_with`] records between the points' upload and the fill.
+pub type BeforeFill<'a> =
+    &'a mut dyn FnMut(&mut wgpu::CommandEncoder, &BinnedPoints) -> Result<(), GpuError>;
+
 impl GridFiller {
     /// Compiles the pass for `device`.
     #[must_use]
@@ -1076,6 +1080,19 @@ impl GridFiller {
         spec: &GridSpec,
         kernel: Kernel,
     ) -> Result<GpuGrid, GpuError> {
+        self.record_with(ctx, encoder, (points, spec, kernel), None)
+    }
+
+    /// [`Self::record`], recording `before` into `encoder` once the points are binned and
+    /// uploaded and before the grid is filled from them (a pass that changes their weights in
+    /// place: the boundary calibration's on the GPU, `pipeline::boundary::gpu`).
+    pub fn record_with(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        (points, spec, kernel): (Points<'_>, &GridSpec, Kernel),
+        before: Option<BeforeFill<'_>>,
+    ) -> Result<GpuGrid, GpuError> {
         check_inputs(&points)?;
         let (device, queue) = (&ctx.device, &ctx.queue);
         let max_binding = gpu::max_binding(device);
@@ -1087,6 +1104,12 @@ impl GridFiller {
             )));
         }
         let (bins, made) = self.upload(ctx, &points, spec, bytes as u64)?;
+        if let Some(before) = before {
+            before(
+                encoder,
+                &self.grid_of(spec, &bins, points.len(), None).points,
+            )?;
+        }
         let raw = RawGatherParams::new(
             spec,
             (&bins.bins, bins.size),
@@ -1190,6 +1213,17 @@ impl GridFiller {
         (layout, inside): (&SparseLayout, f32),
         kernel: Kernel,
     ) -> Result<GpuGrid, GpuError> {
+        self.record_sparse_with(ctx, encoder, (points, layout, inside, kernel), None)
+    }
+
+    /// [`Self::record_sparse`] with a pass recorded before the fill ([`Self::record_with`]).
+    pub fn record_sparse_with(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        (points, layout, inside, kernel): (Points<'_>, &SparseLayout, f32, Kernel),
+        before: Option<BeforeFill<'_>>,
+    ) -> Result<GpuGrid, GpuError> {
         check_inputs(&points)?;
         let (device, queue) = (&ctx.device, &ctx.queue);
         let max_binding = gpu::max_binding(device);
@@ -1209,6 +1243,12 @@ impl GridFiller {
             )));
         }
         let (bins, made) = self.upload(ctx, &points, spec, bytes)?;
+        if let Some(before) = before {
+            before(
+                encoder,
+                &self.grid_of(spec, &bins, points.len(), None).points,
+            )?;
+        }
         let fill = self.sparse.get_or_insert_with(|| SparseFill {
             pipeline: gather_pipeline_of(device, "gather_blocks"),
             states: gpu::Grow::new(

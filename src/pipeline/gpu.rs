@@ -3,8 +3,11 @@
 //! `prepare` runs the frame's work and records its GPU passes into the caller's encoder, `render`
 //! draws the finished frame into the caller's render pass, `resize` follows the window.
 //!
-//! What runs where: surface detection, upsampling and the boundary calibration's weights run on
-//! the CPU (the [`Pipeline`] inside, [`Pipeline::frame_to_grid`]); the density grid is filled on
+//! What runs where: surface detection and upsampling run on the CPU (the [`Pipeline`] inside),
+//! and so does the boundary calibration but for its weights' Jacobi solve, which runs on the GPU
+//! ([`crate::pipeline::boundary::gpu::WeightPasses`]) whenever the grid is gathered from the
+//! binned points (the sparse grid, or `grid.gpu_method = "gather"`: the splatting draws its own
+//! copy of the points, so with it the CPU solves them); the density grid is filled on
 //! the GPU by the gather pass ([`crate::density::gpu::GridFiller`]) and the surfels extracted
 //! there ([`crate::surfels::gpu::ResidentSurfels`]: crossings, a prefix sum, the projection onto
 //! the iso-surface), written into the buffer that the splatting draws by an indirect draw;
@@ -33,6 +36,7 @@ use crate::gpu::timer::StageTimer;
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::optics::gpu::{OpticsGpu, PreparedOptics};
 use crate::optics::{Stage, WaterShape};
+use crate::pipeline::boundary::gpu::{RawSheetPoint, WeightInput, WeightPasses};
 use crate::splat::gpu::SplatRenderer;
 use crate::splat::water::GpuSurfels;
 use crate::splat::{Drawn, GpuWaterPass, WaterSurface};
@@ -41,6 +45,8 @@ use crate::{Error, ParticleView};
 
 /// The stages [`GpuPipeline::prepare`] runs on the GPU with the grid and surfels there.
 const GPU_STAGES: &[&str] = &["density", "surfels", "splats", "optics"];
+/// ... and with the boundary calibration's weights solved there too.
+const GPU_STAGES_WEIGHTS: &[&str] = &["calibration", "density", "surfels", "splats", "optics"];
 /// ... and with them on the CPU.
 const CPU_STAGES: &[&str] = &["splats", "optics"];
 
@@ -107,6 +113,9 @@ pub struct GpuStageMs {
 struct GpuChain {
     filler: GridFiller,
     surfels: ResidentSurfels,
+    /// The boundary calibration's weights, solved where the grid is filled from the points
+    /// (with the gather pass: the splatting draws its own copy of the points).
+    weights: WeightPasses,
     /// The bytes of the last grid's values: every point's, or a sparse grid's evaluated
     /// blocks'.
     grid_bytes: u64,
@@ -383,7 +392,10 @@ impl GpuPipeline {
         } else {
             crate::gpu::max_binding(device)
         };
-        let (mut frame, input) = self.cpu.frame_to_grid(particles, budget)?;
+        // the weights are solved on the GPU where the grid is gathered from the binned points
+        let gather =
+            sparse || self.cpu.params().grid.gpu_method == crate::density::GpuDensityMethod::Gather;
+        let (mut frame, input) = self.cpu.frame_to_grid_with(particles, budget, gather)?;
         let Some(input) = input else {
             // no point: the empty frame the CPU path draws
             self.prepare_frame(device, queue, encoder, &frame)?;
@@ -393,6 +405,7 @@ impl GpuPipeline {
         let chain = self.chain.get_or_insert_with(|| GpuChain {
             filler: GridFiller::with_method(device, self.cpu.params().grid.gpu_method),
             surfels: ResidentSurfels::new(device),
+            weights: WeightPasses::new(device),
             grid_bytes: 0,
         });
         let (params, points) = (self.cpu.params(), input.points());
@@ -405,6 +418,41 @@ impl GpuPipeline {
         };
         let t = Instant::now();
         mark(encoder, 0);
+        // the sheet's weights: solved into the binned points before the fill
+        let sheet: Vec<RawSheetPoint> = input.solve.as_ref().map_or_else(Vec::new, |s| {
+            (s.interior..points.len())
+                .map(|j| RawSheetPoint {
+                    at: points.positions[j].extend(points.radius(j)).to_array(),
+                    normal: s.normals[j - s.interior]
+                        .extend(points.weight(j))
+                        .to_array(),
+                })
+                .collect()
+        });
+        let weights = &mut chain.weights;
+        let mut weights_made = 0;
+        let mut solve = |encoder: &mut wgpu::CommandEncoder,
+                         binned: &crate::density::gpu::BinnedPoints| {
+            let Some(s) = input.solve.as_ref() else {
+                return Ok(());
+            };
+            let solved = weights.record(
+                (device, queue),
+                encoder,
+                &WeightInput {
+                    binned,
+                    origin: input.spec.origin,
+                    interior: s.interior,
+                    sheet: &sheet,
+                    half_spacing: 0.5 * s.spacing,
+                    tau: s.tau,
+                    kernel,
+                    h: points.h,
+                },
+            );
+            weights_made = weights.created();
+            solved.map(drop)
+        };
         let grid = if sparse {
             // which blocks to fill, on the CPU (the LNM band of the points, their blocks);
             // their values on the GPU
@@ -416,14 +464,20 @@ impl GpuPipeline {
             let layout = crate::density::sparse_layout(points, &input.spec, limit, &band)?;
             let inside = super::sparse_inside(kernel, &params.surfels, points.h);
             chain.grid_bytes = layout.value_bytes();
-            chain
-                .filler
-                .record_sparse(&ctx, encoder, points, (&layout, inside), kernel)?
+            chain.filler.record_sparse_with(
+                &ctx,
+                encoder,
+                (points, &layout, inside, kernel),
+                Some(&mut solve),
+            )?
         } else {
             chain.grid_bytes = input.spec.bytes() as u64;
-            chain
-                .filler
-                .record(&ctx, encoder, points, &input.spec, kernel)?
+            chain.filler.record_with(
+                &ctx,
+                encoder,
+                (points, &input.spec, kernel),
+                Some(&mut solve),
+            )?
         };
         mark(encoder, 1);
         frame.timings.density_ms = ms(t);
@@ -457,9 +511,13 @@ impl GpuPipeline {
                     level: None,
                 })
             });
-        let created = chain.filler.created() + chain.surfels.created();
+        let created = chain.filler.created() + chain.surfels.created() + weights_made;
         frame.surfels_on_gpu = true;
-        self.stages = GPU_STAGES;
+        self.stages = if input.solve.is_some() {
+            GPU_STAGES_WEIGHTS
+        } else {
+            GPU_STAGES
+        };
         self.record(device, queue, encoder, &frame, (true, None))?;
         self.reused &= created == 0;
         Ok(frame)

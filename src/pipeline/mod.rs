@@ -947,7 +947,18 @@ impl Pipeline {
         particles: impl Into<ParticleView<'a>>,
         budget: u64,
     ) -> Result<(Frame, Option<GridInput<'a>>), Error> {
-        let particles: ParticleView<'a> = particles.into();
+        self.frame_to_grid_with(particles.into(), budget, false)
+    }
+
+    /// [`Pipeline::frame_to_grid`]; with `defer_weights` and the boundary calibration, the
+    /// sheet's weights are left to solve ([`GridInput::solve`], the points' weights their own:
+    /// [`GpuPipeline`] solves them on the GPU).
+    pub(crate) fn frame_to_grid_with<'a>(
+        &mut self,
+        particles: ParticleView<'a>,
+        budget: u64,
+        defer_weights: bool,
+    ) -> Result<(Frame, Option<GridInput<'a>>), Error> {
         self.in_pool(|p| {
             let total = Instant::now();
             let (mut frame, mut warnings) = p.detect_and_refine(particles, Through::Surfels)?;
@@ -956,13 +967,32 @@ impl Pipeline {
                 None
             } else {
                 let t = Instant::now();
-                let (positions, radii, weights) = p.density_points(
-                    source,
-                    particles,
-                    &frame.surface,
-                    frame.refined.as_ref(),
-                    frame.radius,
-                )?;
+                let mut solve = None;
+                let (positions, radii, weights) =
+                    if defer_weights && p.params.grid.calibration == Calibration::Boundary {
+                        let b = p.boundary_input(
+                            source,
+                            particles,
+                            &frame.surface,
+                            frame.refined.as_ref(),
+                            frame.radius,
+                        )?;
+                        solve = Some(WeightSolve {
+                            interior: b.interior,
+                            normals: b.normals,
+                            spacing: b.spacing,
+                            tau: p.iso_value(frame.radius),
+                        });
+                        (Cow::Owned(b.positions), b.radii, b.base)
+                    } else {
+                        p.density_points(
+                            source,
+                            particles,
+                            &frame.surface,
+                            frame.refined.as_ref(),
+                            frame.radius,
+                        )?
+                    };
                 if !weights.is_empty() {
                     frame.timings.calibration_ms = ms(t);
                 }
@@ -984,6 +1014,7 @@ impl Pipeline {
                         weights,
                         radius: frame.radius,
                         spec,
+                        solve,
                     })
                 }
             };
@@ -1179,13 +1210,25 @@ impl Pipeline {
         radius: f32,
     ) -> Result<boundary::ChainPoints, Error> {
         let (kernel, tau) = (self.params.grid.kernel, self.iso_value(radius));
+        Ok(self
+            .boundary_input(source, particles, surface, refined, radius)?
+            .solve(radius, kernel, tau)?)
+    }
+
+    /// [`Pipeline::points_at_boundary`] before the weights are solved.
+    fn boundary_input(
+        &self,
+        source: SurfelSource,
+        particles: ParticleView<'_>,
+        surface: &Surface,
+        refined: Option<&Refined>,
+        radius: f32,
+    ) -> Result<boundary::BoundaryInput, Error> {
         if source == SurfelSource::Particles {
-            return Ok(boundary::particle_points_at_boundary(
+            return Ok(boundary::particle_input_at_boundary(
                 particles.positions,
                 surface,
                 radius,
-                kernel,
-                tau,
             )?);
         }
         let r = refined.expect("refined above");
@@ -1200,13 +1243,11 @@ impl Pipeline {
                 ),
             });
         }
-        Ok(boundary::chain_points_at_boundary(
+        Ok(boundary::chain_input_at_boundary(
             particles.positions,
             surface,
             boundary::Sheet::refined(r),
             radius,
-            kernel,
-            tau,
         )?)
     }
 
@@ -2001,6 +2042,21 @@ pub struct GridInput<'a> {
     pub radius: f32,
     /// The grid ([`grid_for`]).
     pub spec: GridSpec,
+    /// The sheet's weights left to solve (`weights` then the points' own): the boundary
+    /// calibration's Jacobi steps run where the grid is filled (on the GPU,
+    /// [`boundary::gpu::WeightPasses`]).
+    pub solve: Option<WeightSolve>,
+}
+
+/// The boundary calibration's weights of a [`GridInput`] left to solve: the sheet follows the
+/// `interior` leading points, with `normals`, the particles' `spacing` and the iso-value
+/// `tau`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct WeightSolve {
+    pub interior: usize,
+    pub normals: Vec<Vec3>,
+    pub spacing: f32,
+    pub tau: f32,
 }
 
 impl GridInput<'_> {

@@ -7,9 +7,11 @@
 //! buffers. The sums run over the bins, not the CPU's cell grids, so the weights agree with the
 //! CPU's to rounding (`tests/gpu.rs` measures how closely), not bit for bit.
 //!
-//! [`WeightPasses::record`] records the passes into the caller's encoder and leaves the weights
-//! in a buffer (no read-back); [`boundary_weights_gpu`] reads them back, for tests and one-off
-//! use.
+//! [`WeightPasses::record`] records the passes into the caller's encoder, applies the weights
+//! to the binned points in place (the gather pass then fills the grid from them) and leaves
+//! the solved weights in a buffer (no read-back); [`boundary_weights_gpu`] reads them back, for
+//! tests and one-off use. `GpuPipeline` solves them so whenever its grid is gathered from the
+//! binned points (the sparse grid, or `gpu_method = "gather"`).
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
@@ -57,10 +59,21 @@ pub struct RawSheetPoint {
 /// Bytes of a `Target` (target and how alone, lone weight, interior density, padding).
 const TARGET_BYTES: u64 = 32;
 
-/// The compute pipelines, built once per device.
+/// The compute pipelines, built once per device, and their buffers, kept from frame to frame
+/// (grown when a frame needs more) with their bind groups (made anew only when a buffer they
+/// hold changes).
 pub struct WeightPasses {
     targets: wgpu::ComputePipeline,
     step: wgpu::ComputePipeline,
+    apply: wgpu::ComputePipeline,
+    uniform: wgpu::Buffer,
+    sheet: gpu::Grow,
+    target_buf: gpu::Grow,
+    w: [gpu::Grow; 2],
+    /// The bind groups (targets, the steps from buffer a and from b, the application of the
+    /// result) and the binned buffers they hold.
+    binds: Option<([wgpu::Buffer; 2], [wgpu::BindGroup; 4])>,
+    created: usize,
 }
 
 /// What [`WeightPasses::record`] solves for: the binned points (interior first in the chain's
@@ -81,21 +94,51 @@ impl WeightPasses {
     /// Compiles the passes.
     #[must_use]
     pub fn new(device: &wgpu::Device) -> Self {
-        let [targets, step] =
-            gpu::compute_pipelines(device, "boundary weights", SHADER, ["targets_pass", "step"]);
-        Self { targets, step }
+        let [targets, step, apply] = gpu::compute_pipelines(
+            device,
+            "boundary weights",
+            SHADER,
+            ["targets_pass", "step", "apply"],
+        );
+        let storage = wgpu::BufferUsages::STORAGE;
+        Self {
+            targets,
+            step,
+            apply,
+            uniform: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("boundary weights params"),
+                size: std::mem::size_of::<RawWeightParams>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            sheet: gpu::Grow::new("sheet points", storage),
+            target_buf: gpu::Grow::new("sheet targets", storage),
+            w: [
+                gpu::Grow::new("sheet weights a", storage | wgpu::BufferUsages::COPY_SRC),
+                gpu::Grow::new("sheet weights b", storage | wgpu::BufferUsages::COPY_SRC),
+            ],
+            binds: None,
+            created: 0,
+        }
     }
 
-    /// Records the passes into `encoder`; returns the buffer of the sheet's solved weights
-    /// (`f32` per sheet point, in the sheet's order, their own weights not applied: the
-    /// density's weight of sheet point `j` is its own times this).
+    /// Buffers and bind groups the last [`Self::record`] made (0 once they are large enough).
+    #[must_use]
+    pub fn created(&self) -> usize {
+        self.created
+    }
+
+    /// Records the passes into `encoder`, then the weights' application: each sheet point's
+    /// weight in `input.binned`'s points becomes its own times its solved one, in place (the
+    /// binned points must be those the grid is then filled from). The solved weights
+    /// themselves (`f32` per sheet point, in the sheet's order, their own weights not applied)
+    /// are left in the returned buffer.
     pub fn record(
-        &self,
-        device: &wgpu::Device,
+        &mut self,
+        (device, queue): (&wgpu::Device, &wgpu::Queue),
         encoder: &mut wgpu::CommandEncoder,
         input: &WeightInput<'_>,
     ) -> Result<wgpu::Buffer, GpuError> {
-        use wgpu::util::DeviceExt;
         let n = input.sheet.len();
         let limit = gpu::max_binding(device);
         if (n as u64).max(1) * TARGET_BYTES > limit {
@@ -117,71 +160,97 @@ impl WeightPasses {
             lone_r2: (LONE_RADIUS * 2.0 * input.half_spacing).powi(2),
             max_weight: MAX_WEIGHT,
         };
-        let init = |label, contents: &[u8], usage| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents,
-                usage,
-            })
-        };
-        let storage = wgpu::BufferUsages::STORAGE;
-        let uniform = init(
-            "boundary weights params",
-            bytemuck::bytes_of(&params),
-            wgpu::BufferUsages::UNIFORM,
-        );
-        // a binding holds at least one element
-        let zero = [RawSheetPoint::zeroed()];
-        let sheet = init(
-            "sheet points",
-            bytemuck::cast_slice(if n == 0 { &zero } else { input.sheet }),
-            storage,
-        );
-        let targets = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("sheet targets"),
-            size: n.max(1) as u64 * TARGET_BYTES,
-            usage: storage,
-            mapped_at_creation: false,
-        });
-        let ones = vec![1.0f32; n.max(1)];
-        let usage = storage | wgpu::BufferUsages::COPY_SRC;
-        let w = [
-            init("sheet weights a", bytemuck::cast_slice(&ones), usage),
-            init("sheet weights b", bytemuck::cast_slice(&ones), usage),
+        queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&params));
+        let ones = vec![1.0f32; n];
+        let made = [
+            self.sheet
+                .write(device, queue, bytemuck::cast_slice(input.sheet)),
+            self.target_buf.reserve(device, n as u64 * TARGET_BYTES),
+            self.w[0].write(device, queue, bytemuck::cast_slice(&ones)),
+            self.w[1].reserve(device, n as u64 * 4),
         ];
+        self.created = made.iter().filter(|&&m| m).count();
+        let key = [input.binned.points.clone(), input.binned.starts.clone()];
+        if self.created > 0 || self.binds.as_ref().is_none_or(|(k, _)| *k != key) {
+            self.binds = Some((key, self.bind_groups(device, input.binned)));
+            self.created += 4;
+        }
+        let binds = &self.binds.as_ref().expect("made above").1;
         let groups = (n as u32).div_ceil(64).max(1);
-        let dispatch = (groups.min(65_535), groups.div_ceil(65_535));
-        let bind = |pipeline: &wgpu::ComputePipeline, from: usize, with_sheet: bool| {
-            let mut entries = vec![
-                (0, uniform.as_entire_binding()),
-                (1, input.binned.points.as_entire_binding()),
-                (2, input.binned.starts.as_entire_binding()),
-                (4, targets.as_entire_binding()),
-                (5, w[from].as_entire_binding()),
-            ];
-            if with_sheet {
-                entries.push((3, sheet.as_entire_binding()));
-            } else {
-                entries.push((6, w[1 - from].as_entire_binding()));
-            }
-            gpu::bind_group(device, pipeline, &entries)
-        };
+        let (gx, gy) = (groups.min(65_535), groups.div_ceil(65_535));
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("boundary weights"),
             timestamp_writes: None,
         });
         pass.set_pipeline(&self.targets);
-        pass.set_bind_group(0, &bind(&self.targets, 0, true), &[]);
-        pass.dispatch_workgroups(dispatch.0, dispatch.1, 1);
+        pass.set_bind_group(0, &binds[0], &[]);
+        pass.dispatch_workgroups(gx, gy, 1);
         pass.set_pipeline(&self.step);
         let mut from = 0;
         for _ in 0..WEIGHT_STEPS {
-            pass.set_bind_group(0, &bind(&self.step, from, false), &[]);
-            pass.dispatch_workgroups(dispatch.0, dispatch.1, 1);
+            pass.set_bind_group(0, &binds[1 + from], &[]);
+            pass.dispatch_workgroups(gx, gy, 1);
             from = 1 - from;
         }
+        // the application reads the last step's output: buffer `from` (b after an odd count)
+        debug_assert_eq!(from, WEIGHT_STEPS as usize % 2);
+        let all = ((input.interior + n) as u32).div_ceil(64).max(1);
+        pass.set_pipeline(&self.apply);
+        pass.set_bind_group(0, &binds[3], &[]);
+        pass.dispatch_workgroups(all.min(65_535), all.div_ceil(65_535), 1);
         drop(pass);
-        Ok(w[from].clone())
+        Ok(self.w[from].buffer().clone())
+    }
+
+    /// The passes' bind groups over this frame's buffers: the targets pass, a step from each
+    /// weights buffer into the other, the application of the last step's output.
+    fn bind_groups(&self, device: &wgpu::Device, binned: &BinnedPoints) -> [wgpu::BindGroup; 4] {
+        let uniform = self.uniform.as_entire_binding();
+        let (points, starts) = (
+            binned.points.as_entire_binding(),
+            binned.starts.as_entire_binding(),
+        );
+        let targets = self.target_buf.buffer().as_entire_binding();
+        let w = [self.w[0].buffer(), self.w[1].buffer()];
+        let step = |from: usize| {
+            gpu::bind_group(
+                device,
+                &self.step,
+                &[
+                    (0, uniform.clone()),
+                    (1, points.clone()),
+                    (2, starts.clone()),
+                    (4, targets.clone()),
+                    (5, w[from].as_entire_binding()),
+                    (6, w[1 - from].as_entire_binding()),
+                ],
+            )
+        };
+        [
+            gpu::bind_group(
+                device,
+                &self.targets,
+                &[
+                    (0, uniform.clone()),
+                    (1, points.clone()),
+                    (2, starts.clone()),
+                    (3, self.sheet.buffer().as_entire_binding()),
+                    (4, targets.clone()),
+                    (5, w[0].as_entire_binding()),
+                ],
+            ),
+            step(0),
+            step(1),
+            gpu::bind_group(
+                device,
+                &self.apply,
+                &[
+                    (0, uniform),
+                    (5, w[WEIGHT_STEPS as usize % 2].as_entire_binding()),
+                    (7, points),
+                ],
+            ),
+        ]
     }
 }
 
@@ -225,10 +294,10 @@ pub fn boundary_weights_gpu(
             }
         })
         .collect();
-    let passes = WeightPasses::new(&ctx.device);
+    let mut passes = WeightPasses::new(&ctx.device);
     let mut encoder = ctx.device.create_command_encoder(&Default::default());
     let solved = passes.record(
-        &ctx.device,
+        (&ctx.device, &ctx.queue),
         &mut encoder,
         &WeightInput {
             binned: &binned,

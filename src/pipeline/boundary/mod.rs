@@ -444,6 +444,18 @@ pub fn chain_points_at_boundary(
     kernel: Kernel,
     tau: f32,
 ) -> Result<ChainPoints, SurfelError> {
+    chain_input_at_boundary(particles, surface, refined, h)?.solve(h, kernel, tau)
+}
+
+/// [`chain_points_at_boundary`] before the weights are solved: the points, their own weights
+/// and the sheet's normals, for [`BoundaryInput::solve`] on the CPU or [`gpu::WeightPasses`]
+/// on the GPU.
+pub fn chain_input_at_boundary(
+    particles: &[Vec3],
+    surface: &crate::surface::Surface,
+    refined: Sheet<'_>,
+    h: f32,
+) -> Result<BoundaryInput, SurfelError> {
     use crate::surface::ParticleClass;
     let spacing = 0.5 * h;
     let fluid = Fluid::new(particles, spacing)?;
@@ -530,19 +542,50 @@ pub fn chain_points_at_boundary(
         normals.push(refined.normals[j]);
         base.push(kept[j]);
     }
-    let weights = boundary_weights(
-        Points::with_radii(&positions, &radii, h).with_weights(&base),
-        interior,
-        &normals,
-        spacing,
-        kernel,
-        tau,
-    )?;
-    Ok(ChainPoints {
+    Ok(BoundaryInput {
         positions,
         radii,
-        weights,
+        base,
+        interior,
+        normals,
+        spacing,
     })
+}
+
+/// The chain's points for the density grid before the sheet's weights are solved
+/// ([`chain_input_at_boundary`], [`particle_input_at_boundary`]).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct BoundaryInput {
+    /// The interior points first, then the sheet.
+    pub positions: Vec<Vec3>,
+    pub radii: Vec<f32>,
+    /// Each point's own weight: the interior's final, the sheet's a factor of its solved one.
+    pub base: Vec<f32>,
+    /// How many interior points lead.
+    pub interior: usize,
+    /// The sheet's outward normals (zero: none), one per sheet point.
+    pub normals: Vec<Vec3>,
+    /// The particles' spacing.
+    pub spacing: f32,
+}
+
+impl BoundaryInput {
+    /// The weights solved on the CPU ([`boundary_weights`], reference radius `h`).
+    pub fn solve(self, h: f32, kernel: Kernel, tau: f32) -> Result<ChainPoints, SurfelError> {
+        let weights = boundary_weights(
+            Points::with_radii(&self.positions, &self.radii, h).with_weights(&self.base),
+            self.interior,
+            &self.normals,
+            self.spacing,
+            kernel,
+            tau,
+        )?;
+        Ok(ChainPoints {
+            positions: self.positions,
+            radii: self.radii,
+            weights,
+        })
+    }
 }
 
 /// The points of the surface sheet the weights are solved for: the refined points (the chain),
@@ -578,6 +621,15 @@ pub fn particle_points_at_boundary(
     kernel: Kernel,
     tau: f32,
 ) -> Result<ChainPoints, SurfelError> {
+    particle_input_at_boundary(particles, surface, h)?.solve(h, kernel, tau)
+}
+
+/// [`particle_points_at_boundary`] before the weights are solved.
+pub fn particle_input_at_boundary(
+    particles: &[Vec3],
+    surface: &crate::surface::Surface,
+    h: f32,
+) -> Result<BoundaryInput, SurfelError> {
     let outer = super::refined_indices(surface, particles);
     let (positions, normals) = super::gather(
         crate::ParticleView::of_positions(particles),
@@ -585,7 +637,7 @@ pub fn particle_points_at_boundary(
         &outer,
     );
     let radii = vec![h; outer.len()];
-    chain_points_at_boundary(
+    chain_input_at_boundary(
         particles,
         surface,
         Sheet {
@@ -594,8 +646,6 @@ pub fn particle_points_at_boundary(
             radii: &radii,
         },
         h,
-        kernel,
-        tau,
     )
 }
 
