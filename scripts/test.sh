@@ -75,7 +75,7 @@ echo "== example: the whole chain in a game loop on the caller's device (GpuPipe
 cargo run --locked --quiet --example game_loop -- --frames 3 --size 96x96 --save 0,2 \
   --out "$example_out/game_loop" --json | tee "$example_out/game_loop.json"
 grep -q '"psnr_against_cpu_db"' "$example_out/game_loop.json"
-grep -q '"gpu_stages":\["density","surfels","splats","optics"\]' "$example_out/game_loop.json"
+grep -q '"gpu_stages":\["calibration","density","surfels","splats","optics"\]' "$example_out/game_loop.json"
 test -s "$example_out/game_loop/frame_0002.png"
 echo "== example: the viewer without a window (headless), 2 frames"
 cargo run --locked --quiet --example viewer -- --headless --frames 2 --size 96x72 --out "$example_out/viewer"

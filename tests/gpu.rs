@@ -1488,7 +1488,10 @@ fn gpu_pipeline_makes_the_grid_and_surfels_on_the_gpu() {
     let mut cpu = Pipeline::new(params.clone()).unwrap();
     let mut gpu = GpuPipeline::new(&ctx.device, &ctx.queue, format, size, &params).unwrap();
     assert!(gpu.surfels_on_gpu());
-    assert_eq!(gpu.gpu_stages(), ["density", "surfels", "splats", "optics"]);
+    assert_eq!(
+        gpu.gpu_stages(),
+        ["calibration", "density", "surfels", "splats", "optics"]
+    );
     // the sparse grid on the GPU beside it
     let mut sparse_params = params.clone();
     sparse_params.grid.narrow_band = true;
@@ -1549,11 +1552,14 @@ fn gpu_pipeline_makes_the_grid_and_surfels_on_the_gpu() {
         on_sparse.len()
     );
     assert!(sparse_bytes < dense_bytes);
-    // the sparse grid is gathered from the binned points: the boundary weights solved there
-    assert_eq!(
-        sparse.gpu_stages(),
-        ["calibration", "density", "surfels", "splats", "optics"]
-    );
+    // the boundary weights solved on the GPU, into the binned points (and, with the dense
+    // grid's splatting, its copy sorted by z)
+    for g in [&gpu, &sparse] {
+        assert_eq!(
+            g.gpu_stages(),
+            ["calibration", "density", "surfels", "splats", "optics"]
+        );
+    }
     assert!(
         (on_sparse.len() as f64 - on_cpu.len() as f64).abs() <= 1e-3 * on_cpu.len() as f64,
         "{} sparse GPU against {} CPU surfels",

@@ -107,7 +107,8 @@ fn sorted_instances(points: &Points<'_>) -> (Vec<RawPoint>, Vec<f32>) {
         .map(|(i, p)| RawPoint {
             at: [p.x, p.y, p.z, points.radius(i)],
             weight: points.weights.map_or(1.0, |w| w[i]),
-            _pad: [0.0; 3],
+            // the point's index, as the binned points keep it ([`FillPoints`])
+            _pad: [f32::from_bits(i as u32), 0.0, 0.0],
         })
         .collect();
     sorted.sort_by(|a, b| a.at[2].total_cmp(&b.at[2]));
@@ -898,7 +899,11 @@ impl SplatPasses {
             pipeline,
             layout,
             unpack,
-            instances: gpu::Grow::new("splatted particles", wgpu::BufferUsages::VERTEX),
+            instances: gpu::Grow::new(
+                "splatted particles",
+                // storage too: the boundary weights are written into it in place (`FillPoints`)
+                wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::STORAGE,
+            ),
             uniforms: gpu::Grow::new("density groups", wgpu::BufferUsages::UNIFORM),
             target: None,
             binds: Vec::new(),
@@ -913,6 +918,7 @@ impl SplatPasses {
         encoder: &mut wgpu::CommandEncoder,
         (points, spec, kernel): (&Points<'_>, &GridSpec, Kernel),
         (grid, grid_new): (&wgpu::Buffer, bool),
+        before: Option<BeforeFill<'_>>,
     ) -> Result<usize, GpuError> {
         let [nx, ny, nz] = spec.dims;
         let max_dim = device.limits().max_texture_dimension_2d;
@@ -923,6 +929,12 @@ impl SplatPasses {
         }
         let (sorted, zs) = sorted_instances(points);
         let mut created = usize::from(self.instances.write(device, queue, instance_bytes(&sorted)));
+        if let Some(before) = before {
+            before(
+                encoder,
+                FillPoints::Sorted(self.instances.buffer(), sorted.len()),
+            )?;
+        }
         let groups: Vec<u32> = (0..nz).step_by(PLANES as usize).collect();
         let stride = u64::from(device.limits().min_uniform_buffer_offset_alignment)
             .max(std::mem::size_of::<RawParams>() as u64);
@@ -1014,9 +1026,19 @@ impl SplatPasses {
     }
 }
 
-/// A pass [`GridFiller::record_with`] records between the points' upload and the fill.
+/// A pass [`GridFiller::record_with`] records between the points' upload and the fill, for
+/// each copy of the points the fill reads.
 pub type BeforeFill<'a> =
-    &'a mut dyn FnMut(&mut wgpu::CommandEncoder, &BinnedPoints) -> Result<(), GpuError>;
+    &'a mut dyn FnMut(&mut wgpu::CommandEncoder, FillPoints<'_>) -> Result<(), GpuError>;
+
+/// A copy of the points a grid is filled from, as [`BeforeFill`] sees it: each point
+/// ([`RawPoint`]) keeps its index in the points (`_pad[0]`'s bits).
+pub enum FillPoints<'a> {
+    /// The binned points, which the gather pass and the GPU surfels read (always, first).
+    Binned(&'a BinnedPoints),
+    /// The splatting's copy sorted by z, of this many points (with the splatting, second).
+    Sorted(&'a wgpu::Buffer, usize),
+}
 
 impl GridFiller {
     /// Compiles the pass for `device`.
@@ -1104,10 +1126,11 @@ impl GridFiller {
             )));
         }
         let (bins, made) = self.upload(ctx, &points, spec, bytes as u64)?;
-        if let Some(before) = before {
+        let mut before = before;
+        if let Some(before) = before.as_mut() {
             before(
                 encoder,
-                &self.grid_of(spec, &bins, points.len(), None).points,
+                FillPoints::Binned(&self.grid_of(spec, &bins, points.len(), None).points),
             )?;
         }
         let raw = RawGatherParams::new(
@@ -1140,6 +1163,7 @@ impl GridFiller {
                 encoder,
                 (&points, spec, kernel),
                 (self.grid.buffer(), grid_new),
+                before,
             )?;
         } else if bytes > 0 {
             let mut pass = encoder.begin_compute_pass(&Default::default());
@@ -1246,7 +1270,7 @@ impl GridFiller {
         if let Some(before) = before {
             before(
                 encoder,
-                &self.grid_of(spec, &bins, points.len(), None).points,
+                FillPoints::Binned(&self.grid_of(spec, &bins, points.len(), None).points),
             )?;
         }
         let fill = self.sparse.get_or_insert_with(|| SparseFill {

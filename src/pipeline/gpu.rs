@@ -5,9 +5,9 @@
 //!
 //! What runs where: surface detection and upsampling run on the CPU (the [`Pipeline`] inside),
 //! and so does the boundary calibration but for its weights' Jacobi solve, which runs on the GPU
-//! ([`crate::pipeline::boundary::gpu::WeightPasses`]) whenever the grid is gathered from the
-//! binned points (the sparse grid, or `grid.gpu_method = "gather"`: the splatting draws its own
-//! copy of the points, so with it the CPU solves them); the density grid is filled on
+//! ([`crate::pipeline::boundary::gpu::WeightPasses`], into every copy of the points the grid is
+//! filled from: the binned points, and the splatting's copy sorted by z); the density grid is
+//! filled on
 //! the GPU by the gather pass ([`crate::density::gpu::GridFiller`]) and the surfels extracted
 //! there ([`crate::surfels::gpu::ResidentSurfels`]: crossings, a prefix sum, the projection onto
 //! the iso-surface), written into the buffer that the splatting draws by an indirect draw;
@@ -31,7 +31,7 @@ use std::time::Instant;
 use glam::Vec3;
 
 use super::{Frame, Pipeline, PipelineParams, SurfelSource, Through, ms};
-use crate::density::gpu::GridFiller;
+use crate::density::gpu::{FillPoints, GridFiller};
 use crate::gpu::timer::StageTimer;
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::optics::gpu::{OpticsGpu, PreparedOptics};
@@ -217,7 +217,12 @@ impl GpuPipeline {
             reused: false,
         };
         if pipeline.surfels_on_gpu() {
-            pipeline.stages = GPU_STAGES;
+            pipeline.stages =
+                if pipeline.cpu.params().grid.calibration == super::Calibration::Boundary {
+                    GPU_STAGES_WEIGHTS
+                } else {
+                    GPU_STAGES
+                };
         }
         Ok(pipeline)
     }
@@ -244,10 +249,11 @@ impl GpuPipeline {
     }
 
     /// The stages the last [`GpuPipeline::prepare`] ran on the GPU (before the first, those it
-    /// will run), by name: `"density"` (the grid) and `"surfels"` when they run there
+    /// will run), by name: `"calibration"` (the boundary weights' solve, with the boundary
+    /// calibration), `"density"` (the grid) and `"surfels"` when they run there
     /// ([`GpuPipeline::surfels_on_gpu`]), `"splats"` (the water's splatting for the light's and
     /// the camera's views) and `"optics"` (caustics, refraction, reflection, the final image).
-    /// Detection and upsampling always run on the CPU.
+    /// Detection and upsampling always run on the CPU, and so do the calibration's inputs.
     #[must_use]
     pub fn gpu_stages(&self) -> &'static [&'static str] {
         self.stages
@@ -392,10 +398,9 @@ impl GpuPipeline {
         } else {
             crate::gpu::max_binding(device)
         };
-        // the weights are solved on the GPU where the grid is gathered from the binned points
-        let gather =
-            sparse || self.cpu.params().grid.gpu_method == crate::density::GpuDensityMethod::Gather;
-        let (mut frame, input) = self.cpu.frame_to_grid_with(particles, budget, gather)?;
+        // the boundary weights are solved on the GPU, into every copy of the points the fill
+        // reads
+        let (mut frame, input) = self.cpu.frame_to_grid_with(particles, budget, true)?;
         let Some(input) = input else {
             // no point: the empty frame the CPU path draws
             self.prepare_frame(device, queue, encoder, &frame)?;
@@ -431,27 +436,31 @@ impl GpuPipeline {
         });
         let weights = &mut chain.weights;
         let mut weights_made = 0;
-        let mut solve = |encoder: &mut wgpu::CommandEncoder,
-                         binned: &crate::density::gpu::BinnedPoints| {
+        let mut solve = |encoder: &mut wgpu::CommandEncoder, copy: FillPoints<'_>| {
             let Some(s) = input.solve.as_ref() else {
                 return Ok(());
             };
-            let solved = weights.record(
-                (device, queue),
-                encoder,
-                &WeightInput {
-                    binned,
-                    origin: input.spec.origin,
-                    interior: s.interior,
-                    sheet: &sheet,
-                    half_spacing: 0.5 * s.spacing,
-                    tau: s.tau,
-                    kernel,
-                    h: points.h,
-                },
-            );
+            match copy {
+                FillPoints::Binned(binned) => {
+                    weights.record(
+                        (device, queue),
+                        encoder,
+                        &WeightInput {
+                            binned,
+                            origin: input.spec.origin,
+                            interior: s.interior,
+                            sheet: &sheet,
+                            half_spacing: 0.5 * s.spacing,
+                            tau: s.tau,
+                            kernel,
+                            h: points.h,
+                        },
+                    )?;
+                }
+                FillPoints::Sorted(copy, count) => weights.apply_to(device, encoder, copy, count),
+            }
             weights_made = weights.created();
-            solved.map(drop)
+            Ok(())
         };
         let grid = if sparse {
             // which blocks to fill, on the CPU (the LNM band of the points, their blocks);

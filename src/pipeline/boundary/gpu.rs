@@ -73,6 +73,8 @@ pub struct WeightPasses {
     /// The bind groups (targets, the steps from buffer a and from b, the application of the
     /// result) and the binned buffers they hold.
     binds: Option<([wgpu::Buffer; 2], [wgpu::BindGroup; 4])>,
+    /// The application to another copy of the points ([`Self::apply_to`]) and that copy.
+    copy_bind: Option<(wgpu::Buffer, wgpu::BindGroup)>,
     created: usize,
 }
 
@@ -118,6 +120,7 @@ impl WeightPasses {
                 gpu::Grow::new("sheet weights b", storage | wgpu::BufferUsages::COPY_SRC),
             ],
             binds: None,
+            copy_bind: None,
             created: 0,
         }
     }
@@ -200,6 +203,44 @@ impl WeightPasses {
         pass.dispatch_workgroups(all.min(65_535), all.div_ceil(65_535), 1);
         drop(pass);
         Ok(self.w[from].buffer().clone())
+    }
+
+    /// After [`Self::record`] in the same encoder: the solved weights applied to another copy of
+    /// the same points (`points`: [`RawPoint`](crate::density::gpu::RawPoint)s that keep their
+    /// index, as the splatting's copy sorted by z does), in place.
+    pub fn apply_to(
+        &mut self,
+        device: &wgpu::Device,
+        encoder: &mut wgpu::CommandEncoder,
+        points: &wgpu::Buffer,
+        count: usize,
+    ) {
+        if self.created > 0 || self.copy_bind.as_ref().is_none_or(|(b, _)| b != points) {
+            let bind = gpu::bind_group(
+                device,
+                &self.apply,
+                &[
+                    (0, self.uniform.as_entire_binding()),
+                    (
+                        5,
+                        self.w[WEIGHT_STEPS as usize % 2]
+                            .buffer()
+                            .as_entire_binding(),
+                    ),
+                    (7, points.as_entire_binding()),
+                ],
+            );
+            self.copy_bind = Some((points.clone(), bind));
+            self.created += 1;
+        }
+        let all = (count as u32).div_ceil(64).max(1);
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("boundary weights apply to a copy"),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&self.apply);
+        pass.set_bind_group(0, &self.copy_bind.as_ref().expect("made above").1, &[]);
+        pass.dispatch_workgroups(all.min(65_535), all.div_ceil(65_535), 1);
     }
 
     /// The passes' bind groups over this frame's buffers: the targets pass, a step from each
