@@ -7,8 +7,8 @@
 //! and so does the boundary calibration but for its weights' Jacobi solve, which runs on the GPU
 //! ([`crate::pipeline::boundary::gpu::WeightPasses`], into every copy of the points the grid is
 //! filled from: the binned points, and the splatting's copy sorted by z); the density grid is
-//! filled on
-//! the GPU by the gather pass ([`crate::density::gpu::GridFiller`]) and the surfels extracted
+//! filled on the GPU ([`crate::density::gpu::GridFiller`]: the paper's splatting by default,
+//! or the gather pass, `grid.gpu_method`) and the surfels extracted
 //! there ([`crate::surfels::gpu::ResidentSurfels`]: crossings, a prefix sum, the projection onto
 //! the iso-surface), written into the buffer that the splatting draws by an indirect draw;
 //! the optics stage (the light's splatting of the water, the caustics, the camera's splatting,
