@@ -133,6 +133,8 @@ fn targets_pass(@builtin(global_invocation_id) id: vec3<u32>) {
         alone = 1.0;
     }
     targets[j] = Target(vec4<f32>(at, alone), lone, sums(at, false).x, 0.0, 0.0);
+    // the Jacobi steps start from w = 1 (the first step's `w_in`, bound here as `w_out`)
+    w_out[j] = 1.0;
 }
 
 // One Jacobi step: the sheet's density at each target with the weights `w_in`, each weight

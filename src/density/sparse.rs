@@ -877,7 +877,6 @@ fn exact_round(
 /// block that is not inside.
 fn crossing_ends(g: &SparseGrid, b: &Blocks<'_>, iso: f32) -> Vec<[u32; 3]> {
     let spec = b.spec;
-    let inside_point = |p: [u32; 3]| inside_point(g, p);
     (0..b.count)
         .into_par_iter()
         .filter(|&k| match g.states[k] {
@@ -902,11 +901,11 @@ fn crossing_ends(g: &SparseGrid, b: &Blocks<'_>, iso: f32) -> Vec<[u32; 3]> {
                 for y in 0..n[1] {
                     for x in 0..n[0] {
                         let p = [c[0] + x, c[1] + y, c[2] + z];
-                        if inside_point(p)
+                        if inside_point(g, p)
                             && axis_neighbours(p, spec.dims)
                                 .into_iter()
                                 .flatten()
-                                .any(|q| !inside_point(q) && g.at(q[0], q[1], q[2]) < iso)
+                                .any(|q| !inside_point(g, q) && g.at(q[0], q[1], q[2]) < iso)
                         {
                             out.push(p);
                         }

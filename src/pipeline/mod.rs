@@ -482,7 +482,8 @@ pub struct FrameTimings {
     pub detect_ms: f64,
     pub refine_ms: f64,
     /// The chain's points weighted so that the surface lies at the fluid's boundary
-    /// ([`Calibration::Boundary`]).
+    /// ([`Calibration::Boundary`]); in [`GpuPipeline`], whose GPU solves the weights, the CPU's
+    /// part alone (the points, their own weights and normals).
     pub calibration_ms: f64,
     pub density_ms: f64,
     pub surfels_ms: f64,

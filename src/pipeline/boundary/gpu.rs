@@ -164,12 +164,12 @@ impl WeightPasses {
             max_weight: MAX_WEIGHT,
         };
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&params));
-        let ones = vec![1.0f32; n];
         let made = [
             self.sheet
                 .write(device, queue, bytemuck::cast_slice(input.sheet)),
             self.target_buf.reserve(device, n as u64 * TARGET_BYTES),
-            self.w[0].write(device, queue, bytemuck::cast_slice(&ones)),
+            // the targets pass sets the first step's weights to 1
+            self.w[0].reserve(device, n as u64 * 4),
             self.w[1].reserve(device, n as u64 * 4),
         ];
         self.created = made.iter().filter(|&&m| m).count();
@@ -277,7 +277,9 @@ impl WeightPasses {
                     (2, starts.clone()),
                     (3, self.sheet.buffer().as_entire_binding()),
                     (4, targets.clone()),
-                    (5, w[0].as_entire_binding()),
+                    // unread here (`sums` unweighted), bound apart from the buffer it fills
+                    (5, w[1].as_entire_binding()),
+                    (6, w[0].as_entire_binding()),
                 ],
             ),
             step(0),
