@@ -1524,9 +1524,19 @@ fn the_chains_mesh_of_a_sphere_is_closed_and_lies_at_its_surfels() {
         params.grid.narrow_band = narrow_band;
         let frame = Pipeline::new(params)
             .unwrap()
-            .frame_through(&scene.particles, Through::Surfels)
+            .frame_through(&scene.particles, Through::Mesh)
             .unwrap();
-        let mesh = frame.mesh().expect("a grid");
+        assert!(frame.timings.mesh_ms > 0.0, "the mesh's time reported");
+        assert!(
+            frame.finished.is_none() && frame.splats.is_none(),
+            "no picture"
+        );
+        let mesh = frame.mesh.as_ref().expect("a grid");
+        let again = frame.triangulate().expect("a grid");
+        assert!(
+            again.positions == mesh.positions && again.triangles == mesh.triangles,
+            "Through::Mesh stores what Frame::triangulate makes"
+        );
         let what = if narrow_band { "sparse" } else { "dense" };
         assert!(mesh.is_closed(), "{what}: not closed");
         assert_eq!(mesh.euler_characteristic(), 2, "{what}");
@@ -1594,7 +1604,7 @@ fn the_chains_mesh_of_a_real_file_is_closed_and_unfolded() {
         .unwrap()
         .frame_through(&set, Through::Surfels)
         .unwrap();
-    let mesh = frame.mesh().unwrap();
+    let mesh = frame.triangulate().unwrap();
     assert!(mesh.is_closed());
     assert_eq!(mesh.euler_characteristic(), -6);
     let collapsed = mesh

@@ -8,7 +8,7 @@
 #![allow(dead_code)] // each target uses its part
 
 use fluid_surfels::density::{self, GridSpec, Kernel, Resolution};
-use fluid_surfels::mesh::{Mesh, marching_cubes};
+use fluid_surfels::mesh::{Mesh, marching_cubes_of_values};
 use fluid_surfels::quality::MeshDistance;
 use fluid_surfels::surfels::{self, SurfelParams, Surfels};
 use fluid_surfels::{io, lnm, neighbours, scenes};
@@ -175,7 +175,7 @@ pub fn ours_mesh(p: &[Vec3], spacing: f32, project: bool, weights: Option<&[f32]
         density::points_grid(points, &spec, Kernel::CubicSpline, 1 << 32).expect("within memory");
     let surfels = surfels::extract_points(&grid, points, Kernel::CubicSpline, &iso(spacing))
         .expect("surfels");
-    let mut mesh = marching_cubes(&grid.spec, |i, j, k| grid.at(i, j, k), surfels.iso);
+    let mut mesh = marching_cubes_of_values(&grid.spec, &grid.values, surfels.iso);
     if project {
         assert_eq!(mesh.positions.len(), surfels.len(), "a vertex per surfel");
         mesh.move_onto(&surfels.positions, &surfels.normals);
@@ -192,7 +192,7 @@ pub fn ours_grid_mesh(p: &[Vec3], spacing: f32) -> Mesh {
     let grid =
         density::density_grid(p, &spec, Kernel::CubicSpline, h, 1 << 32).expect("within memory");
     let level = iso(spacing).iso_fraction * Kernel::CubicSpline.peak(h);
-    marching_cubes(&grid.spec, |i, j, k| grid.at(i, j, k), level)
+    marching_cubes_of_values(&grid.spec, &grid.values, level)
 }
 
 /// splashsurf's mesh as a [`Mesh`] (its vertices and triangles).

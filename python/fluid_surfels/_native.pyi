@@ -13,7 +13,7 @@ FORMATS: list[str]
 _Path = Union[str, "PathLike[str]"]
 _Points = npt.NDArray[Union[np.float32, np.float64]]
 _Ids = npt.NDArray[np.integer[Any]]
-_Through = Literal["surface", "refine", "surfels", "splats", "frame"]
+_Through = Literal["surface", "refine", "surfels", "mesh", "splats", "frame"]
 
 class Error(Exception):
     """An error of the library (a file it cannot read, a particle set it cannot use, work over
@@ -144,7 +144,8 @@ class Pipeline:
         that keep the hysteresis of surface detection with each particle when the order
         changes. velocities: (N, 3), interpolated at the mesh's vertices (Frame.mesh.velocities),
         read by no other stage. masses: (N,) weights of the
-        centre of mass (all equal when absent). through: how far the chain runs.
+        centre of mass (all equal when absent). through: how far the chain runs ("mesh":
+        the surfels and their mesh, as mesh=True).
 
         C-contiguous float32 positions and masses and uint32 ids are read in place, without a
         copy, while the GIL is released: do not write to them from another thread meanwhile;
@@ -177,7 +178,7 @@ class Pipeline:
         ids: Optional[_Ids] = None,
         *,
         masses: Optional[npt.NDArray[Union[np.float32, np.float64]]] = None,
-        through: Literal["surface", "refine", "surfels", "splats", "frame"] = "frame",
+        through: _Through = "frame",
     ) -> None:
         """Surface detection (and the levels of detail) alone on a frame before the ones to
         draw: a chunk of a sequence then starts with the serial run's hysteresis."""

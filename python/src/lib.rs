@@ -534,11 +534,12 @@ fn through_of(name: &str) -> PyResult<Through> {
         "surface" => Through::Surface,
         "refine" => Through::Refine,
         "surfels" => Through::Surfels,
+        "mesh" => Through::Mesh,
         "splats" => Through::Splats,
         "frame" => Through::Frame,
         other => {
             return Err(value_error(format!(
-                "`through` must be one of surface, refine, surfels, splats, frame; got {other:?}"
+                "`through` must be one of surface, refine, surfels, mesh, splats, frame; got {other:?}"
             )));
         }
     })
@@ -927,8 +928,9 @@ impl Pipeline {
     /// hysteresis of surface detection attached to each particle when the order changes between
     /// frames; `velocities` (N, 3) are checked but no stage reads them yet; `masses` (N,) weigh
     /// the centre of mass of surface detection (all equal when absent). `through` stops the
-    /// chain early: "surface", "refine", "surfels" (default), "splats" (shaded splats image) or
-    /// "frame" (finished image with caustics, refraction and reflection).
+    /// chain early: "surface", "refine", "surfels" (default), "mesh" (the surfels and the mesh
+    /// of their iso-surface, as `mesh=True` gives), "splats" (shaded splats image) or "frame"
+    /// (finished image with caustics, refraction and reflection).
     ///
     /// C-contiguous float32 positions and masses and uint32 ids are read where they lie, with
     /// the GIL released: do not write to them from another thread during the call.
@@ -950,8 +952,18 @@ impl Pipeline {
         let velocities = input.velocities.as_ref().map(PointsIn::as_slice);
         let (frame, mesh) = py
             .detach(|| {
-                let frame = self.lock().frame_through(view, through)?;
-                let mut m = if mesh { frame.mesh() } else { None };
+                // the mesh made in the chain where the frame stops at the surfels
+                let run = if mesh && through == Through::Surfels {
+                    Through::Mesh
+                } else {
+                    through
+                };
+                let mut frame = self.lock().frame_through(view, run)?;
+                let mut m = match frame.mesh.take() {
+                    Some(m) => Some(m),
+                    None if mesh => frame.triangulate(),
+                    None => None,
+                };
                 if let (Some(m), Some(v)) = (&mut m, velocities) {
                     m.interpolate_velocities(view.positions, v, frame.radius)?;
                 }

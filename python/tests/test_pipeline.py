@@ -400,6 +400,9 @@ def test_the_mesh_of_a_frame_is_closed_and_written_back(tmp_path):
     assert m.faces.dtype == np.uint32 and m.faces.max() < m.vertices.shape[0]
     np.testing.assert_array_equal(m.vertices, frame.surfels.positions)
     assert p.frame(d["positions"], ids=d["ids"]).mesh is None
+    through = p.frame(d["positions"], ids=d["ids"], through="mesh")
+    np.testing.assert_array_equal(through.mesh.faces, m.faces)
+    assert through.timings["mesh_ms"] > 0.0
     fs.write_mesh(tmp_path / "m.ply", m.vertices, m.faces)
     back = fs.read(tmp_path / "m.ply")
     np.testing.assert_array_equal(back["positions"], m.vertices)

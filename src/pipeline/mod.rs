@@ -184,6 +184,10 @@ pub enum Through {
     Refine,
     /// Up to the surfels of the chosen source.
     Surfels,
+    /// Up to the surfels and the triangle mesh of the iso-surface they lie on
+    /// ([`Frame::mesh`], made by [`Frame::triangulate`]), for renderers of one's own; no
+    /// picture.
+    Mesh,
     /// Up to the shaded EWA splats (Blinn-Phong, no optics).
     Splats,
     /// The finished frame: caustics, refraction and reflection.
@@ -487,6 +491,10 @@ pub struct FrameTimings {
     pub calibration_ms: f64,
     pub density_ms: f64,
     pub surfels_ms: f64,
+    /// The mesh of [`Through::Mesh`] (marching cubes over the density grid, its vertices moved
+    /// onto the surfels).
+    #[serde(default)]
+    pub mesh_ms: f64,
     pub splats_ms: f64,
     pub caustics_ms: f64,
     pub image_ms: f64,
@@ -499,13 +507,14 @@ impl std::fmt::Display for FrameTimings {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "neighbours {:.1}, detection {:.1}, refinement {:.1}, calibration {:.1}, density {:.1}, surfels {:.1}, splats {:.1}, caustics {:.1}, image {:.1}",
+            "neighbours {:.1}, detection {:.1}, refinement {:.1}, calibration {:.1}, density {:.1}, surfels {:.1}, mesh {:.1}, splats {:.1}, caustics {:.1}, image {:.1}",
             self.neighbours_ms,
             self.detect_ms,
             self.refine_ms,
             self.calibration_ms,
             self.density_ms,
             self.surfels_ms,
+            self.mesh_ms,
             self.splats_ms,
             self.caustics_ms,
             self.image_ms
@@ -583,6 +592,9 @@ pub struct Frame {
     pub grid: Option<Grid>,
     /// Surfels on the iso-surface (Chain and Particles sources, EWA renderer).
     pub surfels: Option<Surfels>,
+    /// The triangle mesh of the surfels' iso-surface (through [`Through::Mesh`];
+    /// [`Frame::triangulate`] makes it for a frame run through the surfels or later).
+    pub mesh: Option<crate::mesh::Mesh>,
     /// The surfels that are rendered, whatever their source (the spheres of
     /// [`Renderer::ParticleSplat`]).
     pub render_surfels: Vec<Surfel>,
@@ -630,13 +642,19 @@ impl Frame {
     /// `n` was projected from: on the exact iso-surface, the kernel's gradient as normal; the
     /// few whose move would fold a triangle stay on their edges, [`crate::mesh::Mesh::move_onto`]);
     /// `None` without a grid (the peer renderers' spheres, or a frame not run through the
-    /// surfels).
+    /// surfels). [`Through::Mesh`] stores it in [`Frame::mesh`].
     #[must_use]
-    pub fn mesh(&self) -> Option<crate::mesh::Mesh> {
+    pub fn triangulate(&self) -> Option<crate::mesh::Mesh> {
         let grid = self.grid.as_ref()?;
         let surfels = self.surfels.as_ref()?;
-        let mut mesh =
-            crate::mesh::marching_cubes(grid.spec(), |i, j, k| grid.at(i, j, k), surfels.iso);
+        let mut mesh = match grid {
+            Grid::Dense(g) => {
+                crate::mesh::marching_cubes_of_values(&g.spec, &g.values, surfels.iso)
+            }
+            Grid::Sparse(_) => {
+                crate::mesh::marching_cubes(grid.spec(), |i, j, k| grid.at(i, j, k), surfels.iso)
+            }
+        };
         // the same crossings in the same order (tests/pipeline.rs); were they ever not, the
         // vertices would stay on the grid's edges. A vertex whose move would fold or collapse a
         // triangle stays on its edge.
@@ -927,6 +945,11 @@ impl Pipeline {
         frame.shape = frame.grid.as_ref().and_then(|g| {
             self.grid_water_shape(particles.positions, &frame.surface, frame.radius, g.spec())
         });
+        if through == Through::Mesh {
+            let t = Instant::now();
+            frame.mesh = frame.triangulate();
+            frame.timings.mesh_ms = ms(t);
+        }
         if through >= Through::Splats {
             self.render(&mut frame, through)?;
         }
@@ -1049,6 +1072,7 @@ impl Pipeline {
             refined: None,
             grid: None,
             surfels: None,
+            mesh: None,
             render_surfels: Vec::new(),
             render_weights: Vec::new(),
             camera: None,
@@ -1306,6 +1330,7 @@ impl Pipeline {
             refined: None,
             grid: None,
             surfels: None,
+            mesh: None,
             render_surfels: surfels,
             render_weights: Vec::new(),
             camera: None,

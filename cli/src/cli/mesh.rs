@@ -93,14 +93,13 @@ fn mesh_frame(
     out: Option<&Path>,
 ) -> Result<MeshReport, Error> {
     let t = Instant::now();
-    let f = pipeline.frame_through(particles, Through::Surfels)?;
+    let mut f = pipeline.frame_through(particles, Through::Mesh)?;
     for w in &f.warnings {
         eprintln!("warning: {w}");
     }
-    let surfels_ms = ms(t);
-    let t = Instant::now();
-    let mut mesh = f.mesh().unwrap_or_default();
-    let mesh_ms = ms(t);
+    let mesh_ms = f.timings.mesh_ms;
+    let surfels_ms = ms(t) - mesh_ms;
+    let mut mesh = f.mesh.take().unwrap_or_default();
     let format = out.map(MeshFormat::of_path).transpose()?;
     let t = Instant::now();
     if let Some(v) = velocities.filter(|_| format.is_none_or(MeshFormat::has_velocities)) {
