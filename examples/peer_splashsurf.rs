@@ -4,8 +4,9 @@
 //! surfels lie from splashsurf's mesh (mean and max distance, in cells), so that speed is never
 //! bought with a different surface; then the meshes (issue 40): splashsurf's against ours (the
 //! density grid, surfels and marching cubes), time, triangles, and the mean distance from each
-//! mesh's vertices to the other, with our uniform weights and with splashsurf's per-particle
-//! volumes (`peer::peer_weights`: the same density field).
+//! mesh's vertices to the other, with our uniform weights and with the pipeline's `particles`
+//! source at `calibration = "volume"` (splashsurf's per-particle volumes: the same density
+//! field).
 //!
 //! ```text
 //! cargo run --release --example peer_splashsurf                 # the 150k block and the real files
@@ -143,7 +144,6 @@ fn main() {
         let (_, cell) = peer::sizes(c.spacing);
         let mesh = MeshDistance::new(peer::splashsurf(&input, &params), cell);
         let theirs = peer::splashsurf_mesh(&input, &params);
-        let weights = peer::peer_weights(&c.positions, c.spacing);
         let both_ways = |ours: &fluid_surfels::mesh::Mesh| {
             (
                 peer::mean_distance(ours, &theirs, cell),
@@ -152,7 +152,12 @@ fn main() {
         };
         let ours = peer::ours_mesh(&c.positions, c.spacing, true, None);
         let (u1, u2) = both_ways(&ours);
-        let weighted = peer::ours_mesh(&c.positions, c.spacing, true, Some(&weights));
+        let weighted = peer::pipeline_mesh(
+            &c.positions,
+            c.spacing,
+            fluid_surfels::pipeline::Calibration::Volume,
+            false,
+        );
         let (w1, w2) = both_ways(&weighted);
         let diff = |m: &fluid_surfels::mesh::Mesh| {
             100.0 * (m.triangles.len() as f64 / theirs.triangles.len() as f64 - 1.0)
@@ -204,7 +209,7 @@ fn main() {
         "case", "splashsurf", "ours exact", "ours linear", "triangles", "", "",
     );
     println!(
-        "  {:<17} | {:>7} {:>8} | {:>7} {:>8} {:>7} | {:>7} {:>8} {:>7} | {:>8} {:>8} {:>8} | exact | linear | exact, splashsurf's weights (m / rho_j)",
+        "  {:<17} | {:>7} {:>8} | {:>7} {:>8} {:>7} | {:>7} {:>8} {:>7} | {:>8} {:>8} {:>8} | exact | linear | the pipeline's `particles` source with calibration volume (splashsurf's field, m / rho_j)",
         "", "ms", "MiB", "ms", "MiB", "speedup", "ms", "MiB", "speedup", "theirs", "ours", "diff",
     );
     for row in &mesh_rows {

@@ -1796,7 +1796,8 @@ fn gpu_pipeline_on_the_gpu_meets_bad_frames() {
 /// blocks chosen on the CPU, filled on the GPU, in less memory): both fit their views to the particles' box (`Frame::shape`), so
 /// the automatic camera, pool and light's screen are the same; the surfels the same within 0.1 %
 /// in count, each within 1e-3 cells and 1 degree of a CPU one; the finished frame at least 40 dB from the CPU's (measured 53.6 dB on the dam
-/// break and 58.5 dB on the double dam break at 480x360).
+/// break and 58.5 dB on the double dam break at 480x360). Likewise the raw particles with
+/// `calibration = "volume"` (weights from the CPU; measured equal counts, 76.9 dB at 160x120).
 #[test]
 fn gpu_pipeline_on_the_gpu_draws_the_real_files_as_the_cpu() {
     let Some(ctx) = gpu::context_or_skip("gpu_pipeline_on_the_gpu_draws_the_real_files").unwrap()
@@ -1808,15 +1809,22 @@ fn gpu_pipeline_on_the_gpu_draws_the_real_files_as_the_cpu() {
     dense.scene.optics.image_size = [size.0, size.1];
     let mut sparse = dense.clone();
     sparse.grid.narrow_band = true;
+    // the raw particles weighted by their SPH volumes (splashsurf's field), weights from the CPU
+    let mut volume = dense.clone();
+    volume.source = pipeline::SurfelSource::Particles;
+    volume.grid.calibration = pipeline::Calibration::Volume;
     let mut bytes = Vec::new();
     for (name, params) in [
         ("dam_break_frame_23_24389_particles.bgeo", &dense),
         ("dam_break_frame_23_24389_particles.bgeo", &sparse),
         ("double_dam_break_frame_26_4732_particles.vtk", &dense),
         ("double_dam_break_frame_26_4732_particles.vtk", &sparse),
+        ("double_dam_break_frame_26_4732_particles.vtk", &volume),
     ] {
         let grid = if params.grid.narrow_band {
             "sparse"
+        } else if params.grid.calibration == pipeline::Calibration::Volume {
+            "dense, volume calibration"
         } else {
             "dense"
         };

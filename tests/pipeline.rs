@@ -24,7 +24,8 @@ fn pipeline_equals_the_stages_called_by_hand_over_the_column_frames() {
     let mut sim = ColumnSim::new(ColumnParams::default()).unwrap();
     let h = sim.support_radius();
     // one pipeline per calibration (detection and refinement alike in both)
-    let mut pipelines = Calibration::ALL.map(|calibration| {
+    // the chain's calibrations (`volume` weighs the raw particles alone)
+    let mut pipelines = [Calibration::Paper, Calibration::Boundary].map(|calibration| {
         let p = Pipeline::new(PipelineParams {
             support_radius: Some(h),
             grid: GridParams {
@@ -102,6 +103,7 @@ fn pipeline_equals_the_stages_called_by_hand_over_the_column_frames() {
                     c.radii.extend(refined.kernel_radii.iter());
                     c
                 }
+                Calibration::Volume => unreachable!("the chain's calibrations only"),
                 Calibration::Boundary => pipeline::chain_points_at_boundary(
                     &particles.positions,
                     &surface,
@@ -194,7 +196,8 @@ fn sphere_error(s: &surfels::Surfels, radius: f32, spacing: f32) -> (f32, f32) {
 /// density grid at the same grid resolution: with the default calibration both lie on the
 /// fluid's boundary, the analytic sphere (within 0.06 spacings rms); with the paper's sums
 /// (Iwasaki et al. eq. 1) the chain lies closer to it than the raw particles, whose surface
-/// swells by about 0.7 spacings.
+/// swells by about 0.7 spacings; the raw particles with `volume` (splashsurf's field) lie on it
+/// as closely as with the default.
 #[test]
 fn chain_and_particle_surfels_lie_on_the_sphere() {
     let scene = scenes::sphere(&scenes::SphereParams {
@@ -208,7 +211,12 @@ fn chain_and_particle_surfels_lie_on_the_sphere() {
     let cell = scene.spacing / 4.0;
     for calibration in pipeline::Calibration::ALL {
         let mut errors = Vec::new();
-        for source in [SurfelSource::Chain, SurfelSource::Particles] {
+        let sources: &[SurfelSource] = if calibration == pipeline::Calibration::Volume {
+            &[SurfelSource::Particles]
+        } else {
+            &[SurfelSource::Chain, SurfelSource::Particles]
+        };
+        for &source in sources {
             let mut p = Pipeline::new(PipelineParams {
                 support_radius: Some(scene.support_radius),
                 source,
@@ -226,7 +234,7 @@ fn chain_and_particle_surfels_lie_on_the_sphere() {
             // the weighting is timed as a stage of its own
             assert_eq!(
                 frame.timings.calibration_ms > 0.0,
-                calibration == pipeline::Calibration::Boundary,
+                calibration != pipeline::Calibration::Paper,
                 "{:?}",
                 frame.timings
             );
@@ -249,6 +257,12 @@ fn chain_and_particle_surfels_lie_on_the_sphere() {
                 "chain rms {} spacings is not below the raw particles' {}",
                 errors[0].0,
                 errors[1].0
+            ),
+            // splashsurf's field at its threshold 0.6 puts the surface at the boundary too
+            // (measured 0.033 spacings rms)
+            pipeline::Calibration::Volume => assert!(
+                errors.iter().all(|&(rms, max)| rms <= 0.06 && max <= 0.2),
+                "{errors:?}"
             ),
         }
     }
@@ -1650,4 +1664,55 @@ fn the_chains_mesh_of_a_real_file_is_closed_and_unfolded() {
         kept * 200 < mesh.positions.len(),
         "{kept} vertices kept on edges"
     );
+}
+
+/// `calibration = "volume"` (splashsurf's field) weighs the raw particles: with another source
+/// it is refused with a message naming the source, as is a threshold outside (0, 1); with the
+/// raw particles it gives a closed surface whose weights raise lone particles (a drop keeps its
+/// surfels), and asked for the chain's surfels of such a frame it answers an error.
+#[test]
+fn the_volume_calibration_is_for_the_raw_particles() {
+    let scene = scenes::sphere(&scenes::SphereParams::default()).unwrap();
+    let mut params = PipelineParams {
+        support_radius: Some(scene.support_radius),
+        ..Default::default()
+    };
+    params.grid.calibration = pipeline::Calibration::Volume;
+    let e = Pipeline::new(params.clone())
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(
+        e.contains("source = \"particles\"") && e.contains("chain"),
+        "{e}"
+    );
+    params.source = SurfelSource::Particles;
+    for t in [0.0, 1.0, f32::NAN] {
+        let mut p = params.clone();
+        p.grid.volume_threshold = t;
+        let e = Pipeline::new(p).err().expect("refused").to_string();
+        assert!(e.contains("volume_threshold"), "{e}");
+    }
+    let mut with_drop = scene.particles.positions.clone();
+    let drop = Vec3::new(0.0, 3.0, 0.0);
+    with_drop.push(drop);
+    let set = ParticleSet::from_positions(with_drop);
+    let mut pipeline = Pipeline::new(params).unwrap();
+    let frame = pipeline.frame_through(&set, Through::Refine).unwrap();
+    let e = pipeline
+        .source_surfels(&set, &frame, SurfelSource::Chain)
+        .expect_err("refused")
+        .to_string();
+    assert!(e.contains("volume"), "{e}");
+    let frame = pipeline.frame_through(&set, Through::Mesh).unwrap();
+    assert!(frame.mesh.as_ref().unwrap().is_closed());
+    let near_drop = frame
+        .surfels
+        .as_ref()
+        .unwrap()
+        .positions
+        .iter()
+        .filter(|p| p.distance(drop) < scene.support_radius)
+        .count();
+    assert!(near_drop > 0, "the lone drop vanished");
 }

@@ -2,6 +2,7 @@
 
 use fluid_surfels::density::{self, GridSpec, Kernel, Resolution};
 use fluid_surfels::neighbours::{Backend, Neighbourhoods};
+use fluid_surfels::pipeline::Calibration;
 use fluid_surfels::scenes;
 use fluid_surfels::surfels::{self, ExactDensity, SurfelExtractor, SurfelParams};
 use glam::Vec3;
@@ -722,6 +723,24 @@ fn the_mesh_agrees_with_splashsurfs() {
                     theirs.triangles.len()
                 );
             }
+        }
+        // the pipeline's `particles` source with `calibration = "volume"` (splashsurf's field,
+        // as a user asks for it), dense and sparse: as close as with the weights above
+        for narrow_band in [false, true] {
+            let ours =
+                peer::pipeline_mesh(&c.positions, c.spacing, Calibration::Volume, narrow_band);
+            assert!(ours.is_closed(), "{}", c.name);
+            let to_theirs = peer::mean_distance(&ours, &theirs, cell);
+            let to_ours = peer::mean_distance(&theirs, &ours, cell);
+            let diff = ours.triangles.len().abs_diff(theirs.triangles.len());
+            println!(
+                "{} (the pipeline, calibration volume, narrow band {narrow_band}): {} triangles against {}; mean distance {to_theirs:.3} / {to_ours:.3} cells",
+                c.name,
+                ours.triangles.len(),
+                theirs.triangles.len()
+            );
+            assert!(to_theirs <= 0.25 && to_ours <= 0.25, "{}", c.name);
+            assert!(diff * 1000 <= theirs.triangles.len(), "{}", c.name);
         }
     }
 }

@@ -159,6 +159,34 @@ pub fn peer_weights(p: &[Vec3], spacing: f32) -> Vec<f32> {
         .collect()
 }
 
+/// The pipeline's own mesh of the raw particles (`source = "particles"`, `Through::Mesh`) at the
+/// peer comparison's settings and `calibration` (`volume`: splashsurf's field, its threshold
+/// 0.6), dense or sparse.
+pub fn pipeline_mesh(
+    p: &[Vec3],
+    spacing: f32,
+    calibration: fluid_surfels::pipeline::Calibration,
+    narrow_band: bool,
+) -> Mesh {
+    use fluid_surfels::pipeline::{Pipeline, PipelineParams, SurfelSource, Through};
+    let (h, cell) = sizes(spacing);
+    let mut params = PipelineParams {
+        source: SurfelSource::Particles,
+        support_radius: Some(h),
+        surfels: iso(spacing),
+        ..Default::default()
+    };
+    params.grid.kernel = Kernel::CubicSpline;
+    params.grid.resolution = Some(Resolution::CellSize(cell));
+    params.grid.calibration = calibration;
+    params.grid.narrow_band = narrow_band;
+    let frame = Pipeline::new(params)
+        .expect("valid parameters")
+        .frame_through(fluid_surfels::ParticleView::of_positions(p), Through::Mesh)
+        .expect("a frame");
+    frame.mesh.expect("a grid")
+}
+
 /// Our mesh of the dense grid at the surfels' iso-value (`pipeline::Frame::mesh`'s steps):
 /// marching cubes, then the vertices moved onto the surfels (the exact iso-surface) where that
 /// folds no triangle. `project: false` keeps every vertex on its grid edge (linear

@@ -217,6 +217,7 @@ def test_bad_input_raises_clear_exceptions():
         (lambda: fs.Pipeline(refine={"stpes": 2}), ValueError, "stpes"),
         (lambda: fs.Pipeline(lihgt={}), ValueError, "lihgt"),
         (lambda: fs.Pipeline(source="voxels"), ValueError, "voxels"),
+        (lambda: fs.Pipeline(grid={"calibration": "volume"}), ValueError, 'source = "particles"'),
         (lambda: fs.Pipeline(optics={"image_size": [1, None]}), ValueError, r"image_size\[1\]"),
         (lambda: fs.Pipeline(optics=object()), ValueError, "`optics`: a object cannot be"),
         (lambda: fs.read("/nonexistent/particles.ply"), fs.Error, "particles.ply"),
@@ -403,6 +404,10 @@ def test_the_mesh_of_a_frame_is_closed_and_written_back(tmp_path):
     through = p.frame(d["positions"], ids=d["ids"], through="mesh")
     np.testing.assert_array_equal(through.mesh.faces, m.faces)
     assert through.timings["mesh_ms"] > 0.0
+    # splashsurf's field (the raw particles weighted by their SPH volumes): closed too
+    v = fs.Pipeline(support_radius=p.support_radius, source="particles", grid={"calibration": "volume"})
+    vm = v.frame(d["positions"], through="mesh").mesh
+    assert vm.closed and len(vm) > 0
     fs.write_mesh(tmp_path / "m.ply", m.vertices, m.faces)
     back = fs.read(tmp_path / "m.ply")
     np.testing.assert_array_equal(back["positions"], m.vertices)

@@ -60,7 +60,7 @@ pub struct CompareArgs {
     pub steps: Option<u32>,
     /// Where the chain's iso-surface lies: paper (eq. 1's sums) or boundary (half a spacing
     /// outside the outermost particles at every level; the `grid.calibration` key).
-    #[arg(long, value_parser = super::names_parser(&Calibration::ALL, Calibration::as_str), default_value = "boundary")]
+    #[arg(long, value_parser = super::names_parser(&[Calibration::Paper, Calibration::Boundary], Calibration::as_str), default_value = "boundary")]
     pub calibration: Calibration,
     /// Add the chain (EWA) at 0, 1, 2 and 3 refinement steps to the sheet, to compare the levels
     /// of detail (with the default calibration, boundary, each at the fluid's boundary).

@@ -32,7 +32,9 @@ pub struct MeshArgs {
     /// Refinement steps of the chain (the `refine.steps` key; default 3, the paper's).
     #[arg(long)]
     pub steps: Option<u32>,
-    /// Where the surface lies: boundary (default) or paper (eq. 1's sums).
+    /// Where the surface lies: boundary (default), paper (eq. 1's sums) or volume (with
+    /// --source particles: splashsurf's field, each particle weighted by its SPH volume, the
+    /// surface at the fluid fraction `grid.volume_threshold`, default 0.6).
     #[arg(long, value_parser = super::names_parser(&Calibration::ALL, Calibration::as_str))]
     pub calibration: Option<Calibration>,
     /// The USD stage that plays a `.usda` sequence (value clips of the frames' files, listing

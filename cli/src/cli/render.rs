@@ -150,8 +150,9 @@ pub struct RenderArgs {
     /// --config file's; default 3, the paper's).
     #[arg(long)]
     pub steps: Option<u32>,
-    /// Where the chain's iso-surface lies: paper (eq. 1's sums) or boundary (half a spacing
-    /// outside the outermost particles at every level); the `grid.calibration` key, over a
+    /// Where the iso-surface lies: paper (eq. 1's sums), boundary (half a spacing outside the
+    /// outermost particles at every level) or volume (with --source particles: splashsurf's
+    /// field, each particle weighted by its SPH volume); the `grid.calibration` key, over a
     /// --config file's.
     #[arg(long, value_parser = super::names_parser(&Calibration::ALL, Calibration::as_str))]
     pub calibration: Option<Calibration>,

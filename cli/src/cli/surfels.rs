@@ -38,8 +38,9 @@ pub struct SurfelsArgs {
     #[arg(long, conflicts_with_all = ["gpu", "h"])]
     pub steps: Option<u32>,
     /// Where the pipeline's surface lies: boundary (half a spacing outside the outermost
-    /// particles at every level; the default) or paper (eq. 1's sums); the `grid.calibration`
-    /// key; implies --source chain.
+    /// particles at every level; the default), paper (eq. 1's sums) or volume (the raw
+    /// particles weighted by their SPH volumes: splashsurf's field); the `grid.calibration`
+    /// key; implies --source chain (volume: --source particles).
     #[arg(long, value_parser = super::names_parser(&Calibration::ALL, Calibration::as_str), conflicts_with_all = ["gpu", "h"])]
     pub calibration: Option<Calibration>,
     /// Iso-value as a fraction of one particle's peak density (default 0.75).
@@ -86,10 +87,13 @@ struct PipelineReport {
 }
 
 impl SurfelsArgs {
-    /// The source to run the pipeline from (`--steps` or `--calibration` alone: the chain), if
-    /// any.
+    /// The source to run the pipeline from (`--steps` or `--calibration` alone: the chain;
+    /// `--calibration volume`: the raw particles), if any.
     fn pipeline_source(&self) -> Option<SurfelSource> {
         self.surfel_source.or_else(|| {
+            if self.calibration == Some(Calibration::Volume) {
+                return Some(SurfelSource::Particles);
+            }
             (self.steps.is_some() || self.calibration.is_some()).then_some(SurfelSource::Chain)
         })
     }
