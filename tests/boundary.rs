@@ -56,6 +56,15 @@ fn drop(radius: f32) -> Shape {
     }
 }
 
+/// The median of signed distances `d` and the 95th percentile of their sizes (`d` not empty).
+fn median_and_p95(mut d: Vec<f32>) -> (f32, f32) {
+    d.sort_by(f32::total_cmp);
+    let median = d[d.len() / 2];
+    let mut a: Vec<f32> = d.iter().map(|x| x.abs()).collect();
+    a.sort_by(f32::total_cmp);
+    (median, a[(a.len() * 95 / 100).min(a.len() - 1)])
+}
+
 /// Median signed distance and 95th percentile of the distance of the measured surfels from the
 /// analytic surface, in spacings; `None` without surfels.
 fn offsets(shape: &Shape, source: SurfelSource, steps: u32) -> Option<(f32, f32, usize)> {
@@ -80,7 +89,7 @@ fn offsets_with(
     let mut p = Pipeline::new(params).unwrap();
     let f = p.frame_through(&scene.particles, Through::Surfels).unwrap();
     let analytic = scene.shape.unwrap();
-    let mut d: Vec<f32> = f
+    let d: Vec<f32> = f
         .surfels?
         .positions
         .iter()
@@ -90,12 +99,9 @@ fn offsets_with(
     if d.is_empty() {
         return None;
     }
-    d.sort_by(f32::total_cmp);
-    let median = d[d.len() / 2];
-    let mut a: Vec<f32> = d.iter().map(|x| x.abs()).collect();
-    a.sort_by(f32::total_cmp);
-    let p95 = a[(a.len() * 95 / 100).min(a.len() - 1)];
-    Some((median, p95, d.len()))
+    let n = d.len();
+    let (median, p95) = median_and_p95(d);
+    Some((median, p95, n))
 }
 
 /// The table of issue 35, measured: every shape through the particle source and the chain
@@ -281,7 +287,7 @@ fn the_boundary_holds_on_arrangements_not_fitted() {
                 .unwrap()
                 .frame_through(&scene.particles, Through::Surfels)
                 .unwrap();
-            let mut d: Vec<f32> = f
+            let d: Vec<f32> = f
                 .surfels
                 .unwrap()
                 .positions
@@ -296,21 +302,12 @@ fn the_boundary_holds_on_arrangements_not_fitted() {
                     (local > f32::MIN).then(|| (q.length() - local - 0.5 * s) / s)
                 })
                 .collect();
-            d.sort_by(f32::total_cmp);
-            let median = d[d.len() / 2];
-            let mut a: Vec<f32> = d.iter().map(|x| x.abs()).collect();
-            a.sort_by(f32::total_cmp);
-            let p95 = a[a.len() * 95 / 100];
-            println!(
-                "{name:28} {k} steps: {median:+.2} ({p95:.2}), {} surfels",
-                d.len()
-            );
+            let n = d.len();
+            let (median, p95) = median_and_p95(d);
+            println!("{name:28} {k} steps: {median:+.2} ({p95:.2}), {n} surfels");
             let bound = if k == 0 { 0.4 } else { 0.2 };
-            if !(median.abs() <= bound && d.len() > 100) {
-                failures.push(format!(
-                    "{name} at {k} steps: median {median}, {} surfels",
-                    d.len()
-                ));
+            if !(median.abs() <= bound && n > 100) {
+                failures.push(format!("{name} at {k} steps: median {median}, {n} surfels"));
             }
         }
     }
@@ -723,17 +720,13 @@ fn meshes_of_analytic_shapes_are_closed_at_the_boundary() {
             .zip(&surfels.positions)
             .map(|(v, q)| v.distance(*q) / cell)
             .fold(0.0f32, f32::max);
-        let mut d: Vec<f32> = mesh
-            .positions
-            .iter()
-            .filter(|q| measured(**q))
-            .map(|&q| -depth(q) / s)
-            .collect();
-        d.sort_by(f32::total_cmp);
-        let median = d[d.len() / 2];
-        let mut a: Vec<f32> = d.iter().map(|x| x.abs()).collect();
-        a.sort_by(f32::total_cmp);
-        let p95 = a[a.len() * 95 / 100];
+        let (median, p95) = median_and_p95(
+            mesh.positions
+                .iter()
+                .filter(|q| measured(**q))
+                .map(|&q| -depth(q) / s)
+                .collect(),
+        );
         println!(
             "{name}: {} particles, {} vertices, {} triangles, Euler {euler}; farthest vertex from its surfel {off_surfels:.3} cells; from the analytic surface median {median:+.3}, 95th percentile {p95:.3} spacings",
             set.len(),

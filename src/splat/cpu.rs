@@ -30,6 +30,24 @@ struct Placed {
     ys: (usize, usize),
 }
 
+impl Placed {
+    /// A surfel set up for the view; `None`: not drawn (undrawable or culled).
+    fn of(s: &Surfel, v: &View) -> Option<Self> {
+        if !s.is_drawable() {
+            return None;
+        }
+        let f = frame(s, v)?;
+        let span = super::pixel_span;
+        Some(Self {
+            xs: span(f.rect.x, f.rect.z, v.width as usize),
+            ys: span(f.rect.y, f.rect.w, v.height as usize),
+            colour: s.colour,
+            normal: Vec3::from(s.normal).normalize(),
+            frame: f,
+        })
+    }
+}
+
 /// The CPU reference of the three passes (the specification of the GPU path). Undrawable
 /// surfels (see [`Surfel::is_drawable`]) are skipped.
 pub fn render_cpu(
@@ -48,21 +66,10 @@ pub fn render_cpu(
 /// more pixel fragments than the view's limit ([`SplatError::TooCostly`]).
 pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Result<Render, SplatError> {
     let (w, h) = (v.width as usize, v.height as usize);
-    let span = super::pixel_span;
     // frame, colour, unit normal and pixel spans of every surfel that is drawn, in input order
     let placed: Vec<Placed> = surfels
         .par_iter()
-        .filter(|s| s.is_drawable())
-        .filter_map(|s| {
-            let f = frame(s, v)?;
-            Some(Placed {
-                xs: span(f.rect.x, f.rect.z, w),
-                ys: span(f.rect.y, f.rect.w, h),
-                colour: s.colour,
-                normal: Vec3::from(s.normal).normalize(),
-                frame: f,
-            })
-        })
+        .filter_map(|s| Placed::of(s, v))
         .collect();
     let fragments: u128 = placed
         .iter()
@@ -179,21 +186,7 @@ mod tests {
     /// of the fused bands.
     fn two_passes(surfels: &[Surfel], v: &View) -> (Vec<[f32; 4]>, Vec<[f32; 4]>) {
         let (w, h) = (v.width as usize, v.height as usize);
-        let span = super::super::pixel_span;
-        let placed: Vec<Placed> = surfels
-            .iter()
-            .filter(|s| s.is_drawable())
-            .filter_map(|s| {
-                let f = frame(s, v)?;
-                Some(Placed {
-                    xs: span(f.rect.x, f.rect.z, w),
-                    ys: span(f.rect.y, f.rect.w, h),
-                    colour: s.colour,
-                    normal: Vec3::from(s.normal).normalize(),
-                    frame: f,
-                })
-            })
-            .collect();
+        let placed: Vec<Placed> = surfels.iter().filter_map(|s| Placed::of(s, v)).collect();
         let mut depth = vec![1.0f32; w * h];
         for p in &placed {
             for y in p.ys.0..p.ys.1 {
