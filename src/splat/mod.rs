@@ -290,6 +290,8 @@ pub struct Frame {
     normal_view: Vec3,
     /// Projected centre (pixels), sprite radius (pixels), epsilon.
     screen: Vec4,
+    /// [`depth_extent`] of the axes (disks).
+    depth_extent: f32,
 }
 
 /// Sets up one drawable surfel for the view, as `splat_frame` in the WGSL.
@@ -371,14 +373,27 @@ pub fn frame(s: &Surfel, v: &View) -> Option<Frame> {
     if !(hi.x > lo.x && hi.y > lo.y) {
         return None;
     }
+    let axis_v = vv / vv.dot(vv);
     Some(Frame {
         rect: Vec4::new(lo.x, lo.y, hi.x, hi.y),
         centre: c,
         axis_u,
-        axis_v: vv / vv.dot(vv),
+        axis_v,
         normal_view: nv,
         screen,
+        depth_extent: depth_extent(axis_u, axis_v),
     })
+}
+
+/// How far from the centre's depth a disk's fragment depth may lie (`frame.axis_u`,
+/// `frame.axis_v` its axes over their squared lengths): the depth the disk spans plus
+/// [`DEPTH_REACH_RADII`] of its radius (see the WGSL's `fragment`). Once a surfel, not once a
+/// pixel: the same value, three square roots and divisions a fragment fewer.
+fn depth_extent(axis_u: Vec3, axis_v: Vec3) -> f32 {
+    let uz = axis_u.z / axis_u.length_squared();
+    let vz = axis_v.z / axis_v.length_squared();
+    let radius = 1.0 / axis_u.length().min(axis_v.length());
+    (uz * uz + vz * vz).sqrt() + DEPTH_REACH_RADII * radius
 }
 
 /// One fragment of passes 1 and 2 (`Fragment` in the WGSL).
@@ -449,10 +464,7 @@ pub fn fragment(pixel: Vec2, f: &Frame, v: &View) -> Option<Fragment> {
         // the hit on the disk's plane, also where the filter decides the weight, within
         // DEPTH_REACH_RADII of the depths the disk spans (see the WGSL)
         if t > 0.0 {
-            let uz = f.axis_u.z / f.axis_u.length_squared();
-            let vz = f.axis_v.z / f.axis_v.length_squared();
-            let radius = 1.0 / f.axis_u.length().min(f.axis_v.length());
-            let extent = (uz * uz + vz * vz).sqrt() + DEPTH_REACH_RADII * radius;
+            let extent = f.depth_extent;
             depth = t.clamp(-f.centre.z - extent, -f.centre.z + extent);
         }
     }
