@@ -408,7 +408,8 @@ fn the_grid_in_the_narrow_band_gives_the_same_surfels() {
 /// mixed radii (the chain's case: fine points beside coarse ones), two far drops, a grid box
 /// that cuts the particles, and both real files: every evaluated value bit for bit, every empty
 /// block's values 0 in the dense grid too, every inside point above the iso-value there, the
-/// same surfels in the same order, and the same grid on one thread as on three.
+/// same surfels in the same order, the same mesh as its dense twin's (its planes read block
+/// row by block row), and the same grid on one thread as on three.
 #[test]
 #[allow(
     clippy::too_many_lines,
@@ -530,6 +531,18 @@ fn the_sparse_grid_equals_the_dense_one() {
         let sparse =
             density::points_grid_sparse(points, &spec, kernel, limit, &band, iso, inside).unwrap();
         let full = sparse.to_dense();
+        // marching cubes read the sparse grid's planes block row by block row: the mesh of its
+        // dense twin, vertex for vertex
+        let (a, b) = (
+            fluid_surfels::mesh::marching_cubes_of_sparse(&sparse, iso),
+            fluid_surfels::mesh::marching_cubes_of_values(&full.spec, &full.values, iso),
+        );
+        assert!(!a.triangles.is_empty(), "{}", c.name);
+        assert!(
+            a.positions == b.positions && a.triangles == b.triangles,
+            "{}: the sparse grid's mesh",
+            c.name
+        );
         let (mut evaluated, mut empty, mut interior, mut reached) =
             (0usize, 0usize, 0usize, 0usize);
         for k in 0..spec.dims[2] {

@@ -194,16 +194,44 @@ impl SparseGrid {
         values
             .par_chunks_mut(nx as usize * ny as usize)
             .enumerate()
-            .for_each(|(k, plane)| {
-                for j in 0..ny {
-                    for i in 0..nx {
-                        plane[i as usize + nx as usize * j as usize] = self.at(i, j, k as u32);
-                    }
-                }
-            });
+            .for_each(|(k, plane)| self.plane_into(k as u32, plane));
         DensityGrid {
             spec: self.spec,
             values,
+        }
+    }
+
+    /// The values of z plane `k` (`nx * ny`, x fastest), as [`Self::at`] reads them, written
+    /// into `out` block row by block row: an empty block's rows 0, an inside one's
+    /// [`Self::inside`], an evaluated one's copied (marching cubes over a sparse grid read
+    /// its planes so: the dam break's chain mesh took 162 ms through `at` point by point,
+    /// against 82 ms on the dense grid).
+    ///
+    /// # Panics
+    /// If `k` lies past the grid or `out` does not hold one value per point of a plane.
+    pub fn plane_into(&self, k: u32, out: &mut [f32]) {
+        let [nx, ny, nz] = self.spec.dims;
+        assert!(k < nz, "plane {k} of {nz}");
+        assert_eq!(out.len(), nx as usize * ny as usize, "one value per point");
+        let (bz, lz) = (k / BLOCK, (k % BLOCK) as usize);
+        for by in 0..self.blocks[1] {
+            for bx in 0..self.blocks[0] {
+                let state = self.states[self.block_index([bx, by, bz])];
+                let (i0, j0) = (bx * BLOCK, by * BLOCK);
+                let width = (nx - i0).min(BLOCK) as usize;
+                for dj in 0..(ny - j0).min(BLOCK) {
+                    let start = (i0 + nx * (j0 + dj)) as usize;
+                    let row = &mut out[start..start + width];
+                    match state {
+                        EMPTY => row.fill(0.0),
+                        INSIDE => row.fill(self.inside),
+                        slot => {
+                            let from = slot as usize * BLOCK_VALUES + B * (dj as usize + B * lz);
+                            row.copy_from_slice(&self.values[from..from + width]);
+                        }
+                    }
+                }
+            }
         }
     }
 }

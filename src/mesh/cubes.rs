@@ -248,6 +248,18 @@ fn crossing(spec: &GridSpec, at: [u32; 3], axis: usize, va: f32, vb: f32, iso: f
     spec.origin + p * spec.spacing
 }
 
+/// [`marching_cubes`] of a sparse grid, its planes read block row by block row
+/// ([`crate::density::SparseGrid::plane_into`]): the mesh of its dense twin.
+#[must_use]
+pub fn marching_cubes_of_sparse(grid: &crate::density::SparseGrid, iso: f32) -> Mesh {
+    let [nx, ny, _] = grid.spec.dims;
+    mesh_planes(&grid.spec, iso, |k| {
+        let mut plane = vec![0.0; nx as usize * ny as usize];
+        grid.plane_into(k, &mut plane);
+        Cow::Owned(plane)
+    })
+}
+
 /// Which points of a plane are inside (not below the iso-value), one bit each, row by row
 /// (`words` words a row, bit `i % 64` of word `i / 64` for point `i`; bits past the row's end
 /// 0). The scans below find the crossing edges and the cubes that hold one with a few word

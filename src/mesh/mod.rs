@@ -8,7 +8,7 @@ pub mod cubes;
 pub mod read;
 pub mod write;
 
-pub use cubes::{marching_cubes, marching_cubes_of_values};
+pub use cubes::{marching_cubes, marching_cubes_of_sparse, marching_cubes_of_values};
 
 use glam::Vec3;
 use rayon::prelude::*;

@@ -683,9 +683,7 @@ impl Frame {
             Grid::Dense(g) => {
                 crate::mesh::marching_cubes_of_values(&g.spec, &g.values, surfels.iso)
             }
-            Grid::Sparse(_) => {
-                crate::mesh::marching_cubes(grid.spec(), |i, j, k| grid.at(i, j, k), surfels.iso)
-            }
+            Grid::Sparse(g) => crate::mesh::marching_cubes_of_sparse(g, surfels.iso),
         };
         // the same crossings in the same order (tests/pipeline.rs); were they ever not, the
         // vertices would stay on the grid's edges. A vertex whose move would fold or collapse a
