@@ -235,28 +235,37 @@ mod tests {
     /// surfels that overlap across the bands' edges and hide one another.
     #[test]
     fn fused_bands_equal_two_whole_passes() {
-        let mut surfels = crate::scenes::surfel_sphere(900);
-        // a smaller sphere in front, partly hiding the first
-        surfels.extend(crate::scenes::surfel_sphere(300).into_iter().map(|mut s| {
-            for (p, o) in s.position.iter_mut().zip([0.3, 0.2, 1.2]) {
-                *p = *p * 0.4 + o;
-            }
-            s.radius *= 0.4;
-            s
-        }));
+        // disks on a unit sphere (Fibonacci points, overlapping), and a smaller sphere in
+        // front partly hiding it
+        let sphere = |n: usize, scale: f32, centre: Vec3| -> Vec<Surfel> {
+            let golden = std::f32::consts::PI * (3.0 - 5.0f32.sqrt());
+            let radius = 0.9 * (4.0 * std::f32::consts::PI / n as f32).sqrt() * scale;
+            (0..n)
+                .map(|i| {
+                    let y = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
+                    let r = (1.0 - y * y).max(0.0).sqrt();
+                    let a = golden * i as f32;
+                    let q = Vec3::new(r * a.cos(), y, r * a.sin());
+                    let c = q * 0.3 + 0.6;
+                    Surfel::disk(centre + q * scale, q, radius, [c.x, c.y, c.z, 1.0])
+                })
+                .collect()
+        };
+        let mut surfels = sphere(900, 1.0, Vec3::ZERO);
+        surfels.extend(sphere(300, 0.4, Vec3::new(0.3, 0.2, 1.2)));
+        let camera = Camera {
+            eye: Vec3::new(0.0, 0.0, 3.2),
+            target: Vec3::ZERO,
+            near: 1.0,
+            far: 5.0,
+            ..Camera::default()
+        };
         for mode in [SplatMode::Ewa, SplatMode::Sprites, SplatMode::Spheres] {
             let params = SplatParams {
                 mode,
                 ..SplatParams::default()
             };
-            let v = View::new(
-                &crate::scenes::surfel_sphere_camera(),
-                &Light::default(),
-                &params,
-                96,
-                80,
-            )
-            .unwrap();
+            let v = View::new(&camera, &Light::default(), &params, 96, 80).unwrap();
             let got = render_view_cpu(&surfels, &v).unwrap();
             let (colour, normal_depth) = two_passes(&surfels, &v);
             assert!(
