@@ -2686,3 +2686,64 @@ fn mesh_writes_a_usd_sequence_and_its_stage() {
     assert!(!out.status.success());
     assert!(stderr_of(&out).contains("--stage"), "{}", stderr_of(&out));
 }
+
+/// `mesh --config FILE` reads a pipeline file under the flags: a file asking for splashsurf's
+/// surface (the raw particles, `calibration = "volume"`, the cubic spline) gives the mesh the
+/// library gives for the same parameters (triangle for triangle), and another one than the
+/// flags alone; `--source` over the file's (here refused: `volume` is for the raw particles);
+/// an unknown key named.
+#[test]
+fn mesh_reads_a_pipeline_file_under_the_flags() {
+    use fluid_surfels::pipeline::{Pipeline, PipelineParams, Through};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let input = data("double_dam_break_frame_26_4732_particles.vtk");
+    let config = d.join("splashsurf.toml");
+    let text =
+        "source = \"particles\"\n[grid]\nkernel = \"cubic-spline\"\ncalibration = \"volume\"\n";
+    std::fs::write(&config, text).unwrap();
+    let run = |extra: &[&str], out: &str| {
+        bin()
+            .args(["mesh", "--input", &input, "--json", "--out"])
+            .arg(d.join(out))
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let with_file = json_of(&run(&["--config", config.to_str().unwrap()], "a.ply"));
+    let flags = json_of(&run(
+        &["--source", "particles", "--calibration", "volume"],
+        "b.ply",
+    ));
+    // the library with the file's parameters, the radius the command estimates
+    let set = fluid_surfels::io::read_particles(Path::new(&input), None).unwrap();
+    let spacing = fluid_surfels::neighbours::estimate_spacing(&set.positions).unwrap();
+    let mut params = PipelineParams::from_toml_file(&config).unwrap();
+    params.support_radius = Some(2.0 * spacing);
+    params.detail = fluid_surfels::pipeline::Detail::Fixed;
+    let mesh = Pipeline::new(params)
+        .unwrap()
+        .frame_through(&set, Through::Mesh)
+        .unwrap()
+        .mesh
+        .unwrap();
+    assert_eq!(with_file["triangles"], mesh.triangles.len(), "{with_file}");
+    assert_eq!(with_file["closed"], true);
+    assert_ne!(
+        with_file["triangles"], flags["triangles"],
+        "the file's kernel unused"
+    );
+    let out = run(
+        &["--config", config.to_str().unwrap(), "--source", "chain"],
+        "c.ply",
+    );
+    assert!(!out.status.success());
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(e.contains("source = \"particles\""), "{e}");
+    let bad = d.join("bad.toml");
+    std::fs::write(&bad, "[grid]\nkernl = \"wyvill\"\n").unwrap();
+    let out = run(&["--config", bad.to_str().unwrap()], "d.ply");
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("kernl"));
+    assert!(!d.join("c.ply").exists() && !d.join("d.ply").exists());
+}

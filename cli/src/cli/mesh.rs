@@ -26,9 +26,15 @@ pub struct MeshArgs {
     pub outputs: super::OutputArgs,
     /// Where the surface comes from: `chain` (detection, upsampling, the density grid of the
     /// refined surface and the interior; default) or `particles` (the particles' own density
-    /// grid); the surface at the fluid's boundary unless --calibration paper.
-    #[arg(long = "source", value_parser = super::names_parser(&[SurfelSource::Chain, SurfelSource::Particles], SurfelSource::as_str), default_value = "chain")]
-    pub surfel_source: SurfelSource,
+    /// grid); the surface at the fluid's boundary unless --calibration paper. Over a --config
+    /// file's `source`.
+    #[arg(long = "source", value_parser = super::names_parser(&[SurfelSource::Chain, SurfelSource::Particles], SurfelSource::as_str))]
+    pub surfel_source: Option<SurfelSource>,
+    /// Pipeline file (TOML; see docs/parameters.md): the stages' tables and keys, such as
+    /// `source`, `[grid] kernel = "cubic-spline"` or `[surfels] iso_fraction`, under the flags
+    /// given here (its camera, light and optics draw nothing: a mesh has no picture).
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
     /// Refinement steps of the chain (the `refine.steps` key; default 3, the paper's).
     #[arg(long)]
     pub steps: Option<u32>,
@@ -64,15 +70,22 @@ struct MeshReport {
 }
 
 impl MeshArgs {
-    /// The pipeline's parameters: `fixed` detail (a file on disk never depends on an image
-    /// size), the grid within the memory budget.
-    fn params(&self, radius: f32) -> PipelineParams {
-        let mut p = PipelineParams {
-            support_radius: Some(radius),
-            source: self.surfel_source,
-            detail: Detail::Fixed,
-            ..PipelineParams::default()
+    /// The pipeline's parameters: the --config file's (or the defaults), the flags over them,
+    /// the support radius `radius` (--radius, else the file's `support_radius`, else the one
+    /// estimated), `fixed` detail (a file on disk never depends on an image size), the grid
+    /// within the memory budget. Checked here, so that a bad file fails before any frame.
+    fn params(&self, radius: f32) -> Result<PipelineParams, Error> {
+        let mut p = match &self.config {
+            Some(path) => PipelineParams::from_toml_file(path)?,
+            None => PipelineParams::default(),
         };
+        if self.source.radius.is_some() || p.support_radius.is_none() {
+            p.support_radius = Some(radius);
+        }
+        if let Some(s) = self.surfel_source {
+            p.source = s;
+        }
+        p.detail = Detail::Fixed;
         if let Some(k) = self.steps {
             p.refine.steps = k;
         }
@@ -80,7 +93,8 @@ impl MeshArgs {
             p.grid.calibration = c;
         }
         p.grid.memory_budget = super::memory_budget();
-        p
+        p.validate()?;
+        Ok(p)
     }
 }
 
@@ -189,7 +203,7 @@ pub fn mesh_command(args: &MeshArgs) -> Result<(), Error> {
         src.frame,
         src.radius,
     )?;
-    let mut pipeline = Pipeline::new(args.params(radius))?;
+    let mut pipeline = Pipeline::new(args.params(radius)?)?;
     let view = fluid_surfels::ParticleView::of_positions(&particles.positions);
     let report = mesh_frame(
         &mut pipeline,
@@ -213,9 +227,10 @@ fn mesh_sequence(args: &MeshArgs, pattern: &FramePattern) -> Result<(), Error> {
         radius,
         ..
     } = super::prepare_sequence(&args.source, &args.outputs, pattern, "mesh")?;
+    let params = args.params(radius)?;
     let stage = stage_of(args, out.as_ref(), &sequence.frames)?;
     let run = sequence.run_warm(
-        || Pipeline::new(args.params(radius)),
+        || Pipeline::new(params.clone()),
         |pipeline, f| {
             let particles = super::read_particles(&pattern.path(f), args.source.format)?;
             pipeline.warm_up(&particles, Through::Surfels)
