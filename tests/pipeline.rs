@@ -416,6 +416,11 @@ fn pipeline_params_load_from_one_toml_with_the_scene() {
     let e =
         PipelineParams::from_toml_str("[grid]\ncells = 3", std::path::Path::new(".")).unwrap_err();
     assert!(e.contains("cells"), "{e}");
+    // one line, naming the table (toml's escaped line break no longer printed as `\n`)
+    assert!(
+        e.contains("in `grid`") && !e.contains('\\') && !e.contains('\n'),
+        "{e}"
+    );
     let e = PipelineParams::from_toml_str("[lihgt]\nx = 1", std::path::Path::new(".")).unwrap_err();
     assert!(e.contains("lihgt"), "{e}");
     // a misspelt key in any table is refused, never silently left at its default

@@ -410,12 +410,8 @@ impl PipelineParams {
         let (ours, theirs): (toml::Table, toml::Table) = table
             .into_iter()
             .partition(|(k, _)| PIPELINE_KEYS.contains(&k.as_str()));
-        let mut params: Self = ours
-            .try_into()
-            .map_err(|e: toml::de::Error| e.to_string())?;
-        params.scene = theirs
-            .try_into()
-            .map_err(|e: toml::de::Error| e.to_string())?;
+        let mut params: Self = ours.try_into().map_err(|e| one_line(&e))?;
+        params.scene = theirs.try_into().map_err(|e| one_line(&e))?;
         params.scene.resolve_paths(base);
         Ok(params)
     }
@@ -492,6 +488,17 @@ impl PipelineParams {
         self.surface.validate()?;
         Ok(())
     }
+}
+
+/// A table's deserialisation error on one line: toml writes where the key lies after an
+/// escaped line break (`unknown field ..., expected ...\nin `grid`\n`), which the command line
+/// printed as the two characters `\n`.
+fn one_line(e: &toml::de::Error) -> String {
+    e.to_string()
+        .replace("\\n", " ")
+        .split_whitespace()
+        .collect::<Vec<_>>()
+        .join(" ")
 }
 
 /// Errors of the pipeline's own settings (each stage has its own error type besides).
