@@ -236,7 +236,9 @@ mod tests {
     #[test]
     fn fused_bands_equal_two_whole_passes() {
         // disks on a unit sphere (Fibonacci points, overlapping), and a smaller sphere in
-        // front partly hiding it
+        // front partly hiding it (built here as `scenes::surfel_sphere` builds its sphere:
+        // `scenes` imports `splat`, and `splat` importing it back, even in a test, is the
+        // cycle tests/pipeline.rs refuses)
         let sphere = |n: usize, scale: f32, centre: Vec3| -> Vec<Surfel> {
             let golden = std::f32::consts::PI * (3.0 - 5.0f32.sqrt());
             let radius = 0.9 * (4.0 * std::f32::consts::PI / n as f32).sqrt() * scale;
