@@ -1,12 +1,16 @@
-// The boundary calibration's weights on the GPU (issue 37): the twin of
-// `pipeline::boundary::boundary_weights` (src/pipeline/boundary/mod.rs derives the rule). Each
-// refined point ("sheet" point) j gets the weight w_j that puts the density at its target,
-// half a spacing out along its normal, at the iso-value, solved by Jacobi steps from w = 1; a
-// lone point gets the weight of a ball of one particle's volume, blended by how alone it is.
-// The points are binned as the gather pass bins them (`BinnedPoints`), each carrying its index
-// in the chain's order (interior particles first, then the sheet), so that a sum tells the two
-// apart and reads a sheet point's current weight. Sums are written, not blended: no atomics,
-// the order of the terms fixed by the bins, so runs are reproducible.
+// The boundary calibration on the GPU (issue 37): the twin of `pipeline::boundary`
+// (src/pipeline/boundary/mod.rs derives the rule). Every point carries two weights, `split`:
+// its share in the interior (x) and its own weight as a sheet point (y), the sheet's weight
+// multiplied by the w_j solved here. Each sheet point j gets the w_j that puts the density at
+// its target, half a spacing out along its normal, at the iso-value, solved by Jacobi steps
+// from w = 1; a lone point gets the weight of a ball of one particle's volume, blended by how
+// alone it is. Given the leading `particles` points as the particles themselves (with their
+// classes), `thin_pass` and `factors_pass` first find the split: how flat and exposed each
+// particle's neighbourhood is (a sheet one particle thick), how buried each point is
+// (`chain_input_at_boundary`'s factors); the CPU then uploads no weight at all. The points are
+// binned as the gather pass bins them (`BinnedPoints`), each carrying its index in the
+// chain's order. Sums are written, not blended: no atomics, the order of the terms fixed by the
+// bins, so runs are reproducible.
 
 struct WeightParams {
     // the bins' origin and side, their counts and the bins searched on each side
@@ -18,27 +22,36 @@ struct WeightParams {
     // 1: cubic spline)
     constant: f32,
     kernel: u32,
-    // interior points (indices below), sheet points (indices from `interior` on)
-    interior: u32,
-    sheet: u32,
+    // the leading points that are the particles, whose factors `thin_pass` and `factors_pass`
+    // find (0: the split is given); all points
+    particles: u32,
+    count: u32,
     // half a spacing, the iso-value, a lone ball's radius squared, the largest weight
     half_spacing: f32,
     tau: f32,
     lone_r2: f32,
     max_weight: f32,
+    // the burial's distance and the half width of its smoothsteps, in spacings (`BURIED`,
+    // `BAND`)
+    buried: f32,
+    band: f32,
+    _pad0: f32,
+    _pad1: f32,
 }
 
-// `RawPoint` with the index it keeps in its padding
+// `RawPoint` with the index it keeps in its padding; from `load_split` on, `weight` and
+// `sheet` hold its split (interior share and sheet weight) until `apply` writes its weight in
+// the density
 struct IndexedPoint {
     at: vec4<f32>,
     weight: f32,
     index: u32,
-    pad0: u32,
+    sheet: f32,
     pad1: u32,
 }
 
-// a sheet point: position and kernel radius (w); outward normal (zero: none) and its own
-// weight (w)
+// a point as a sheet point: position and kernel radius (w); outward normal (zero: none; the
+// particles' found by `thin_pass`), w unused
 struct SheetPoint {
     at: vec4<f32>,
     normal: vec4<f32>,
@@ -61,9 +74,10 @@ struct Target {
 @group(0) @binding(4) var<storage, read_write> targets: array<Target>;
 @group(0) @binding(5) var<storage, read> w_in: array<f32>;
 @group(0) @binding(6) var<storage, read_write> w_out: array<f32>;
+@group(0) @binding(8) var<storage, read> split: array<vec2<f32>>;
 
-// The densities at x of the interior points (x) and of the sheet points (y), these with their
-// own weights times the current `w_in` when `weighted`.
+// The densities at x of the interior (x) and of the sheet (y), the sheet's weights times the
+// current `w_in` when `weighted` (the points' split loaded into them, `load_split`).
 fn sums(x: vec3<f32>, weighted: bool) -> vec2<f32> {
     let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
     let lo = range.lo;
@@ -77,40 +91,48 @@ fn sums(x: vec3<f32>, weighted: bool) -> vec2<f32> {
             let end = bin_start[row + u32(hi.x) + 1u];
             for (var n = first; n < end; n++) {
                 let p = points[n];
+                if p.weight == 0.0 && p.sheet == 0.0 {
+                    continue;
+                }
                 let d = x - p.at.xyz;
                 let r2 = d.x * d.x + (d.y * d.y + d.z * d.z);
                 let k = density_kernel_r2(r2, p.at.w, params.constant, params.kernel);
-                if p.index < params.interior {
-                    inner += p.weight * k;
-                } else {
-                    var w = p.weight;
-                    if weighted {
-                        w *= w_in[p.index - params.interior];
-                    }
-                    outer += w * k;
+                inner += p.weight * k;
+                var w = p.sheet;
+                if weighted && w != 0.0 {
+                    w *= w_in[p.index];
                 }
+                outer += w * k;
             }
         }
     }
     return vec2<f32>(inner, outer);
 }
 
-// the sheet point of an invocation (rows of 65,535 workgroups of 64)
-fn sheet_index(id: vec3<u32>) -> u32 {
+// the point of an invocation (rows of 65,535 workgroups of 64)
+fn point_index(id: vec3<u32>) -> u32 {
     return id.x + id.y * 65535u * 64u;
 }
 
-// Per sheet point: its target, how alone it is (1 - the other points' density at it over its
-// own peak, in [0, 1]), its lone ball's weight and the interior's density at the target.
+// Per sheet point (a point whose sheet weight is not 0): its target, how alone it is (1 - the
+// other points' density at it over its own peak, in [0, 1]), its lone ball's weight and the
+// interior's density at the target.
 @compute @workgroup_size(64)
 fn targets_pass(@builtin(global_invocation_id) id: vec3<u32>) {
-    let j = sheet_index(id);
-    if j >= params.sheet {
+    let j = point_index(id);
+    if j >= params.count {
         return;
     }
+    // the Jacobi steps start from w = 1 (the first step's `w_in`, bound here as `w_out`)
+    w_out[j] = 1.0;
+    let base = split[j].y;
     let s = sheet[j];
     let x = s.at.xyz;
-    let base = s.normal.w;
+    if base <= 0.0 {
+        // no sheet point: its weight multiplies 0 (the steps leave it as it is)
+        targets[j] = Target(vec4<f32>(x, 0.0), 1.0, 0.0, 0.0, 0.0);
+        return;
+    }
     let own = base * density_kernel_r2(0.0, s.at.w, params.constant, params.kernel);
     let at_x = sums(x, false);
     // the CPU adds the interior only while the others are under the point's own term: alone is
@@ -133,16 +155,19 @@ fn targets_pass(@builtin(global_invocation_id) id: vec3<u32>) {
         alone = 1.0;
     }
     targets[j] = Target(vec4<f32>(at, alone), lone, sums(at, false).x, 0.0, 0.0);
-    // the Jacobi steps start from w = 1 (the first step's `w_in`, bound here as `w_out`)
-    w_out[j] = 1.0;
 }
 
 // One Jacobi step: the sheet's density at each target with the weights `w_in`, each weight
 // scaled so that the target holds the iso-value less the interior's share there.
 @compute @workgroup_size(64)
 fn step(@builtin(global_invocation_id) id: vec3<u32>) {
-    let j = sheet_index(id);
-    if j >= params.sheet {
+    let j = point_index(id);
+    if j >= params.count {
+        return;
+    }
+    let w = w_in[j];
+    if split[j].y <= 0.0 {
+        w_out[j] = w;
         return;
     }
     let t = targets[j];
@@ -151,7 +176,6 @@ fn step(@builtin(global_invocation_id) id: vec3<u32>) {
         w_out[j] = t.lone;
         return;
     }
-    let w = w_in[j];
     let sheet_sum = sums(t.at.xyz, true).y;
     let want = max(params.tau - t.inside, 0.0);
     var boundary = w;
@@ -164,16 +188,293 @@ fn step(@builtin(global_invocation_id) id: vec3<u32>) {
 // the binned points again, written (`apply` alone binds them so)
 @group(0) @binding(7) var<storage, read_write> binned_rw: array<IndexedPoint>;
 
-// Per binned point: a sheet point's weight in the density becomes its own times its solved one
-// (`w_in`), in place, before the grid is filled from the same points.
+// Per binned point: its split read into it (`weight` and `sheet`), where the sums read it in
+// the order of the bins (reading `split` by index there cost lavapipe a fifth more time).
+@compute @workgroup_size(64)
+fn load_split(@builtin(global_invocation_id) id: vec3<u32>) {
+    let n = point_index(id);
+    if n >= params.count {
+        return;
+    }
+    let s = split[binned_rw[n].index];
+    binned_rw[n].weight = s.x;
+    binned_rw[n].sheet = s.y;
+}
+
+// Per binned point (or another copy of the points that keeps their indices): its weight in
+// the density becomes its interior share plus its sheet weight times its solved w (`w_in`),
+// in place, before the grid is filled from the same points.
 @compute @workgroup_size(64)
 fn apply(@builtin(global_invocation_id) id: vec3<u32>) {
-    let n = sheet_index(id);
-    if n >= params.interior + params.sheet {
+    let n = point_index(id);
+    if n >= params.count {
         return;
     }
     let index = binned_rw[n].index;
-    if index >= params.interior {
-        binned_rw[n].weight *= w_in[index - params.interior];
+    let s = split[index];
+    binned_rw[n].weight = s.x + s.y * w_in[index];
+}
+
+// The particles' factors (`chain_input_at_boundary`): the sheet points' normals and the split,
+// written (`thin_pass` and `factors_pass` alone bind them so), each particle's surface normal
+// and class (w: 0 interior, 1 surface, 2 isolated), and each particle's share in a sheet one
+// particle thick.
+@group(0) @binding(9) var<storage, read_write> sheet_rw: array<SheetPoint>;
+@group(0) @binding(10) var<storage, read_write> split_rw: array<vec2<f32>>;
+@group(0) @binding(11) var<storage, read> classes: array<vec4<f32>>;
+@group(0) @binding(12) var<storage, read_write> share: array<f32>;
+
+// The particles lead the binned points of each bin (the bins keep the points' order), so the
+// loops over particles below read each bin only up to its first other point: at three steps
+// the refined points outnumber the particles 15 to 1. Every query lies within 1.45 spacings
+// of the point the bins are searched around (the burial's reach, 0.95 spacings, from a target
+// half a spacing out), inside the bins' reach of the particles' support radius (two spacings).
+
+// One particle's term of the burial (`Fluid::burial`): near(|p - t|) far(|p - x|), `near`
+// falling from 1 to 0 and `far` rising from 0 to 1 over `buried` +- `band` spacings.
+fn burial_term(p: vec3<f32>, x: vec3<f32>, t: vec3<f32>) -> f32 {
+    let s = 2.0 * params.half_spacing;
+    let lo = (params.buried - params.band) * s;
+    let hi = (params.buried + params.band) * s;
+    return (1.0 - smoothstep(lo, hi, distance(p, t))) * smoothstep(lo, hi, distance(p, x));
+}
+
+// The unit normal of n, zero when n has no direction (`normalize_or_zero`).
+fn unit_or_zero(n: vec3<f32>) -> vec3<f32> {
+    let len = length(n);
+    if !(len > 0.0) || len > 3.0e38 {
+        return vec3<f32>(0.0);
+    }
+    return n / len;
+}
+
+// At x with outward normal n: how buried x is (x: the largest burial term over the particles,
+// 0 without a normal), how buried it is towards -n (y), and the particles' `share` averaged
+// around x (z: weights (1 - d^2 / h^2)^3 over the particles within h, two spacings;
+// `Fluid::average`, 0 where none is) when `average`.
+fn burial_and_average(x: vec3<f32>, n_in: vec3<f32>, average: bool) -> vec3<f32> {
+    let n = unit_or_zero(n_in);
+    let has_normal = any(n != vec3<f32>(0.0));
+    let t_up = x + n * params.half_spacing;
+    let t_down = x - n * params.half_spacing;
+    let h2 = 16.0 * params.half_spacing * params.half_spacing;
+    let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
+    var up = 0.0;
+    var down = 0.0;
+    var sum = 0.0;
+    var total = 0.0;
+    for (var bz = range.lo.z; bz <= range.hi.z; bz++) {
+        for (var by = range.lo.y; by <= range.hi.y; by++) {
+            let row = (u32(bz) * params.bins.y + u32(by)) * params.bins.x;
+            for (var bx = u32(range.lo.x); bx <= u32(range.hi.x); bx++) {
+                let end = bin_start[row + bx + 1u];
+                for (var m = bin_start[row + bx]; m < end; m++) {
+                    let p = points[m];
+                    if p.index >= params.particles {
+                        break;
+                    }
+                    if has_normal {
+                        up = max(up, burial_term(p.at.xyz, x, t_up));
+                        down = max(down, burial_term(p.at.xyz, x, t_down));
+                    }
+                    if average {
+                        let d = p.at.xyz - x;
+                        let q = 1.0 - dot(d, d) / h2;
+                        if q > 0.0 {
+                            let w = q * q * q;
+                            sum += w * share[p.index];
+                            total += w;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    var mean = 0.0;
+    if total > 0.0 {
+        mean = sum / total;
+    }
+    return vec3<f32>(up, down, mean);
+}
+
+// The eigenvalues of the symmetric matrix `m` (rows a00 a01 a02 / a11 a12 / a22) in ascending
+// order (x <= y <= z) and the eigenvector of the smallest, by cyclic Jacobi rotations
+// (`linalg::symmetric_eigen`, in f32 here).
+struct Eigen {
+    values: vec3<f32>,
+    smallest: vec3<f32>,
+}
+
+fn symmetric_eigen(m: mat3x3<f32>) -> Eigen {
+    var a = m;
+    var v = mat3x3<f32>(vec3<f32>(1.0, 0.0, 0.0), vec3<f32>(0.0, 1.0, 0.0), vec3<f32>(0.0, 0.0, 1.0));
+    for (var sweep = 0; sweep < 16; sweep++) {
+        let off = abs(a[1][0]) + abs(a[2][0]) + abs(a[2][1]);
+        let scale = abs(a[0][0]) + abs(a[1][1]) + abs(a[2][2]);
+        if off <= 1.0e-7 * scale || off == 0.0 {
+            break;
+        }
+        for (var r = 0; r < 3; r++) {
+            var p = 0;
+            var q = 1;
+            if r == 1 {
+                q = 2;
+            } else if r == 2 {
+                p = 1;
+                q = 2;
+            }
+            let apq = a[q][p];
+            if apq == 0.0 {
+                continue;
+            }
+            let theta = (a[q][q] - a[p][p]) / (2.0 * apq);
+            var t = 1.0;
+            if theta != 0.0 {
+                t = sign(theta) / (abs(theta) + sqrt(theta * theta + 1.0));
+            }
+            let c = 1.0 / sqrt(t * t + 1.0);
+            let s = t * c;
+            // a <- a G (columns p and q), then G^T a (rows p and q); v <- v G
+            for (var k = 0; k < 3; k++) {
+                let akp = a[p][k];
+                let akq = a[q][k];
+                a[p][k] = c * akp - s * akq;
+                a[q][k] = s * akp + c * akq;
+            }
+            for (var k = 0; k < 3; k++) {
+                let apk = a[k][p];
+                let aqk = a[k][q];
+                a[k][p] = c * apk - s * aqk;
+                a[k][q] = s * apk + c * aqk;
+            }
+            let vp = v[p];
+            let vq = v[q];
+            v[p] = c * vp - s * vq;
+            v[q] = s * vp + c * vq;
+        }
+    }
+    // sorted by value: i0 the smallest, i2 the largest
+    let d = vec3<f32>(a[0][0], a[1][1], a[2][2]);
+    var i0 = 0;
+    if d[1] < d[i0] {
+        i0 = 1;
+    }
+    if d[2] < d[i0] {
+        i0 = 2;
+    }
+    var i2 = (i0 + 1) % 3;
+    for (var k = 0; k < 3; k++) {
+        if k != i0 && d[k] > d[i2] {
+            i2 = k;
+        }
+    }
+    let i1 = 3 - i0 - i2;
+    return Eigen(vec3<f32>(d[i0], d[i1], d[i2]), normalize(v[i0]));
+}
+
+// Particle i's sheet normal and how flat its neighbourhood is (`Fluid::flat_normal`): the
+// smallest-eigenvalue eigenvector of the covariance of the particles within two spacings, and
+// 1 when that eigenvalue is under 5 % of the next, 0 over 15 %; zero when fewer than 4 or the
+// neighbourhood is a line. The normal points up (+y), else +x, else +z.
+fn flat_normal(x: vec3<f32>) -> vec4<f32> {
+    let h = 4.0 * params.half_spacing;
+    let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
+    var n = 0.0;
+    var sum = vec3<f32>(0.0);
+    var outer = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    for (var bz = range.lo.z; bz <= range.hi.z; bz++) {
+        for (var by = range.lo.y; by <= range.hi.y; by++) {
+            let row = (u32(bz) * params.bins.y + u32(by)) * params.bins.x;
+            for (var bx = u32(range.lo.x); bx <= u32(range.hi.x); bx++) {
+                let end = bin_start[row + bx + 1u];
+                for (var m = bin_start[row + bx]; m < end; m++) {
+                    let p = points[m];
+                    if p.index >= params.particles {
+                        break;
+                    }
+                    let d = p.at.xyz - x;
+                    if dot(d, d) < h * h {
+                        n += 1.0;
+                        sum += d;
+                        outer += mat3x3<f32>(d * d.x, d * d.y, d * d.z);
+                    }
+                }
+            }
+        }
+    }
+    if n < 4.0 {
+        return vec4<f32>(0.0);
+    }
+    let mean = sum / n;
+    let cov = outer - mat3x3<f32>(mean * mean.x, mean * mean.y, mean * mean.z) * n;
+    let e = symmetric_eigen(cov);
+    if !(e.values.y > 0.0) {
+        return vec4<f32>(0.0);
+    }
+    let flat = 1.0 - smoothstep(0.05, 0.15, e.values.x / e.values.y);
+    let v = e.smallest;
+    var up = v.z;
+    if abs(v.y) > 1.0e-3 {
+        up = v.y;
+    } else if abs(v.x) > 1.0e-3 {
+        up = v.x;
+    }
+    if !(flat > 0.0) {
+        return vec4<f32>(0.0);
+    }
+    return vec4<f32>(v * select(-1.0, 1.0, up >= 0.0), flat);
+}
+
+// Per particle: its share in a sheet one particle thick, exposed on both sides of its plane
+// (how flat times how little buried on either side), and that sheet's normal on its sheet
+// point (zero when it is none).
+@compute @workgroup_size(64)
+fn thin_pass(@builtin(global_invocation_id) id: vec3<u32>) {
+    let i = point_index(id);
+    if i >= params.particles {
+        return;
+    }
+    let x = sheet_rw[i].at.xyz;
+    var s = 0.0;
+    var normal = vec3<f32>(0.0);
+    if classes[i].w != 2.0 {
+        let f = flat_normal(x);
+        if f.w > 0.0 {
+            let sides = burial_and_average(x, f.xyz, false);
+            s = f.w * (1.0 - max(sides.x, sides.y));
+            if s > 0.0 {
+                normal = f.xyz;
+            } else {
+                s = 0.0;
+            }
+        }
+    }
+    share[i] = s;
+    sheet_rw[i].normal = vec4<f32>(normal, 0.0);
+}
+
+// Per point, after `thin_pass`: a particle's interior share (1 inside, a surface particle's
+// burial, 0 isolated; less its share in a thin sheet) and its sheet weight (that share); a
+// sheet point's weight, how little it is buried times how little a thin sheet is around it.
+@compute @workgroup_size(64)
+fn factors_pass(@builtin(global_invocation_id) id: vec3<u32>) {
+    let n = point_index(id);
+    if n >= params.count {
+        return;
+    }
+    let x = sheet_rw[n].at.xyz;
+    if n < params.particles {
+        let c = classes[n];
+        var inner = 1.0;
+        if c.w == 1.0 {
+            inner = burial_and_average(x, c.xyz, false).x;
+        } else if c.w == 2.0 {
+            inner = 0.0;
+        }
+        split_rw[n] = vec2<f32>(inner * (1.0 - share[n]), share[n]);
+    } else {
+        let b = burial_and_average(x, sheet_rw[n].normal.xyz, true);
+        let kept = (1.0 - b.x) * (1.0 - b.z);
+        split_rw[n] = vec2<f32>(0.0, max(kept, 0.0));
     }
 }

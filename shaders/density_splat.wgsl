@@ -45,11 +45,20 @@ fn vs_main(
     // two triangles over the square [x - r, x + r] x [y - r, y + r] of the instance's radius r,
     // in framebuffer pixels where grid point i sits at the centre of pixel i
     let corners = array<vec2<f32>, 6>(vec2(-1.0, -1.0), vec2(1.0, -1.0), vec2(1.0, 1.0), vec2(-1.0, -1.0), vec2(1.0, 1.0), vec2(-1.0, 1.0));
+    var out: VertexOut;
+    if weight == 0.0 {
+        // a point that adds nothing (the boundary calibration weighs the particles it draws
+        // by their refined points, and a buried point, 0): its square outside the target, no
+        // fragment drawn (the same sums: it adds 0 to each)
+        out.position = vec4<f32>(-2.0, -2.0, 0.0, 1.0);
+        out.centre = particle;
+        out.weight = 0.0;
+        return out;
+    }
     let c = corners[vertex];
     let world = particle.xy + c * particle.w;
     let pixel = (world - params.origin.xy) / params.spacing + vec2<f32>(0.5, 0.5);
     let ndc = vec2<f32>(pixel.x / params.dims.x * 2.0 - 1.0, 1.0 - pixel.y / params.dims.y * 2.0);
-    var out: VertexOut;
     out.position = vec4<f32>(ndc, 0.0, 1.0);
     out.centre = particle;
     out.weight = weight;

@@ -150,7 +150,7 @@ fn twins() -> Vec<Twin> {
             pipeline::boundary::gpu::SHADER,
             "WeightParams",
             std::mem::size_of::<RawWeightParams>(),
-            fields!(RawWeightParams; bin_origin, bin_size, bins, reach, constant, kernel, interior, sheet, half_spacing, tau, lone_r2, max_weight),
+            fields!(RawWeightParams; bin_origin, bin_size, bins, reach, constant, kernel, particles, count, half_spacing, tau, lone_r2, max_weight, buried, band),
         ),
         (
             "boundary_weights.wgsl",
@@ -1868,6 +1868,164 @@ fn gpu_pipeline_on_the_gpu_draws_the_real_files_as_the_cpu() {
     assert!(
         bytes[1] < bytes[0] && bytes[3] < bytes[2],
         "grid bytes dense, sparse: {bytes:?}"
+    );
+}
+
+/// The boundary calibration's factors found on the GPU (`boundary_factors_gpu`: which particles
+/// form a sheet one particle thick and its normal, each particle's interior share, how much of
+/// each sheet point is kept) and the weights solved after them, against the CPU's
+/// (`boundary_factors`, `chain_input_at_boundary` then its solve), point by point: the chain at
+/// two steps and the raw-particle source on the double dam break (whose floor is a sheet one
+/// particle thick), and a slab of two layers beside a layer of one and a lone particle.
+#[test]
+fn gpu_boundary_factors_equal_the_cpus() {
+    use fluid_surfels::pipeline::SurfelSource;
+    use fluid_surfels::pipeline::boundary::{self, Sheet};
+    use fluid_surfels::surface::ParticleClass;
+    use glam::Vec3;
+    let Some(ctx) = gpu::context_or_skip("gpu_boundary_factors_equal_the_cpus").unwrap() else {
+        return;
+    };
+    let mut slab = Vec::new();
+    for i in 0..14 {
+        for j in 0..14 {
+            for k in 0..2 {
+                slab.push(Vec3::new(i as f32, k as f32, j as f32) * 0.1);
+            }
+            slab.push(Vec3::new(i as f32 * 0.1 + 2.0, 0.0, j as f32 * 0.1));
+        }
+    }
+    slab.push(Vec3::new(5.0, 1.0, 0.0));
+    let mut checked_thin = 0;
+    for (name, positions, source) in [
+        (
+            "double dam break, chain",
+            double_dam_break(),
+            SurfelSource::Chain,
+        ),
+        (
+            "double dam break, particles",
+            double_dam_break(),
+            SurfelSource::Particles,
+        ),
+        ("slabs of two and one layers", slab, SurfelSource::Chain),
+    ] {
+        let set = fluid_surfels::ParticleSet::from_positions(positions);
+        let mut params = PipelineParams {
+            detail: pipeline::Detail::Fixed,
+            ..Default::default()
+        };
+        params.refine.steps = 2;
+        let frame = Pipeline::new(params.clone())
+            .unwrap()
+            .frame_through(&set, Through::Refine)
+            .unwrap();
+        let h = frame.radius;
+        let (kernel, tau) = (params.grid.kernel, 0.75 * params.grid.kernel.peak(h));
+        let gathered;
+        let radii;
+        let sheet = match source {
+            SurfelSource::Particles => {
+                let outer = pipeline::refined_indices(&frame.surface, &set.positions);
+                gathered = pipeline::gather(&set, &frame.surface, &outer);
+                radii = vec![h; outer.len()];
+                Sheet {
+                    positions: &gathered.0,
+                    normals: &gathered.1,
+                    radii: &radii,
+                }
+            }
+            _ => Sheet::refined(frame.refined.as_ref().unwrap()),
+        };
+        let cpu = boundary::boundary_factors(&set.positions, &frame.surface, sheet, h).unwrap();
+        let gpu = boundary::gpu::boundary_factors_gpu(
+            &ctx,
+            &set.positions,
+            &frame.surface,
+            sheet,
+            h,
+            kernel,
+            tau,
+        )
+        .unwrap();
+        let n = set.len();
+        assert_eq!(gpu.split.len(), n + sheet.positions.len());
+        // the factors, point by point
+        let mut worst = [0.0f32; 3];
+        let mut worst_angle = 0.0f32;
+        let mut thin = 0;
+        for i in 0..n {
+            let share = cpu.thin[i].map_or(0.0, |(_, s)| s);
+            worst[0] = worst[0].max((share - gpu.split[i][1]).abs());
+            worst[1] = worst[1].max((cpu.inner[i] - gpu.split[i][0]).abs());
+            if let Some((normal, s)) = cpu.thin[i]
+                && s > 1e-3
+                && gpu.split[i][1] > 1e-3
+            {
+                thin += 1;
+                worst_angle = worst_angle.max(normal.angle_between(gpu.thin_normals[i]));
+            }
+        }
+        for (j, kept) in cpu.kept.iter().enumerate() {
+            worst[2] = worst[2].max((kept - gpu.split[n + j][1]).abs());
+        }
+        // the weights in the density: the CPU's compacted points mapped back to the particles
+        // and the sheet
+        let solved = boundary::chain_input_at_boundary(&set.positions, &frame.surface, sheet, h)
+            .unwrap()
+            .solve(h, kernel, tau)
+            .unwrap()
+            .weights;
+        let mut expected = vec![0.0f32; n + sheet.positions.len()];
+        let mut k = 0;
+        for (i, &inner) in cpu.inner.iter().enumerate() {
+            if inner > 0.0 {
+                expected[i] += solved[k];
+                k += 1;
+            }
+        }
+        for (i, t) in cpu.thin.iter().enumerate() {
+            if t.is_some() {
+                expected[i] += solved[k];
+                k += 1;
+            }
+        }
+        for (j, &kept) in cpu.kept.iter().enumerate() {
+            if kept > 0.0 {
+                expected[n + j] = solved[k];
+                k += 1;
+            }
+        }
+        assert_eq!(k, solved.len());
+        let worst_weight = expected
+            .iter()
+            .zip(&gpu.weights)
+            .map(|(a, b)| (a - b).abs() / a.abs().max(1.0))
+            .fold(0.0f32, f32::max);
+        let classes = [
+            ParticleClass::Interior,
+            ParticleClass::Surface,
+            ParticleClass::Isolated,
+        ]
+        .map(|c| frame.surface.classes.iter().filter(|&&k| k == c).count());
+        println!(
+            "{name}: {n} particles {classes:?}, {} sheet points, {thin} in a thin sheet; GPU within {:.1e} (shares), {:.1e} (interior), {:.1e} (kept), {:.1e} rad (normals), {worst_weight:.1e} (weights) of the CPU's",
+            sheet.positions.len(),
+            worst[0],
+            worst[1],
+            worst[2],
+            worst_angle
+        );
+        checked_thin += thin;
+        for (what, w) in ["shares", "interior shares", "kept"].iter().zip(worst) {
+            assert!(w < 1e-3, "{name}: {what} {w}");
+        }
+        assert!(worst_angle < 1e-3, "{name}: {worst_angle} rad");
+        assert!(worst_weight < 1e-3, "{name}: weights {worst_weight}");
+    }
+    assert!(
+        checked_thin > 100,
+        "{checked_thin} particles in thin sheets"
     );
 }
 

@@ -3,8 +3,9 @@
 //! `prepare` runs the frame's work and records its GPU passes into the caller's encoder, `render`
 //! draws the finished frame into the caller's render pass, `resize` follows the window.
 //!
-//! What runs where: surface detection and upsampling run on the CPU (the [`Pipeline`] inside),
-//! and so does the boundary calibration but for its weights' Jacobi solve, which runs on the GPU
+//! What runs where: surface detection and upsampling run on the CPU (the [`Pipeline`] inside);
+//! the boundary calibration runs on the GPU, its factors (the sheets one particle thick, how
+//! buried each point is) and its weights' Jacobi solve
 //! ([`crate::pipeline::boundary::gpu::WeightPasses`], into every copy of the points the grid is
 //! filled from: the binned points, and the splatting's copy sorted by z); the density grid is
 //! filled on the GPU ([`crate::density::gpu::GridFiller`]: the paper's splatting by default,
@@ -36,7 +37,9 @@ use crate::gpu::timer::StageTimer;
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::optics::gpu::{OpticsGpu, PreparedOptics};
 use crate::optics::{Stage, WaterShape};
-use crate::pipeline::boundary::gpu::{RawSheetPoint, WeightInput, WeightPasses};
+use crate::pipeline::boundary::gpu::{
+    RawSheetPoint, Split, WeightInput, WeightPasses, sheet_points,
+};
 use crate::splat::gpu::SplatRenderer;
 use crate::splat::water::GpuSurfels;
 use crate::splat::{Drawn, GpuWaterPass, WaterSurface};
@@ -113,8 +116,8 @@ pub struct GpuStageMs {
 struct GpuChain {
     filler: GridFiller,
     surfels: ResidentSurfels,
-    /// The boundary calibration's weights, solved where the grid is filled from the points
-    /// (with the gather pass: the splatting draws its own copy of the points).
+    /// The boundary calibration's factors and weights, found where the grid is filled from the
+    /// points (with the gather pass: the splatting draws its own copy of the points).
     weights: WeightPasses,
     /// The bytes of the last grid's values: every point's, or a sparse grid's evaluated
     /// blocks'.
@@ -249,11 +252,11 @@ impl GpuPipeline {
     }
 
     /// The stages the last [`GpuPipeline::prepare`] ran on the GPU (before the first, those it
-    /// will run), by name: `"calibration"` (the boundary weights' solve, with the boundary
-    /// calibration), `"density"` (the grid) and `"surfels"` when they run there
+    /// will run), by name: `"calibration"` (the boundary calibration's factors and weights,
+    /// with the boundary calibration), `"density"` (the grid) and `"surfels"` when they run there
     /// ([`GpuPipeline::surfels_on_gpu`]), `"splats"` (the water's splatting for the light's and
     /// the camera's views) and `"optics"` (caustics, refraction, reflection, the final image).
-    /// Detection and upsampling always run on the CPU, and so do the calibration's inputs.
+    /// Detection and upsampling always run on the CPU.
     #[must_use]
     pub fn gpu_stages(&self) -> &'static [&'static str] {
         self.stages
@@ -423,17 +426,28 @@ impl GpuPipeline {
         };
         let t = Instant::now();
         mark(encoder, 0);
-        // the sheet's weights: solved into the binned points before the fill
-        let sheet: Vec<RawSheetPoint> = input.solve.as_ref().map_or_else(Vec::new, |s| {
-            (s.interior..points.len())
-                .map(|j| RawSheetPoint {
-                    at: points.positions[j].extend(points.radius(j)).to_array(),
-                    normal: s.normals[j - s.interior]
-                        .extend(points.weight(j))
-                        .to_array(),
-                })
-                .collect()
-        });
+        // the calibration's factors and the sheet's weights: found in the binned points before
+        // the fill
+        let sheet: Vec<RawSheetPoint> = input
+            .solve
+            .as_ref()
+            .map_or_else(Vec::new, |s| sheet_points(&points, s.particles, &s.normals));
+        // a sparse grid: which blocks to fill, on the CPU (the LNM band of the points, their
+        // blocks), their values on the GPU
+        let mut spec = input.spec;
+        let layout = if sparse {
+            let band = super::sparse_band(&points)?;
+            let limit = params
+                .grid
+                .memory_budget
+                .min(crate::gpu::max_binding(device));
+            let (layout, warning) = sparse_layout_within(points, &mut spec, limit, &band)?;
+            frame.warnings.extend(warning);
+            frame.detail.cell = spec.spacing;
+            Some(layout)
+        } else {
+            None
+        };
         let weights = &mut chain.weights;
         let mut weights_made = 0;
         let mut solve = |encoder: &mut wgpu::CommandEncoder, copy: FillPoints<'_>| {
@@ -447,9 +461,11 @@ impl GpuPipeline {
                         encoder,
                         &WeightInput {
                             binned,
-                            origin: input.spec.origin,
-                            interior: s.interior,
+                            origin: spec.origin,
                             sheet: &sheet,
+                            split: Split::Found {
+                                classes: &s.classes,
+                            },
                             half_spacing: 0.5 * s.spacing,
                             tau: s.tau,
                             kernel,
@@ -462,31 +478,20 @@ impl GpuPipeline {
             weights_made = weights.created();
             Ok(())
         };
-        let grid = if sparse {
-            // which blocks to fill, on the CPU (the LNM band of the points, their blocks);
-            // their values on the GPU
-            let band = super::sparse_band(&points)?;
-            let limit = params
-                .grid
-                .memory_budget
-                .min(crate::gpu::max_binding(device));
-            let layout = crate::density::sparse_layout(points, &input.spec, limit, &band)?;
+        let grid = if let Some(layout) = &layout {
             let inside = super::sparse_inside(kernel, &params.surfels, points.h);
             chain.grid_bytes = layout.value_bytes();
             chain.filler.record_sparse_with(
                 &ctx,
                 encoder,
-                (points, &layout, inside, kernel),
+                (points, layout, inside, kernel),
                 Some(&mut solve),
             )?
         } else {
-            chain.grid_bytes = input.spec.bytes() as u64;
-            chain.filler.record_with(
-                &ctx,
-                encoder,
-                (points, &input.spec, kernel),
-                Some(&mut solve),
-            )?
+            chain.grid_bytes = spec.bytes() as u64;
+            chain
+                .filler
+                .record_with(&ctx, encoder, (points, &spec, kernel), Some(&mut solve))?
         };
         mark(encoder, 1);
         frame.timings.density_ms = ms(t);
@@ -506,7 +511,6 @@ impl GpuPipeline {
             ));
         }
         // with the paper's calibration the surface lies farther out: the grid's box bounds it
-        let spec = input.spec;
         frame.shape = self
             .cpu
             .grid_water_shape(particles.positions, &frame.surface, frame.radius, &spec)
@@ -815,6 +819,58 @@ impl GpuPipeline {
         self.draw_into(encoder, &target.create_view(&Default::default()));
         target
     }
+}
+
+/// The sparse layout of `points` on `spec` within `limit` bytes; where its evaluated blocks do
+/// not fit (the dense grid fits the budget, [`super::grid_for`], but a sparse one of a small or
+/// thin body evaluates blocks that overhang it, and the points' kernels that reach farther than
+/// the weights let them add nothing there), `spec` coarsened by steps of 5 % until they do,
+/// with a warning.
+fn sparse_layout_within(
+    points: crate::density::Points<'_>,
+    spec: &mut crate::density::GridSpec,
+    limit: u64,
+    band: &crate::lnm::NarrowBand,
+) -> Result<(crate::density::SparseLayout, Option<String>), Error> {
+    use crate::density::{DensityError, GridSpec, Resolution};
+    let first = *spec;
+    let mut needed = 0;
+    for _ in 0..200 {
+        match crate::density::sparse_layout(points, spec, limit, band) {
+            Ok(layout) => {
+                let warning = (spec.spacing != first.spacing).then(|| {
+                    let mib = |b: u128| b as f64 / (1u64 << 20) as f64;
+                    format!(
+                        "the sparse density grid's blocks at spacing {:.5} ({:.2} MiB) exceed the memory budget of {:.2} MiB; \
+                         coarsened to spacing {:.5} ({} x {} x {}): the surface loses detail finer than that (raise grid.memory_budget)",
+                        first.spacing,
+                        mib(needed),
+                        mib(u128::from(limit)),
+                        spec.spacing,
+                        spec.dims[0],
+                        spec.dims[1],
+                        spec.dims[2],
+                    )
+                });
+                return Ok((layout, warning));
+            }
+            Err(DensityError::TooLarge { bytes, .. }) => {
+                if needed == 0 {
+                    needed = bytes;
+                }
+                *spec = GridSpec::around(
+                    points.positions,
+                    points.max_radius(),
+                    Resolution::CellSize(spec.spacing * 1.05),
+                )?;
+            }
+            Err(e) => return Err(e.into()),
+        }
+    }
+    Ok((
+        crate::density::sparse_layout(points, spec, limit, band)?,
+        None,
+    ))
 }
 
 fn check_size((w, h): (u32, u32)) -> Result<(), Error> {

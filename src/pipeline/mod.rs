@@ -525,8 +525,8 @@ pub struct FrameTimings {
     pub detect_ms: f64,
     pub refine_ms: f64,
     /// The chain's points weighted so that the surface lies at the fluid's boundary
-    /// ([`Calibration::Boundary`]); in [`GpuPipeline`], whose GPU solves the weights, the CPU's
-    /// part alone (the points, their own weights and normals).
+    /// ([`Calibration::Boundary`]); in [`GpuPipeline`], whose GPU finds the weights, the CPU's
+    /// part alone (the points gathered in one list, the particles' classes).
     pub calibration_ms: f64,
     pub density_ms: f64,
     pub surfels_ms: f64,
@@ -1012,8 +1012,9 @@ impl Pipeline {
     }
 
     /// [`Pipeline::frame_to_grid`]; with `defer_weights` and the boundary calibration, the
-    /// sheet's weights are left to solve ([`GridInput::solve`], the points' weights their own:
-    /// [`GpuPipeline`] solves them on the GPU).
+    /// calibration's factors and the sheet's weights are left to find ([`GridInput::solve`]:
+    /// every particle, then every sheet point, with no weights; [`GpuPipeline`] finds them on
+    /// the GPU).
     pub(crate) fn frame_to_grid_with<'a>(
         &mut self,
         particles: ParticleView<'a>,
@@ -1031,7 +1032,7 @@ impl Pipeline {
                 let mut solve = None;
                 let (positions, radii, weights) =
                     if defer_weights && p.params.grid.calibration == Calibration::Boundary {
-                        let b = p.boundary_input(
+                        let b = p.boundary_layout(
                             source,
                             particles,
                             &frame.surface,
@@ -1039,12 +1040,13 @@ impl Pipeline {
                             frame.radius,
                         )?;
                         solve = Some(WeightSolve {
-                            interior: b.interior,
+                            particles: b.particles,
+                            classes: b.classes,
                             normals: b.normals,
                             spacing: b.spacing,
                             tau: p.iso_value(frame.radius),
                         });
-                        (Cow::Owned(b.positions), b.radii, b.base)
+                        (Cow::Owned(b.positions), b.radii, Vec::new())
                     } else {
                         p.density_points(
                             source,
@@ -1054,7 +1056,7 @@ impl Pipeline {
                             frame.radius,
                         )?
                     };
-                if !weights.is_empty() {
+                if !weights.is_empty() || solve.is_some() {
                     frame.timings.calibration_ms = ms(t);
                 }
                 let points = points_of(&positions, &radii, &weights, frame.radius);
@@ -1310,6 +1312,55 @@ impl Pipeline {
             )?);
         }
         let r = refined.expect("refined above");
+        self.check_boundary_steps(r, radius)?;
+        Ok(boundary::chain_input_at_boundary(
+            particles.positions,
+            surface,
+            boundary::Sheet::refined(r),
+            radius,
+        )?)
+    }
+
+    /// [`Pipeline::boundary_input`] before the factors are found: every particle, then every
+    /// point of the source's sheet (the refined points, or the surface and isolated
+    /// particles), for the factors and the weights found on the GPU.
+    fn boundary_layout(
+        &self,
+        source: SurfelSource,
+        particles: ParticleView<'_>,
+        surface: &Surface,
+        refined: Option<&Refined>,
+        radius: f32,
+    ) -> Result<boundary::BoundaryLayout, Error> {
+        if source == SurfelSource::Particles {
+            let outer = refined_indices(surface, particles.positions);
+            let (positions, normals) = gather(particles, surface, &outer);
+            let radii = vec![radius; outer.len()];
+            let sheet = boundary::Sheet {
+                positions: &positions,
+                normals: &normals,
+                radii: &radii,
+            };
+            return Ok(boundary::boundary_layout(
+                particles.positions,
+                surface,
+                sheet,
+                radius,
+            ));
+        }
+        let r = refined.expect("refined above");
+        self.check_boundary_steps(r, radius)?;
+        Ok(boundary::boundary_layout(
+            particles.positions,
+            surface,
+            boundary::Sheet::refined(r),
+            radius,
+        ))
+    }
+
+    /// The boundary calibration's refusal of the chain past 3 steps
+    /// ([`Pipeline::points_at_boundary`]).
+    fn check_boundary_steps(&self, r: &Refined, radius: f32) -> Result<(), Error> {
         let reach = self.params.refine.kernel_factor * r.final_radius;
         if reach < 0.5 * (0.5 * radius) * (1.0 - 1e-4) {
             return Err(Error::InvalidArgument {
@@ -1321,12 +1372,7 @@ impl Pipeline {
                 ),
             });
         }
-        Ok(boundary::chain_input_at_boundary(
-            particles.positions,
-            surface,
-            boundary::Sheet::refined(r),
-            radius,
-        )?)
+        Ok(())
     }
 
     /// The absolute iso-value of the density grid for the support radius `radius`:
@@ -2130,12 +2176,14 @@ pub struct GridInput<'a> {
     pub solve: Option<WeightSolve>,
 }
 
-/// The boundary calibration's weights of a [`GridInput`] left to solve: the sheet follows the
-/// `interior` leading points, with `normals`, the particles' `spacing` and the iso-value
-/// `tau`.
+/// The boundary calibration of a [`GridInput`] left to find where the grid is filled, its
+/// factors and its weights ([`boundary::BoundaryLayout`]): the sheet follows the `particles`
+/// leading points (each with its surface normal and class in `classes`), with `normals`, the
+/// particles' `spacing` and the iso-value `tau`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct WeightSolve {
-    pub interior: usize,
+    pub particles: usize,
+    pub classes: Vec<[f32; 4]>,
     pub normals: Vec<Vec3>,
     pub spacing: f32,
     pub tau: f32,

@@ -1,25 +1,29 @@
-//! The boundary calibration's weights on the GPU (issue 37): the twin of
-//! [`super::boundary_weights`], the largest CPU stage left in [`crate::pipeline::GpuPipeline`]'s
-//! `prepare` (54 of the game loop's 96 ms a frame on lavapipe's machine). The points are binned
-//! as the gather pass bins them ([`BinnedPoints`], each keeping its index), one pass finds each
-//! sheet point's target, how alone it is, its lone ball's weight and the interior's density at
-//! the target, and [`WEIGHT_STEPS`] Jacobi passes solve the weights, ping-ponging between two
-//! buffers. The sums run over the bins, not the CPU's cell grids, so the weights agree with the
-//! CPU's to rounding (`tests/gpu.rs` measures how closely), not bit for bit.
+//! The boundary calibration on the GPU (issue 37): the twin of [`super::boundary_weights`] and of
+//! the factors of [`super::chain_input_at_boundary`] (which particles form a sheet one
+//! particle thick, how buried each point is), the CPU stages that were left in
+//! [`crate::pipeline::GpuPipeline`]'s `prepare` (54, then 8.7 ms of the game loop's frame on
+//! lavapipe's machine). Every point carries two weights (its `split`): its share in the
+//! interior and its own weight as a sheet point, which the solved weight multiplies. Given the
+//! particles as the leading points ([`Split::Found`]), two passes find the split; the points
+//! are binned as the gather pass bins them ([`BinnedPoints`], each keeping its index), one pass
+//! finds each sheet point's target, how alone it is, its lone ball's weight and the interior's
+//! density at the target, and [`WEIGHT_STEPS`] Jacobi passes solve the weights, ping-ponging
+//! between two buffers. The sums run over the bins, not the CPU's cell grids, so the weights
+//! agree with the CPU's to rounding (`tests/gpu.rs` measures how closely), not bit for bit.
 //!
-//! [`WeightPasses::record`] records the passes into the caller's encoder, applies the weights
-//! to the binned points in place (the gather pass then fills the grid from them) and leaves
-//! the solved weights in a buffer (no read-back); [`boundary_weights_gpu`] reads them back, for
-//! tests and one-off use. `GpuPipeline` solves them so whenever its grid is gathered from the
-//! binned points (the sparse grid, or `gpu_method = "gather"`).
+//! [`WeightPasses::record`] records the passes into the caller's encoder, writes each binned
+//! point's weight in the density (the gather pass and the surfels then read them) and leaves
+//! the solved weights in a buffer (no read-back); [`boundary_weights_gpu`] and
+//! [`boundary_factors_gpu`] read them back, for tests and one-off use.
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
-use super::{LONE_RADIUS, MAX_WEIGHT, WEIGHT_STEPS};
+use super::{BAND, BURIED, LONE_RADIUS, MAX_WEIGHT, WEIGHT_STEPS};
 use crate::density::gpu::{BinnedPoints, GATHER_REACH, kernel_code, kernel_constant};
 use crate::density::{GridSpec, Kernel, Points, Resolution};
 use crate::gpu::{self, GpuContext, GpuError};
+use crate::surface::Surface;
 
 /// The WGSL of the passes.
 pub const SHADER: &str = concat!(
@@ -27,7 +31,7 @@ pub const SHADER: &str = concat!(
     include_str!("../../../shaders/boundary_weights.wgsl")
 );
 
-/// The passes' `WeightParams` uniform (64 bytes).
+/// The passes' `WeightParams` uniform (80 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 pub struct RawWeightParams {
@@ -37,18 +41,21 @@ pub struct RawWeightParams {
     pub reach: u32,
     pub constant: f32,
     pub kernel: u32,
-    pub interior: u32,
-    pub sheet: u32,
+    pub particles: u32,
+    pub count: u32,
     pub half_spacing: f32,
     pub tau: f32,
     pub lone_r2: f32,
     pub max_weight: f32,
+    pub buried: f32,
+    pub band: f32,
+    pub _pad: [f32; 2],
 }
 
-const _: () = assert!(std::mem::size_of::<RawWeightParams>() == 64);
+const _: () = assert!(std::mem::size_of::<RawWeightParams>() == 80);
 
-/// A sheet point as the passes read it (`SheetPoint`): position and kernel radius, outward
-/// normal (zero: none) and its own weight.
+/// A point as the passes read it (`SheetPoint`): position and kernel radius, outward normal
+/// (zero: none; a particle's found on the GPU with [`Split::Found`]), `w` unused.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 pub struct RawSheetPoint {
@@ -59,32 +66,52 @@ pub struct RawSheetPoint {
 /// Bytes of a `Target` (target and how alone, lone weight, interior density, padding).
 const TARGET_BYTES: u64 = 32;
 
+/// Where the points' split (interior share, sheet weight) comes from.
+#[derive(Clone, Copy, Debug)]
+pub enum Split<'a> {
+    /// Given per point.
+    Given(&'a [[f32; 2]]),
+    /// Found on the GPU: the leading `classes.len()` points are the particles themselves, with
+    /// their surface normals and classes ([`super::BoundaryLayout::classes`]); the rest are the sheet
+    /// ([`super::chain_input_at_boundary`]'s factors, uncompacted: a point it leaves out gets
+    /// the split `[0, 0]`).
+    Found { classes: &'a [[f32; 4]] },
+}
+
 /// The compute pipelines, built once per device, and their buffers, kept from frame to frame
 /// (grown when a frame needs more) with their bind groups (made anew only when a buffer they
 /// hold changes).
 pub struct WeightPasses {
+    thin: wgpu::ComputePipeline,
+    factors: wgpu::ComputePipeline,
+    load: wgpu::ComputePipeline,
     targets: wgpu::ComputePipeline,
     step: wgpu::ComputePipeline,
     apply: wgpu::ComputePipeline,
     uniform: wgpu::Buffer,
     sheet: gpu::Grow,
+    split: gpu::Grow,
+    classes: gpu::Grow,
+    share: gpu::Grow,
     target_buf: gpu::Grow,
     w: [gpu::Grow; 2],
-    /// The bind groups (targets, the steps from buffer a and from b, the application of the
-    /// result) and the binned buffers they hold.
-    binds: Option<([wgpu::Buffer; 2], [wgpu::BindGroup; 4])>,
+    /// The bind groups (the two factor passes, the split's load into the binned points,
+    /// targets, the steps from buffer a and from b, the application of the result) and the
+    /// binned buffers they hold.
+    binds: Option<([wgpu::Buffer; 2], [wgpu::BindGroup; 7])>,
     /// The application to another copy of the points ([`Self::apply_to`]) and that copy.
     copy_bind: Option<(wgpu::Buffer, wgpu::BindGroup)>,
     created: usize,
 }
 
-/// What [`WeightPasses::record`] solves for: the binned points (interior first in the chain's
-/// order, then the sheet, each keeping its index) over the box from `origin`, and the sheet.
+/// What [`WeightPasses::record`] solves for: the binned points (each keeping its index in the
+/// chain's order) over the box from `origin`, every point as a sheet point, and the split.
 pub struct WeightInput<'a> {
     pub binned: &'a BinnedPoints,
     pub origin: Vec3,
-    pub interior: usize,
+    /// Every point, in the chain's order: position and kernel radius, normal.
     pub sheet: &'a [RawSheetPoint],
+    pub split: Split<'a>,
     /// Half a particle spacing, the iso-value, the kernel and the reference radius.
     pub half_spacing: f32,
     pub tau: f32,
@@ -96,14 +123,24 @@ impl WeightPasses {
     /// Compiles the passes.
     #[must_use]
     pub fn new(device: &wgpu::Device) -> Self {
-        let [targets, step, apply] = gpu::compute_pipelines(
+        let [thin, factors, load, targets, step, apply] = gpu::compute_pipelines(
             device,
             "boundary weights",
             SHADER,
-            ["targets_pass", "step", "apply"],
+            [
+                "thin_pass",
+                "factors_pass",
+                "load_split",
+                "targets_pass",
+                "step",
+                "apply",
+            ],
         );
         let storage = wgpu::BufferUsages::STORAGE;
         Self {
+            thin,
+            factors,
+            load,
             targets,
             step,
             apply,
@@ -113,7 +150,10 @@ impl WeightPasses {
                 usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             }),
-            sheet: gpu::Grow::new("sheet points", storage),
+            sheet: gpu::Grow::new("sheet points", storage | wgpu::BufferUsages::COPY_SRC),
+            split: gpu::Grow::new("points' split", storage | wgpu::BufferUsages::COPY_SRC),
+            classes: gpu::Grow::new("particle classes", storage),
+            share: gpu::Grow::new("thin sheet shares", storage),
             target_buf: gpu::Grow::new("sheet targets", storage),
             w: [
                 gpu::Grow::new("sheet weights a", storage | wgpu::BufferUsages::COPY_SRC),
@@ -131,11 +171,19 @@ impl WeightPasses {
         self.created
     }
 
-    /// Records the passes into `encoder`, then the weights' application: each sheet point's
-    /// weight in `input.binned`'s points becomes its own times its solved one, in place (the
+    /// The points' split of the last [`Self::record`]: `[f32; 2]` a point (interior share,
+    /// sheet weight), in the chain's order.
+    #[must_use]
+    pub fn split(&self) -> &wgpu::Buffer {
+        self.split.buffer()
+    }
+
+    /// Records the passes into `encoder` (with [`Split::Found`], the two that find the split
+    /// first), then the weights' application: each binned point's weight in `input.binned`
+    /// becomes its interior share plus its sheet weight times its solved one, in place (the
     /// binned points must be those the grid is then filled from). The solved weights
-    /// themselves (`f32` per sheet point, in the sheet's order, their own weights not applied)
-    /// are left in the returned buffer.
+    /// themselves (`f32` a point, in the chain's order; 1 where the sheet weight is 0) are
+    /// left in the returned buffer.
     pub fn record(
         &mut self,
         (device, queue): (&wgpu::Device, &wgpu::Queue),
@@ -146,9 +194,29 @@ impl WeightPasses {
         let limit = gpu::max_binding(device);
         if (n as u64).max(1) * TARGET_BYTES > limit {
             return Err(GpuError::Validation(format!(
-                "{n} sheet points exceed the GPU's storage binding limit of {limit} bytes; use the CPU calibration"
+                "{n} points exceed the GPU's storage binding limit of {limit} bytes; use the CPU calibration"
             )));
         }
+        let particles = match input.split {
+            Split::Given(split) => {
+                if split.len() != n {
+                    return Err(GpuError::Validation(format!(
+                        "{} splits for {n} points: one a point",
+                        split.len()
+                    )));
+                }
+                0
+            }
+            Split::Found { classes } => {
+                if classes.len() > n {
+                    return Err(GpuError::Validation(format!(
+                        "{} particles' classes for {n} points: the particles lead the points",
+                        classes.len()
+                    )));
+                }
+                classes.len()
+            }
+        };
         let params = RawWeightParams {
             bin_origin: input.origin.to_array(),
             bin_size: input.binned.bin_size,
@@ -156,17 +224,34 @@ impl WeightPasses {
             reach: GATHER_REACH,
             constant: kernel_constant(input.kernel, input.h),
             kernel: kernel_code(input.kernel),
-            interior: input.interior as u32,
-            sheet: n as u32,
+            particles: particles as u32,
+            count: n as u32,
             half_spacing: input.half_spacing,
             tau: input.tau,
             lone_r2: (LONE_RADIUS * 2.0 * input.half_spacing).powi(2),
             max_weight: MAX_WEIGHT,
+            buried: BURIED,
+            band: BAND,
+            _pad: [0.0; 2],
         };
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&params));
+        let (split_made, classes_made) = match input.split {
+            Split::Given(split) => (
+                self.split.write(device, queue, bytemuck::cast_slice(split)),
+                self.classes.reserve(device, 16),
+            ),
+            Split::Found { classes } => (
+                self.split.reserve(device, n as u64 * 8),
+                self.classes
+                    .write(device, queue, bytemuck::cast_slice(classes)),
+            ),
+        };
         let made = [
             self.sheet
                 .write(device, queue, bytemuck::cast_slice(input.sheet)),
+            split_made,
+            classes_made,
+            self.share.reserve(device, particles as u64 * 4),
             self.target_buf.reserve(device, n as u64 * TARGET_BYTES),
             // the targets pass sets the first step's weights to 1
             self.w[0].reserve(device, n as u64 * 4),
@@ -176,38 +261,52 @@ impl WeightPasses {
         let key = [input.binned.points.clone(), input.binned.starts.clone()];
         if self.created > 0 || self.binds.as_ref().is_none_or(|(k, _)| *k != key) {
             self.binds = Some((key, self.bind_groups(device, input.binned)));
-            self.created += 4;
+            self.created += 7;
         }
         let binds = &self.binds.as_ref().expect("made above").1;
-        let groups = (n as u32).div_ceil(64).max(1);
-        let (gx, gy) = (groups.min(65_535), groups.div_ceil(65_535));
+        let groups = |count: usize| {
+            let g = (count as u32).div_ceil(64).max(1);
+            (g.min(65_535), g.div_ceil(65_535))
+        };
+        let (gx, gy) = groups(n);
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("boundary weights"),
             timestamp_writes: None,
         });
+        if particles > 0 {
+            let (px, py) = groups(particles);
+            pass.set_pipeline(&self.thin);
+            pass.set_bind_group(0, &binds[0], &[]);
+            pass.dispatch_workgroups(px, py, 1);
+            pass.set_pipeline(&self.factors);
+            pass.set_bind_group(0, &binds[1], &[]);
+            pass.dispatch_workgroups(gx, gy, 1);
+        }
+        pass.set_pipeline(&self.load);
+        pass.set_bind_group(0, &binds[2], &[]);
+        pass.dispatch_workgroups(gx, gy, 1);
+        let mut from = 0;
         pass.set_pipeline(&self.targets);
-        pass.set_bind_group(0, &binds[0], &[]);
+        pass.set_bind_group(0, &binds[3], &[]);
         pass.dispatch_workgroups(gx, gy, 1);
         pass.set_pipeline(&self.step);
-        let mut from = 0;
         for _ in 0..WEIGHT_STEPS {
-            pass.set_bind_group(0, &binds[1 + from], &[]);
+            pass.set_bind_group(0, &binds[4 + from], &[]);
             pass.dispatch_workgroups(gx, gy, 1);
             from = 1 - from;
         }
         // the application reads the last step's output: buffer `from` (b after an odd count)
         debug_assert_eq!(from, WEIGHT_STEPS as usize % 2);
-        let all = ((input.interior + n) as u32).div_ceil(64).max(1);
         pass.set_pipeline(&self.apply);
-        pass.set_bind_group(0, &binds[3], &[]);
-        pass.dispatch_workgroups(all.min(65_535), all.div_ceil(65_535), 1);
+        pass.set_bind_group(0, &binds[6], &[]);
+        pass.dispatch_workgroups(gx, gy, 1);
         drop(pass);
         Ok(self.w[from].buffer().clone())
     }
 
-    /// After [`Self::record`] in the same encoder: the solved weights applied to another copy of
-    /// the same points (`points`: [`RawPoint`](crate::density::gpu::RawPoint)s that keep their
-    /// index, as the splatting's copy sorted by z does), in place.
+    /// After [`Self::record`] in the same encoder: the weights in the density written into
+    /// another copy of the same points (`points`: [`RawPoint`](crate::density::gpu::RawPoint)s
+    /// that keep their index, as the splatting's copy sorted by z does), in place.
     pub fn apply_to(
         &mut self,
         device: &wgpu::Device,
@@ -228,11 +327,13 @@ impl WeightPasses {
                             .as_entire_binding(),
                     ),
                     (7, points.as_entire_binding()),
+                    (8, self.split.buffer().as_entire_binding()),
                 ],
             );
             self.copy_bind = Some((points.clone(), bind));
             self.created += 1;
         }
+        debug_assert!(count <= self.sheet.buffer().size() as usize / 32);
         let all = (count as u32).div_ceil(64).max(1);
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("boundary weights apply to a copy"),
@@ -243,16 +344,32 @@ impl WeightPasses {
         pass.dispatch_workgroups(all.min(65_535), all.div_ceil(65_535), 1);
     }
 
-    /// The passes' bind groups over this frame's buffers: the targets pass, a step from each
-    /// weights buffer into the other, the application of the last step's output.
-    fn bind_groups(&self, device: &wgpu::Device, binned: &BinnedPoints) -> [wgpu::BindGroup; 4] {
+    /// The passes' bind groups over this frame's buffers: the two factor passes, the split's
+    /// load, the targets pass, a step from each weights buffer into the other, the application
+    /// of the last step's output.
+    fn bind_groups(&self, device: &wgpu::Device, binned: &BinnedPoints) -> [wgpu::BindGroup; 7] {
         let uniform = self.uniform.as_entire_binding();
         let (points, starts) = (
             binned.points.as_entire_binding(),
             binned.starts.as_entire_binding(),
         );
         let targets = self.target_buf.buffer().as_entire_binding();
+        let split = self.split.buffer().as_entire_binding();
         let w = [self.w[0].buffer(), self.w[1].buffer()];
+        let factors = |pipeline: &wgpu::ComputePipeline, with_split: bool| {
+            let mut entries = vec![
+                (0, uniform.clone()),
+                (1, points.clone()),
+                (2, starts.clone()),
+                (9, self.sheet.buffer().as_entire_binding()),
+                (11, self.classes.buffer().as_entire_binding()),
+                (12, self.share.buffer().as_entire_binding()),
+            ];
+            if with_split {
+                entries.push((10, split.clone()));
+            }
+            gpu::bind_group(device, pipeline, &entries)
+        };
         let step = |from: usize| {
             gpu::bind_group(
                 device,
@@ -264,10 +381,22 @@ impl WeightPasses {
                     (4, targets.clone()),
                     (5, w[from].as_entire_binding()),
                     (6, w[1 - from].as_entire_binding()),
+                    (8, split.clone()),
                 ],
             )
         };
         [
+            factors(&self.thin, false),
+            factors(&self.factors, true),
+            gpu::bind_group(
+                device,
+                &self.load,
+                &[
+                    (0, uniform.clone()),
+                    (7, points.clone()),
+                    (8, split.clone()),
+                ],
+            ),
             gpu::bind_group(
                 device,
                 &self.targets,
@@ -280,6 +409,7 @@ impl WeightPasses {
                     // unread here (`sums` unweighted), bound apart from the buffer it fills
                     (5, w[1].as_entire_binding()),
                     (6, w[0].as_entire_binding()),
+                    (8, split.clone()),
                 ],
             ),
             step(0),
@@ -291,10 +421,38 @@ impl WeightPasses {
                     (0, uniform),
                     (5, w[WEIGHT_STEPS as usize % 2].as_entire_binding()),
                     (7, points),
+                    (8, split),
                 ],
             ),
         ]
     }
+}
+
+/// The sheet points as the passes read them: every point's position and kernel radius, and
+/// `normals[j]` for the points from `first` on (zero before; a non-finite normal is none).
+#[must_use]
+pub fn sheet_points(points: &Points<'_>, first: usize, normals: &[Vec3]) -> Vec<RawSheetPoint> {
+    (0..points.len())
+        .map(|j| {
+            let nj = j.checked_sub(first).map_or(Vec3::ZERO, |k| normals[k]);
+            let nj = if nj.is_finite() { nj } else { Vec3::ZERO };
+            RawSheetPoint {
+                at: points.positions[j].extend(points.radius(j)).to_array(),
+                normal: nj.extend(0.0).to_array(),
+            }
+        })
+        .collect()
+}
+
+/// The bins of [`boundary_weights_gpu`] and [`boundary_factors_gpu`]: over the points' box
+/// padded by the largest radius (the targets, half a spacing out, lie inside it).
+fn bins_of(
+    ctx: &GpuContext,
+    points: &Points<'_>,
+) -> Result<(BinnedPoints, GridSpec), crate::Error> {
+    let reach = points.max_radius();
+    let spec = GridSpec::around(points.positions, reach, Resolution::CellSize(reach))?;
+    Ok((BinnedPoints::new(&ctx.device, points, &spec)?, spec))
 }
 
 /// [`super::boundary_weights`] on the GPU of `ctx`, read back: the weights of every point (the
@@ -321,19 +479,14 @@ pub fn boundary_weights_gpu(
     if n == interior {
         return Ok(base);
     }
-    // the bins over the points' box padded by the largest radius (the targets, half a spacing
-    // out, lie inside it)
-    let reach = points.max_radius();
-    let spec = GridSpec::around(points.positions, reach, Resolution::CellSize(reach))?;
-    let binned = BinnedPoints::new(&ctx.device, &points, &spec)?;
-    let sheet: Vec<RawSheetPoint> = (interior..n)
+    let (binned, spec) = bins_of(ctx, &points)?;
+    let sheet = sheet_points(&points, interior, normals);
+    let split: Vec<[f32; 2]> = (0..n)
         .map(|j| {
-            let x = points.positions[j];
-            let nj = normals[j - interior];
-            let nj = if nj.is_finite() { nj } else { Vec3::ZERO };
-            RawSheetPoint {
-                at: x.extend(points.radius(j)).to_array(),
-                normal: nj.extend(base[j]).to_array(),
+            if j < interior {
+                [base[j], 0.0]
+            } else {
+                [0.0, base[j]]
             }
         })
         .collect();
@@ -345,8 +498,8 @@ pub fn boundary_weights_gpu(
         &WeightInput {
             binned: &binned,
             origin: spec.origin,
-            interior,
             sheet: &sheet,
+            split: Split::Given(&split),
             half_spacing: 0.5 * spacing,
             tau,
             kernel,
@@ -356,8 +509,75 @@ pub fn boundary_weights_gpu(
     ctx.queue.submit([encoder.finish()]);
     let w: Vec<f32> = gpu::read_buffer(ctx, &solved)?;
     let mut out = base;
-    for (o, w) in out[interior..].iter_mut().zip(&w) {
-        *o *= w;
+    for (j, o) in out.iter_mut().enumerate().skip(interior) {
+        *o *= w[j];
     }
     Ok(out)
+}
+
+/// The factors of [`super::chain_input_at_boundary`] found on the GPU of `ctx`, with the
+/// weights solved after them, read back: per particle (`particles`, classed by `surface`) and
+/// per sheet point (`sheet`, support radius `h`) the split `[interior share, sheet weight]`
+/// and the weight in the density (the interior share plus the sheet weight times the solved
+/// one), in the order particles then sheet; and each particle's thin-sheet normal (zero where
+/// it is in no sheet one particle thick).
+pub fn boundary_factors_gpu(
+    ctx: &GpuContext,
+    particles: &[Vec3],
+    surface: &Surface,
+    sheet: super::Sheet<'_>,
+    h: f32,
+    kernel: Kernel,
+    tau: f32,
+) -> Result<GpuFactors, crate::Error> {
+    let layout = super::boundary_layout(particles, surface, sheet, h);
+    let points = Points::with_radii(&layout.positions, &layout.radii, h);
+    points.check()?;
+    let (binned, spec) = bins_of(ctx, &points)?;
+    let raw = sheet_points(&points, layout.particles, &layout.normals);
+    let mut passes = WeightPasses::new(&ctx.device);
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    let solved = passes.record(
+        (&ctx.device, &ctx.queue),
+        &mut encoder,
+        &WeightInput {
+            binned: &binned,
+            origin: spec.origin,
+            sheet: &raw,
+            split: Split::Found {
+                classes: &layout.classes,
+            },
+            half_spacing: 0.5 * layout.spacing,
+            tau,
+            kernel,
+            h,
+        },
+    )?;
+    ctx.queue.submit([encoder.finish()]);
+    let n = raw.len();
+    let split: Vec<[f32; 2]> = gpu::read_buffer(ctx, passes.split())?;
+    let w: Vec<f32> = gpu::read_buffer(ctx, &solved)?;
+    let sheet_read: Vec<RawSheetPoint> = gpu::read_buffer(ctx, passes.sheet.buffer())?;
+    let split = split[..n].to_vec();
+    let weights = (0..n).map(|j| split[j][0] + split[j][1] * w[j]).collect();
+    let thin_normals = sheet_read[..layout.particles]
+        .iter()
+        .map(|p| Vec3::new(p.normal[0], p.normal[1], p.normal[2]))
+        .collect();
+    Ok(GpuFactors {
+        split,
+        weights,
+        thin_normals,
+    })
+}
+
+/// What [`boundary_factors_gpu`] reads back.
+#[derive(Clone, Debug, Default)]
+pub struct GpuFactors {
+    /// `[interior share, sheet weight]` a point: the particles, then the sheet.
+    pub split: Vec<[f32; 2]>,
+    /// Each point's weight in the density.
+    pub weights: Vec<f32>,
+    /// Each particle's thin-sheet normal (zero: in no sheet one particle thick).
+    pub thin_normals: Vec<Vec3>,
 }

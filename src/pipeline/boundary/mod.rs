@@ -456,6 +456,61 @@ pub fn chain_input_at_boundary(
     refined: Sheet<'_>,
     h: f32,
 ) -> Result<BoundaryInput, SurfelError> {
+    let Factors { thin, inner, kept } = boundary_factors(particles, surface, refined, h)?;
+    let mut positions = Vec::new();
+    let mut base = Vec::new();
+    for (i, &b) in inner.iter().enumerate() {
+        if b > 0.0 {
+            positions.push(particles[i]);
+            base.push(b);
+        }
+    }
+    let interior = positions.len();
+    let mut radii = vec![h; interior];
+    let mut normals = Vec::new();
+    for (i, t) in thin.iter().enumerate() {
+        if let Some((n, share)) = t {
+            positions.push(particles[i]);
+            radii.push(h);
+            normals.push(*n);
+            base.push(*share);
+        }
+    }
+    for j in (0..refined.positions.len()).filter(|&j| kept[j] > 0.0) {
+        positions.push(refined.positions[j]);
+        radii.push(refined.radii[j]);
+        normals.push(refined.normals[j]);
+        base.push(kept[j]);
+    }
+    Ok(BoundaryInput {
+        positions,
+        radii,
+        base,
+        interior,
+        normals,
+        spacing: 0.5 * h,
+    })
+}
+
+/// The factors of [`chain_input_at_boundary`] before its points are gathered: per particle
+/// its sheet one particle thick (normal and share, where it is in one) and its factor as an
+/// interior particle, per point of `refined` how much of it is kept (how little it is buried
+/// times how little a thin sheet is around it).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Factors {
+    pub thin: Vec<Option<(Vec3, f32)>>,
+    pub inner: Vec<f32>,
+    pub kept: Vec<f32>,
+}
+
+/// [`Factors`] of `particles` (classed by `surface`, support radius `h`) and the sheet
+/// `refined`.
+pub fn boundary_factors(
+    particles: &[Vec3],
+    surface: &crate::surface::Surface,
+    refined: Sheet<'_>,
+    h: f32,
+) -> Result<Factors, SurfelError> {
     use crate::surface::ParticleClass;
     let spacing = 0.5 * h;
     let fluid = Fluid::new(particles, spacing)?;
@@ -489,25 +544,6 @@ pub fn chain_input_at_boundary(
             }) * (1.0 - share[i])
         })
         .collect();
-    let mut positions = Vec::new();
-    let mut base = Vec::new();
-    for (i, &b) in inner.iter().enumerate() {
-        if b > 0.0 {
-            positions.push(particles[i]);
-            base.push(b);
-        }
-    }
-    let interior = positions.len();
-    let mut radii = vec![h; interior];
-    let mut normals = Vec::new();
-    for (i, t) in thin.iter().enumerate() {
-        if let Some((n, share)) = t {
-            positions.push(particles[i]);
-            radii.push(h);
-            normals.push(*n);
-            base.push(*share);
-        }
-    }
     // (the sheet's share around a refined point only where a thin sheet's particle lies within
     // the average's reach: elsewhere it is 0 exactly, and most points skip that neighbour loop
     // over every particle)
@@ -536,20 +572,58 @@ pub fn chain_input_at_boundary(
             (1.0 - fluid.burial(x, refined.normals[j])) * (1.0 - around)
         })
         .collect();
-    for j in (0..refined.positions.len()).filter(|&j| kept[j] > 0.0) {
-        positions.push(refined.positions[j]);
-        radii.push(refined.radii[j]);
-        normals.push(refined.normals[j]);
-        base.push(kept[j]);
-    }
-    Ok(BoundaryInput {
+    Ok(Factors { thin, inner, kept })
+}
+
+/// Every particle and every sheet point, uncompacted, for [`chain_input_at_boundary`]'s
+/// factors found where the weights are solved (on the GPU:
+/// `boundary::gpu::Split::Found`): the particles lead (support radius `h`), then the sheet.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct BoundaryLayout {
+    pub positions: Vec<Vec3>,
+    pub radii: Vec<f32>,
+    /// How many particles lead.
+    pub particles: usize,
+    /// Per particle its surface normal and class, `[nx, ny, nz, class]`: 0 interior, 1
+    /// surface, 2 isolated (a non-finite normal is zero).
+    pub classes: Vec<[f32; 4]>,
+    /// The sheet's outward normals (zero: none), one per sheet point.
+    pub normals: Vec<Vec3>,
+    /// The particles' spacing.
+    pub spacing: f32,
+}
+
+/// The [`BoundaryLayout`] of `particles` (classed by `surface`, support radius `h`) and the
+/// sheet `refined`.
+#[must_use]
+pub fn boundary_layout(
+    particles: &[Vec3],
+    surface: &crate::surface::Surface,
+    refined: Sheet<'_>,
+    h: f32,
+) -> BoundaryLayout {
+    let mut positions = Vec::with_capacity(particles.len() + refined.positions.len());
+    positions.extend_from_slice(particles);
+    positions.extend_from_slice(refined.positions);
+    let mut radii = vec![h; particles.len()];
+    radii.extend_from_slice(refined.radii);
+    let classes = surface
+        .classes
+        .iter()
+        .zip(&surface.normals)
+        .map(|(&c, &n)| {
+            let n = if n.is_finite() { n } else { Vec3::ZERO };
+            n.extend(f32::from(c as u8)).to_array()
+        })
+        .collect();
+    BoundaryLayout {
         positions,
         radii,
-        base,
-        interior,
-        normals,
-        spacing,
-    })
+        particles: particles.len(),
+        classes,
+        normals: refined.normals.to_vec(),
+        spacing: 0.5 * h,
+    }
 }
 
 /// The chain's points for the density grid before the sheet's weights are solved
