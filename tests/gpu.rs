@@ -1922,19 +1922,9 @@ fn gpu_boundary_factors_equal_the_cpus() {
             .unwrap();
         let h = frame.radius;
         let (kernel, tau) = (params.grid.kernel, 0.75 * params.grid.kernel.peak(h));
-        let gathered;
-        let radii;
+        let outer = boundary::OwnedSheet::of_particles(&set.positions, &frame.surface, h);
         let sheet = match source {
-            SurfelSource::Particles => {
-                let outer = pipeline::refined_indices(&frame.surface, &set.positions);
-                gathered = pipeline::gather(&set, &frame.surface, &outer);
-                radii = vec![h; outer.len()];
-                Sheet {
-                    positions: &gathered.0,
-                    normals: &gathered.1,
-                    radii: &radii,
-                }
-            }
+            SurfelSource::Particles => outer.sheet(),
             _ => Sheet::refined(frame.refined.as_ref().unwrap()),
         };
         let cpu = boundary::boundary_factors(&set.positions, &frame.surface, sheet, h).unwrap();

@@ -1304,26 +1304,18 @@ impl Pipeline {
         refined: Option<&Refined>,
         radius: f32,
     ) -> Result<boundary::BoundaryInput, Error> {
-        if source == SurfelSource::Particles {
-            return Ok(boundary::particle_input_at_boundary(
+        self.with_boundary_sheet(source, particles, surface, refined, radius, |sheet| {
+            Ok(boundary::chain_input_at_boundary(
                 particles.positions,
                 surface,
+                sheet,
                 radius,
-            )?);
-        }
-        let r = refined.expect("refined above");
-        self.check_boundary_steps(r, radius)?;
-        Ok(boundary::chain_input_at_boundary(
-            particles.positions,
-            surface,
-            boundary::Sheet::refined(r),
-            radius,
-        )?)
+            )?)
+        })
     }
 
     /// [`Pipeline::boundary_input`] before the factors are found: every particle, then every
-    /// point of the source's sheet (the refined points, or the surface and isolated
-    /// particles), for the factors and the weights found on the GPU.
+    /// point of the source's sheet, for the factors and the weights found on the GPU.
     fn boundary_layout(
         &self,
         source: SurfelSource,
@@ -1332,30 +1324,35 @@ impl Pipeline {
         refined: Option<&Refined>,
         radius: f32,
     ) -> Result<boundary::BoundaryLayout, Error> {
-        if source == SurfelSource::Particles {
-            let outer = refined_indices(surface, particles.positions);
-            let (positions, normals) = gather(particles, surface, &outer);
-            let radii = vec![radius; outer.len()];
-            let sheet = boundary::Sheet {
-                positions: &positions,
-                normals: &normals,
-                radii: &radii,
-            };
-            return Ok(boundary::boundary_layout(
+        self.with_boundary_sheet(source, particles, surface, refined, radius, |sheet| {
+            Ok(boundary::boundary_layout(
                 particles.positions,
                 surface,
                 sheet,
                 radius,
-            ));
+            ))
+        })
+    }
+
+    /// `f` of the boundary calibration's sheet for `source`: the surface and isolated
+    /// particles (the raw-particle source), or the refined points (the chain, refused past 3
+    /// steps).
+    fn with_boundary_sheet<T>(
+        &self,
+        source: SurfelSource,
+        particles: ParticleView<'_>,
+        surface: &Surface,
+        refined: Option<&Refined>,
+        radius: f32,
+        f: impl FnOnce(boundary::Sheet<'_>) -> Result<T, Error>,
+    ) -> Result<T, Error> {
+        if source == SurfelSource::Particles {
+            let outer = boundary::OwnedSheet::of_particles(particles.positions, surface, radius);
+            return f(outer.sheet());
         }
         let r = refined.expect("refined above");
         self.check_boundary_steps(r, radius)?;
-        Ok(boundary::boundary_layout(
-            particles.positions,
-            surface,
-            boundary::Sheet::refined(r),
-            radius,
-        ))
+        f(boundary::Sheet::refined(r))
     }
 
     /// The boundary calibration's refusal of the chain past 3 steps

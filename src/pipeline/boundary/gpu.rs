@@ -444,15 +444,40 @@ pub fn sheet_points(points: &Points<'_>, first: usize, normals: &[Vec3]) -> Vec<
         .collect()
 }
 
-/// The bins of [`boundary_weights_gpu`] and [`boundary_factors_gpu`]: over the points' box
-/// padded by the largest radius (the targets, half a spacing out, lie inside it).
-fn bins_of(
+/// The passes of [`boundary_weights_gpu`] and [`boundary_factors_gpu`] recorded once and
+/// submitted: `points` binned over their box padded by the largest radius (the targets, half
+/// a spacing out, lie inside it), each a sheet point with `normals` from point `first` on,
+/// with `split`; the passes (their buffers hold the split and the sheet) and the solved
+/// weights' buffer.
+fn solve_once(
     ctx: &GpuContext,
     points: &Points<'_>,
-) -> Result<(BinnedPoints, GridSpec), crate::Error> {
+    (first, normals): (usize, &[Vec3]),
+    split: Split<'_>,
+    (spacing, kernel, tau): (f32, Kernel, f32),
+) -> Result<(WeightPasses, wgpu::Buffer), crate::Error> {
     let reach = points.max_radius();
     let spec = GridSpec::around(points.positions, reach, Resolution::CellSize(reach))?;
-    Ok((BinnedPoints::new(&ctx.device, points, &spec)?, spec))
+    let binned = BinnedPoints::new(&ctx.device, points, &spec)?;
+    let sheet = sheet_points(points, first, normals);
+    let mut passes = WeightPasses::new(&ctx.device);
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    let solved = passes.record(
+        (&ctx.device, &ctx.queue),
+        &mut encoder,
+        &WeightInput {
+            binned: &binned,
+            origin: spec.origin,
+            sheet: &sheet,
+            split,
+            half_spacing: 0.5 * spacing,
+            tau,
+            kernel,
+            h: points.h,
+        },
+    )?;
+    ctx.queue.submit([encoder.finish()]);
+    Ok((passes, solved))
 }
 
 /// [`super::boundary_weights`] on the GPU of `ctx`, read back: the weights of every point (the
@@ -479,8 +504,6 @@ pub fn boundary_weights_gpu(
     if n == interior {
         return Ok(base);
     }
-    let (binned, spec) = bins_of(ctx, &points)?;
-    let sheet = sheet_points(&points, interior, normals);
     let split: Vec<[f32; 2]> = (0..n)
         .map(|j| {
             if j < interior {
@@ -490,23 +513,13 @@ pub fn boundary_weights_gpu(
             }
         })
         .collect();
-    let mut passes = WeightPasses::new(&ctx.device);
-    let mut encoder = ctx.device.create_command_encoder(&Default::default());
-    let solved = passes.record(
-        (&ctx.device, &ctx.queue),
-        &mut encoder,
-        &WeightInput {
-            binned: &binned,
-            origin: spec.origin,
-            sheet: &sheet,
-            split: Split::Given(&split),
-            half_spacing: 0.5 * spacing,
-            tau,
-            kernel,
-            h: points.h,
-        },
+    let (_, solved) = solve_once(
+        ctx,
+        &points,
+        (interior, normals),
+        Split::Given(&split),
+        (spacing, kernel, tau),
     )?;
-    ctx.queue.submit([encoder.finish()]);
     let w: Vec<f32> = gpu::read_buffer(ctx, &solved)?;
     let mut out = base;
     for (j, o) in out.iter_mut().enumerate().skip(interior) {
@@ -533,28 +546,16 @@ pub fn boundary_factors_gpu(
     let layout = super::boundary_layout(particles, surface, sheet, h);
     let points = Points::with_radii(&layout.positions, &layout.radii, h);
     points.check()?;
-    let (binned, spec) = bins_of(ctx, &points)?;
-    let raw = sheet_points(&points, layout.particles, &layout.normals);
-    let mut passes = WeightPasses::new(&ctx.device);
-    let mut encoder = ctx.device.create_command_encoder(&Default::default());
-    let solved = passes.record(
-        (&ctx.device, &ctx.queue),
-        &mut encoder,
-        &WeightInput {
-            binned: &binned,
-            origin: spec.origin,
-            sheet: &raw,
-            split: Split::Found {
-                classes: &layout.classes,
-            },
-            half_spacing: 0.5 * layout.spacing,
-            tau,
-            kernel,
-            h,
+    let (passes, solved) = solve_once(
+        ctx,
+        &points,
+        (layout.particles, &layout.normals),
+        Split::Found {
+            classes: &layout.classes,
         },
+        (layout.spacing, kernel, tau),
     )?;
-    ctx.queue.submit([encoder.finish()]);
-    let n = raw.len();
+    let n = points.len();
     let split: Vec<[f32; 2]> = gpu::read_buffer(ctx, passes.split())?;
     let w: Vec<f32> = gpu::read_buffer(ctx, &solved)?;
     let sheet_read: Vec<RawSheetPoint> = gpu::read_buffer(ctx, passes.sheet.buffer())?;

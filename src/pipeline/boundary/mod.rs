@@ -704,23 +704,45 @@ pub fn particle_input_at_boundary(
     surface: &crate::surface::Surface,
     h: f32,
 ) -> Result<BoundaryInput, SurfelError> {
-    let outer = super::refined_indices(surface, particles);
-    let (positions, normals) = super::gather(
-        crate::ParticleView::of_positions(particles),
-        surface,
-        &outer,
-    );
-    let radii = vec![h; outer.len()];
-    chain_input_at_boundary(
-        particles,
-        surface,
+    let outer = OwnedSheet::of_particles(particles, surface, h);
+    chain_input_at_boundary(particles, surface, outer.sheet(), h)
+}
+
+/// The raw-particle source's sheet, owned: the surface and isolated particles in the
+/// refinement's order (`refined_indices`) with their surface normals and the support radius.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct OwnedSheet {
+    pub positions: Vec<Vec3>,
+    pub normals: Vec<Vec3>,
+    pub radii: Vec<f32>,
+}
+
+impl OwnedSheet {
+    /// The surface and isolated particles of `particles` (classed by `surface`), radius `h`.
+    #[must_use]
+    pub fn of_particles(particles: &[Vec3], surface: &crate::surface::Surface, h: f32) -> Self {
+        let outer = super::refined_indices(surface, particles);
+        let (positions, normals) = super::gather(
+            crate::ParticleView::of_positions(particles),
+            surface,
+            &outer,
+        );
+        Self {
+            positions,
+            normals,
+            radii: vec![h; outer.len()],
+        }
+    }
+
+    /// The sheet's view.
+    #[must_use]
+    pub fn sheet(&self) -> Sheet<'_> {
         Sheet {
-            positions: &positions,
-            normals: &normals,
-            radii: &radii,
-        },
-        h,
-    )
+            positions: &self.positions,
+            normals: &self.normals,
+            radii: &self.radii,
+        }
+    }
 }
 
 /// The chain's points for the density grid: positions, kernel radii and weights.
