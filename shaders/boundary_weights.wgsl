@@ -39,14 +39,12 @@ struct WeightParams {
     _pad1: f32,
 }
 
-// `RawPoint` with the index it keeps in its padding; from `load_split` on, `weight` and
-// `sheet` hold its split (interior share and sheet weight) until `apply` writes its weight in
-// the density
+// `RawPoint` with the index it keeps in its padding
 struct IndexedPoint {
     at: vec4<f32>,
     weight: f32,
     index: u32,
-    sheet: f32,
+    pad0: u32,
     pad1: u32,
 }
 
@@ -77,7 +75,7 @@ struct Target {
 @group(0) @binding(8) var<storage, read> split: array<vec2<f32>>;
 
 // The densities at x of the interior (x) and of the sheet (y), the sheet's weights times the
-// current `w_in` when `weighted` (the points' split loaded into them, `load_split`).
+// current `w_in` when `weighted`.
 fn sums(x: vec3<f32>, weighted: bool) -> vec2<f32> {
     let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
     let lo = range.lo;
@@ -91,14 +89,15 @@ fn sums(x: vec3<f32>, weighted: bool) -> vec2<f32> {
             let end = bin_start[row + u32(hi.x) + 1u];
             for (var n = first; n < end; n++) {
                 let p = points[n];
-                if p.weight == 0.0 && p.sheet == 0.0 {
+                let s = split[p.index];
+                if s.x == 0.0 && s.y == 0.0 {
                     continue;
                 }
                 let d = x - p.at.xyz;
                 let r2 = d.x * d.x + (d.y * d.y + d.z * d.z);
                 let k = density_kernel_r2(r2, p.at.w, params.constant, params.kernel);
-                inner += p.weight * k;
-                var w = p.sheet;
+                inner += s.x * k;
+                var w = s.y;
                 if weighted && w != 0.0 {
                     w *= w_in[p.index];
                 }
@@ -187,19 +186,6 @@ fn step(@builtin(global_invocation_id) id: vec3<u32>) {
 
 // the binned points again, written (`apply` alone binds them so)
 @group(0) @binding(7) var<storage, read_write> binned_rw: array<IndexedPoint>;
-
-// Per binned point: its split read into it (`weight` and `sheet`), where the sums read it in
-// the order of the bins (reading `split` by index there cost lavapipe a fifth more time).
-@compute @workgroup_size(64)
-fn load_split(@builtin(global_invocation_id) id: vec3<u32>) {
-    let n = point_index(id);
-    if n >= params.count {
-        return;
-    }
-    let s = split[binned_rw[n].index];
-    binned_rw[n].weight = s.x;
-    binned_rw[n].sheet = s.y;
-}
 
 // Per binned point (or another copy of the points that keeps their indices): its weight in
 // the density becomes its interior share plus its sheet weight times its solved w (`w_in`),
@@ -297,81 +283,6 @@ fn burial_and_average(x: vec3<f32>, n_in: vec3<f32>, average: bool) -> vec3<f32>
     return vec3<f32>(up, down, mean);
 }
 
-// The eigenvalues of the symmetric matrix `m` (rows a00 a01 a02 / a11 a12 / a22) in ascending
-// order (x <= y <= z) and the eigenvector of the smallest, by cyclic Jacobi rotations
-// (`linalg::symmetric_eigen`, in f32 here).
-struct Eigen {
-    values: vec3<f32>,
-    smallest: vec3<f32>,
-}
-
-fn symmetric_eigen(m: mat3x3<f32>) -> Eigen {
-    var a = m;
-    var v = mat3x3<f32>(vec3<f32>(1.0, 0.0, 0.0), vec3<f32>(0.0, 1.0, 0.0), vec3<f32>(0.0, 0.0, 1.0));
-    for (var sweep = 0; sweep < 16; sweep++) {
-        let off = abs(a[1][0]) + abs(a[2][0]) + abs(a[2][1]);
-        let scale = abs(a[0][0]) + abs(a[1][1]) + abs(a[2][2]);
-        if off <= 1.0e-7 * scale || off == 0.0 {
-            break;
-        }
-        for (var r = 0; r < 3; r++) {
-            var p = 0;
-            var q = 1;
-            if r == 1 {
-                q = 2;
-            } else if r == 2 {
-                p = 1;
-                q = 2;
-            }
-            let apq = a[q][p];
-            if apq == 0.0 {
-                continue;
-            }
-            let theta = (a[q][q] - a[p][p]) / (2.0 * apq);
-            var t = 1.0;
-            if theta != 0.0 {
-                t = sign(theta) / (abs(theta) + sqrt(theta * theta + 1.0));
-            }
-            let c = 1.0 / sqrt(t * t + 1.0);
-            let s = t * c;
-            // a <- a G (columns p and q), then G^T a (rows p and q); v <- v G
-            for (var k = 0; k < 3; k++) {
-                let akp = a[p][k];
-                let akq = a[q][k];
-                a[p][k] = c * akp - s * akq;
-                a[q][k] = s * akp + c * akq;
-            }
-            for (var k = 0; k < 3; k++) {
-                let apk = a[k][p];
-                let aqk = a[k][q];
-                a[k][p] = c * apk - s * aqk;
-                a[k][q] = s * apk + c * aqk;
-            }
-            let vp = v[p];
-            let vq = v[q];
-            v[p] = c * vp - s * vq;
-            v[q] = s * vp + c * vq;
-        }
-    }
-    // sorted by value: i0 the smallest, i2 the largest
-    let d = vec3<f32>(a[0][0], a[1][1], a[2][2]);
-    var i0 = 0;
-    if d[1] < d[i0] {
-        i0 = 1;
-    }
-    if d[2] < d[i0] {
-        i0 = 2;
-    }
-    var i2 = (i0 + 1) % 3;
-    for (var k = 0; k < 3; k++) {
-        if k != i0 && d[k] > d[i2] {
-            i2 = k;
-        }
-    }
-    let i1 = 3 - i0 - i2;
-    return Eigen(vec3<f32>(d[i0], d[i1], d[i2]), normalize(v[i0]));
-}
-
 // Particle i's sheet normal and how flat its neighbourhood is (`Fluid::flat_normal`): the
 // smallest-eigenvalue eigenvector of the covariance of the particles within two spacings, and
 // 1 when that eigenvalue is under 5 % of the next, 0 over 15 %; zero when fewer than 4 or the
@@ -407,12 +318,13 @@ fn flat_normal(x: vec3<f32>) -> vec4<f32> {
     }
     let mean = sum / n;
     let cov = outer - mat3x3<f32>(mean * mean.x, mean * mean.y, mean * mean.z) * n;
-    let e = symmetric_eigen(cov);
+    // symmetric: its columns are its rows
+    let e = symmetric_eigen(cov[0], cov[1], cov[2]);
     if !(e.values.y > 0.0) {
         return vec4<f32>(0.0);
     }
     let flat = 1.0 - smoothstep(0.05, 0.15, e.values.x / e.values.y);
-    let v = e.smallest;
+    let v = e.least;
     var up = v.z;
     if abs(v.y) > 1.0e-3 {
         up = v.y;

@@ -1032,12 +1032,22 @@ impl Pipeline {
                 let mut solve = None;
                 let (positions, radii, weights) =
                     if defer_weights && p.params.grid.calibration == Calibration::Boundary {
-                        let b = p.boundary_layout(
+                        // every particle, then every sheet point: the factors and the
+                        // weights are found on the GPU
+                        let b = p.with_boundary_sheet(
                             source,
                             particles,
                             &frame.surface,
                             frame.refined.as_ref(),
                             frame.radius,
+                            |sheet| {
+                                Ok(boundary::boundary_layout(
+                                    particles.positions,
+                                    &frame.surface,
+                                    sheet,
+                                    frame.radius,
+                                ))
+                            },
                         )?;
                         solve = Some(WeightSolve {
                             particles: b.particles,
@@ -1290,47 +1300,11 @@ impl Pipeline {
         radius: f32,
     ) -> Result<boundary::ChainPoints, Error> {
         let (kernel, tau) = (self.params.grid.kernel, self.iso_value(radius));
-        Ok(self
-            .boundary_input(source, particles, surface, refined, radius)?
-            .solve(radius, kernel, tau)?)
-    }
-
-    /// [`Pipeline::points_at_boundary`] before the weights are solved.
-    fn boundary_input(
-        &self,
-        source: SurfelSource,
-        particles: ParticleView<'_>,
-        surface: &Surface,
-        refined: Option<&Refined>,
-        radius: f32,
-    ) -> Result<boundary::BoundaryInput, Error> {
         self.with_boundary_sheet(source, particles, surface, refined, radius, |sheet| {
-            Ok(boundary::chain_input_at_boundary(
-                particles.positions,
-                surface,
-                sheet,
-                radius,
-            )?)
-        })
-    }
-
-    /// [`Pipeline::boundary_input`] before the factors are found: every particle, then every
-    /// point of the source's sheet, for the factors and the weights found on the GPU.
-    fn boundary_layout(
-        &self,
-        source: SurfelSource,
-        particles: ParticleView<'_>,
-        surface: &Surface,
-        refined: Option<&Refined>,
-        radius: f32,
-    ) -> Result<boundary::BoundaryLayout, Error> {
-        self.with_boundary_sheet(source, particles, surface, refined, radius, |sheet| {
-            Ok(boundary::boundary_layout(
-                particles.positions,
-                surface,
-                sheet,
-                radius,
-            ))
+            Ok(
+                boundary::chain_input_at_boundary(particles.positions, surface, sheet, radius)?
+                    .solve(radius, kernel, tau)?,
+            )
         })
     }
 

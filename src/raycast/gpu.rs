@@ -14,7 +14,10 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::splat::{Camera, Light, Render, SplatParams, View};
 
 /// The WGSL source of the passes.
-pub const SHADER: &str = include_str!("../../shaders/raycast.wgsl");
+pub const SHADER: &str = concat!(
+    include_str!("../../shaders/eigen.wgsl"),
+    include_str!("../../shaders/raycast.wgsl")
+);
 
 /// Most cells all grids together may have (32 MiB of starts); a wider spread of points gets
 /// coarser cells (still correct: a query visits the 27 cells about it, each at least one reach

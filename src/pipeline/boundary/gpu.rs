@@ -28,6 +28,7 @@ use crate::surface::Surface;
 /// The WGSL of the passes.
 pub const SHADER: &str = concat!(
     include_str!("../../../shaders/common.wgsl"),
+    include_str!("../../../shaders/eigen.wgsl"),
     include_str!("../../../shaders/boundary_weights.wgsl")
 );
 
@@ -84,7 +85,6 @@ pub enum Split<'a> {
 pub struct WeightPasses {
     thin: wgpu::ComputePipeline,
     factors: wgpu::ComputePipeline,
-    load: wgpu::ComputePipeline,
     targets: wgpu::ComputePipeline,
     step: wgpu::ComputePipeline,
     apply: wgpu::ComputePipeline,
@@ -95,10 +95,9 @@ pub struct WeightPasses {
     share: gpu::Grow,
     target_buf: gpu::Grow,
     w: [gpu::Grow; 2],
-    /// The bind groups (the two factor passes, the split's load into the binned points,
-    /// targets, the steps from buffer a and from b, the application of the result) and the
-    /// binned buffers they hold.
-    binds: Option<([wgpu::Buffer; 2], [wgpu::BindGroup; 7])>,
+    /// The bind groups (the two factor passes, targets, the steps from buffer a and from b,
+    /// the application of the result) and the binned buffers they hold.
+    binds: Option<([wgpu::Buffer; 2], [wgpu::BindGroup; 6])>,
     /// The application to another copy of the points ([`Self::apply_to`]) and that copy.
     copy_bind: Option<(wgpu::Buffer, wgpu::BindGroup)>,
     created: usize,
@@ -123,24 +122,16 @@ impl WeightPasses {
     /// Compiles the passes.
     #[must_use]
     pub fn new(device: &wgpu::Device) -> Self {
-        let [thin, factors, load, targets, step, apply] = gpu::compute_pipelines(
+        let [thin, factors, targets, step, apply] = gpu::compute_pipelines(
             device,
             "boundary weights",
             SHADER,
-            [
-                "thin_pass",
-                "factors_pass",
-                "load_split",
-                "targets_pass",
-                "step",
-                "apply",
-            ],
+            ["thin_pass", "factors_pass", "targets_pass", "step", "apply"],
         );
         let storage = wgpu::BufferUsages::STORAGE;
         Self {
             thin,
             factors,
-            load,
             targets,
             step,
             apply,
@@ -261,7 +252,7 @@ impl WeightPasses {
         let key = [input.binned.points.clone(), input.binned.starts.clone()];
         if self.created > 0 || self.binds.as_ref().is_none_or(|(k, _)| *k != key) {
             self.binds = Some((key, self.bind_groups(device, input.binned)));
-            self.created += 7;
+            self.created += 6;
         }
         let binds = &self.binds.as_ref().expect("made above").1;
         let groups = |count: usize| {
@@ -282,23 +273,20 @@ impl WeightPasses {
             pass.set_bind_group(0, &binds[1], &[]);
             pass.dispatch_workgroups(gx, gy, 1);
         }
-        pass.set_pipeline(&self.load);
-        pass.set_bind_group(0, &binds[2], &[]);
-        pass.dispatch_workgroups(gx, gy, 1);
         let mut from = 0;
         pass.set_pipeline(&self.targets);
-        pass.set_bind_group(0, &binds[3], &[]);
+        pass.set_bind_group(0, &binds[2], &[]);
         pass.dispatch_workgroups(gx, gy, 1);
         pass.set_pipeline(&self.step);
         for _ in 0..WEIGHT_STEPS {
-            pass.set_bind_group(0, &binds[4 + from], &[]);
+            pass.set_bind_group(0, &binds[3 + from], &[]);
             pass.dispatch_workgroups(gx, gy, 1);
             from = 1 - from;
         }
         // the application reads the last step's output: buffer `from` (b after an odd count)
         debug_assert_eq!(from, WEIGHT_STEPS as usize % 2);
         pass.set_pipeline(&self.apply);
-        pass.set_bind_group(0, &binds[6], &[]);
+        pass.set_bind_group(0, &binds[5], &[]);
         pass.dispatch_workgroups(gx, gy, 1);
         drop(pass);
         Ok(self.w[from].buffer().clone())
@@ -333,7 +321,6 @@ impl WeightPasses {
             self.copy_bind = Some((points.clone(), bind));
             self.created += 1;
         }
-        debug_assert!(count <= self.sheet.buffer().size() as usize / 32);
         let all = (count as u32).div_ceil(64).max(1);
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("boundary weights apply to a copy"),
@@ -344,10 +331,10 @@ impl WeightPasses {
         pass.dispatch_workgroups(all.min(65_535), all.div_ceil(65_535), 1);
     }
 
-    /// The passes' bind groups over this frame's buffers: the two factor passes, the split's
-    /// load, the targets pass, a step from each weights buffer into the other, the application
-    /// of the last step's output.
-    fn bind_groups(&self, device: &wgpu::Device, binned: &BinnedPoints) -> [wgpu::BindGroup; 7] {
+    /// The passes' bind groups over this frame's buffers: the two factor passes, the targets
+    /// pass, a step from each weights buffer into the other, the application of the last
+    /// step's output.
+    fn bind_groups(&self, device: &wgpu::Device, binned: &BinnedPoints) -> [wgpu::BindGroup; 6] {
         let uniform = self.uniform.as_entire_binding();
         let (points, starts) = (
             binned.points.as_entire_binding(),
@@ -388,15 +375,6 @@ impl WeightPasses {
         [
             factors(&self.thin, false),
             factors(&self.factors, true),
-            gpu::bind_group(
-                device,
-                &self.load,
-                &[
-                    (0, uniform.clone()),
-                    (7, points.clone()),
-                    (8, split.clone()),
-                ],
-            ),
             gpu::bind_group(
                 device,
                 &self.targets,
