@@ -39,14 +39,6 @@ struct WeightParams {
     _pad1: f32,
 }
 
-// `RawPoint` with the index it keeps in its padding
-struct IndexedPoint {
-    at: vec4<f32>,
-    weight: f32,
-    index: u32,
-    pad0: u32,
-    pad1: u32,
-}
 
 // a point as a sheet point: position and kernel radius (w); outward normal (zero: none; the
 // particles' found by `thin_pass`), w unused

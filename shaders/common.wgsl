@@ -29,6 +29,16 @@ struct Point {
     weight: f32,
 }
 
+// `Point` with the index `RawPoint` keeps in the first word of its padding (the passes that
+// tell the points apart: boundary_weights.wgsl; bin_sort.wgsl, whose copies keep it).
+struct IndexedPoint {
+    at: vec4<f32>,
+    weight: f32,
+    index: u32,
+    pad0: u32,
+    pad1: u32,
+}
+
 // The bins of the binned points (`BinnedPoints`) within `reach` bins of the bin holding x on
 // each side, clamped to the bins there are: the lowest and the highest (the gather pass and the
 // surfels' projection search them).

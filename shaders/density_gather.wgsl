@@ -1,6 +1,6 @@
 // Density grid by gathering (the compute-shader variant of Iwasaki et al. §4.1), each particle
 // weighted (the chain's boundary weights; 1 otherwise): the particles are
-// binned on the CPU into cubic bins of side >= (largest radius) / reach (sorted by bin, with the
+// binned (on the CPU, or on the GPU by bin_sort.wgsl) into cubic bins of side >= (largest radius) / reach (sorted by bin, with the
 // start of every bin), and one invocation per grid point of a group of planes sums the kernel of
 // each particle's own radius (measured against the reference radius h) over the particles
 // of the (2 reach + 1)^3 bins around it. Each row of bins is one contiguous range of the sorted

@@ -1,8 +1,11 @@
 // Density splatting, four z planes per pass (Iwasaki et al., §4.1): every particle of the
 // pass's z-cluster is drawn as a screen-aligned square covering its influence disk on the grid
 // plane; each fragment (one grid point in x, y) adds the particle's kernel value for the four
-// planes to the R, G, B and A channels of a float target with additive blending. Each instance
-// is (x, y, z, radius) and a weight: its square is its own radius wide, its kernel is measured
+// planes to the R, G, B and A channels of a float target with additive blending. The points are
+// sorted by slab of four planes on the GPU (src/density/bins.rs), and a pass draws the slabs
+// that reach its planes (`cs_draws` counts their points for its indirect draw; a point of them
+// farther than its radius from the planes adds exact zeros). Each instance is (x, y, z, radius)
+// and a weight: its square is its own radius wide, its kernel is measured
 // against the reference radius h (`constant` is h's), as the CPU path's `Kernel::weighted_r2`
 // does, times its weight (the boundary calibration's, issue 35; 1 otherwise).
 //
@@ -25,10 +28,14 @@ struct Params {
     // the pass's first plane and how many of its four lie in the grid (`cs_unpack`)
     first_plane: u32,
     plane_count: u32,
-    _pad: u32,
+    // the first slab of points the pass draws
+    first_slab: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
+// the points sorted by slab, and where each slab's points start
+@group(0) @binding(3) var<storage, read> instances: array<Point>;
+@group(0) @binding(4) var<storage, read> slab_start: array<u32>;
 
 struct VertexOut {
     @builtin(position) position: vec4<f32>,
@@ -39,9 +46,11 @@ struct VertexOut {
 @vertex
 fn vs_main(
     @builtin(vertex_index) vertex: u32,
-    @location(0) particle: vec4<f32>,
-    @location(1) weight: f32,
+    @builtin(instance_index) instance: u32,
 ) -> VertexOut {
+    let point = instances[slab_start[params.first_slab] + instance];
+    let particle = point.at;
+    let weight = point.weight;
     // two triangles over the square [x - r, x + r] x [y - r, y + r] of the instance's radius r,
     // in framebuffer pixels where grid point i sits at the centre of pixel i
     let corners = array<vec2<f32>, 6>(vec2(-1.0, -1.0), vec2(1.0, -1.0), vec2(1.0, 1.0), vec2(-1.0, -1.0), vec2(1.0, 1.0), vec2(-1.0, 1.0));
@@ -98,4 +107,15 @@ fn cs_unpack(@builtin(global_invocation_id) id: vec3<u32>) {
     for (var c = 0u; c < params.plane_count; c++) {
         grid_out[id.x + nx * (id.y + ny * (params.first_plane + c))] = v[c];
     }
+}
+
+// Each pass's indirect draw: 6 vertices for each point of its slabs, `slabs[g]` (first, last +
+// 1; one invocation a pass).
+@group(0) @binding(5) var<storage, read> slabs: array<vec2<u32>>;
+@group(0) @binding(6) var<storage, read_write> draws: array<vec4<u32>>;
+
+@compute @workgroup_size(1)
+fn cs_draws(@builtin(global_invocation_id) id: vec3<u32>) {
+    let s = slabs[id.x];
+    draws[id.x] = vec4<u32>(6u, slab_start[s.y] - slab_start[s.x], 0u, 0u);
 }

@@ -18,7 +18,7 @@ struct SurfelParams {
     // grid points along x, y, z; the iso-value
     dims: vec3<u32>,
     iso: f32,
-    // bins of the points (sorted by bin on the CPU): origin and side
+    // bins of the points (sorted by bin, src/density/bins.rs): origin and side
     bin_origin: vec3<f32>,
     bin_size: f32,
     // bins along x, y, z; bins searched on each side (bin_size * reach >= the largest radius)
@@ -75,8 +75,6 @@ struct Surfel {
 // a sparse grid's block states (x fastest): empty (0xffffffff, every value 0), inside
 // (0xfffffffe, every value `inside`) or the slot of the block's values in `grid`
 @group(0) @binding(7) var<storage, read> states: array<u32>;
-
-var<workgroup> scan: array<u32, 256>;
 
 fn point_count() -> u32 {
     return params.dims.x * params.dims.y * params.dims.z;
@@ -149,27 +147,6 @@ fn crossing_mask(p: u32) -> u32 {
     return m;
 }
 
-// The inclusive prefix sum of `value` over the workgroup (Hillis and Steele); every invocation
-// of the workgroup calls it.
-fn workgroup_scan(local: u32, value: u32) -> u32 {
-    scan[local] = value;
-    workgroupBarrier();
-    for (var offset = 1u; offset < 256u; offset <<= 1u) {
-        var add = 0u;
-        if local >= offset {
-            add = scan[local - offset];
-        }
-        workgroupBarrier();
-        scan[local] += add;
-        workgroupBarrier();
-    }
-    return scan[local];
-}
-
-// The block a workgroup of the two-dimensional dispatch handles.
-fn block_of(wg: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return wg.x + wg.y * groups.x;
-}
 
 @compute @workgroup_size(256)
 fn count(

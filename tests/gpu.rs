@@ -38,7 +38,7 @@ fn twins() -> Vec<Twin> {
             gpu_density::SHADER,
             "Params",
             std::mem::size_of::<RawParams>(),
-            fields!(RawParams; origin, spacing, dims, h, constant, planes, kernel, first_plane, plane_count),
+            fields!(RawParams; origin, spacing, dims, h, constant, planes, kernel, first_plane, plane_count, first_slab),
         ),
         (
             "surfels.wgsl",
@@ -158,6 +158,13 @@ fn twins() -> Vec<Twin> {
             "SheetPoint",
             std::mem::size_of::<RawSheetPoint>(),
             fields!(RawSheetPoint; at, normal),
+        ),
+        (
+            "bin_sort.wgsl",
+            density::bins::SHADER,
+            "SortParams",
+            std::mem::size_of::<density::bins::RawSortParams>(),
+            fields!(density::bins::RawSortParams; origin, inv_size, bins, count, shift, groups, entries),
         ),
     ]
 }
@@ -2123,4 +2130,119 @@ fn gpu_boundary_weights_equal_the_cpus() {
             assert!(worst < 1e-4, "{name} ({kernel:?}): {worst}");
         }
     }
+}
+
+/// The points sorted by bin on the GPU (`density::bins::GpuBinSort`, in the frame's encoder)
+/// are the CPU's (`bin_particles`), bit for bit and in the same order within each bin, with the
+/// same bins' starts: on the double dam break's chain points at two steps (particles first,
+/// then the sheet: the particles must lead each bin), on points in one bin, on bins of more
+/// than 2^16 (three radix passes), on no point, and again on the same sort's buffers after a
+/// larger frame (nothing made anew).
+#[test]
+fn gpu_bin_sort_equals_the_cpus() {
+    use density::bins::{BinLayout, GpuBinSort, bin_particles};
+    use glam::Vec3;
+    let Some(ctx) = gpu::context_or_skip("gpu_bin_sort_equals_the_cpus").unwrap() else {
+        return;
+    };
+    let (chain, radii, h) = chain_like_points();
+    let particles = double_dam_break();
+    let mut ddb: Vec<Vec3> = particles.clone();
+    ddb.extend(chain.iter().map(|&p| p * 0.2 + Vec3::splat(0.1)));
+    let mut ddb_radii = vec![0.025; particles.len()];
+    ddb_radii.extend(radii.iter().map(|r| r * 0.2));
+    // a pseudo-random cloud over many small bins (keys above 2^16)
+    let mut seed = 12345u32;
+    let mut next = || {
+        seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+        (seed >> 8) as f32 / (1u32 << 24) as f32
+    };
+    let cloud: Vec<Vec3> = (0..40_000)
+        .map(|_| Vec3::new(next(), next(), next()))
+        .collect();
+    let cases: Vec<(&str, Vec<Vec3>, Vec<f32>, f32)> = vec![
+        (
+            "double dam break and a sheet",
+            ddb.clone(),
+            ddb_radii,
+            0.025,
+        ),
+        ("chain-like points", chain.clone(), radii.clone(), h),
+        (
+            "coincident points",
+            vec![Vec3::splat(0.5); 700],
+            vec![1.0; 700],
+            1.0,
+        ),
+        (
+            "a cloud of 2^18 bins",
+            cloud.clone(),
+            vec![0.008; cloud.len()],
+            0.008,
+        ),
+        ("no point", Vec::new(), Vec::new(), 0.1),
+    ];
+    let mut sort = GpuBinSort::new(&ctx.device);
+    let mut passes_seen = std::collections::BTreeSet::new();
+    for round in 0..2 {
+        for (name, positions, radii, h) in &cases {
+            let points = density::Points::with_radii(positions, radii, *h);
+            let spec = density::GridSpec::around(
+                positions,
+                2.0 * h,
+                density::Resolution::CellSize(0.5 * h),
+            )
+            .unwrap_or(density::GridSpec {
+                origin: Vec3::ZERO,
+                spacing: 0.1,
+                dims: [4, 4, 4],
+            });
+            let layout = BinLayout::of(&points, &spec);
+            let raw = fluid_surfels::density::gpu::raw_points(&points);
+            let (cpu_sorted, cpu_starts) = bin_particles(&raw, &layout);
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            sort.record(&ctx, &mut encoder, &raw, &layout).unwrap();
+            ctx.queue.submit([encoder.finish()]);
+            if round == 1 {
+                assert_eq!(sort.created(), 0, "{name}: buffers made again");
+            }
+            let starts: Vec<u32> = gpu::read_buffer(&ctx, sort.starts()).unwrap();
+            assert_eq!(starts[..cpu_starts.len()], cpu_starts[..], "{name}: starts");
+            let sorted: Vec<density::gpu::RawPoint> =
+                gpu::read_buffer(&ctx, sort.sorted()).unwrap();
+            let bits = |p: &[density::gpu::RawPoint]| -> Vec<u32> {
+                bytemuck::cast_slice::<_, u32>(p).to_vec()
+            };
+            assert!(
+                bits(&sorted[..cpu_sorted.len()]) == bits(&cpu_sorted),
+                "{name}: the sorted points differ"
+            );
+            // the particles lead every bin (the index order kept within bins)
+            for b in cpu_starts.windows(2) {
+                let idx: Vec<u32> = cpu_sorted[b[0] as usize..b[1] as usize]
+                    .iter()
+                    .map(|p| p._pad[0].to_bits())
+                    .collect();
+                assert!(idx.is_sorted(), "{name}: a bin out of order");
+            }
+            passes_seen.insert(
+                layout
+                    .total()
+                    .next_power_of_two()
+                    .trailing_zeros()
+                    .div_ceil(8),
+            );
+            if round == 0 {
+                println!(
+                    "{name}: {} points in {} bins, equal",
+                    positions.len(),
+                    layout.total()
+                );
+            }
+        }
+    }
+    assert!(
+        passes_seen.contains(&3) && passes_seen.len() >= 2,
+        "radix passes covered: {passes_seen:?}"
+    );
 }

@@ -3,18 +3,23 @@
 //! per-point radii; one radius for all in the paper's case), combined as [`super::Points`] says:
 //!
 //! - splatting, the paper's method (Iwasaki et al., §4.1-4.2): for each group of four z planes,
-//!   the particles of the group's z-cluster are drawn as instanced squares; the fragment shader
+//!   the particles of the group's z-cluster (the points sorted by slab of four planes, so a
+//!   group's are the contiguous range of its slabs) are drawn as instanced squares; the fragment shader
 //!   adds each particle's kernel for the four planes into the R, G, B and A channels of an
 //!   `Rgba32Float` target with additive blending; each instance's square is its own radius wide
 //!   (a per-instance sprite size); the target is copied back. Only one group's target (and a
 //!   batch of read-back copies) lives on the GPU, not the grid;
-//! - gathering, a compute shader: particles binned on the CPU (bins of side >= the largest
-//!   radius / [`GATHER_REACH`]), one invocation per grid point of a group of up to 32 planes sums
-//!   the bins around it; the group is copied back. Again only a group of planes lives on the GPU.
+//! - gathering, a compute shader: particles binned (bins of side >= the largest radius /
+//!   [`GATHER_REACH`]), one invocation per grid point of a group of up to 32 planes sums the
+//!   bins around it; the group is copied back. Again only a group of planes lives on the GPU.
+//!
+//! These one-shot functions sort the points on the CPU; the frame path ([`GridFiller`], a grid
+//! that stays on the GPU) sorts them on the GPU in the caller's encoder
+//! ([`super::bins::GpuBinSort`], the same order bit for bit), by bin and by slab.
 
 use bytemuck::{Pod, Zeroable};
-use glam::Vec3;
 
+use super::bins::{BinLayout, GpuBinSort, bin_particles};
 use super::sparse::{BLOCK, BLOCK_VALUES, SparseLayout};
 use super::{DensityGrid, GridSpec, Kernel, Points};
 use crate::gpu::{self, GpuContext, GpuError};
@@ -34,15 +39,16 @@ pub struct RawParams {
     /// that stays on the GPU).
     pub first_plane: u32,
     pub plane_count: u32,
-    pub _pad: u32,
+    /// The first slab of points the pass draws ([`BinLayout::slabs`]).
+    pub first_slab: u32,
 }
 
 const _: () = assert!(std::mem::size_of::<RawParams>() == 64);
 
 impl RawParams {
     /// The uniform of the group of four planes from plane `k0` of the grid `spec`, the kernel
-    /// measured against the reference radius `h`.
-    fn group(spec: &GridSpec, h: f32, kernel: Kernel, k0: u32) -> Self {
+    /// measured against the reference radius `h`, drawing from slab `first_slab`.
+    fn group(spec: &GridSpec, h: f32, kernel: Kernel, (k0, first_slab): (u32, u32)) -> Self {
         let [nx, ny, nz] = spec.dims;
         Self {
             origin: spec.origin.to_array(),
@@ -54,7 +60,7 @@ impl RawParams {
             kernel: kernel_code(kernel),
             first_plane: k0,
             plane_count: PLANES.min(nz - k0),
-            _pad: 0,
+            first_slab,
         }
     }
 }
@@ -97,23 +103,19 @@ pub struct RawPoint {
 
 const _: () = assert!(std::mem::size_of::<RawPoint>() == 32);
 
-/// The points as the splatting pass draws them: `(x, y, z, radius)` and the weight, sorted by
-/// z (each group of planes then draws a contiguous instance range, §4.2), and their z.
-fn sorted_instances(points: &Points<'_>) -> (Vec<RawPoint>, Vec<f32>) {
-    let mut sorted: Vec<RawPoint> = points
+/// The points in their order as the passes read them: `(x, y, z, radius)`, the weight, and the
+/// point's index in the padding's first word ([`FillPoints`]).
+pub fn raw_points(points: &Points<'_>) -> Vec<RawPoint> {
+    points
         .positions
         .iter()
         .enumerate()
         .map(|(i, p)| RawPoint {
             at: [p.x, p.y, p.z, points.radius(i)],
             weight: points.weights.map_or(1.0, |w| w[i]),
-            // the point's index, as the binned points keep it ([`FillPoints`])
             _pad: [f32::from_bits(i as u32), 0.0, 0.0],
         })
-        .collect();
-    sorted.sort_by(|a, b| a.at[2].total_cmp(&b.at[2]));
-    let zs = sorted.iter().map(|p| p.at[2]).collect();
-    (sorted, zs)
+        .collect()
 }
 
 /// The shaders' kernel selector.
@@ -132,19 +134,6 @@ pub(crate) fn kernel_constant(kernel: Kernel, h: f32) -> f32 {
     }
 }
 
-/// The points as instances sorted by z ([`sorted_instances`]), uploaded, and their z in that
-/// order.
-fn upload_sorted(device: &wgpu::Device, points: &Points<'_>) -> (wgpu::Buffer, Vec<f32>) {
-    let (sorted, zs) = sorted_instances(points);
-    use wgpu::util::DeviceExt;
-    let instances = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-        label: Some("particles"),
-        contents: instance_bytes(&sorted),
-        usage: wgpu::BufferUsages::VERTEX,
-    });
-    (instances, zs)
-}
-
 /// Instances as bytes (one zero point when there is none: a buffer is never empty).
 fn instance_bytes(sorted: &[RawPoint]) -> &[u8] {
     static NONE: [RawPoint; 1] = [RawPoint {
@@ -155,36 +144,77 @@ fn instance_bytes(sorted: &[RawPoint]) -> &[u8] {
     bytemuck::cast_slice(if sorted.is_empty() { &NONE[..] } else { sorted })
 }
 
-/// Records the splatting pass of the group of four planes from plane `k0` of the grid `spec`
-/// into `target` (cleared, drawn through a viewport of the grid's planes: a target kept at the
-/// largest planes of a sequence may be larger): only the points of the group's z-cluster
-/// (§4.2), found in `zs`, the instances' z in their sorted order, with `reach` the largest
-/// radius.
+/// The slabs of points the group of four planes from plane `k0` of the grid `spec` draws
+/// (those within `reach`, the largest radius, of its planes), in `slabs`
+/// ([`BinLayout::slabs_within`]).
+fn group_slabs(spec: &GridSpec, slabs: &BinLayout, k0: u32, reach: f32) -> [u32; 2] {
+    let last = (k0 + PLANES - 1).min(spec.dims[2] - 1);
+    slabs.slabs_within(
+        spec.origin.z + k0 as f32 * spec.spacing - reach,
+        spec.origin.z + last as f32 * spec.spacing + reach,
+    )
+}
+
+/// How a group's pass draws its points: this many (counted on the CPU), or as the indirect
+/// draw at this offset of the buffer says (`cs_draws`).
+enum GroupDraw<'a> {
+    Points(u32),
+    Indirect(&'a wgpu::Buffer, u64),
+}
+
+/// Records the splatting pass of a group of four planes of the grid `spec` into `target`
+/// (cleared, drawn through a viewport of the grid's planes: a target kept at the largest
+/// planes of a sequence may be larger): the points of the group's z-cluster (§4.2), which
+/// its bind group finds.
 fn encode_group(
     encoder: &mut wgpu::CommandEncoder,
     target: &wgpu::TextureView,
-    (pipeline, bind, instances): (&wgpu::RenderPipeline, &wgpu::BindGroup, &wgpu::Buffer),
-    (spec, k0): (&GridSpec, u32),
-    (zs, reach): (&[f32], f32),
+    (pipeline, bind): (&wgpu::RenderPipeline, &wgpu::BindGroup),
+    spec: &GridSpec,
+    draw: GroupDraw<'_>,
 ) {
-    let [nx, ny, nz] = spec.dims;
-    let last = (k0 + PLANES - 1).min(nz - 1);
-    let z_lo = spec.origin.z + k0 as f32 * spec.spacing - reach;
-    let z_hi = spec.origin.z + last as f32 * spec.spacing + reach;
-    let a = zs.partition_point(|&z| z <= z_lo) as u32;
-    let b = zs.partition_point(|&z| z < z_hi) as u32;
+    let [nx, ny, _] = spec.dims;
     let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
         label: Some("density planes"),
         color_attachments: &[gpu::cleared(target)],
         ..Default::default()
     });
     pass.set_viewport(0.0, 0.0, nx as f32, ny as f32, 0.0, 1.0);
-    if b > a {
-        pass.set_pipeline(pipeline);
-        pass.set_bind_group(0, bind, &[]);
-        pass.set_vertex_buffer(0, instances.slice(..));
-        pass.draw(0..6, a..b);
+    pass.set_pipeline(pipeline);
+    pass.set_bind_group(0, bind, &[]);
+    match draw {
+        GroupDraw::Points(0) => {}
+        GroupDraw::Points(n) => pass.draw(0..6, 0..n),
+        GroupDraw::Indirect(buffer, offset) => pass.draw_indirect(buffer, offset),
     }
+}
+
+/// The splatting's bind group: a group's uniform slot, the points sorted by slab and the
+/// slabs' starts.
+fn splat_bind_group(
+    device: &wgpu::Device,
+    layout: &wgpu::BindGroupLayout,
+    uniform: wgpu::BufferBinding<'_>,
+    (points, starts): (&wgpu::Buffer, &wgpu::Buffer),
+) -> wgpu::BindGroup {
+    device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("density group"),
+        layout,
+        entries: &[
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: wgpu::BindingResource::Buffer(uniform),
+            },
+            wgpu::BindGroupEntry {
+                binding: 3,
+                resource: points.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 4,
+                resource: starts.as_entire_binding(),
+            },
+        ],
+    })
 }
 
 /// The splatting pass (§4.1): one instanced quad per particle and plane group, additive
@@ -196,7 +226,11 @@ fn splat_pipeline(device: &wgpu::Device) -> (wgpu::RenderPipeline, wgpu::BindGro
     });
     let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
         label: Some("density params"),
-        entries: &[gpu::entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT)],
+        entries: &[
+            gpu::entry::uniform(0, wgpu::ShaderStages::VERTEX_FRAGMENT),
+            gpu::entry::read_only(3, wgpu::ShaderStages::VERTEX),
+            gpu::entry::read_only(4, wgpu::ShaderStages::VERTEX),
+        ],
     });
     let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
         label: Some("density"),
@@ -215,11 +249,7 @@ fn splat_pipeline(device: &wgpu::Device) -> (wgpu::RenderPipeline, wgpu::BindGro
             module: &module,
             entry_point: Some("vs_main"),
             compilation_options: Default::default(),
-            buffers: &[Some(wgpu::VertexBufferLayout {
-                array_stride: std::mem::size_of::<RawPoint>() as u64,
-                step_mode: wgpu::VertexStepMode::Instance,
-                attributes: &wgpu::vertex_attr_array![0 => Float32x4, 1 => Float32],
-            })],
+            buffers: &[],
         },
         primitive: wgpu::PrimitiveState::default(),
         depth_stencil: None,
@@ -263,9 +293,20 @@ pub fn splat_slabs_gpu(
         )));
     }
     let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-    // particles sorted by z: each group's cluster is a contiguous instance range (§4.2)
-    let (instances, zs) = upload_sorted(device, &points);
+    // particles sorted by slab of four planes (here on the CPU): each group's cluster is a
+    // contiguous range of slabs (§4.2)
+    let slabs = BinLayout::slabs(spec, PLANES);
+    let (sorted, starts) = bin_particles(&raw_points(&points), &slabs);
     use wgpu::util::DeviceExt;
+    let storage = |label, contents| {
+        device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents,
+            usage: wgpu::BufferUsages::STORAGE,
+        })
+    };
+    let instances = storage("particles", instance_bytes(&sorted));
+    let slab_starts = storage("slab starts", bytemuck::cast_slice(&starts));
     let (pipeline, layout) = splat_pipeline(device);
     let target = gpu::texture_2d(
         device,
@@ -290,26 +331,25 @@ pub fn splat_slabs_gpu(
         });
         let mut keep = Vec::new();
         for (slot, &k0) in batch.iter().enumerate() {
-            let raw = RawParams::group(spec, h, kernel, k0);
+            let [first, end] = group_slabs(spec, &slabs, k0, reach);
+            let raw = RawParams::group(spec, h, kernel, (k0, first));
             let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("density params"),
                 contents: bytemuck::bytes_of(&raw),
                 usage: wgpu::BufferUsages::UNIFORM,
             });
-            let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("density params"),
-                layout: &layout,
-                entries: &[wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: uniform.as_entire_binding(),
-                }],
-            });
+            let bind = splat_bind_group(
+                device,
+                &layout,
+                uniform.as_entire_buffer_binding(),
+                (&instances, &slab_starts),
+            );
             encode_group(
                 &mut encoder,
                 &view,
-                (&pipeline, &bind, &instances),
-                (spec, k0),
-                (&zs, reach),
+                (&pipeline, &bind),
+                spec,
+                GroupDraw::Points(starts[end as usize] - starts[first as usize]),
             );
             encoder.copy_texture_to_buffer(
                 wgpu::TexelCopyTextureInfo {
@@ -454,75 +494,18 @@ fn gather_bind_group(
 /// 5.1-6.2 s, within the run-to-run spread.
 pub const GATHER_REACH: u32 = 2;
 
-/// Most bins the gather path builds (4 bytes each); beyond, bins grow larger than `h`.
-const MAX_BINS: u64 = 1 << 24;
-
-/// Particles sorted into cubic bins of side >= `h / reach` over the grid's box: the sorted points,
-/// the start of each bin (one more entry than bins), the bin counts and side.
-fn bin_particles(
-    points: &Points<'_>,
-    spec: &GridSpec,
-    h: f32,
-    reach: u32,
-) -> (Vec<RawPoint>, Vec<u32>, [u32; 3], f32) {
-    let positions = points.positions;
-    let extent = spec.spacing
-        * Vec3::new(
-            spec.dims[0].saturating_sub(1) as f32,
-            spec.dims[1].saturating_sub(1) as f32,
-            spec.dims[2].saturating_sub(1) as f32,
-        );
-    let mut size = h / reach as f32;
-    let counts = |size: f32| (extent / size).floor().as_uvec3() + 1;
-    while counts(size).as_u64vec3().element_product() > MAX_BINS {
-        size *= 1.25;
-    }
-    let n = counts(size);
-    let bin_of = |p: Vec3| {
-        let b = ((p - spec.origin) / size)
-            .floor()
-            .clamp(Vec3::ZERO, (n - 1).as_vec3())
-            .as_uvec3();
-        ((b.z * n.y + b.y) * n.x + b.x) as usize
-    };
-    let total = n.as_u64vec3().element_product() as usize;
-    let mut start = vec![0u32; total + 1];
-    for &p in positions {
-        start[bin_of(p) + 1] += 1;
-    }
-    for i in 0..total {
-        start[i + 1] += start[i];
-    }
-    let mut next = start.clone();
-    let mut sorted = vec![RawPoint::zeroed(); positions.len()];
-    for (i, &p) in positions.iter().enumerate() {
-        let b = bin_of(p);
-        sorted[next[b] as usize] = RawPoint {
-            at: [p.x, p.y, p.z, points.radius(i)],
-            weight: points.weight(i),
-            // the point's index, for passes that tell the points apart (the boundary
-            // calibration's, `pipeline::boundary::gpu`); the others leave it unread
-            _pad: [f32::from_bits(i as u32), 0.0, 0.0],
-        };
-        next[b] += 1;
-    }
-    (sorted, start, n.to_array(), size)
-}
-
-/// Points binned on the CPU and checked against the binding limit `max_binding`: sorted
-/// points, the bins' starts, the bin counts and side ([`bin_particles`] for the largest radius).
+/// Points binned on the CPU ([`bin_particles`]) and checked against the binding limit
+/// `max_binding`: sorted points, the bins' starts, the bins.
 struct Bins {
     sorted: Vec<RawPoint>,
     start: Vec<u32>,
-    bins: [u32; 3],
-    size: f32,
+    layout: BinLayout,
 }
 
 impl Bins {
     fn new(points: &Points<'_>, spec: &GridSpec, max_binding: u64) -> Result<Self, GpuError> {
-        // bins sized for the largest radius; each point's kernel uses its own
-        let (sorted, start, bins, size) =
-            bin_particles(points, spec, points.max_radius(), GATHER_REACH);
+        let layout = BinLayout::of(points, spec);
+        let (sorted, start) = bin_particles(&raw_points(points), &layout);
         if (sorted.len().max(1) * 32) as u64 > max_binding || (start.len() * 4) as u64 > max_binding
         {
             return Err(GpuError::Validation(format!(
@@ -533,8 +516,7 @@ impl Bins {
         Ok(Self {
             sorted,
             start,
-            bins,
-            size,
+            layout,
         })
     }
 
@@ -583,8 +565,8 @@ impl BinnedPoints {
         Ok(Self {
             points: init("binned points", bins.point_bytes()),
             starts: init("bin starts", bytemuck::cast_slice(&bins.start)),
-            bins: bins.bins,
-            bin_size: bins.size,
+            bins: bins.layout.bins,
+            bin_size: bins.layout.size,
             count: points.len(),
         })
     }
@@ -844,8 +826,8 @@ pub fn density_grid_on_gpu(
 pub struct GridFiller {
     pipeline: wgpu::ComputePipeline,
     uniform: wgpu::Buffer,
-    particles: gpu::Grow,
-    bin_start: gpu::Grow,
+    /// The points sorted by bin, on the GPU.
+    bins: GpuBinSort,
     grid: gpu::Grow,
     bind: Option<wgpu::BindGroup>,
     created: usize,
@@ -864,17 +846,24 @@ struct SparseFill {
     bind: Option<wgpu::BindGroup>,
 }
 
-/// The paper's splatting (§4.1) into a grid that stays on the GPU: per group of four planes a
-/// render pass draws the group's z-cluster of points (instances sorted by z, §4.2) into an
-/// `Rgba32Float` target with additive blending, and a compute pass (`cs_unpack`) copies the
-/// four planes into the grid's buffer; the instances, the groups' uniforms (one aligned slot a
-/// group), the target and the bind groups are kept from frame to frame.
+/// The paper's splatting (§4.1) into a grid that stays on the GPU: the points sorted by slab
+/// of four planes on the GPU ([`GpuBinSort`]), `cs_draws` counting each group's points (its
+/// z-cluster, §4.2) for its indirect draw; per group of four planes a render pass draws them
+/// into an `Rgba32Float` target with additive blending, and a compute pass (`cs_unpack`)
+/// copies the four planes into the grid's buffer; the sort's buffers, the groups' uniforms
+/// (one aligned slot a group) and slabs, the draws, the target and the bind groups are kept
+/// from frame to frame.
 struct SplatPasses {
     pipeline: wgpu::RenderPipeline,
     layout: wgpu::BindGroupLayout,
     unpack: wgpu::ComputePipeline,
-    instances: gpu::Grow,
+    draws_pipeline: wgpu::ComputePipeline,
+    sort: GpuBinSort,
     uniforms: gpu::Grow,
+    /// Per group its first and last + 1 slab, and its indirect draw.
+    slabs: gpu::Grow,
+    draws: gpu::Grow,
+    draws_bind: Option<wgpu::BindGroup>,
     target: Option<(wgpu::Texture, wgpu::TextureView)>,
     /// Per group: the splat's and the unpacking's bind groups.
     binds: Vec<(wgpu::BindGroup, wgpu::BindGroup)>,
@@ -883,43 +872,37 @@ struct SplatPasses {
 impl SplatPasses {
     fn new(device: &wgpu::Device) -> Self {
         let (pipeline, layout) = splat_pipeline(device);
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("density_splat unpack"),
-            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
-        });
-        let unpack = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("density unpack"),
-            layout: None,
-            module: &module,
-            entry_point: Some("cs_unpack"),
-            compilation_options: Default::default(),
-            cache: None,
-        });
+        let [unpack, draws_pipeline] =
+            gpu::compute_pipelines(device, "density_splat", SHADER, ["cs_unpack", "cs_draws"]);
         Self {
             pipeline,
             layout,
             unpack,
-            instances: gpu::Grow::new(
-                "splatted particles",
-                // storage too: the boundary weights are written into it in place (`FillPoints`)
-                wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::STORAGE,
-            ),
+            draws_pipeline,
+            sort: GpuBinSort::new(device),
             uniforms: gpu::Grow::new("density groups", wgpu::BufferUsages::UNIFORM),
+            slabs: gpu::Grow::new("density group slabs", wgpu::BufferUsages::STORAGE),
+            draws: gpu::Grow::new(
+                "density group draws",
+                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::INDIRECT,
+            ),
+            draws_bind: None,
             target: None,
             binds: Vec::new(),
         }
     }
 
-    /// Records the groups' passes filling `grid` (the buffer of `spec`'s values); how many
-    /// buffers, textures and bind groups it made.
+    /// Records the groups' passes filling `grid` (the buffer of `spec`'s values) with the points
+    /// `raw` (of `points`); how many buffers, textures and bind groups it made.
     fn record(
         &mut self,
-        (device, queue): (&wgpu::Device, &wgpu::Queue),
+        ctx: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
-        (points, spec, kernel): (&Points<'_>, &GridSpec, Kernel),
+        (points, raw, spec, kernel): (&Points<'_>, &[RawPoint], &GridSpec, Kernel),
         (grid, grid_new): (&wgpu::Buffer, bool),
         before: Option<BeforeFill<'_>>,
     ) -> Result<usize, GpuError> {
+        let (device, queue) = (&ctx.device, &ctx.queue);
         let [nx, ny, nz] = spec.dims;
         let max_dim = device.limits().max_texture_dimension_2d;
         if nx > max_dim || ny > max_dim {
@@ -927,13 +910,11 @@ impl SplatPasses {
                 "a {nx} x {ny} plane exceeds the GPU's {max_dim} texture size; use the gather method"
             )));
         }
-        let (sorted, zs) = sorted_instances(points);
-        let mut created = usize::from(self.instances.write(device, queue, instance_bytes(&sorted)));
+        let slabs = BinLayout::slabs(spec, PLANES);
+        self.sort.record(ctx, encoder, raw, &slabs)?;
+        let mut created = self.sort.created();
         if let Some(before) = before {
-            before(
-                encoder,
-                FillPoints::Sorted(self.instances.buffer(), sorted.len()),
-            )?;
+            before(encoder, FillPoints::Sorted(self.sort.sorted(), raw.len()))?;
         }
         let groups: Vec<u32> = (0..nz).step_by(PLANES as usize).collect();
         let stride = u64::from(device.limits().min_uniform_buffer_offset_alignment)
@@ -943,13 +924,34 @@ impl SplatPasses {
                 .reserve(device, stride * groups.len().max(1) as u64),
         );
         let (h, reach) = (points.h, points.max_radius());
-        // every group's uniform in its aligned slot, in one write
+        // every group's uniform in its aligned slot, in one write, and its slabs
         let mut slots = vec![0u8; stride as usize * groups.len()];
+        let mut group_slabs_of = Vec::with_capacity(groups.len());
         for (slot, &k0) in slots.chunks_exact_mut(stride as usize).zip(&groups) {
-            let raw = RawParams::group(spec, h, kernel, k0);
+            let range = group_slabs(spec, &slabs, k0, reach);
+            let raw = RawParams::group(spec, h, kernel, (k0, range[0]));
             slot[..std::mem::size_of::<RawParams>()].copy_from_slice(bytemuck::bytes_of(&raw));
+            group_slabs_of.push(range);
         }
         queue.write_buffer(self.uniforms.buffer(), 0, &slots);
+        let made_lists = usize::from(self.slabs.write(
+            device,
+            queue,
+            bytemuck::cast_slice(&group_slabs_of),
+        )) + usize::from(self.draws.reserve(device, 16 * groups.len() as u64));
+        created += made_lists;
+        if self.draws_bind.is_none() || made_lists > 0 || self.sort.created() > 0 {
+            self.draws_bind = Some(gpu::bind_group(
+                device,
+                &self.draws_pipeline,
+                &[
+                    (4, self.sort.starts().as_entire_binding()),
+                    (5, self.slabs.buffer().as_entire_binding()),
+                    (6, self.draws.buffer().as_entire_binding()),
+                ],
+            ));
+            created += 1;
+        }
         // the target grows to the largest planes of the sequence; each pass draws into its
         // corner of the grid's size (the viewport)
         let (w, h) = self
@@ -978,14 +980,12 @@ impl SplatPasses {
             let unpack_layout = self.unpack.get_bind_group_layout(0);
             self.binds = (0..groups.len().max(self.binds.len()))
                 .map(|g| {
-                    let splat = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                        label: Some("density group"),
-                        layout: &self.layout,
-                        entries: &[wgpu::BindGroupEntry {
-                            binding: 0,
-                            resource: wgpu::BindingResource::Buffer(slot(g)),
-                        }],
-                    });
+                    let splat = splat_bind_group(
+                        device,
+                        &self.layout,
+                        slot(g),
+                        (self.sort.sorted(), self.sort.starts()),
+                    );
                     let unpack = device.create_bind_group(&wgpu::BindGroupDescriptor {
                         label: Some("density unpack"),
                         layout: &unpack_layout,
@@ -1009,13 +1009,19 @@ impl SplatPasses {
                 .collect();
             created += 1;
         }
-        for (&k0, (splat, unpack)) in groups.iter().zip(&self.binds) {
+        if !groups.is_empty() {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.draws_pipeline);
+            pass.set_bind_group(0, self.draws_bind.as_ref(), &[]);
+            pass.dispatch_workgroups(groups.len() as u32, 1, 1);
+        }
+        for (g, (splat, unpack)) in self.binds.iter().take(groups.len()).enumerate() {
             encode_group(
                 encoder,
                 view,
-                (&self.pipeline, splat, self.instances.buffer()),
-                (spec, k0),
-                (&zs, reach),
+                (&self.pipeline, splat),
+                spec,
+                GroupDraw::Indirect(self.draws.buffer(), 16 * g as u64),
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());
             pass.set_pipeline(&self.unpack);
@@ -1036,7 +1042,8 @@ pub type BeforeFill<'a> =
 pub enum FillPoints<'a> {
     /// The binned points, which the gather pass and the GPU surfels read (always, first).
     Binned(&'a BinnedPoints),
-    /// The splatting's copy sorted by z, of this many points (with the splatting, second).
+    /// The splatting's copy sorted by slab of four planes, of this many points (with the
+    /// splatting, second).
     Sorted(&'a wgpu::Buffer, usize),
 }
 
@@ -1053,8 +1060,7 @@ impl GridFiller {
                 usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             }),
-            particles: gpu::Grow::new("binned particles", storage),
-            bin_start: gpu::Grow::new("bin starts", storage),
+            bins: GpuBinSort::new(device),
             grid: gpu::Grow::new("density grid", storage | wgpu::BufferUsages::COPY_SRC),
             bind: None,
             created: 0,
@@ -1125,7 +1131,7 @@ impl GridFiller {
                 spec.cells()
             )));
         }
-        let (bins, made) = self.upload(ctx, &points, spec, bytes as u64)?;
+        let (bins, made, uploaded) = self.upload(ctx, encoder, &points, (spec, bytes as u64))?;
         let mut before = before;
         if let Some(before) = before.as_mut() {
             before(
@@ -1147,8 +1153,8 @@ impl GridFiller {
                 &self.pipeline,
                 [
                     &self.uniform,
-                    self.particles.buffer(),
-                    self.bin_start.buffer(),
+                    self.bins.sorted(),
+                    self.bins.starts(),
                     self.grid.buffer(),
                 ],
             ));
@@ -1157,11 +1163,11 @@ impl GridFiller {
         if let Some(splat) = self.splat.as_mut()
             && bytes > 0
         {
-            let grid_new = made[2];
+            let grid_new = made[1];
             self.created += splat.record(
-                (device, queue),
+                ctx,
                 encoder,
-                (&points, spec, kernel),
+                (&points, &uploaded, spec, kernel),
                 (self.grid.buffer(), grid_new),
                 before,
             )?;
@@ -1178,33 +1184,33 @@ impl GridFiller {
         Ok(self.grid_of(spec, &bins, points.len(), None))
     }
 
-    /// Bins `points` over the grid of `spec` and uploads them, and makes sure the grid's buffer
-    /// holds `bytes`; which of the three buffers were made anew (counted in
+    /// Uploads `points` and records their sort into the bins over the grid of `spec`
+    /// ([`GpuBinSort`]) into `encoder`, and makes sure the grid's buffer holds `bytes`; the
+    /// bins, and whether the sort's buffers and the grid's were made anew (counted in
     /// [`Self::created`]).
     fn upload(
         &mut self,
         ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
         points: &Points<'_>,
-        spec: &GridSpec,
-        bytes: u64,
-    ) -> Result<(Bins, [bool; 3]), GpuError> {
-        let (device, queue) = (&ctx.device, &ctx.queue);
-        let bins = Bins::new(points, spec, gpu::max_binding(device))?;
+        (spec, bytes): (&GridSpec, u64),
+    ) -> Result<(BinLayout, [bool; 2], Vec<RawPoint>), GpuError> {
+        let layout = BinLayout::of(points, spec);
+        let raw = raw_points(points);
+        self.bins.record(ctx, encoder, &raw, &layout)?;
         let made = [
-            self.particles.write(device, queue, bins.point_bytes()),
-            self.bin_start
-                .write(device, queue, bytemuck::cast_slice(&bins.start)),
-            self.grid.reserve(device, bytes),
+            self.bins.created() > 0,
+            self.grid.reserve(&ctx.device, bytes),
         ];
-        self.created = made.iter().filter(|&&m| m).count();
-        Ok((bins, made))
+        self.created = self.bins.created() + usize::from(made[1]);
+        Ok((layout, made, raw))
     }
 
     /// The grid in this filler's buffers.
     fn grid_of(
         &self,
         spec: &GridSpec,
-        bins: &Bins,
+        bins: &BinLayout,
         count: usize,
         sparse: Option<GpuSparse>,
     ) -> GpuGrid {
@@ -1212,8 +1218,8 @@ impl GridFiller {
             spec: *spec,
             values: self.grid.buffer().clone(),
             points: BinnedPoints {
-                points: self.particles.buffer().clone(),
-                starts: self.bin_start.buffer().clone(),
+                points: self.bins.sorted().clone(),
+                starts: self.bins.starts().clone(),
                 bins: bins.bins,
                 bin_size: bins.size,
                 count,
@@ -1266,7 +1272,7 @@ impl GridFiller {
                 "the inside value {inside} of a sparse grid must be finite"
             )));
         }
-        let (bins, made) = self.upload(ctx, &points, spec, bytes)?;
+        let (bins, made, _) = self.upload(ctx, encoder, &points, (spec, bytes))?;
         if let Some(before) = before {
             before(
                 encoder,
@@ -1301,8 +1307,8 @@ impl GridFiller {
                 &fill.pipeline.get_bind_group_layout(0),
                 &[
                     &self.uniform,
-                    self.particles.buffer(),
-                    self.bin_start.buffer(),
+                    self.bins.sorted(),
+                    self.bins.starts(),
                     self.grid.buffer(),
                     fill.evaluated.buffer(),
                 ],

@@ -20,6 +20,7 @@
 //! planes per RGBA pass, or a compute gather) is tested against the CPU path and its naive
 //! reference, which are the specification. Surfel extraction is [`crate::surfels`].
 
+pub mod bins;
 pub mod cpu;
 pub mod gpu;
 pub mod sparse;
@@ -730,7 +731,7 @@ pub enum GpuDensityMethod {
     /// 5.1-6.2 s for the gather; see docs/design.md).
     #[default]
     Splat,
-    /// A compute shader: particles binned by the CPU, one invocation per grid point gathers the
+    /// A compute shader: particles binned into cubes, one invocation per grid point gathers the
     /// bins around it (`gpu::gather_slabs_gpu`); no blending and no atomics, a fixed summation order.
     Gather,
 }

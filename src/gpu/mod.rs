@@ -202,6 +202,16 @@ pub(crate) fn compute_pipelines<const N: usize>(
     source: &str,
     entries: [&str; N],
 ) -> [wgpu::ComputePipeline; N] {
+    compute_pipelines_with(device, (label, source), None, entries)
+}
+
+/// [`compute_pipelines`] with one `layout` for all of them (`None`: each its own, derived).
+pub(crate) fn compute_pipelines_with<const N: usize>(
+    device: &wgpu::Device,
+    (label, source): (&str, &str),
+    layout: Option<&wgpu::PipelineLayout>,
+    entries: [&str; N],
+) -> [wgpu::ComputePipeline; N] {
     let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some(label),
         source: wgpu::ShaderSource::Wgsl(source.into()),
@@ -209,7 +219,7 @@ pub(crate) fn compute_pipelines<const N: usize>(
     entries.map(|entry| {
         device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some(entry),
-            layout: None,
+            layout,
             module: &module,
             entry_point: Some(entry),
             compilation_options: Default::default(),
@@ -268,6 +278,18 @@ pub(crate) mod entry {
             binding,
             visibility,
             wgpu::BufferBindingType::Storage { read_only: false },
+        )
+    }
+
+    /// A read-only storage buffer.
+    pub(crate) fn read_only(
+        binding: u32,
+        visibility: wgpu::ShaderStages,
+    ) -> wgpu::BindGroupLayoutEntry {
+        buffer(
+            binding,
+            visibility,
+            wgpu::BufferBindingType::Storage { read_only: true },
         )
     }
 

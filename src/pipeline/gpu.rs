@@ -7,7 +7,9 @@
 //! the boundary calibration runs on the GPU, its factors (the sheets one particle thick, how
 //! buried each point is) and its weights' Jacobi solve
 //! ([`crate::pipeline::boundary::gpu::WeightPasses`], into every copy of the points the grid is
-//! filled from: the binned points, and the splatting's copy sorted by z); the density grid is
+//! filled from: the binned points, and the splatting's copy sorted by slab of four planes); the
+//! points are sorted into both on the GPU ([`crate::density::bins::GpuBinSort`]: `prepare`
+//! uploads them in their order) and the density grid is
 //! filled on the GPU ([`crate::density::gpu::GridFiller`]: the paper's splatting by default,
 //! or the gather pass, `grid.gpu_method`) and the surfels extracted
 //! there ([`crate::surfels::gpu::ResidentSurfels`]: crossings, a prefix sum, the projection onto

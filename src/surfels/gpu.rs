@@ -92,9 +92,10 @@ impl RawSurfelParams {
     }
 }
 
-/// The WGSL source of the passes (`common.wgsl` prepended).
+/// The WGSL source of the passes (`common.wgsl` and `scan.wgsl` prepended).
 pub const SHADER: &str = concat!(
     include_str!("../../shaders/common.wgsl"),
+    include_str!("../../shaders/scan.wgsl"),
     include_str!("../../shaders/surfels.wgsl")
 );
 

@@ -294,7 +294,7 @@ impl WeightPasses {
 
     /// After [`Self::record`] in the same encoder: the weights in the density written into
     /// another copy of the same points (`points`: [`RawPoint`](crate::density::gpu::RawPoint)s
-    /// that keep their index, as the splatting's copy sorted by z does), in place.
+    /// that keep their index, as the splatting's copy sorted by slab does), in place.
     pub fn apply_to(
         &mut self,
         device: &wgpu::Device,
