@@ -69,7 +69,8 @@ fn bin_keys(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) group
 }
 
 // Entries of the counts each invocation of `count_blocks` and `count_starts` sums in turn, so
-// that a block is 4,096 entries (a workgroup's barriers cost lavapipe more than the sums).
+// that a block is 4,096 entries: with one count each, the three passes over 426,496 counts
+// took lavapipe 94 ms (two passes of 1,667 workgroups, 17 barriers each), with 16 about 10 ms.
 const RUN: u32 = 16u;
 
 // Per block of 256 runs of the counts: their sum.
@@ -172,7 +173,8 @@ fn scan_table(@builtin(local_invocation_index) local: u32) {
 // Each (bin, index) pair to its place: the points of its digit in earlier workgroups (the
 // table), then those of its own workgroup before it, counted by one invocation walking the
 // workgroup's digits in order (256 steps; an invocation counting the equal digits before its
-// own made it 256 steps for each and cost lavapipe eight times as much).
+// own made it up to 256 steps for each: on lavapipe, 110,000 points, 55 ms a pass for the scatter
+// then, under 11 ms for the histogram, the table's scan and the scatter now).
 @compute @workgroup_size(256)
 fn radix_scatter(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>,
                  @builtin(local_invocation_index) local: u32) {
