@@ -35,8 +35,11 @@ struct WeightParams {
     // `BAND`)
     buried: f32,
     band: f32,
-    _pad0: f32,
-    _pad1: f32,
+    // the points that may have an interior share (the leading ones: index < leading, first in
+    // every bin), and the others' (the sheet's) largest radius (negative: every bin within the
+    // bins' reach read whole, the search the trimmed one must equal, `BinSearch::Whole`)
+    leading: u32,
+    sheet_radius: f32,
 }
 
 
@@ -66,34 +69,71 @@ struct Target {
 @group(0) @binding(6) var<storage, read_write> w_out: array<f32>;
 @group(0) @binding(8) var<storage, read> split: array<vec2<f32>>;
 
+// Whether every bin within the bins' reach is read whole (`BinSearch::Whole`).
+fn whole_search() -> bool {
+    return params.sheet_radius < 0.0;
+}
+
+// The bins of row (by, bz) to read around x for terms within `radius`: `row_span`'s, or the
+// range's whole row.
+fn span_of(x: vec3<f32>, range: BinRange, by: i32, bz: i32, radius: f32) -> vec2<i32> {
+    if whole_search() {
+        return vec2<i32>(range.lo.x, range.hi.x);
+    }
+    return row_span(x, params.bin_origin, params.bin_size, range, by, bz, radius);
+}
+
 // The densities at x of the interior (x) and of the sheet (y), the sheet's weights times the
-// current `w_in` when `weighted`.
-fn sums(x: vec3<f32>, weighted: bool) -> vec2<f32> {
+// current `w_in` when `weighted` (then the interior's is left partial: its caller reads the
+// sheet's alone); without `with_sheet` only the leading points are summed (the interior's
+// density is theirs alone: the others have no interior share).
+//
+// Each row of bins is read only where the ball of the largest radius around x reaches it
+// (`span_of`), and the sheet's points (index >= leading) only in the bins the ball of the
+// sheet's largest radius reaches: a sheet point elsewhere lies farther from x than its radius,
+// so its kernel is 0 and its term +0. Those bins are read up to their first sheet point (the
+// leading points come first in every bin: the bins keep the chain's order). Every sum is the
+// same bit for bit as over every point of every bin of the range (`BinSearch::Whole`, tested),
+// and far fewer points are visited: the refined points outnumber the particles many times and
+// their radii are a fraction of the particles'.
+fn sums(x: vec3<f32>, weighted: bool, with_sheet: bool) -> vec2<f32> {
     let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
-    let lo = range.lo;
-    let hi = range.hi;
+    // the largest radius the bins were made for
+    let largest = f32(params.reach) * params.bin_size;
     var inner = 0.0;
     var outer = 0.0;
-    for (var bz = lo.z; bz <= hi.z; bz++) {
-        for (var by = lo.y; by <= hi.y; by++) {
+    for (var bz = range.lo.z; bz <= range.hi.z; bz++) {
+        for (var by = range.lo.y; by <= range.hi.y; by++) {
             let row = (u32(bz) * params.bins.y + u32(by)) * params.bins.x;
-            let first = bin_start[row + u32(lo.x)];
-            let end = bin_start[row + u32(hi.x) + 1u];
-            for (var n = first; n < end; n++) {
-                let p = points[n];
-                let s = split[p.index];
-                if s.x == 0.0 && s.y == 0.0 {
-                    continue;
+            let span = span_of(x, range, by, bz, largest);
+            var near = vec2<i32>(1, 0);
+            if with_sheet {
+                near = span_of(x, range, by, bz, params.sheet_radius);
+            }
+            for (var bx = span.x; bx <= span.y; bx++) {
+                let sheet_too = bx >= near.x && bx <= near.y;
+                let end = bin_start[row + u32(bx) + 1u];
+                for (var n = bin_start[row + u32(bx)]; n < end; n++) {
+                    let p = points[n];
+                    if !sheet_too && p.index >= params.leading {
+                        break;
+                    }
+                    let s = split[p.index];
+                    // weighted (the Jacobi steps) only the sheet's density is read: a point
+                    // without a sheet weight adds +0 there
+                    if (s.x == 0.0 || weighted) && s.y == 0.0 {
+                        continue;
+                    }
+                    let d = x - p.at.xyz;
+                    let r2 = d.x * d.x + (d.y * d.y + d.z * d.z);
+                    let k = density_kernel_r2(r2, p.at.w, params.constant, params.kernel);
+                    inner += s.x * k;
+                    var w = s.y;
+                    if weighted && w != 0.0 {
+                        w *= w_in[p.index];
+                    }
+                    outer += w * k;
                 }
-                let d = x - p.at.xyz;
-                let r2 = d.x * d.x + (d.y * d.y + d.z * d.z);
-                let k = density_kernel_r2(r2, p.at.w, params.constant, params.kernel);
-                inner += s.x * k;
-                var w = s.y;
-                if weighted && w != 0.0 {
-                    w *= w_in[p.index];
-                }
-                outer += w * k;
             }
         }
     }
@@ -125,7 +165,7 @@ fn targets_pass(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
     let own = base * density_kernel_r2(0.0, s.at.w, params.constant, params.kernel);
-    let at_x = sums(x, false);
+    let at_x = sums(x, false, true);
     // the CPU adds the interior only while the others are under the point's own term: alone is
     // 0 either way past it
     let others = at_x.y - own + at_x.x;
@@ -145,7 +185,7 @@ fn targets_pass(@builtin(global_invocation_id) id: vec3<u32>) {
     } else {
         alone = 1.0;
     }
-    targets[j] = Target(vec4<f32>(at, alone), lone, sums(at, false).x, 0.0, 0.0);
+    targets[j] = Target(vec4<f32>(at, alone), lone, sums(at, false, false).x, 0.0, 0.0);
 }
 
 // One Jacobi step: the sheet's density at each target with the weights `w_in`, each weight
@@ -167,7 +207,7 @@ fn step(@builtin(global_invocation_id) id: vec3<u32>) {
         w_out[j] = t.lone;
         return;
     }
-    let sheet_sum = sums(t.at.xyz, true).y;
+    let sheet_sum = sums(t.at.xyz, true, true).y;
     let want = max(params.tau - t.inside, 0.0);
     var boundary = w;
     if sheet_sum > 0.0 {
@@ -236,7 +276,17 @@ fn burial_and_average(x: vec3<f32>, n_in: vec3<f32>, average: bool) -> vec3<f32>
     let t_up = x + n * params.half_spacing;
     let t_down = x - n * params.half_spacing;
     let h2 = 16.0 * params.half_spacing * params.half_spacing;
+    // the targets lie half a spacing from x, and a burial term is 0 (1 - smoothstep = 0) from
+    // (buried + band) spacings of its target on: with a margin of 1e-3 spacings for the
+    // rounding of the distances
+    let burial_reach = (params.buried + params.band + 0.501) * 2.0 * params.half_spacing;
+    let burial_reach2 = burial_reach * burial_reach;
     let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
+    // the particles any term reaches: within h for the average, the burial's reach without it
+    var radius = burial_reach;
+    if average {
+        radius = max(radius, sqrt(h2));
+    }
     var up = 0.0;
     var down = 0.0;
     var sum = 0.0;
@@ -244,20 +294,24 @@ fn burial_and_average(x: vec3<f32>, n_in: vec3<f32>, average: bool) -> vec3<f32>
     for (var bz = range.lo.z; bz <= range.hi.z; bz++) {
         for (var by = range.lo.y; by <= range.hi.y; by++) {
             let row = (u32(bz) * params.bins.y + u32(by)) * params.bins.x;
-            for (var bx = u32(range.lo.x); bx <= u32(range.hi.x); bx++) {
-                let end = bin_start[row + bx + 1u];
-                for (var m = bin_start[row + bx]; m < end; m++) {
+            let span = span_of(x, range, by, bz, radius);
+            for (var bx = span.x; bx <= span.y; bx++) {
+                let end = bin_start[row + u32(bx) + 1u];
+                for (var m = bin_start[row + u32(bx)]; m < end; m++) {
                     let p = points[m];
                     if p.index >= params.particles {
                         break;
                     }
-                    if has_normal {
+                    let d = p.at.xyz - x;
+                    let d2 = dot(d, d);
+                    // a particle farther than `burial_reach` from x lies farther than the
+                    // burial's outer edge from both targets: its terms are exactly 0
+                    if has_normal && (d2 < burial_reach2 || whole_search()) {
                         up = max(up, burial_term(p.at.xyz, x, t_up));
                         down = max(down, burial_term(p.at.xyz, x, t_down));
                     }
                     if average {
-                        let d = p.at.xyz - x;
-                        let q = 1.0 - dot(d, d) / h2;
+                        let q = 1.0 - d2 / h2;
                         if q > 0.0 {
                             let w = q * q * q;
                             sum += w * share[p.index];
@@ -288,9 +342,10 @@ fn flat_normal(x: vec3<f32>) -> vec4<f32> {
     for (var bz = range.lo.z; bz <= range.hi.z; bz++) {
         for (var by = range.lo.y; by <= range.hi.y; by++) {
             let row = (u32(bz) * params.bins.y + u32(by)) * params.bins.x;
-            for (var bx = u32(range.lo.x); bx <= u32(range.hi.x); bx++) {
-                let end = bin_start[row + bx + 1u];
-                for (var m = bin_start[row + bx]; m < end; m++) {
+            let span = span_of(x, range, by, bz, h);
+            for (var bx = span.x; bx <= span.y; bx++) {
+                let end = bin_start[row + u32(bx) + 1u];
+                for (var m = bin_start[row + u32(bx)]; m < end; m++) {
                     let p = points[m];
                     if p.index >= params.particles {
                         break;

@@ -54,6 +54,31 @@ fn bin_range(x: vec3<f32>, origin: vec3<f32>, size: f32, bins: vec3<u32>, reach:
     return BinRange(clamp(b - r, vec3<i32>(0), last), clamp(b + r, vec3<i32>(0), last));
 }
 
+// The bins of row (by, bz) within `range` that a ball of `radius` around x reaches along x:
+// (first, last), empty when first > last. A point binned in the row lies within the row's
+// extent in y and z, so at least its gaps `gy`, `gz` from x there, and within
+// sqrt(radius^2 - gy^2 - gz^2) of x along x; rounded out to bins. The margin covers the
+// rounding of a point's bin (a few ulps of its coordinates) and of these sums, so that a point
+// the ball reaches is never left out: a search over the spans visits every point within
+// `radius` that the whole range does, in the same order, and fewer others.
+fn row_span(x: vec3<f32>, origin: vec3<f32>, size: f32, range: BinRange, by: i32, bz: i32, radius: f32) -> vec2<i32> {
+    let far = max(abs(x), abs(origin));
+    let margin = 1.0e-4 * (radius + size) + 1.0e-6 * max(far.x, max(far.y, far.z));
+    let y0 = origin.y + f32(by) * size;
+    let z0 = origin.z + f32(bz) * size;
+    let gy = max(max(y0 - x.y, x.y - (y0 + size)) - margin, 0.0);
+    let gz = max(max(z0 - x.z, x.z - (z0 + size)) - margin, 0.0);
+    let r = radius + margin;
+    let rest = r * r - gy * gy - gz * gz;
+    if rest < 0.0 {
+        return vec2<i32>(1, 0);
+    }
+    let ext = sqrt(rest) + margin;
+    let first = max(i32(floor((x.x - ext - origin.x) / size)), range.lo.x);
+    let last = min(i32(floor((x.x + ext - origin.x) / size)), range.hi.x);
+    return vec2<i32>(first, last);
+}
+
 // A ray: origin and direction (view space in the splat passes, world space in the optics).
 struct Ray {
     origin: vec3<f32>,

@@ -38,9 +38,11 @@ struct SurfelParams {
     inside: f32,
     // surfels the buffer holds: the crossings past it are left out
     capacity: u32,
+    // the points of the largest radius lead (index < leading, first in every bin: the bins keep
+    // the points' order); the others' largest radius (negative: every point of every bin read)
+    leading: u32,
+    rest_radius: f32,
     _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
     // the surfels' colour (`splat::WATER`)
     colour: vec4<f32>,
 }
@@ -70,7 +72,7 @@ struct Surfel {
 // radius, colour (project)
 @group(0) @binding(4) var<storage, read_write> surfels: array<Surfel>;
 // the points sorted by bin (position, radius, weight), and where each bin starts
-@group(0) @binding(5) var<storage, read> points: array<Point>;
+@group(0) @binding(5) var<storage, read> points: array<IndexedPoint>;
 @group(0) @binding(6) var<storage, read> bin_start: array<u32>;
 // a sparse grid's block states (x fastest): empty (0xffffffff, every value 0), inside
 // (0xfffffffe, every value `inside`) or the slot of the block's values in `grid`
@@ -248,50 +250,68 @@ fn emit(
 
 // The points' density at x (w) and its analytic gradient (xyz): `ExactDensity::value_and_gradient`,
 // each point's kernel of its own radius against the reference radius's constant
-// (`Kernel::weighted_and_gradient`), times its weight.
+// (`Kernel::weighted_and_gradient`), times its weight. Each row of bins is read only where the
+// ball of the largest radius reaches it (`row_span`), and the points after the leading ones
+// (the refined points, of radii a fraction of the particles') only in the bins the ball of
+// their largest radius reaches, each other bin up to its first such point: every point left
+// out lies beyond its radius and adds nothing, so the sums are those over every bin of the
+// range, in the same order.
 fn density_and_gradient(x: vec3<f32>) -> vec4<f32> {
     let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
-    let lo = range.lo;
-    let hi = range.hi;
+    let largest = f32(params.reach) * params.bin_size;
     var sum = 0.0;
     var grad = vec3<f32>(0.0);
     let c = params.constant;
-    for (var bz = lo.z; bz <= hi.z; bz++) {
-        for (var by = lo.y; by <= hi.y; by++) {
+    for (var bz = range.lo.z; bz <= range.hi.z; bz++) {
+        for (var by = range.lo.y; by <= range.hi.y; by++) {
             let row = (u32(bz) * params.bins.y + u32(by)) * params.bins.x;
-            let first = bin_start[row + u32(lo.x)];
-            let end = bin_start[row + u32(hi.x) + 1u];
-            for (var n = first; n < end; n++) {
-                let d = x - points[n].at.xyz;
-                let hj = points[n].at.w;
-                let wj = points[n].weight;
-                let r2 = dot(d, d);
-                if params.kernel == 0u {
-                    let inv = 1.0 / (hj * hj);
-                    let a2 = r2 * inv;
-                    if a2 < 1.0 {
-                        let poly = ((-4.0 / 9.0 * a2 + 17.0 / 9.0) * a2 - 22.0 / 9.0) * a2 + 1.0;
-                        let slope = (-4.0 / 3.0 * a2 + 34.0 / 9.0) * a2 - 22.0 / 9.0;
-                        sum += wj * (c * poly);
-                        grad += wj * (d * (c * slope * 2.0 * inv));
+            // a negative radius: every bin of the range whole (`BinSearch::Whole`, the
+            // reference the trimmed search must equal)
+            let whole = params.rest_radius < 0.0;
+            var span = vec2<i32>(range.lo.x, range.hi.x);
+            var near = span;
+            if !whole {
+                span = row_span(x, params.bin_origin, params.bin_size, range, by, bz, largest);
+                near = row_span(x, params.bin_origin, params.bin_size, range, by, bz, params.rest_radius);
+            }
+            for (var bx = span.x; bx <= span.y; bx++) {
+                let rest_too = bx >= near.x && bx <= near.y;
+                let end = bin_start[row + u32(bx) + 1u];
+                for (var n = bin_start[row + u32(bx)]; n < end; n++) {
+                    if !rest_too && points[n].index >= params.leading {
+                        break;
                     }
-                } else {
-                    let r = sqrt(r2);
-                    if r < hj {
-                        let q = 2.0 * (r / hj);
-                        var v = 0.0;
-                        var df = 0.0;
-                        if q < 1.0 {
-                            v = c * (1.0 - 1.5 * q * q + 0.75 * q * q * q);
-                            df = -3.0 * q + 2.25 * q * q;
-                        } else {
-                            let t = 2.0 - q;
-                            v = c * 0.25 * t * t * t;
-                            df = -0.75 * t * t;
+                    let d = x - points[n].at.xyz;
+                    let hj = points[n].at.w;
+                    let wj = points[n].weight;
+                    let r2 = dot(d, d);
+                    if params.kernel == 0u {
+                        let inv = 1.0 / (hj * hj);
+                        let a2 = r2 * inv;
+                        if a2 < 1.0 {
+                            let poly = ((-4.0 / 9.0 * a2 + 17.0 / 9.0) * a2 - 22.0 / 9.0) * a2 + 1.0;
+                            let slope = (-4.0 / 3.0 * a2 + 34.0 / 9.0) * a2 - 22.0 / 9.0;
+                            sum += wj * (c * poly);
+                            grad += wj * (d * (c * slope * 2.0 * inv));
                         }
-                        sum += wj * v;
-                        if r > 0.0 {
-                            grad += wj * (d * (c * df * 2.0 / (hj * r)));
+                    } else {
+                        let r = sqrt(r2);
+                        if r < hj {
+                            let q = 2.0 * (r / hj);
+                            var v = 0.0;
+                            var df = 0.0;
+                            if q < 1.0 {
+                                v = c * (1.0 - 1.5 * q * q + 0.75 * q * q * q);
+                                df = -3.0 * q + 2.25 * q * q;
+                            } else {
+                                let t = 2.0 - q;
+                                v = c * 0.25 * t * t * t;
+                                df = -0.75 * t * t;
+                            }
+                            sum += wj * v;
+                            if r > 0.0 {
+                                grad += wj * (d * (c * df * 2.0 / (hj * r)));
+                            }
                         }
                     }
                 }

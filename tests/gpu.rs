@@ -59,7 +59,7 @@ fn twins() -> Vec<Twin> {
             fluid_surfels::surfels::gpu::SHADER,
             "SurfelParams",
             std::mem::size_of::<fluid_surfels::surfels::gpu::RawSurfelParams>(),
-            fields!(fluid_surfels::surfels::gpu::RawSurfelParams; origin, spacing, dims, iso, bin_origin, bin_size, bins, reach, h, constant, kernel, newton_steps, blocks, converged, sparse_block, inside, capacity, colour),
+            fields!(fluid_surfels::surfels::gpu::RawSurfelParams; origin, spacing, dims, iso, bin_origin, bin_size, bins, reach, h, constant, kernel, newton_steps, blocks, converged, sparse_block, inside, capacity, leading, rest_radius, colour),
         ),
         (
             "density_gather.wgsl",
@@ -150,7 +150,7 @@ fn twins() -> Vec<Twin> {
             pipeline::boundary::gpu::SHADER,
             "WeightParams",
             std::mem::size_of::<RawWeightParams>(),
-            fields!(RawWeightParams; bin_origin, bin_size, bins, reach, constant, kernel, particles, count, half_spacing, tau, lone_r2, max_weight, buried, band),
+            fields!(RawWeightParams; bin_origin, bin_size, bins, reach, constant, kernel, particles, count, half_spacing, tau, lone_r2, max_weight, buried, band, leading, sheet_radius),
         ),
         (
             "boundary_weights.wgsl",
@@ -1365,6 +1365,84 @@ fn gpu_grid_and_surfels_record_frames_without_waits() {
     assert!(worst <= 1e-3, "a GPU surfel {worst} cells from the CPU's");
 }
 
+/// Asserts that the trimmed search's values (`a`) are the whole search's (`b`), bit for bit.
+fn same_bits(a: &[f32], b: &[f32], name: &str) {
+    assert_eq!(a.len(), b.len(), "{name}: lengths");
+    if let Some(i) = (0..a.len()).find(|&i| a[i].to_bits() != b[i].to_bits()) {
+        panic!(
+            "{name}: value {i} is {} with the trimmed search, {} with the whole",
+            a[i], b[i]
+        );
+    }
+}
+
+/// The surfels' projection reads each row of bins only where the ball of the largest radius
+/// reaches it and the points of smaller radii (after the leading ones) only in the bins their
+/// radius reaches; every point it leaves out adds nothing, so its surfels equal, bit for bit,
+/// those of the search over every point of every bin (`BinSearch::Whole`): on the double dam
+/// break's particles (radius h) followed by a shifted copy of radius 0.45 h, and on one radius.
+#[test]
+fn gpu_surfels_trimmed_search_equals_the_whole() {
+    use fluid_surfels::density::bins::BinSearch;
+    use fluid_surfels::density::gpu::GridFiller;
+    use fluid_surfels::surfels::{SurfelParams, gpu::ResidentSurfels};
+    let Some(ctx) = gpu::context_or_skip("gpu_surfels_trimmed_search_equals_the_whole").unwrap()
+    else {
+        return;
+    };
+    let ddb = double_dam_break();
+    let h = fluid_surfels::neighbours::estimate_spacing(&ddb).unwrap() * 2.0;
+    let mut positions = ddb.clone();
+    positions.extend(
+        ddb.iter()
+            .map(|p| *p + glam::Vec3::new(0.1, 0.05, 0.02) * h),
+    );
+    let radii: Vec<f32> = (0..positions.len())
+        .map(|i| if i < ddb.len() { h } else { 0.45 * h })
+        .collect();
+    let params = SurfelParams::default();
+    for (name, points) in [
+        ("two radii", Points::with_radii(&positions, &radii, h)),
+        ("one radius", Points::uniform(&ddb, h)),
+    ] {
+        let (leading, rest) = fluid_surfels::surfels::gpu::leading_and_rest(&points);
+        let spec = GridSpec::around(points.positions, h, Resolution::CellSize(h / 3.0)).unwrap();
+        let mut filler = GridFiller::new(&ctx.device);
+        let mut found = Vec::new();
+        for search in [BinSearch::Trimmed, BinSearch::Whole] {
+            let mut surfels = ResidentSurfels::new(&ctx.device);
+            surfels.set_search(search);
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            let grid = filler
+                .record(&ctx, &mut encoder, points, &spec, Kernel::Wyvill)
+                .unwrap();
+            surfels
+                .record(&ctx, &mut encoder, &grid, points, Kernel::Wyvill, &params)
+                .unwrap();
+            ctx.queue.submit([encoder.finish()]);
+            found.push(surfels.read(&ctx).unwrap());
+        }
+        println!(
+            "{name}: {} points, {leading} leading, the rest of radius up to {:.3} h: {} surfels",
+            points.len(),
+            rest / h,
+            found[0].len()
+        );
+        assert!(found[0].len() > 1000, "{name}: too few surfels to compare");
+        assert_eq!(found[0].len(), found[1].len(), "{name}: counts");
+        for (a, b) in [
+            (&found[0].positions, &found[1].positions),
+            (&found[0].normals, &found[1].normals),
+        ] {
+            same_bits(
+                bytemuck::cast_slice(a.as_slice()),
+                bytemuck::cast_slice(b.as_slice()),
+                name,
+            );
+        }
+    }
+}
+
 /// Bad input on the GPU frame path (issue 37): a grid beyond the adapter's storage binding
 /// limit is a typed error before any work, a frame without particles gives no surfels, a
 /// non-finite position is refused; never a panic or a lost device (the next frame works).
@@ -1945,6 +2023,17 @@ fn gpu_boundary_factors_equal_the_cpus() {
             tau,
         )
         .unwrap();
+        // the trimmed search of the sheet's bins leaves out exact zeros only: the same as
+        // reading every bin whole, bit for bit
+        let whole = boundary::gpu::boundary_factors_gpu_searching(
+            &ctx,
+            (&set.positions, &frame.surface, sheet),
+            (h, kernel, tau),
+            boundary::gpu::BinSearch::Whole,
+        )
+        .unwrap();
+        same_bits(gpu.split.as_flattened(), whole.split.as_flattened(), name);
+        same_bits(&gpu.weights, &whole.weights, name);
         let n = set.len();
         assert_eq!(gpu.split.len(), n + sheet.positions.len());
         // the factors, point by point
@@ -2112,6 +2201,15 @@ fn gpu_boundary_weights_equal_the_cpus() {
                 &ctx, points, *interior, normals, *spacing, kernel, tau,
             )
             .unwrap();
+            let whole = pipeline::boundary::gpu::boundary_weights_gpu_searching(
+                &ctx,
+                points,
+                (*interior, normals),
+                (*spacing, kernel, tau),
+                pipeline::boundary::gpu::BinSearch::Whole,
+            )
+            .unwrap();
+            same_bits(&gpu, &whole, name);
             assert_eq!(cpu.len(), gpu.len());
             assert_eq!(cpu[..*interior], gpu[..*interior], "{name}: the interior's");
             let worst = cpu

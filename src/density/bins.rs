@@ -16,6 +16,22 @@ use crate::gpu::{self, GpuContext, GpuError};
 /// Most bins (4 bytes each); beyond, bins grow larger than `h / reach`.
 pub const MAX_BINS: u64 = 1 << 24;
 
+/// How the compute passes' density sums search the bins (the boundary calibration's,
+/// `pipeline::boundary::gpu::WeightPasses::set_search`, and the surfels' projection,
+/// `surfels::gpu::ResidentSurfels::set_search`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum BinSearch {
+    /// The passes' own search: each row of bins trimmed to the ball of the sum's radius, and
+    /// the points of smaller radii (the sheet, the refined points) read only in the bins their
+    /// largest radius reaches (every point left out adds an exact zero, or leaves a maximum as
+    /// it is).
+    #[default]
+    Trimmed,
+    /// Every point of every bin within the largest radius of all (the bins' reach): the search
+    /// the trimmed one must equal bit for bit (tests and measurements).
+    Whole,
+}
+
 /// The bins over a grid's box: cubic, of side `size` (>= the largest radius / [`GATHER_REACH`]),
 /// from the grid's origin, `bins` along each axis (x fastest).
 #[derive(Clone, Copy, Debug, PartialEq)]

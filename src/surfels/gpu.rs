@@ -51,7 +51,12 @@ pub struct RawSurfelParams {
     pub sparse_block: u32,
     pub inside: f32,
     pub capacity: u32,
-    pub _pad: [u32; 3],
+    /// The points of the largest radius lead: the first `leading` ([`leading_and_rest`]) ...
+    pub leading: u32,
+    /// ... and the others' largest radius: their sums read them only in the bins it reaches
+    /// (negative: every point of every bin within `reach` read, `BinSearch::Whole`).
+    pub rest_radius: f32,
+    pub _pad: u32,
     pub colour: [f32; 4],
 }
 
@@ -68,6 +73,7 @@ impl RawSurfelParams {
         kernel: Kernel,
         params: &SurfelParams,
     ) -> Self {
+        let (leading, rest_radius) = leading_and_rest(points);
         Self {
             origin: spec.origin.to_array(),
             spacing: spec.spacing,
@@ -86,10 +92,31 @@ impl RawSurfelParams {
             sparse_block: 0,
             inside: 0.0,
             capacity: 0,
-            _pad: [0; 3],
+            leading: leading as u32,
+            rest_radius,
+            _pad: 0,
             colour: crate::splat::WATER,
         }
     }
+}
+
+/// The points the surfels' density sums read in every bin within the largest radius: the first
+/// `leading`, up to the last of the largest radius (the chain's particles, which come before its
+/// refined points); and the largest radius of the others, which the sums read only in the bins
+/// that radius reaches (`density_and_gradient` in shaders/surfels.wgsl: the sums are the same,
+/// every point left out lies beyond its radius). All points lead when they share one radius.
+#[must_use]
+pub fn leading_and_rest(points: &Points<'_>) -> (usize, f32) {
+    let Some(radii) = points.radii else {
+        return (points.len(), 0.0);
+    };
+    let largest = points.max_radius();
+    let leading = radii
+        .iter()
+        .rposition(|&r| r >= largest)
+        .map_or(0, |i| i + 1);
+    let rest = radii[leading..].iter().copied().fold(0.0f32, f32::max);
+    (leading, rest)
 }
 
 /// The WGSL source of the passes (`common.wgsl` and `scan.wgsl` prepended).
@@ -552,9 +579,16 @@ pub struct ResidentSurfels {
     created: usize,
     iso: f32,
     spacing: f32,
+    search: crate::density::bins::BinSearch,
 }
 
 impl ResidentSurfels {
+    /// How the next [`Self::record`]s' projections search the bins (the default:
+    /// [`BinSearch::Trimmed`](crate::density::bins::BinSearch::Trimmed)).
+    pub fn set_search(&mut self, search: crate::density::bins::BinSearch) {
+        self.search = search;
+    }
+
     /// Compiles the passes and makes the fixed buffers for `device`.
     #[must_use]
     pub fn new(device: &wgpu::Device) -> Self {
@@ -598,6 +632,7 @@ impl ResidentSurfels {
             created: 0,
             iso: 0.0,
             spacing: 0.0,
+            search: crate::density::bins::BinSearch::Trimmed,
         }
     }
 
@@ -683,12 +718,17 @@ impl ResidentSurfels {
         ];
         self.created = made.iter().filter(|&&m| m).count();
         let (sparse_block, inside) = sparse_of(grid);
-        let raw = RawSurfelParams {
+        let mut raw = RawSurfelParams {
             capacity: wanted,
             sparse_block,
             inside,
             ..RawSurfelParams::new(&spec, iso, &binned, &points, kernel, params)
         };
+        if self.search == crate::density::bins::BinSearch::Whole {
+            // every point of every bin read (shaders/surfels.wgsl's `whole_search`)
+            raw.leading = points.len() as u32;
+            raw.rest_radius = -1.0;
+        }
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
         let states = grid.sparse.as_ref().map_or(&self.states, |s| &s.states);
         // the bind group holds the grid's buffers: made anew when one of them is another

@@ -50,7 +50,12 @@ pub struct RawWeightParams {
     pub max_weight: f32,
     pub buried: f32,
     pub band: f32,
-    pub _pad: [f32; 2],
+    /// The points that may have an interior share: the first `leading` (the particles with
+    /// [`Split::Found`]); the others are the sheet.
+    pub leading: u32,
+    /// The others' (the sheet's) largest radius; negative: every point of every bin within
+    /// `reach` read ([`BinSearch::Whole`]).
+    pub sheet_radius: f32,
 }
 
 const _: () = assert!(std::mem::size_of::<RawWeightParams>() == 80);
@@ -66,6 +71,8 @@ pub struct RawSheetPoint {
 
 /// Bytes of a `Target` (target and how alone, lone weight, interior density, padding).
 const TARGET_BYTES: u64 = 32;
+
+pub use crate::density::bins::BinSearch;
 
 /// Where the points' split (interior share, sheet weight) comes from.
 #[derive(Clone, Copy, Debug)]
@@ -101,6 +108,7 @@ pub struct WeightPasses {
     /// The application to another copy of the points ([`Self::apply_to`]) and that copy.
     copy_bind: Option<(wgpu::Buffer, wgpu::BindGroup)>,
     created: usize,
+    search: BinSearch,
 }
 
 /// What [`WeightPasses::record`] solves for: the binned points (each keeping its index in the
@@ -153,7 +161,13 @@ impl WeightPasses {
             binds: None,
             copy_bind: None,
             created: 0,
+            search: BinSearch::Trimmed,
         }
+    }
+
+    /// How the next [`Self::record`]s search the bins (the default: [`BinSearch::Trimmed`]).
+    pub fn set_search(&mut self, search: BinSearch) {
+        self.search = search;
     }
 
     /// Buffers and bind groups the last [`Self::record`] made (0 once they are large enough).
@@ -208,6 +222,15 @@ impl WeightPasses {
                 classes.len()
             }
         };
+        // the points with an interior share lead (the particles, or the given shares' last
+        // nonzero one and those before it)
+        let leading = match (self.search, input.split) {
+            (BinSearch::Whole, _) => n,
+            (_, Split::Given(split)) => {
+                split.iter().rposition(|s| s[0] != 0.0).map_or(0, |i| i + 1)
+            }
+            (_, Split::Found { .. }) => particles,
+        };
         let params = RawWeightParams {
             bin_origin: input.origin.to_array(),
             bin_size: input.binned.bin_size,
@@ -223,7 +246,14 @@ impl WeightPasses {
             max_weight: MAX_WEIGHT,
             buried: BURIED,
             band: BAND,
-            _pad: [0.0; 2],
+            leading: leading as u32,
+            sheet_radius: match self.search {
+                BinSearch::Whole => -1.0,
+                BinSearch::Trimmed => input.sheet[leading..]
+                    .iter()
+                    .map(|p| p.at[3])
+                    .fold(0.0f32, f32::max),
+            },
         };
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&params));
         let (split_made, classes_made) = match input.split {
@@ -433,12 +463,14 @@ fn solve_once(
     (first, normals): (usize, &[Vec3]),
     split: Split<'_>,
     (spacing, kernel, tau): (f32, Kernel, f32),
+    search: BinSearch,
 ) -> Result<(WeightPasses, wgpu::Buffer), crate::Error> {
     let reach = points.max_radius();
     let spec = GridSpec::around(points.positions, reach, Resolution::CellSize(reach))?;
     let binned = BinnedPoints::new(&ctx.device, points, &spec)?;
     let sheet = sheet_points(points, first, normals);
     let mut passes = WeightPasses::new(&ctx.device);
+    passes.set_search(search);
     let mut encoder = ctx.device.create_command_encoder(&Default::default());
     let solved = passes.record(
         (&ctx.device, &ctx.queue),
@@ -469,6 +501,23 @@ pub fn boundary_weights_gpu(
     kernel: Kernel,
     tau: f32,
 ) -> Result<Vec<f32>, crate::Error> {
+    boundary_weights_gpu_searching(
+        ctx,
+        points,
+        (interior, normals),
+        (spacing, kernel, tau),
+        BinSearch::Trimmed,
+    )
+}
+
+/// [`boundary_weights_gpu`] with the bins searched as `search` says.
+pub fn boundary_weights_gpu_searching(
+    ctx: &GpuContext,
+    points: Points<'_>,
+    (interior, normals): (usize, &[Vec3]),
+    (spacing, kernel, tau): (f32, Kernel, f32),
+    search: BinSearch,
+) -> Result<Vec<f32>, crate::Error> {
     points.check()?;
     let n = points.len();
     if normals.len() != n - interior.min(n) || interior > n {
@@ -497,6 +546,7 @@ pub fn boundary_weights_gpu(
         (interior, normals),
         Split::Given(&split),
         (spacing, kernel, tau),
+        search,
     )?;
     let w: Vec<f32> = gpu::read_buffer(ctx, &solved)?;
     let mut out = base;
@@ -521,6 +571,21 @@ pub fn boundary_factors_gpu(
     kernel: Kernel,
     tau: f32,
 ) -> Result<GpuFactors, crate::Error> {
+    boundary_factors_gpu_searching(
+        ctx,
+        (particles, surface, sheet),
+        (h, kernel, tau),
+        BinSearch::Trimmed,
+    )
+}
+
+/// [`boundary_factors_gpu`] with the bins searched as `search` says.
+pub fn boundary_factors_gpu_searching(
+    ctx: &GpuContext,
+    (particles, surface, sheet): (&[Vec3], &Surface, super::Sheet<'_>),
+    (h, kernel, tau): (f32, Kernel, f32),
+    search: BinSearch,
+) -> Result<GpuFactors, crate::Error> {
     let layout = super::boundary_layout(particles, surface, sheet, h);
     let points = Points::with_radii(&layout.positions, &layout.radii, h);
     points.check()?;
@@ -532,6 +597,7 @@ pub fn boundary_factors_gpu(
             classes: &layout.classes,
         },
         (layout.spacing, kernel, tau),
+        search,
     )?;
     let n = points.len();
     let split: Vec<[f32; 2]> = gpu::read_buffer(ctx, passes.split())?;
