@@ -3,9 +3,9 @@
 // binned (on the CPU, or on the GPU by bin_sort.wgsl) into cubic bins of side >= (largest radius) / reach (sorted by bin, with the
 // start of every bin), and one invocation per grid point of a group of planes sums the kernel of
 // each particle's own radius (measured against the reference radius h) over the particles
-// of the (2 reach + 1)^3 bins around it. Each row of bins is one contiguous range of the sorted
-// array, so a grid point reads (2 reach + 1)^2 ranges. The result is written, not blended: no float atomics, and the
-// sum's order is fixed (the particles' sorted order), so runs are reproducible.
+// of the (2 reach + 1)^3 bins around it that a particle's ball can reach it from (`density_at`).
+// The result is written, not blended: no float atomics, and the sum's order is fixed (the
+// particles' sorted order), so runs are reproducible.
 
 struct GatherParams {
     // grid origin and spacing
@@ -28,11 +28,17 @@ struct GatherParams {
     kernel: u32,
     // bins searched on each side: bin_size * reach >= the largest radius
     reach: u32,
+    // the points of the largest radius lead (index < leading, first in every bin: the bins keep
+    // the points' order); the others' largest radius (negative: every point of every bin read)
+    leading: u32,
+    rest_radius: f32,
+    _pad0: u32,
+    _pad1: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: GatherParams;
 // particles sorted by bin (position, radius and weight)
-@group(0) @binding(1) var<storage, read> particles: array<Point>;
+@group(0) @binding(1) var<storage, read> particles: array<IndexedPoint>;
 // bin_start[b] .. bin_start[b + 1]: the particles of bin b (x fastest, then y, then z)
 @group(0) @binding(2) var<storage, read> bin_start: array<u32>;
 // densities of the dispatch's planes, x fastest
@@ -43,22 +49,38 @@ struct GatherParams {
 @group(0) @binding(4) var<storage, read> evaluated: array<u32>;
 
 // The density at grid point (i, j, k): the particles of the bins around it, in sorted order.
+// Each row of bins is read only where the ball of the largest radius reaches it (`row_span`),
+// and the points after the leading ones (the refined points, of radii a fraction of the
+// particles') only in the bins the ball of their largest radius reaches, each other bin up to
+// its first such point: every point left out lies beyond its radius and adds an exact zero, so
+// the sum is the one over every bin of the range, bit for bit (`BinSearch::Whole`, tested).
 fn density_at(i: u32, j: u32, k: u32) -> f32 {
     let x = params.origin + vec3<f32>(f32(i), f32(j), f32(k)) * params.spacing;
     let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
-    let lo = range.lo;
-    let hi = range.hi;
+    let largest = f32(params.reach) * params.bin_size;
+    let whole = params.rest_radius < 0.0;
     var sum = 0.0;
-    for (var bz = lo.z; bz <= hi.z; bz++) {
-        for (var by = lo.y; by <= hi.y; by++) {
+    for (var bz = range.lo.z; bz <= range.hi.z; bz++) {
+        for (var by = range.lo.y; by <= range.hi.y; by++) {
             let row = (u32(bz) * params.bins.y + u32(by)) * params.bins.x;
-            let first = bin_start[row + u32(lo.x)];
-            let end = bin_start[row + u32(hi.x) + 1u];
-            for (var n = first; n < end; n++) {
-                let d = x - particles[n].at.xyz;
-                let r2 = d.x * d.x + (d.y * d.y + d.z * d.z);
-                sum += particles[n].weight
-                    * density_kernel_r2(r2, particles[n].at.w, params.constant, params.kernel);
+            var span = vec2<i32>(range.lo.x, range.hi.x);
+            var near = span;
+            if !whole {
+                span = row_span(x, params.bin_origin, params.bin_size, range, by, bz, largest);
+                near = row_span(x, params.bin_origin, params.bin_size, range, by, bz, params.rest_radius);
+            }
+            for (var bx = span.x; bx <= span.y; bx++) {
+                let rest_too = bx >= near.x && bx <= near.y;
+                let end = bin_start[row + u32(bx) + 1u];
+                for (var n = bin_start[row + u32(bx)]; n < end; n++) {
+                    if !rest_too && particles[n].index >= params.leading {
+                        break;
+                    }
+                    let d = x - particles[n].at.xyz;
+                    let r2 = d.x * d.x + (d.y * d.y + d.z * d.z);
+                    sum += particles[n].weight
+                        * density_kernel_r2(r2, particles[n].at.w, params.constant, params.kernel);
+                }
             }
         }
     }

@@ -66,7 +66,7 @@ fn twins() -> Vec<Twin> {
             gpu_density::GATHER_SHADER,
             "GatherParams",
             std::mem::size_of::<RawGatherParams>(),
-            fields!(RawGatherParams; origin, spacing, dims, k0, bin_origin, bin_size, bins, planes, h, constant, kernel, reach),
+            fields!(RawGatherParams; origin, spacing, dims, k0, bin_origin, bin_size, bins, planes, h, constant, kernel, reach, leading, rest_radius),
         ),
         (
             "surfel_splat.wgsl",
@@ -1376,18 +1376,18 @@ fn same_bits(a: &[f32], b: &[f32], name: &str) {
     }
 }
 
-/// The surfels' projection reads each row of bins only where the ball of the largest radius
-/// reaches it and the points of smaller radii (after the leading ones) only in the bins their
-/// radius reaches; every point it leaves out adds nothing, so its surfels equal, bit for bit,
-/// those of the search over every point of every bin (`BinSearch::Whole`): on the double dam
-/// break's particles (radius h) followed by a shifted copy of radius 0.45 h, and on one radius.
+/// The gather pass (a dense grid's and a sparse grid's) and the surfels' projection read each
+/// row of bins only where the ball of the largest radius reaches it and the points of smaller
+/// radii (after the leading ones) only in the bins their radius reaches; every point they
+/// leave out adds nothing, so the grids and the surfels equal, bit for bit, those of the search
+/// over every point of every bin (`BinSearch::Whole`): on the double dam break's particles
+/// (radius h) followed by a shifted copy of radius 0.45 h, and on one radius.
 #[test]
-fn gpu_surfels_trimmed_search_equals_the_whole() {
-    use fluid_surfels::density::bins::BinSearch;
+fn gpu_trimmed_searches_equal_the_whole() {
+    use fluid_surfels::density::bins::{BinSearch, leading_and_rest};
     use fluid_surfels::density::gpu::GridFiller;
     use fluid_surfels::surfels::{SurfelParams, gpu::ResidentSurfels};
-    let Some(ctx) = gpu::context_or_skip("gpu_surfels_trimmed_search_equals_the_whole").unwrap()
-    else {
+    let Some(ctx) = gpu::context_or_skip("gpu_trimmed_searches_equal_the_whole").unwrap() else {
         return;
     };
     let ddb = double_dam_break();
@@ -1405,11 +1405,20 @@ fn gpu_surfels_trimmed_search_equals_the_whole() {
         ("two radii", Points::with_radii(&positions, &radii, h)),
         ("one radius", Points::uniform(&ddb, h)),
     ] {
-        let (leading, rest) = fluid_surfels::surfels::gpu::leading_and_rest(&points);
+        let (leading, rest) = leading_and_rest(&points);
         let spec = GridSpec::around(points.positions, h, Resolution::CellSize(h / 3.0)).unwrap();
+        let band = fluid_surfels::lnm::narrow_band(
+            points.positions,
+            points.max_radius(),
+            &Default::default(),
+        )
+        .unwrap();
+        let layout = density::sparse_layout(points, &spec, 1 << 30, &band).unwrap();
+        let inside = 4.0 * Kernel::Wyvill.peak(h);
         let mut filler = GridFiller::new(&ctx.device);
         let mut found = Vec::new();
         for search in [BinSearch::Trimmed, BinSearch::Whole] {
+            filler.set_search(search);
             let mut surfels = ResidentSurfels::new(&ctx.device);
             surfels.set_search(search);
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
@@ -1420,24 +1429,42 @@ fn gpu_surfels_trimmed_search_equals_the_whole() {
                 .record(&ctx, &mut encoder, &grid, points, Kernel::Wyvill, &params)
                 .unwrap();
             ctx.queue.submit([encoder.finish()]);
-            found.push(surfels.read(&ctx).unwrap());
+            let dense = grid.read(&ctx).unwrap().values;
+            let got = surfels.read(&ctx).unwrap();
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            let sparse = filler
+                .record_sparse(
+                    &ctx,
+                    &mut encoder,
+                    points,
+                    (&layout, inside),
+                    Kernel::Wyvill,
+                )
+                .unwrap();
+            ctx.queue.submit([encoder.finish()]);
+            found.push((dense, sparse.read(&ctx).unwrap().values, got));
         }
+        let (a, b) = (&found[0], &found[1]);
         println!(
-            "{name}: {} points, {leading} leading, the rest of radius up to {:.3} h: {} surfels",
+            "{name}: {} points, {leading} leading, the rest of radius up to {:.3} h: {} surfels, {} of {} blocks evaluated",
             points.len(),
             rest / h,
-            found[0].len()
+            a.2.len(),
+            layout.evaluated.len(),
+            layout.states.len()
         );
-        assert!(found[0].len() > 1000, "{name}: too few surfels to compare");
-        assert_eq!(found[0].len(), found[1].len(), "{name}: counts");
-        for (a, b) in [
-            (&found[0].positions, &found[1].positions),
-            (&found[0].normals, &found[1].normals),
+        assert!(a.2.len() > 1000, "{name}: too few surfels to compare");
+        assert_eq!(a.2.len(), b.2.len(), "{name}: counts");
+        same_bits(&a.0, &b.0, &format!("{name}, the dense grid"));
+        same_bits(&a.1, &b.1, &format!("{name}, the sparse grid"));
+        for (x, y) in [
+            (&a.2.positions, &b.2.positions),
+            (&a.2.normals, &b.2.normals),
         ] {
             same_bits(
-                bytemuck::cast_slice(a.as_slice()),
-                bytemuck::cast_slice(b.as_slice()),
-                name,
+                bytemuck::cast_slice(x.as_slice()),
+                bytemuck::cast_slice(y.as_slice()),
+                &format!("{name}, the surfels"),
             );
         }
     }

@@ -32,6 +32,26 @@ pub enum BinSearch {
     Whole,
 }
 
+/// The points the compute passes' density sums read in every bin within the largest radius
+/// (the gather's `density_at`, the surfels' `density_and_gradient`): the first `leading`, up to
+/// the last of the largest radius (the chain's particles, which come before its refined points);
+/// and the largest radius of the others, which the sums read only in the bins that radius
+/// reaches (the sums are the same: every point left out lies beyond its radius). All points lead
+/// when they share one radius.
+#[must_use]
+pub fn leading_and_rest(points: &Points<'_>) -> (usize, f32) {
+    let Some(radii) = points.radii else {
+        return (points.len(), 0.0);
+    };
+    let largest = points.max_radius();
+    let leading = radii
+        .iter()
+        .rposition(|&r| r >= largest)
+        .map_or(0, |i| i + 1);
+    let rest = radii[leading..].iter().copied().fold(0.0f32, f32::max);
+    (leading, rest)
+}
+
 /// The bins over a grid's box: cubic, of side `size` (>= the largest radius / [`GATHER_REACH`]),
 /// from the grid's origin, `bins` along each axis (x fastest).
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -19,7 +19,7 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use super::bins::{BinLayout, GpuBinSort, bin_particles};
+use super::bins::{BinLayout, BinSearch, GpuBinSort, bin_particles};
 use super::sparse::{BLOCK, BLOCK_VALUES, SparseLayout};
 use super::{DensityGrid, GridSpec, Kernel, Points};
 use crate::gpu::{self, GpuContext, GpuError};
@@ -441,11 +441,27 @@ pub struct RawGatherParams {
     pub constant: f32,
     pub kernel: u32,
     pub reach: u32,
+    /// The points of the largest radius lead: the first `leading`
+    /// ([`leading_and_rest`](super::bins::leading_and_rest)) ...
+    pub leading: u32,
+    /// ... and the others' largest radius: the sums read them only in the bins it reaches
+    /// (negative: every point of every bin within `reach`, [`BinSearch::Whole`]).
+    pub rest_radius: f32,
+    pub _pad: [u32; 2],
 }
 
-const _: () = assert!(std::mem::size_of::<RawGatherParams>() == 80);
+const _: () = assert!(std::mem::size_of::<RawGatherParams>() == 96);
 
 impl RawGatherParams {
+    /// These parameters read with `search`: for [`BinSearch::Whole`] every point of every bin.
+    fn searching(mut self, search: BinSearch, points: usize) -> Self {
+        if search == BinSearch::Whole {
+            self.leading = points as u32;
+            self.rest_radius = -1.0;
+        }
+        self
+    }
+
     /// The parameters filling planes `k0 .. k0 + planes` of the grid of `spec` with `points`
     /// binned as `binned` (over the grid's box).
     fn new(
@@ -456,6 +472,7 @@ impl RawGatherParams {
         (k0, planes): (u32, u32),
     ) -> Self {
         let h = points.h;
+        let (leading, rest_radius) = super::bins::leading_and_rest(points);
         Self {
             origin: spec.origin.to_array(),
             spacing: spec.spacing,
@@ -469,6 +486,9 @@ impl RawGatherParams {
             constant: kernel_constant(kernel, h),
             kernel: kernel_code(kernel),
             reach: GATHER_REACH,
+            leading: leading as u32,
+            rest_radius,
+            _pad: [0; 2],
         }
     }
 }
@@ -835,6 +855,8 @@ pub struct GridFiller {
     splat: Option<SplatPasses>,
     /// A sparse grid's pass ([`GridFiller::record_sparse`]), made on first use.
     sparse: Option<SparseFill>,
+    /// How the gather passes search the bins ([`GridFiller::set_search`]).
+    search: BinSearch,
 }
 
 /// The gather over a sparse grid's evaluated blocks (`gather_blocks`), its block states and
@@ -1066,7 +1088,14 @@ impl GridFiller {
             created: 0,
             splat: None,
             sparse: None,
+            search: BinSearch::Trimmed,
         }
+    }
+
+    /// How the next records' gather passes (the gather method's and a sparse grid's) search
+    /// the bins (the default: [`BinSearch::Trimmed`]).
+    pub fn set_search(&mut self, search: BinSearch) {
+        self.search = search;
     }
 
     /// [`GridFiller::new`] filling the grid by `method`: the compute gather pass, or the
@@ -1145,7 +1174,8 @@ impl GridFiller {
             &points,
             kernel,
             (0, spec.dims[2]),
-        );
+        )
+        .searching(self.search, points.len());
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
         if self.bind.is_none() || self.created > 0 {
             self.bind = Some(gather_bind_group(
@@ -1298,7 +1328,8 @@ impl GridFiller {
         );
         self.created += lists;
         let slots = layout.evaluated.len() as u32;
-        let raw = RawGatherParams::new(spec, (&bins.bins, bins.size), &points, kernel, (0, slots));
+        let raw = RawGatherParams::new(spec, (&bins.bins, bins.size), &points, kernel, (0, slots))
+            .searching(self.search, points.len());
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
         if fill.bind.is_none() || made.contains(&true) || lists > 0 {
             fill.bind = Some(gpu::buffers_bind_group(

@@ -51,7 +51,8 @@ pub struct RawSurfelParams {
     pub sparse_block: u32,
     pub inside: f32,
     pub capacity: u32,
-    /// The points of the largest radius lead: the first `leading` ([`leading_and_rest`]) ...
+    /// The points of the largest radius lead: the first `leading`
+    /// ([`leading_and_rest`](crate::density::bins::leading_and_rest)) ...
     pub leading: u32,
     /// ... and the others' largest radius: their sums read them only in the bins it reaches
     /// (negative: every point of every bin within `reach` read, `BinSearch::Whole`).
@@ -73,7 +74,7 @@ impl RawSurfelParams {
         kernel: Kernel,
         params: &SurfelParams,
     ) -> Self {
-        let (leading, rest_radius) = leading_and_rest(points);
+        let (leading, rest_radius) = crate::density::bins::leading_and_rest(points);
         Self {
             origin: spec.origin.to_array(),
             spacing: spec.spacing,
@@ -98,25 +99,6 @@ impl RawSurfelParams {
             colour: crate::splat::WATER,
         }
     }
-}
-
-/// The points the surfels' density sums read in every bin within the largest radius: the first
-/// `leading`, up to the last of the largest radius (the chain's particles, which come before its
-/// refined points); and the largest radius of the others, which the sums read only in the bins
-/// that radius reaches (`density_and_gradient` in shaders/surfels.wgsl: the sums are the same,
-/// every point left out lies beyond its radius). All points lead when they share one radius.
-#[must_use]
-pub fn leading_and_rest(points: &Points<'_>) -> (usize, f32) {
-    let Some(radii) = points.radii else {
-        return (points.len(), 0.0);
-    };
-    let largest = points.max_radius();
-    let leading = radii
-        .iter()
-        .rposition(|&r| r >= largest)
-        .map_or(0, |i| i + 1);
-    let rest = radii[leading..].iter().copied().fold(0.0f32, f32::max);
-    (leading, rest)
 }
 
 /// The WGSL source of the passes (`common.wgsl` and `scan.wgsl` prepended).
