@@ -105,13 +105,9 @@ fn sums(x: vec3<f32>, weighted: bool, with_sheet: bool) -> vec2<f32> {
     for (var bz = range.lo.z; bz <= range.hi.z; bz++) {
         for (var by = range.lo.y; by <= range.hi.y; by++) {
             let row = (u32(bz) * params.bins.y + u32(by)) * params.bins.x;
-            let span = span_of(x, range, by, bz, largest);
-            var near = vec2<i32>(1, 0);
-            if with_sheet {
-                near = span_of(x, range, by, bz, params.sheet_radius);
-            }
-            for (var bx = span.x; bx <= span.y; bx++) {
-                let sheet_too = bx >= near.x && bx <= near.y;
+            let spans = row_spans(x, params.bin_origin, params.bin_size, range, by, bz, largest, params.sheet_radius);
+            for (var bx = spans.x; bx <= spans.y; bx++) {
+                let sheet_too = with_sheet && bx >= spans.z && bx <= spans.w;
                 let end = bin_start[row + u32(bx) + 1u];
                 for (var n = bin_start[row + u32(bx)]; n < end; n++) {
                     let p = points[n];

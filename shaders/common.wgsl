@@ -79,6 +79,20 @@ fn row_span(x: vec3<f32>, origin: vec3<f32>, size: f32, range: BinRange, by: i32
     return vec2<i32>(first, last);
 }
 
+// The bins of row (by, bz) that density sums at x read: xy where the ball of `largest` (every
+// point's radius at most) reaches, zw where the ball of `rest` reaches, the only bins where the
+// points after the leading ones (of radius at most `rest`) are read; a negative `rest`: the
+// range's whole row for both (`BinSearch::Whole`, the reference the trimmed search must equal).
+fn row_spans(x: vec3<f32>, origin: vec3<f32>, size: f32, range: BinRange, by: i32, bz: i32, largest: f32, rest: f32) -> vec4<i32> {
+    if rest < 0.0 {
+        return vec4<i32>(range.lo.x, range.hi.x, range.lo.x, range.hi.x);
+    }
+    return vec4<i32>(
+        row_span(x, origin, size, range, by, bz, largest),
+        row_span(x, origin, size, range, by, bz, rest),
+    );
+}
+
 // A ray: origin and direction (view space in the splat passes, world space in the optics).
 struct Ray {
     origin: vec3<f32>,

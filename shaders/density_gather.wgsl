@@ -58,19 +58,13 @@ fn density_at(i: u32, j: u32, k: u32) -> f32 {
     let x = params.origin + vec3<f32>(f32(i), f32(j), f32(k)) * params.spacing;
     let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
     let largest = f32(params.reach) * params.bin_size;
-    let whole = params.rest_radius < 0.0;
     var sum = 0.0;
     for (var bz = range.lo.z; bz <= range.hi.z; bz++) {
         for (var by = range.lo.y; by <= range.hi.y; by++) {
             let row = (u32(bz) * params.bins.y + u32(by)) * params.bins.x;
-            var span = vec2<i32>(range.lo.x, range.hi.x);
-            var near = span;
-            if !whole {
-                span = row_span(x, params.bin_origin, params.bin_size, range, by, bz, largest);
-                near = row_span(x, params.bin_origin, params.bin_size, range, by, bz, params.rest_radius);
-            }
-            for (var bx = span.x; bx <= span.y; bx++) {
-                let rest_too = bx >= near.x && bx <= near.y;
+            let spans = row_spans(x, params.bin_origin, params.bin_size, range, by, bz, largest, params.rest_radius);
+            for (var bx = spans.x; bx <= spans.y; bx++) {
+                let rest_too = bx >= spans.z && bx <= spans.w;
                 let end = bin_start[row + u32(bx) + 1u];
                 for (var n = bin_start[row + u32(bx)]; n < end; n++) {
                     if !rest_too && particles[n].index >= params.leading {

@@ -462,32 +462,30 @@ impl RawGatherParams {
         self
     }
 
-    /// The parameters filling planes `k0 .. k0 + planes` of the grid of `spec` with `points`
-    /// binned as `binned` (over the grid's box).
+    /// The parameters filling planes `k0 .. k0 + planes` of the grid of `spec` with the points
+    /// `binned` (over the grid's box), of reference radius `h`.
     fn new(
         spec: &GridSpec,
-        binned: (&[u32; 3], f32),
-        points: &Points<'_>,
+        binned: &BinnedPoints,
+        h: f32,
         kernel: Kernel,
         (k0, planes): (u32, u32),
     ) -> Self {
-        let h = points.h;
-        let (leading, rest_radius) = super::bins::leading_and_rest(points);
         Self {
             origin: spec.origin.to_array(),
             spacing: spec.spacing,
             dims: spec.dims,
             k0,
             bin_origin: spec.origin.to_array(),
-            bin_size: binned.1,
-            bins: *binned.0,
+            bin_size: binned.bin_size,
+            bins: binned.bins,
             planes,
             h,
             constant: kernel_constant(kernel, h),
             kernel: kernel_code(kernel),
             reach: GATHER_REACH,
-            leading: leading as u32,
-            rest_radius,
+            leading: binned.leading as u32,
+            rest_radius: binned.rest_radius,
             _pad: [0; 2],
         }
     }
@@ -564,6 +562,10 @@ pub struct BinnedPoints {
     pub bin_size: f32,
     /// How many points.
     pub count: usize,
+    /// The points the sums read in every bin within the largest radius, the first `leading`,
+    /// and the others' largest radius ([`leading_and_rest`](super::bins::leading_and_rest)).
+    pub leading: usize,
+    pub rest_radius: f32,
 }
 
 impl BinnedPoints {
@@ -574,6 +576,7 @@ impl BinnedPoints {
         spec: &GridSpec,
     ) -> Result<Self, GpuError> {
         let bins = Bins::new(points, spec, gpu::max_binding(device))?;
+        let (leading, rest_radius) = super::bins::leading_and_rest(points);
         use wgpu::util::DeviceExt;
         let init = |label, contents| {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -588,6 +591,8 @@ impl BinnedPoints {
             bins: bins.layout.bins,
             bin_size: bins.layout.size,
             count: points.len(),
+            leading,
+            rest_radius,
         })
     }
 }
@@ -657,13 +662,7 @@ impl Gather {
     ) {
         use wgpu::util::DeviceExt;
         let binned = &self.binned;
-        let raw = RawGatherParams::new(
-            spec,
-            (&binned.bins, binned.bin_size),
-            points,
-            kernel,
-            (k0, planes),
-        );
+        let raw = RawGatherParams::new(spec, binned, points.h, kernel, (k0, planes));
         let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("gather params"),
             contents: bytemuck::bytes_of(&raw),
@@ -1160,22 +1159,13 @@ impl GridFiller {
                 spec.cells()
             )));
         }
-        let (bins, made, uploaded) = self.upload(ctx, encoder, &points, (spec, bytes as u64))?;
+        let (binned, made, uploaded) = self.upload(ctx, encoder, &points, (spec, bytes as u64))?;
         let mut before = before;
         if let Some(before) = before.as_mut() {
-            before(
-                encoder,
-                FillPoints::Binned(&self.grid_of(spec, &bins, points.len(), None).points),
-            )?;
+            before(encoder, FillPoints::Binned(&binned))?;
         }
-        let raw = RawGatherParams::new(
-            spec,
-            (&bins.bins, bins.size),
-            &points,
-            kernel,
-            (0, spec.dims[2]),
-        )
-        .searching(self.search, points.len());
+        let raw = RawGatherParams::new(spec, &binned, points.h, kernel, (0, spec.dims[2]))
+            .searching(self.search, points.len());
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
         if self.bind.is_none() || self.created > 0 {
             self.bind = Some(gather_bind_group(
@@ -1211,20 +1201,20 @@ impl GridFiller {
                 spec.dims[2],
             );
         }
-        Ok(self.grid_of(spec, &bins, points.len(), None))
+        Ok(self.grid_of(spec, binned, None))
     }
 
     /// Uploads `points` and records their sort into the bins over the grid of `spec`
     /// ([`GpuBinSort`]) into `encoder`, and makes sure the grid's buffer holds `bytes`; the
-    /// bins, and whether the sort's buffers and the grid's were made anew (counted in
-    /// [`Self::created`]).
+    /// binned points (in the sort's buffers), whether the sort's buffers and the grid's were
+    /// made anew (counted in [`Self::created`]), and the points as uploaded.
     fn upload(
         &mut self,
         ctx: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         points: &Points<'_>,
         (spec, bytes): (&GridSpec, u64),
-    ) -> Result<(BinLayout, [bool; 2], Vec<RawPoint>), GpuError> {
+    ) -> Result<(BinnedPoints, [bool; 2], Vec<RawPoint>), GpuError> {
         let layout = BinLayout::of(points, spec);
         let raw = raw_points(points);
         self.bins.record(ctx, encoder, &raw, &layout)?;
@@ -1233,27 +1223,25 @@ impl GridFiller {
             self.grid.reserve(&ctx.device, bytes),
         ];
         self.created = self.bins.created() + usize::from(made[1]);
-        Ok((layout, made, raw))
+        let (leading, rest_radius) = super::bins::leading_and_rest(points);
+        let binned = BinnedPoints {
+            points: self.bins.sorted().clone(),
+            starts: self.bins.starts().clone(),
+            bins: layout.bins,
+            bin_size: layout.size,
+            count: points.len(),
+            leading,
+            rest_radius,
+        };
+        Ok((binned, made, raw))
     }
 
-    /// The grid in this filler's buffers.
-    fn grid_of(
-        &self,
-        spec: &GridSpec,
-        bins: &BinLayout,
-        count: usize,
-        sparse: Option<GpuSparse>,
-    ) -> GpuGrid {
+    /// The grid in this filler's buffer, filled from `points`.
+    fn grid_of(&self, spec: &GridSpec, points: BinnedPoints, sparse: Option<GpuSparse>) -> GpuGrid {
         GpuGrid {
             spec: *spec,
             values: self.grid.buffer().clone(),
-            points: BinnedPoints {
-                points: self.bins.sorted().clone(),
-                starts: self.bins.starts().clone(),
-                bins: bins.bins,
-                bin_size: bins.size,
-                count,
-            },
+            points,
             sparse,
         }
     }
@@ -1302,12 +1290,9 @@ impl GridFiller {
                 "the inside value {inside} of a sparse grid must be finite"
             )));
         }
-        let (bins, made, _) = self.upload(ctx, encoder, &points, (spec, bytes))?;
+        let (binned, made, _) = self.upload(ctx, encoder, &points, (spec, bytes))?;
         if let Some(before) = before {
-            before(
-                encoder,
-                FillPoints::Binned(&self.grid_of(spec, &bins, points.len(), None).points),
-            )?;
+            before(encoder, FillPoints::Binned(&binned))?;
         }
         let fill = self.sparse.get_or_insert_with(|| SparseFill {
             pipeline: gather_pipeline_of(device, "gather_blocks"),
@@ -1328,7 +1313,7 @@ impl GridFiller {
         );
         self.created += lists;
         let slots = layout.evaluated.len() as u32;
-        let raw = RawGatherParams::new(spec, (&bins.bins, bins.size), &points, kernel, (0, slots))
+        let raw = RawGatherParams::new(spec, &binned, points.h, kernel, (0, slots))
             .searching(self.search, points.len());
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
         if fill.bind.is_none() || made.contains(&true) || lists > 0 {
@@ -1357,7 +1342,7 @@ impl GridFiller {
             inside,
             evaluated: slots,
         };
-        Ok(self.grid_of(spec, &bins, points.len(), Some(sparse)))
+        Ok(self.grid_of(spec, binned, Some(sparse)))
     }
 }
 

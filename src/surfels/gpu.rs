@@ -52,7 +52,7 @@ pub struct RawSurfelParams {
     pub inside: f32,
     pub capacity: u32,
     /// The points of the largest radius lead: the first `leading`
-    /// ([`leading_and_rest`](crate::density::bins::leading_and_rest)) ...
+    /// ([`BinnedPoints::leading`]) ...
     pub leading: u32,
     /// ... and the others' largest radius: their sums read them only in the bins it reaches
     /// (negative: every point of every bin within `reach` read, `BinSearch::Whole`).
@@ -74,7 +74,6 @@ impl RawSurfelParams {
         kernel: Kernel,
         params: &SurfelParams,
     ) -> Self {
-        let (leading, rest_radius) = crate::density::bins::leading_and_rest(points);
         Self {
             origin: spec.origin.to_array(),
             spacing: spec.spacing,
@@ -93,8 +92,8 @@ impl RawSurfelParams {
             sparse_block: 0,
             inside: 0.0,
             capacity: 0,
-            leading: leading as u32,
-            rest_radius,
+            leading: binned.leading as u32,
+            rest_radius: binned.rest_radius,
             _pad: 0,
             colour: crate::splat::WATER,
         }
