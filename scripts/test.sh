@@ -23,6 +23,8 @@ case "${1:-}" in
     ;;
 esac
 suite_start=$(date +%s)
+# a section's header with the seconds since the suite started (where the suite's time goes)
+section() { echo "== $* (at $(( $(date +%s) - suite_start )) s)"; }
 
 # GPU tests run on Mesa's software Vulkan driver (lavapipe). Install it when missing; cargo cannot.
 if ! ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1; then
@@ -43,9 +45,9 @@ if [ -z "${XDG_RUNTIME_DIR:-}" ]; then
   mkdir -p "$XDG_RUNTIME_DIR" && chmod 700 "$XDG_RUNTIME_DIR"
 fi
 
-echo "== cargo fmt --check"
+section "cargo fmt --check"
 cargo fmt --all -- --check
-echo "== cargo clippy (the library, the command line and the Python bindings, all targets; warnings are errors)"
+section "cargo clippy (the library, the command line and the Python bindings, all targets; warnings are errors)"
 cargo clippy --locked --workspace --all-targets -- -D warnings
 
 if [ "$quick" = 1 ]; then
@@ -53,7 +55,7 @@ if [ "$quick" = 1 ]; then
   # testing section says how a test stays in this list). The unit tests of the library and the
   # command line run whole.
   QUICK_TESTS=(formats io lnm particle_splat splat density surfels ssfr raycast refine surface pipeline detail)
-  echo "== cargo test --quick (unit tests; integration tests: ${QUICK_TESTS[*]})"
+  section "cargo test --quick (unit tests; integration tests: ${QUICK_TESTS[*]})"
   cargo test --locked --lib --bins
   args=()
   for t in "${QUICK_TESTS[@]}"; do args+=(--test "$t"); done
@@ -62,30 +64,30 @@ if [ "$quick" = 1 ]; then
   exit 0
 fi
 
-echo "== cargo doc (warnings are errors)"
+section "cargo doc (warnings are errors)"
 RUSTDOCFLAGS="-D warnings" cargo doc --locked --no-deps -p fluid-surfels
-echo "== cargo test (library and command line: unit, integration, doc tests; examples and benches built)"
+section "cargo test (library and command line: unit, integration, doc tests; examples and benches built)"
 cargo test --locked --all-targets
 cargo test --locked --doc -p fluid-surfels
-echo "== example: the renderer on a caller's own device (game style)"
+section "example: the renderer on a caller's own device (game style)"
 example_out="$(mktemp -d)"
 cargo run --locked --quiet --example game_style -- "$example_out/game_style.png"
 test -s "$example_out/game_style.png"
-echo "== example: the whole chain in a game loop on the caller's device (GpuPipeline), 3 small frames"
+section "example: the whole chain in a game loop on the caller's device (GpuPipeline), 3 small frames"
 cargo run --locked --quiet --example game_loop -- --frames 3 --size 96x96 --save 0,2 \
   --out "$example_out/game_loop" --json | tee "$example_out/game_loop.json"
 grep -q '"psnr_against_cpu_db"' "$example_out/game_loop.json"
 grep -q '"gpu_stages":\["calibration","density","surfels","splats","optics"\]' "$example_out/game_loop.json"
 test -s "$example_out/game_loop/frame_0002.png"
-echo "== example: the viewer without a window (headless), 2 frames"
+section "example: the viewer without a window (headless), 2 frames"
 cargo run --locked --quiet --example viewer -- --headless --frames 2 --size 96x72 --out "$example_out/viewer"
 test -s "$example_out/viewer/frame_0001.png"
-echo "== example: the splashsurf comparison at a small size (time ratio, peak memory, surface distance)"
+section "example: the splashsurf comparison at a small size (time ratio, peak memory, surface distance)"
 cargo run --locked --quiet --example peer_splashsurf -- --small --repeat 1 | tee "$example_out/peer.txt"
 grep -q "16^3 block" "$example_out/peer.txt"
 rm -rf "$example_out"
 
-echo "== Python bindings: the wheel built by maturin, installed in a virtual environment, pytest"
+section "Python bindings: the wheel built by maturin, installed in a virtual environment, pytest"
 # needs python3 (3.9 or later) with venv; maturin, numpy, pytest, dask (the cluster tests, a
 # LocalCluster of 2 worker processes), meshio and usd-core (the mesh files read back by other
 # tools) come from the package index, and their tests fail rather than skip here

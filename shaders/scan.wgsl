@@ -1,5 +1,6 @@
 // The prefix sums of workgroups of 256 invocations that the passes compacting or sorting their
-// output share (surfels.wgsl, bin_sort.wgsl), prepended at load after common.wgsl.
+// output share (surfels.wgsl, bin_sort.wgsl, boundary_weights.wgsl), prepended at load after
+// common.wgsl.
 
 var<workgroup> scan: array<u32, 256>;
 

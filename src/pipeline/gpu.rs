@@ -104,7 +104,13 @@ pub struct GpuPipeline {
 /// timestamp queries written between the stages' passes.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
 pub struct GpuStageMs {
-    /// Filling the density grid (0 when the CPU made it).
+    /// Sorting the uploaded points into the bins the density's sums search (0 when the CPU
+    /// made the grid).
+    pub sort: f64,
+    /// The boundary calibration: its factors and the sheet's weights' Jacobi steps (0 when
+    /// the CPU made the grid or the chain has no calibration to solve).
+    pub calibration: f64,
+    /// Filling the density grid from the sorted, calibrated points (0 when the CPU made it).
     pub density: f64,
     /// Extracting the surfels (0 when the CPU made them).
     pub surfels: f64,
@@ -112,6 +118,25 @@ pub struct GpuStageMs {
     pub caustics: f64,
     /// The camera's splatting, the refraction and reflection, the final image.
     pub image: f64,
+}
+
+/// The timestamps a timed frame writes ([`GpuPipeline::time_stages`]), in order; a stage that
+/// did not run on the GPU writes its mark with the next one's (0 ms).
+mod mark {
+    /// Before the points' sort.
+    pub(super) const START: u32 = 0;
+    /// After the sort, before the calibration.
+    pub(super) const SORTED: u32 = 1;
+    /// After the calibration, before the fill.
+    pub(super) const CALIBRATED: u32 = 2;
+    /// After the grid's fill.
+    pub(super) const FILLED: u32 = 3;
+    /// After the surfels.
+    pub(super) const SURFELS: u32 = 4;
+    /// After the caustics.
+    pub(super) const CAUSTICS: u32 = 5;
+    /// After the final image.
+    pub(super) const IMAGE: u32 = 6;
 }
 
 /// The density grid and the surfels on the GPU, kept from frame to frame.
@@ -298,12 +323,14 @@ impl GpuPipeline {
     /// [`GpuPipeline::time_stages`] and before the first arrives.
     #[must_use]
     pub fn gpu_stage_ms(&self) -> Option<GpuStageMs> {
-        let ms = self.timer.as_ref()?.last_ms(5)?;
+        let ms = self.timer.as_ref()?.last_ms(mark::IMAGE as usize + 1)?;
         Some(GpuStageMs {
-            density: ms[0],
-            surfels: ms[1],
-            caustics: ms[2],
-            image: ms[3],
+            sort: ms[0],
+            calibration: ms[1],
+            density: ms[2],
+            surfels: ms[3],
+            caustics: ms[4],
+            image: ms[5],
         })
     }
 
@@ -314,8 +341,7 @@ impl GpuPipeline {
         }
     }
 
-    /// Writes the frame's timestamps up to `index`: 0 before the grid, 1 after it, 2 after
-    /// the surfels, 3 after the caustics, 4 after the image.
+    /// Writes the frame's timestamps up to `index` ([`mark`]'s).
     fn mark(&mut self, encoder: &mut wgpu::CommandEncoder, index: u32) {
         if let Some(timer) = &mut self.timer {
             timer.mark_to(encoder, index);
@@ -427,7 +453,7 @@ impl GpuPipeline {
             }
         };
         let t = Instant::now();
-        mark(encoder, 0);
+        mark(encoder, mark::START);
         // the calibration's factors and the sheet's weights: found in the binned points before
         // the fill
         let sheet: Vec<RawSheetPoint> = input
@@ -453,7 +479,11 @@ impl GpuPipeline {
         let weights = &mut chain.weights;
         let mut weights_made = 0;
         let mut solve = |encoder: &mut wgpu::CommandEncoder, copy: FillPoints<'_>| {
+            if let FillPoints::Binned(_) = copy {
+                mark(encoder, mark::SORTED);
+            }
             let Some(s) = input.solve.as_ref() else {
+                mark(encoder, mark::CALIBRATED);
                 return Ok(());
             };
             match copy {
@@ -474,6 +504,7 @@ impl GpuPipeline {
                             h: points.h,
                         },
                     )?;
+                    mark(encoder, mark::CALIBRATED);
                 }
                 FillPoints::Sorted(copy, count) => weights.apply_to(device, encoder, copy, count),
             }
@@ -495,13 +526,13 @@ impl GpuPipeline {
                 .filler
                 .record_with(&ctx, encoder, (points, &spec, kernel), Some(&mut solve))?
         };
-        mark(encoder, 1);
+        mark(encoder, mark::FILLED);
         frame.timings.density_ms = ms(t);
         let t = Instant::now();
         chain
             .surfels
             .record(&ctx, encoder, &grid, points, kernel, &params.surfels)?;
-        mark(encoder, 2);
+        mark(encoder, mark::SURFELS);
         frame.timings.surfels_ms = ms(t);
         frame.detail.surfels = chain.surfels.last_count().unwrap_or(0) as usize;
         if chain.surfels.overflowed() {
@@ -661,13 +692,13 @@ impl GpuPipeline {
             });
             self.prepared = Some((prepared, bind));
         }
-        self.mark(encoder, 2);
+        self.mark(encoder, mark::SURFELS);
         let (prepared, _) = self.prepared.as_ref().expect("prepared above");
         prepared.encode_caustics(queue, &self.optics, encoder)?;
-        self.mark(encoder, 3);
+        self.mark(encoder, mark::CAUSTICS);
         let (prepared, _) = self.prepared.as_ref().expect("prepared above");
         prepared.encode_frame(queue, &self.optics, encoder)?;
-        self.mark(encoder, 4);
+        self.mark(encoder, mark::IMAGE);
         if let Some(timer) = &mut self.timer {
             timer.end(encoder);
         }

@@ -28,6 +28,7 @@ use crate::surface::Surface;
 /// The WGSL of the passes.
 pub const SHADER: &str = concat!(
     include_str!("../../../shaders/common.wgsl"),
+    include_str!("../../../shaders/scan.wgsl"),
     include_str!("../../../shaders/eigen.wgsl"),
     include_str!("../../../shaders/boundary_weights.wgsl")
 );
@@ -72,6 +73,9 @@ pub struct RawSheetPoint {
 /// Bytes of a `Target` (target and how alone, lone weight, interior density, padding).
 const TARGET_BYTES: u64 = 32;
 
+/// Bytes of an `IndexedPoint` (a binned point).
+const POINT_BYTES: u64 = std::mem::size_of::<crate::density::gpu::RawPoint>() as u64;
+
 pub use crate::density::bins::BinSearch;
 
 /// Where the points' split (interior share, sheet weight) comes from.
@@ -94,7 +98,14 @@ pub struct WeightPasses {
     factors: wgpu::ComputePipeline,
     targets: wgpu::ComputePipeline,
     step: wgpu::ComputePipeline,
+    step_whole: wgpu::ComputePipeline,
     apply: wgpu::ComputePipeline,
+    /// The compaction of the points with a sheet weight, which the steps read
+    /// ([`BinSearch::Trimmed`]): per block of 256 binned points their count, the blocks' first
+    /// slots, the points and the prefix.
+    sheet_count: wgpu::ComputePipeline,
+    sheet_scan: wgpu::ComputePipeline,
+    sheet_scatter: wgpu::ComputePipeline,
     uniform: wgpu::Buffer,
     sheet: gpu::Grow,
     split: gpu::Grow,
@@ -102,9 +113,11 @@ pub struct WeightPasses {
     share: gpu::Grow,
     target_buf: gpu::Grow,
     w: [gpu::Grow; 2],
-    /// The bind groups (the two factor passes, targets, the steps from buffer a and from b,
-    /// the application of the result) and the binned buffers they hold.
-    binds: Option<([wgpu::Buffer; 2], [wgpu::BindGroup; 6])>,
+    sheet_prefix: gpu::Grow,
+    sheet_blocks: gpu::Grow,
+    sheet_binned: gpu::Grow,
+    /// The bind groups ([`Binds`]) and the binned buffers they hold.
+    binds: Option<([wgpu::Buffer; 2], Binds)>,
     /// The application to another copy of the points ([`Self::apply_to`]) and that copy.
     copy_bind: Option<(wgpu::Buffer, wgpu::BindGroup)>,
     created: usize,
@@ -130,11 +143,31 @@ impl WeightPasses {
     /// Compiles the passes.
     #[must_use]
     pub fn new(device: &wgpu::Device) -> Self {
-        let [thin, factors, targets, step, apply] = gpu::compute_pipelines(
+        let [
+            thin,
+            factors,
+            targets,
+            step,
+            step_whole,
+            apply,
+            sheet_count,
+            sheet_scan,
+            sheet_scatter,
+        ] = gpu::compute_pipelines(
             device,
             "boundary weights",
             SHADER,
-            ["thin_pass", "factors_pass", "targets_pass", "step", "apply"],
+            [
+                "thin_pass",
+                "factors_pass",
+                "targets_pass",
+                "step",
+                "step_whole",
+                "apply",
+                "sheet_count",
+                "sheet_scan",
+                "sheet_scatter",
+            ],
         );
         let storage = wgpu::BufferUsages::STORAGE;
         Self {
@@ -142,7 +175,11 @@ impl WeightPasses {
             factors,
             targets,
             step,
+            step_whole,
             apply,
+            sheet_count,
+            sheet_scan,
+            sheet_scatter,
             uniform: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("boundary weights params"),
                 size: std::mem::size_of::<RawWeightParams>() as u64,
@@ -158,6 +195,9 @@ impl WeightPasses {
                 gpu::Grow::new("sheet weights a", storage | wgpu::BufferUsages::COPY_SRC),
                 gpu::Grow::new("sheet weights b", storage | wgpu::BufferUsages::COPY_SRC),
             ],
+            sheet_prefix: gpu::Grow::new("sheet points' prefix", storage),
+            sheet_blocks: gpu::Grow::new("sheet points' blocks", storage),
+            sheet_binned: gpu::Grow::new("sheet points compacted", storage),
             binds: None,
             copy_bind: None,
             created: 0,
@@ -277,12 +317,17 @@ impl WeightPasses {
             // the targets pass sets the first step's weights to 1
             self.w[0].reserve(device, n as u64 * 4),
             self.w[1].reserve(device, n as u64 * 4),
+            // the compaction: a prefix entry a point and one more, a block of 256 of them
+            self.sheet_prefix.reserve(device, (n as u64 + 1) * 4),
+            self.sheet_blocks.reserve(device, (n as u64 / 256 + 1) * 4),
+            self.sheet_binned
+                .reserve(device, (n as u64).max(1) * POINT_BYTES),
         ];
         self.created = made.iter().filter(|&&m| m).count();
         let key = [input.binned.points.clone(), input.binned.starts.clone()];
         if self.created > 0 || self.binds.as_ref().is_none_or(|(k, _)| *k != key) {
             self.binds = Some((key, self.bind_groups(device, input.binned)));
-            self.created += 6;
+            self.created += Binds::COUNT;
         }
         let binds = &self.binds.as_ref().expect("made above").1;
         let groups = |count: usize| {
@@ -297,26 +342,47 @@ impl WeightPasses {
         if particles > 0 {
             let (px, py) = groups(particles);
             pass.set_pipeline(&self.thin);
-            pass.set_bind_group(0, &binds[0], &[]);
+            pass.set_bind_group(0, &binds.thin, &[]);
             pass.dispatch_workgroups(px, py, 1);
             pass.set_pipeline(&self.factors);
-            pass.set_bind_group(0, &binds[1], &[]);
+            pass.set_bind_group(0, &binds.factors, &[]);
             pass.dispatch_workgroups(gx, gy, 1);
         }
         let mut from = 0;
         pass.set_pipeline(&self.targets);
-        pass.set_bind_group(0, &binds[2], &[]);
+        pass.set_bind_group(0, &binds.targets, &[]);
         pass.dispatch_workgroups(gx, gy, 1);
-        pass.set_pipeline(&self.step);
+        let steps = match self.search {
+            BinSearch::Trimmed => {
+                // the points with a sheet weight compacted, in blocks of 256 over n + 1 entries
+                let blocks = n as u32 / 256 + 1;
+                let (bx, by) = (blocks.min(65_535), blocks.div_ceil(65_535));
+                pass.set_bind_group(0, &binds.sheet_count, &[]);
+                pass.set_pipeline(&self.sheet_count);
+                pass.dispatch_workgroups(bx, by, 1);
+                pass.set_bind_group(0, &binds.sheet_scan, &[]);
+                pass.set_pipeline(&self.sheet_scan);
+                pass.dispatch_workgroups(1, 1, 1);
+                pass.set_bind_group(0, &binds.sheet_scatter, &[]);
+                pass.set_pipeline(&self.sheet_scatter);
+                pass.dispatch_workgroups(bx, by, 1);
+                pass.set_pipeline(&self.step);
+                &binds.steps
+            }
+            BinSearch::Whole => {
+                pass.set_pipeline(&self.step_whole);
+                &binds.steps_whole
+            }
+        };
         for _ in 0..WEIGHT_STEPS {
-            pass.set_bind_group(0, &binds[3 + from], &[]);
+            pass.set_bind_group(0, &steps[from], &[]);
             pass.dispatch_workgroups(gx, gy, 1);
             from = 1 - from;
         }
         // the application reads the last step's output: buffer `from` (b after an odd count)
         debug_assert_eq!(from, WEIGHT_STEPS as usize % 2);
         pass.set_pipeline(&self.apply);
-        pass.set_bind_group(0, &binds[5], &[]);
+        pass.set_bind_group(0, &binds.apply, &[]);
         pass.dispatch_workgroups(gx, gy, 1);
         drop(pass);
         Ok(self.w[from].buffer().clone())
@@ -361,10 +427,8 @@ impl WeightPasses {
         pass.dispatch_workgroups(all.min(65_535), all.div_ceil(65_535), 1);
     }
 
-    /// The passes' bind groups over this frame's buffers: the two factor passes, the targets
-    /// pass, a step from each weights buffer into the other, the application of the last
-    /// step's output.
-    fn bind_groups(&self, device: &wgpu::Device, binned: &BinnedPoints) -> [wgpu::BindGroup; 6] {
+    /// The passes' bind groups over this frame's buffers.
+    fn bind_groups(&self, device: &wgpu::Device, binned: &BinnedPoints) -> Binds {
         let uniform = self.uniform.as_entire_binding();
         let (points, starts) = (
             binned.points.as_entire_binding(),
@@ -373,6 +437,11 @@ impl WeightPasses {
         let targets = self.target_buf.buffer().as_entire_binding();
         let split = self.split.buffer().as_entire_binding();
         let w = [self.w[0].buffer(), self.w[1].buffer()];
+        let (prefix, blocks, sheet_binned) = (
+            self.sheet_prefix.buffer().as_entire_binding(),
+            self.sheet_blocks.buffer().as_entire_binding(),
+            self.sheet_binned.buffer().as_entire_binding(),
+        );
         let factors = |pipeline: &wgpu::ComputePipeline, with_split: bool| {
             let mut entries = vec![
                 (0, uniform.clone()),
@@ -393,6 +462,22 @@ impl WeightPasses {
                 &self.step,
                 &[
                     (0, uniform.clone()),
+                    (2, starts.clone()),
+                    (4, targets.clone()),
+                    (5, w[from].as_entire_binding()),
+                    (6, w[1 - from].as_entire_binding()),
+                    (8, split.clone()),
+                    (16, sheet_binned.clone()),
+                    (17, prefix.clone()),
+                ],
+            )
+        };
+        let step_whole = |from: usize| {
+            gpu::bind_group(
+                device,
+                &self.step_whole,
+                &[
+                    (0, uniform.clone()),
                     (1, points.clone()),
                     (2, starts.clone()),
                     (4, targets.clone()),
@@ -402,10 +487,10 @@ impl WeightPasses {
                 ],
             )
         };
-        [
-            factors(&self.thin, false),
-            factors(&self.factors, true),
-            gpu::bind_group(
+        Binds {
+            thin: factors(&self.thin, false),
+            factors: factors(&self.factors, true),
+            targets: gpu::bind_group(
                 device,
                 &self.targets,
                 &[
@@ -420,9 +505,36 @@ impl WeightPasses {
                     (8, split.clone()),
                 ],
             ),
-            step(0),
-            step(1),
-            gpu::bind_group(
+            sheet_count: gpu::bind_group(
+                device,
+                &self.sheet_count,
+                &[
+                    (0, uniform.clone()),
+                    (1, points.clone()),
+                    (8, split.clone()),
+                    (14, blocks.clone()),
+                ],
+            ),
+            sheet_scan: gpu::bind_group(
+                device,
+                &self.sheet_scan,
+                &[(0, uniform.clone()), (14, blocks.clone())],
+            ),
+            sheet_scatter: gpu::bind_group(
+                device,
+                &self.sheet_scatter,
+                &[
+                    (0, uniform.clone()),
+                    (1, points.clone()),
+                    (8, split.clone()),
+                    (13, prefix.clone()),
+                    (14, blocks),
+                    (15, sheet_binned.clone()),
+                ],
+            ),
+            steps: [step(0), step(1)],
+            steps_whole: [step_whole(0), step_whole(1)],
+            apply: gpu::bind_group(
                 device,
                 &self.apply,
                 &[
@@ -432,8 +544,28 @@ impl WeightPasses {
                     (8, split),
                 ],
             ),
-        ]
+        }
     }
+}
+
+/// The bind groups of [`WeightPasses`]' passes over one frame's buffers: the two factor passes,
+/// the targets pass, the sheet points' compaction, the steps (from weights buffer a and from b)
+/// over the compacted points and over every point, the application of the last step's output.
+struct Binds {
+    thin: wgpu::BindGroup,
+    factors: wgpu::BindGroup,
+    targets: wgpu::BindGroup,
+    sheet_count: wgpu::BindGroup,
+    sheet_scan: wgpu::BindGroup,
+    sheet_scatter: wgpu::BindGroup,
+    steps: [wgpu::BindGroup; 2],
+    steps_whole: [wgpu::BindGroup; 2],
+    apply: wgpu::BindGroup,
+}
+
+impl Binds {
+    /// How many bind groups one set holds.
+    const COUNT: usize = 11;
 }
 
 /// The sheet points as the passes read them: every point's position and kernel radius, and
