@@ -96,7 +96,10 @@ fn span_of(x: vec3<f32>, range: BinRange, by: i32, bz: i32, radius: f32) -> vec2
 // same bit for bit as over every point of every bin of the range (`BinSearch::Whole`, tested),
 // and far fewer points are visited: the refined points outnumber the particles many times and
 // their radii are a fraction of the particles'.
-fn sums(x: vec3<f32>, weighted: bool, with_sheet: bool) -> vec2<f32> {
+//
+// The sum stops once the two parts together reach `stop` (`NO_STOP`: never): the terms are all
+// >= 0 (the weights, `Points::check`, and the kernels), so the whole sums would be no smaller.
+fn sums(x: vec3<f32>, weighted: bool, with_sheet: bool, stop: f32) -> vec2<f32> {
     let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
     // the largest radius the bins were made for
     let largest = f32(params.reach) * params.bin_size;
@@ -129,12 +132,18 @@ fn sums(x: vec3<f32>, weighted: bool, with_sheet: bool) -> vec2<f32> {
                         w *= w_in[p.index];
                     }
                     outer += w * k;
+                    if inner + outer >= stop {
+                        return vec2<f32>(inner, outer);
+                    }
                 }
             }
         }
     }
     return vec2<f32>(inner, outer);
 }
+
+// `sums` without a stop
+const NO_STOP: f32 = 3.0e38;
 
 // the point of an invocation (rows of 65,535 workgroups of 64)
 fn point_index(id: vec3<u32>) -> u32 {
@@ -161,9 +170,16 @@ fn targets_pass(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
     let own = base * density_kernel_r2(0.0, s.at.w, params.constant, params.kernel);
-    let at_x = sums(x, false, true);
-    // the CPU adds the interior only while the others are under the point's own term: alone is
-    // 0 either way past it
+    // alone is 0 once the others reach the point's own term: the sum stops there (the CPU's
+    // `value_up_to`; most sheet points have neighbours enough), with a margin of 1e-5 that keeps
+    // `others` computed from the partial sums at least `own` despite their rounding (three
+    // roundings of 6e-8 each), so alone is 0 as from the whole sums, bit for bit (tested against
+    // `BinSearch::Whole`, which sums every term)
+    var stop = NO_STOP;
+    if own > 0.0 && !whole_search() {
+        stop = 2.0 * own * (1.0 + 1.0e-5);
+    }
+    let at_x = sums(x, false, true, stop);
     let others = at_x.y - own + at_x.x;
     var alone = 0.0;
     if own > 0.0 {
@@ -181,7 +197,7 @@ fn targets_pass(@builtin(global_invocation_id) id: vec3<u32>) {
     } else {
         alone = 1.0;
     }
-    targets[j] = Target(vec4<f32>(at, alone), lone, sums(at, false, false).x, 0.0, 0.0);
+    targets[j] = Target(vec4<f32>(at, alone), lone, sums(at, false, false, NO_STOP).x, 0.0, 0.0);
 }
 
 // A Jacobi step's new weight for sheet point j without the sheet's density at its target: its
@@ -242,7 +258,7 @@ fn step_whole(@builtin(global_invocation_id) id: vec3<u32>) {
         w_out[j] = fixed;
         return;
     }
-    w_out[j] = stepped(j, sums(targets[j].at.xyz, true, true).y);
+    w_out[j] = stepped(j, sums(targets[j].at.xyz, true, true, NO_STOP).y);
 }
 
 // The points with a sheet weight, compacted once the split is known (the Jacobi steps' sums
@@ -324,7 +340,8 @@ fn sheet_scatter(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) 
 }
 
 // The sheet's density at x with the weights `w_in`, from the compacted points with a sheet
-// weight: the terms `sums(x, true, true).y` adds other than +0, in its order (the same bits).
+// weight: the terms `sums(x, true, true, NO_STOP).y` adds other than +0, in its order (the same
+// bits).
 fn sheet_density(x: vec3<f32>) -> f32 {
     let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
     let largest = f32(params.reach) * params.bin_size;
