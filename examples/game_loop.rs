@@ -18,7 +18,8 @@
 //! made on the GPU count only their recording), the stages that ran on the GPU (`gpu_stages`),
 //! the GPU milliseconds per frame from timestamp queries where the adapter has them (then each
 //! frame waits for its timestamps) and
-//! with `--stage-ms` those of each stage of a recent frame (`gpu_stage_ms`,
+//! with `--stage-ms` those of each stage and each timed pass of a recent frame (`gpu_stage_ms`,
+//! `gpu_pass_ms`,
 //! `GpuPipeline::time_stages`; they slow lavapipe down, see there), and
 //! the PSNR of every saved frame against the CPU pipeline, the largest grid the GPU held
 //! (`gpu_grid_mib_max`, `GpuPipeline::gpu_grid_bytes`), and how many frames reused the
@@ -279,6 +280,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "gpu_grid_mib_max": grid_bytes as f64 / f64::from(1 << 20),
         // a recent frame's GPU ms per stage, by the pipeline's own timestamps (null without them)
         "gpu_stage_ms": gpu.gpu_stage_ms(),
+        // and per pass, in order (the stages and the calibration's passes)
+        "gpu_pass_ms": gpu.gpu_pass_ms(),
         "gpu_ms_mean": (!gpu_ms.is_empty()).then(|| mean(&gpu_ms)),
         "gpu_ms_p95": (!gpu_ms.is_empty()).then(|| percentile(&gpu_ms, 0.95)),
         "saved": saved,

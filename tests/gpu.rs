@@ -1818,6 +1818,37 @@ fn gpu_pipeline_frames_on_the_gpu_wait_on_nothing() {
                 .gpu_stage_ms()
                 .expect("the stages' timestamps never arrived");
             println!("GPU ms per stage (lavapipe, 96x96): {ms:?}");
+            // per pass: the stages and the calibration's passes within it, in order, summing
+            // to the stages' times
+            let passes = gpu.gpu_pass_ms().expect("read back with the stages'");
+            println!("GPU ms per pass: {passes:?}");
+            let names: Vec<&str> = passes.iter().map(|p| p.0).collect();
+            assert_eq!(
+                names,
+                [
+                    "sort",
+                    "calibration: factors",
+                    "calibration: targets",
+                    "calibration: compaction",
+                    "calibration: steps",
+                    "calibration: apply",
+                    "calibration",
+                    "density",
+                    "surfels",
+                    "caustics",
+                    "image"
+                ]
+            );
+            let calibration: f64 = passes
+                .iter()
+                .filter(|p| p.0.starts_with("calibration"))
+                .map(|p| p.1)
+                .sum();
+            assert!(
+                (calibration - ms.calibration).abs() <= 1e-6 * ms.calibration.max(1.0),
+                "{calibration} against {}",
+                ms.calibration
+            );
             assert!(
                 ms.sort > 0.0
                     && ms.calibration > 0.0

@@ -35,7 +35,7 @@ use glam::Vec3;
 
 use super::{Frame, Pipeline, PipelineParams, SurfelSource, Through, ms};
 use crate::density::gpu::{FillPoints, GridFiller};
-use crate::gpu::timer::StageTimer;
+use crate::gpu::timer::{Mark, StageTimer};
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::optics::gpu::{OpticsGpu, PreparedOptics};
 use crate::optics::{Stage, WaterShape};
@@ -137,6 +137,16 @@ mod mark {
     pub(super) const CAUSTICS: u32 = 5;
     /// After the final image.
     pub(super) const IMAGE: u32 = 6;
+    /// What ran before each mark ([`super::GpuPipeline::gpu_pass_ms`]).
+    pub(super) const STAGE_NAMES: [&str; 7] = [
+        "start",
+        "sort",
+        "calibration",
+        "density",
+        "surfels",
+        "caustics",
+        "image",
+    ];
 }
 
 /// The density grid and the surfels on the GPU, kept from frame to frame.
@@ -334,6 +344,30 @@ impl GpuPipeline {
         })
     }
 
+    /// The GPU milliseconds of every timed pass of a recent finished frame, in order, each
+    /// named by what ran since the timestamp before it: the stages of [`GpuStageMs`] (`"sort"`,
+    /// `"calibration"`, `"density"`, `"surfels"`, `"caustics"`, `"image"`) and within the
+    /// calibration its passes (`"calibration: factors"`, `"calibration: targets"`,
+    /// `"calibration: compaction"`, `"calibration: steps"`, `"calibration: apply"`; the stage's
+    /// own entry then holds what ran after its last pass). Read back as [`Self::gpu_stage_ms`]
+    /// is; `None` before the first arrives.
+    #[must_use]
+    pub fn gpu_pass_ms(&self) -> Option<Vec<(&'static str, f64)>> {
+        let marks = self.timer.as_ref()?.last_marks()?;
+        Some(
+            marks
+                .into_iter()
+                .map(|(m, ms)| {
+                    let name = match m {
+                        Mark::Stage(i) => mark::STAGE_NAMES[i as usize],
+                        Mark::Pass(name) => name,
+                    };
+                    (name, ms)
+                })
+                .collect(),
+        )
+    }
+
     /// Starts a frame's timestamps.
     fn begin_timing(&mut self) {
         if let Some(timer) = &mut self.timer {
@@ -447,13 +481,18 @@ impl GpuPipeline {
         let (params, points) = (self.cpu.params(), input.points());
         let kernel = params.grid.kernel;
         let mut timer = self.timer.as_mut();
-        let mut mark = |encoder: &mut wgpu::CommandEncoder, index| {
+        // a stage's timestamp (`Mark::Stage`, written with those of the stages before it that
+        // wrote none) or a pass's within one
+        let mut mark = |encoder: &mut wgpu::CommandEncoder, m: Mark| {
             if let Some(t) = timer.as_deref_mut() {
-                t.mark_to(encoder, index);
+                match m {
+                    Mark::Stage(index) => t.mark_to(encoder, index),
+                    Mark::Pass(name) => t.mark_pass(encoder, name),
+                }
             }
         };
         let t = Instant::now();
-        mark(encoder, mark::START);
+        mark(encoder, Mark::Stage(mark::START));
         // the calibration's factors and the sheet's weights: found in the binned points before
         // the fill
         let sheet: Vec<RawSheetPoint> = input
@@ -480,15 +519,15 @@ impl GpuPipeline {
         let mut weights_made = 0;
         let mut solve = |encoder: &mut wgpu::CommandEncoder, copy: FillPoints<'_>| {
             if let FillPoints::Binned(_) = copy {
-                mark(encoder, mark::SORTED);
+                mark(encoder, Mark::Stage(mark::SORTED));
             }
             let Some(s) = input.solve.as_ref() else {
-                mark(encoder, mark::CALIBRATED);
+                mark(encoder, Mark::Stage(mark::CALIBRATED));
                 return Ok(());
             };
             match copy {
                 FillPoints::Binned(binned) => {
-                    weights.record(
+                    weights.record_marked(
                         (device, queue),
                         encoder,
                         &WeightInput {
@@ -503,8 +542,9 @@ impl GpuPipeline {
                             kernel,
                             h: points.h,
                         },
+                        &mut |encoder, name| mark(encoder, Mark::Pass(name)),
                     )?;
-                    mark(encoder, mark::CALIBRATED);
+                    mark(encoder, Mark::Stage(mark::CALIBRATED));
                 }
                 FillPoints::Sorted(copy, count) => weights.apply_to(device, encoder, copy, count),
             }
@@ -526,13 +566,13 @@ impl GpuPipeline {
                 .filler
                 .record_with(&ctx, encoder, (points, &spec, kernel), Some(&mut solve))?
         };
-        mark(encoder, mark::FILLED);
+        mark(encoder, Mark::Stage(mark::FILLED));
         frame.timings.density_ms = ms(t);
         let t = Instant::now();
         chain
             .surfels
             .record(&ctx, encoder, &grid, points, kernel, &params.surfels)?;
-        mark(encoder, mark::SURFELS);
+        mark(encoder, Mark::Stage(mark::SURFELS));
         frame.timings.surfels_ms = ms(t);
         frame.detail.surfels = chain.surfels.last_count().unwrap_or(0) as usize;
         if chain.surfels.overflowed() {

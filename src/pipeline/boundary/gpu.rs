@@ -235,6 +235,20 @@ impl WeightPasses {
         encoder: &mut wgpu::CommandEncoder,
         input: &WeightInput<'_>,
     ) -> Result<wgpu::Buffer, GpuError> {
+        self.record_marked((device, queue), encoder, input, &mut |_, _| {})
+    }
+
+    /// [`Self::record`], calling `mark` between its passes with the name of the one just
+    /// recorded (`"calibration: factors"`, `"calibration: targets"`, `"calibration:
+    /// compaction"`, `"calibration: steps"`, `"calibration: apply"`), so that a caller can write
+    /// a timestamp there (`GpuPipeline::gpu_pass_ms`).
+    pub fn record_marked(
+        &mut self,
+        (device, queue): (&wgpu::Device, &wgpu::Queue),
+        encoder: &mut wgpu::CommandEncoder,
+        input: &WeightInput<'_>,
+        mark: &mut dyn FnMut(&mut wgpu::CommandEncoder, &'static str),
+    ) -> Result<wgpu::Buffer, GpuError> {
         let n = input.sheet.len();
         let limit = gpu::max_binding(device);
         if (n as u64).max(1) * TARGET_BYTES > limit {
@@ -329,34 +343,59 @@ impl WeightPasses {
             self.binds = Some((key, self.bind_groups(device, input.binned)));
             self.created += Binds::COUNT;
         }
-        let binds = &self.binds.as_ref().expect("made above").1;
+        let from = self.encode(encoder, (n, particles), mark);
+        Ok(self.w[from].buffer().clone())
+    }
+
+    /// Records the passes over the bind groups made for this frame: the factors' (with
+    /// `particles` leading points), the targets', the compaction and the steps, the
+    /// application; `mark` after each. Returns which of the two weights buffers the last step
+    /// wrote.
+    fn encode(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        (n, particles): (usize, usize),
+        mark: &mut dyn FnMut(&mut wgpu::CommandEncoder, &'static str),
+    ) -> usize {
+        let binds = &self.binds.as_ref().expect("made by record").1;
         let groups = |count: usize| {
             let g = (count as u32).div_ceil(64).max(1);
             (g.min(65_535), g.div_ceil(65_535))
         };
         let (gx, gy) = groups(n);
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("boundary weights"),
-            timestamp_writes: None,
-        });
+        fn begin<'e>(
+            encoder: &'e mut wgpu::CommandEncoder,
+            label: &'static str,
+        ) -> wgpu::ComputePass<'e> {
+            encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(label),
+                timestamp_writes: None,
+            })
+        }
         if particles > 0 {
             let (px, py) = groups(particles);
+            let mut pass = begin(encoder, "boundary factors");
             pass.set_pipeline(&self.thin);
             pass.set_bind_group(0, &binds.thin, &[]);
             pass.dispatch_workgroups(px, py, 1);
             pass.set_pipeline(&self.factors);
             pass.set_bind_group(0, &binds.factors, &[]);
             pass.dispatch_workgroups(gx, gy, 1);
+            drop(pass);
+            mark(encoder, "calibration: factors");
         }
-        let mut from = 0;
+        let mut pass = begin(encoder, "boundary targets");
         pass.set_pipeline(&self.targets);
         pass.set_bind_group(0, &binds.targets, &[]);
         pass.dispatch_workgroups(gx, gy, 1);
+        drop(pass);
+        mark(encoder, "calibration: targets");
         let steps = match self.search {
             BinSearch::Trimmed => {
                 // the points with a sheet weight compacted, in blocks of 256 over n + 1 entries
                 let blocks = n as u32 / 256 + 1;
                 let (bx, by) = (blocks.min(65_535), blocks.div_ceil(65_535));
+                let mut pass = begin(encoder, "boundary sheet compaction");
                 pass.set_bind_group(0, &binds.sheet_count, &[]);
                 pass.set_pipeline(&self.sheet_count);
                 pass.dispatch_workgroups(bx, by, 1);
@@ -366,26 +405,31 @@ impl WeightPasses {
                 pass.set_bind_group(0, &binds.sheet_scatter, &[]);
                 pass.set_pipeline(&self.sheet_scatter);
                 pass.dispatch_workgroups(bx, by, 1);
-                pass.set_pipeline(&self.step);
-                &binds.steps
+                drop(pass);
+                mark(encoder, "calibration: compaction");
+                (&self.step, &binds.steps)
             }
-            BinSearch::Whole => {
-                pass.set_pipeline(&self.step_whole);
-                &binds.steps_whole
-            }
+            BinSearch::Whole => (&self.step_whole, &binds.steps_whole),
         };
+        let mut from = 0;
+        let mut pass = begin(encoder, "boundary steps");
+        pass.set_pipeline(steps.0);
         for _ in 0..WEIGHT_STEPS {
-            pass.set_bind_group(0, &steps[from], &[]);
+            pass.set_bind_group(0, &steps.1[from], &[]);
             pass.dispatch_workgroups(gx, gy, 1);
             from = 1 - from;
         }
+        drop(pass);
+        mark(encoder, "calibration: steps");
         // the application reads the last step's output: buffer `from` (b after an odd count)
         debug_assert_eq!(from, WEIGHT_STEPS as usize % 2);
+        let mut pass = begin(encoder, "boundary weights apply");
         pass.set_pipeline(&self.apply);
         pass.set_bind_group(0, &binds.apply, &[]);
         pass.dispatch_workgroups(gx, gy, 1);
         drop(pass);
-        Ok(self.w[from].buffer().clone())
+        mark(encoder, "calibration: apply");
+        from
     }
 
     /// After [`Self::record`] in the same encoder: the weights in the density written into
