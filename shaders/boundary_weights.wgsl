@@ -214,12 +214,10 @@ fn unsummed(j: u32) -> f32 {
     return -1.0;
 }
 
-// A Jacobi step's new weight for sheet point j, given the sheet's density at its target with
-// the weights `w_in`: the weight scaled so that the target holds the iso-value less the
-// interior's share there, blended with its lone ball's by how alone it is.
-fn stepped(j: u32, sheet_sum: f32) -> f32 {
-    let w = w_in[j];
-    let t = targets[j];
+// A Jacobi step's new weight w' for a sheet point of weight w and target t, given the sheet's
+// density at its target with the weights `w_in`: the weight scaled so that the target holds the
+// iso-value less the interior's share there, blended with its lone ball's by how alone it is.
+fn stepped(w: f32, t: Target, sheet_sum: f32) -> f32 {
     let alone = t.at.w;
     let want = max(params.tau - t.inside, 0.0);
     var boundary = w;
@@ -229,20 +227,40 @@ fn stepped(j: u32, sheet_sum: f32) -> f32 {
     return alone * t.lone + (1.0 - alone) * boundary;
 }
 
-// One Jacobi step (`BinSearch::Trimmed`): the sheet's density at each target from the points
-// with a sheet weight alone (`sheet_density`).
+// One Jacobi step (`BinSearch::Trimmed`) over the compacted points with a sheet weight, in
+// their order (the bins'): invocation m steps `sheet_binned[m]`, whose weight is `w_in[m]`
+// (`w_out[m]` after the step), the sheet's density at its target summed from the compacted
+// points alone (`sheet_density`); the same arithmetic as `step_whole`'s for the same point.
+// Neighbouring invocations read the same bins, and a sum reads the weights in the order it
+// reads the points.
 @compute @workgroup_size(64)
 fn step(@builtin(global_invocation_id) id: vec3<u32>) {
-    let j = point_index(id);
-    if j >= params.count {
+    let m = point_index(id);
+    if m >= sheet_prefix[params.count] {
         return;
     }
-    let fixed = unsummed(j);
-    if fixed >= 0.0 {
-        w_out[j] = fixed;
+    let p = sheet_binned[m];
+    let t = targets[p.index];
+    let w = w_in[m];
+    if p.weight <= 0.0 {
+        w_out[m] = w;
+    } else if t.at.w >= 1.0 {
+        w_out[m] = t.lone;
+    } else {
+        w_out[m] = stepped(w, t, sheet_density(t.at.xyz));
+    }
+}
+
+// The compacted points' solved weights (`w_in`, in their order) written to their points
+// (`w_out`, in the chain's order; the points without a sheet weight keep the 1 the targets pass
+// wrote there).
+@compute @workgroup_size(64)
+fn sheet_weights_back(@builtin(global_invocation_id) id: vec3<u32>) {
+    let m = point_index(id);
+    if m >= sheet_prefix[params.count] {
         return;
     }
-    w_out[j] = stepped(j, sheet_density(targets[j].at.xyz));
+    w_out[sheet_binned[m].index] = w_in[m];
 }
 
 // One Jacobi step over every point of every bin within the bins' reach (`BinSearch::Whole`):
@@ -258,7 +276,8 @@ fn step_whole(@builtin(global_invocation_id) id: vec3<u32>) {
         w_out[j] = fixed;
         return;
     }
-    w_out[j] = stepped(j, sums(targets[j].at.xyz, true, true, NO_STOP).y);
+    let t = targets[j];
+    w_out[j] = stepped(w_in[j], t, sums(t.at.xyz, true, true, NO_STOP).y);
 }
 
 // The points with a sheet weight, compacted once the split is known (the Jacobi steps' sums
@@ -336,12 +355,14 @@ fn sheet_scatter(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) 
         var p = points[n];
         p.weight = split[p.index].y;
         sheet_binned_rw[slot] = p;
+        // the first step's weight
+        w_out[slot] = 1.0;
     }
 }
 
-// The sheet's density at x with the weights `w_in`, from the compacted points with a sheet
-// weight: the terms `sums(x, true, true, NO_STOP).y` adds other than +0, in its order (the same
-// bits).
+// The sheet's density at x with the weights `w_in` (in the compacted order), from the
+// compacted points with a sheet weight: the terms `sums(x, true, true, NO_STOP).y` adds other
+// than +0, in its order (the same bits).
 fn sheet_density(x: vec3<f32>) -> f32 {
     let range = bin_range(x, params.bin_origin, params.bin_size, params.bins, params.reach);
     let largest = f32(params.reach) * params.bin_size;
@@ -362,7 +383,7 @@ fn sheet_density(x: vec3<f32>) -> f32 {
                     let d = x - p.at.xyz;
                     let r2 = d.x * d.x + (d.y * d.y + d.z * d.z);
                     let k = density_kernel_r2(r2, p.at.w, params.constant, params.kernel);
-                    outer += p.weight * w_in[p.index] * k;
+                    outer += p.weight * w_in[n] * k;
                 }
             }
         }

@@ -106,6 +106,8 @@ pub struct WeightPasses {
     sheet_count: wgpu::ComputePipeline,
     sheet_scan: wgpu::ComputePipeline,
     sheet_scatter: wgpu::ComputePipeline,
+    /// The compacted points' solved weights written back to their points.
+    sheet_back: wgpu::ComputePipeline,
     uniform: wgpu::Buffer,
     sheet: gpu::Grow,
     split: gpu::Grow,
@@ -116,10 +118,13 @@ pub struct WeightPasses {
     sheet_prefix: gpu::Grow,
     sheet_blocks: gpu::Grow,
     sheet_binned: gpu::Grow,
+    /// The compacted points' weights through the steps (in their order), ping-ponged.
+    sheet_w: [gpu::Grow; 2],
     /// The bind groups ([`Binds`]) and the binned buffers they hold.
     binds: Option<([wgpu::Buffer; 2], Binds)>,
-    /// The application to another copy of the points ([`Self::apply_to`]) and that copy.
-    copy_bind: Option<(wgpu::Buffer, wgpu::BindGroup)>,
+    /// The application to another copy of the points ([`Self::apply_to`]): that copy, the
+    /// solved weights' buffer it reads, the bind group.
+    copy_bind: Option<(wgpu::Buffer, wgpu::Buffer, wgpu::BindGroup)>,
     created: usize,
     search: BinSearch,
 }
@@ -153,6 +158,7 @@ impl WeightPasses {
             sheet_count,
             sheet_scan,
             sheet_scatter,
+            sheet_back,
         ] = gpu::compute_pipelines(
             device,
             "boundary weights",
@@ -167,6 +173,7 @@ impl WeightPasses {
                 "sheet_count",
                 "sheet_scan",
                 "sheet_scatter",
+                "sheet_weights_back",
             ],
         );
         let storage = wgpu::BufferUsages::STORAGE;
@@ -180,6 +187,7 @@ impl WeightPasses {
             sheet_count,
             sheet_scan,
             sheet_scatter,
+            sheet_back,
             uniform: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("boundary weights params"),
                 size: std::mem::size_of::<RawWeightParams>() as u64,
@@ -198,6 +206,10 @@ impl WeightPasses {
             sheet_prefix: gpu::Grow::new("sheet points' prefix", storage),
             sheet_blocks: gpu::Grow::new("sheet points' blocks", storage),
             sheet_binned: gpu::Grow::new("sheet points compacted", storage),
+            sheet_w: [
+                gpu::Grow::new("compacted sheet weights a", storage),
+                gpu::Grow::new("compacted sheet weights b", storage),
+            ],
             binds: None,
             copy_bind: None,
             created: 0,
@@ -336,6 +348,8 @@ impl WeightPasses {
             self.sheet_blocks.reserve(device, (n as u64 / 256 + 1) * 4),
             self.sheet_binned
                 .reserve(device, (n as u64).max(1) * POINT_BYTES),
+            self.sheet_w[0].reserve(device, n as u64 * 4),
+            self.sheet_w[1].reserve(device, n as u64 * 4),
         ];
         self.created = made.iter().filter(|&&m| m).count();
         let key = [input.binned.points.clone(), input.binned.starts.clone()];
@@ -343,20 +357,19 @@ impl WeightPasses {
             self.binds = Some((key, self.bind_groups(device, input.binned)));
             self.created += Binds::COUNT;
         }
-        let from = self.encode(encoder, (n, particles), mark);
-        Ok(self.w[from].buffer().clone())
+        self.encode(encoder, (n, particles), mark);
+        Ok(self.w[self.solved()].buffer().clone())
     }
 
     /// Records the passes over the bind groups made for this frame: the factors' (with
     /// `particles` leading points), the targets', the compaction and the steps, the
-    /// application; `mark` after each. Returns which of the two weights buffers the last step
-    /// wrote.
+    /// application; `mark` after each.
     fn encode(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         (n, particles): (usize, usize),
         mark: &mut dyn FnMut(&mut wgpu::CommandEncoder, &'static str),
-    ) -> usize {
+    ) {
         let binds = &self.binds.as_ref().expect("made by record").1;
         let groups = |count: usize| {
             let g = (count as u32).div_ceil(64).max(1);
@@ -419,17 +432,30 @@ impl WeightPasses {
             pass.dispatch_workgroups(gx, gy, 1);
             from = 1 - from;
         }
+        if self.search == BinSearch::Trimmed {
+            // the compacted weights back to their points, into buffer a
+            pass.set_pipeline(&self.sheet_back);
+            pass.set_bind_group(0, &binds.back, &[]);
+            pass.dispatch_workgroups(gx, gy, 1);
+        }
         drop(pass);
         mark(encoder, "calibration: steps");
-        // the application reads the last step's output: buffer `from` (b after an odd count)
-        debug_assert_eq!(from, WEIGHT_STEPS as usize % 2);
         let mut pass = begin(encoder, "boundary weights apply");
         pass.set_pipeline(&self.apply);
-        pass.set_bind_group(0, &binds.apply, &[]);
+        pass.set_bind_group(0, &binds.apply[self.solved()], &[]);
         pass.dispatch_workgroups(gx, gy, 1);
         drop(pass);
         mark(encoder, "calibration: apply");
-        from
+    }
+
+    /// Which weights buffer holds the solved weights in the chain's order: a (0) after the
+    /// compacted steps' write-back, the last step's output with [`BinSearch::Whole`] (b after an
+    /// odd count of steps).
+    fn solved(&self) -> usize {
+        match self.search {
+            BinSearch::Trimmed => 0,
+            BinSearch::Whole => WEIGHT_STEPS as usize % 2,
+        }
     }
 
     /// After [`Self::record`] in the same encoder: the weights in the density written into
@@ -442,23 +468,24 @@ impl WeightPasses {
         points: &wgpu::Buffer,
         count: usize,
     ) {
-        if self.created > 0 || self.copy_bind.as_ref().is_none_or(|(b, _)| b != points) {
+        let solved = self.w[self.solved()].buffer().clone();
+        if self.created > 0
+            || self
+                .copy_bind
+                .as_ref()
+                .is_none_or(|(b, w, _)| b != points || *w != solved)
+        {
             let bind = gpu::bind_group(
                 device,
                 &self.apply,
                 &[
                     (0, self.uniform.as_entire_binding()),
-                    (
-                        5,
-                        self.w[WEIGHT_STEPS as usize % 2]
-                            .buffer()
-                            .as_entire_binding(),
-                    ),
+                    (5, solved.as_entire_binding()),
                     (7, points.as_entire_binding()),
                     (8, self.split.buffer().as_entire_binding()),
                 ],
             );
-            self.copy_bind = Some((points.clone(), bind));
+            self.copy_bind = Some((points.clone(), solved, bind));
             self.created += 1;
         }
         let all = (count as u32).div_ceil(64).max(1);
@@ -467,7 +494,7 @@ impl WeightPasses {
             timestamp_writes: None,
         });
         pass.set_pipeline(&self.apply);
-        pass.set_bind_group(0, &self.copy_bind.as_ref().expect("made above").1, &[]);
+        pass.set_bind_group(0, &self.copy_bind.as_ref().expect("made above").2, &[]);
         pass.dispatch_workgroups(all.min(65_535), all.div_ceil(65_535), 1);
     }
 
@@ -500,6 +527,7 @@ impl WeightPasses {
             }
             gpu::bind_group(device, pipeline, &entries)
         };
+        let sheet_w = [self.sheet_w[0].buffer(), self.sheet_w[1].buffer()];
         let step = |from: usize| {
             gpu::bind_group(
                 device,
@@ -508,11 +536,22 @@ impl WeightPasses {
                     (0, uniform.clone()),
                     (2, starts.clone()),
                     (4, targets.clone()),
-                    (5, w[from].as_entire_binding()),
-                    (6, w[1 - from].as_entire_binding()),
-                    (8, split.clone()),
+                    (5, sheet_w[from].as_entire_binding()),
+                    (6, sheet_w[1 - from].as_entire_binding()),
                     (16, sheet_binned.clone()),
                     (17, prefix.clone()),
+                ],
+            )
+        };
+        let apply = |solved: &wgpu::Buffer| {
+            gpu::bind_group(
+                device,
+                &self.apply,
+                &[
+                    (0, uniform.clone()),
+                    (5, solved.as_entire_binding()),
+                    (7, points.clone()),
+                    (8, split.clone()),
                 ],
             )
         };
@@ -571,30 +610,34 @@ impl WeightPasses {
                     (0, uniform.clone()),
                     (1, points.clone()),
                     (8, split.clone()),
+                    (6, sheet_w[0].as_entire_binding()),
                     (13, prefix.clone()),
                     (14, blocks),
                     (15, sheet_binned.clone()),
                 ],
             ),
-            steps: [step(0), step(1)],
-            steps_whole: [step_whole(0), step_whole(1)],
-            apply: gpu::bind_group(
+            back: gpu::bind_group(
                 device,
-                &self.apply,
+                &self.sheet_back,
                 &[
-                    (0, uniform),
-                    (5, w[WEIGHT_STEPS as usize % 2].as_entire_binding()),
-                    (7, points),
-                    (8, split),
+                    (0, uniform.clone()),
+                    (5, sheet_w[WEIGHT_STEPS as usize % 2].as_entire_binding()),
+                    (6, w[0].as_entire_binding()),
+                    (16, sheet_binned.clone()),
+                    (17, prefix.clone()),
                 ],
             ),
+            steps: [step(0), step(1)],
+            steps_whole: [step_whole(0), step_whole(1)],
+            apply: [apply(w[0]), apply(w[1])],
         }
     }
 }
 
 /// The bind groups of [`WeightPasses`]' passes over one frame's buffers: the two factor passes,
-/// the targets pass, the sheet points' compaction, the steps (from weights buffer a and from b)
-/// over the compacted points and over every point, the application of the last step's output.
+/// the targets pass, the sheet points' compaction, the steps over the compacted points (from
+/// their weights buffer a and from b) and their weights' write-back, the steps over every point
+/// (from weights buffer a and from b), the application of the solved weights in a or in b.
 struct Binds {
     thin: wgpu::BindGroup,
     factors: wgpu::BindGroup,
@@ -603,13 +646,16 @@ struct Binds {
     sheet_scan: wgpu::BindGroup,
     sheet_scatter: wgpu::BindGroup,
     steps: [wgpu::BindGroup; 2],
+    /// The compacted points' weights back to their points.
+    back: wgpu::BindGroup,
     steps_whole: [wgpu::BindGroup; 2],
-    apply: wgpu::BindGroup,
+    /// The application of the weights in buffer a, in buffer b.
+    apply: [wgpu::BindGroup; 2],
 }
 
 impl Binds {
     /// How many bind groups one set holds.
-    const COUNT: usize = 11;
+    const COUNT: usize = 13;
 }
 
 /// The sheet points as the passes read them: every point's position and kernel radius, and
