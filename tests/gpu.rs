@@ -1818,8 +1818,8 @@ fn gpu_pipeline_frames_on_the_gpu_wait_on_nothing() {
                 .gpu_stage_ms()
                 .expect("the stages' timestamps never arrived");
             println!("GPU ms per stage (lavapipe, 96x96): {ms:?}");
-            // per pass: the stages and the calibration's passes within it, in order, summing
-            // to the stages' times
+            // per pass: the stages and the calibration's passes within it, in order (their
+            // times sum to the stages' by construction: consecutive timestamps)
             let passes = gpu.gpu_pass_ms().expect("read back with the stages'");
             println!("GPU ms per pass: {passes:?}");
             let names: Vec<&str> = passes.iter().map(|p| p.0).collect();
@@ -1839,16 +1839,9 @@ fn gpu_pipeline_frames_on_the_gpu_wait_on_nothing() {
                     "image"
                 ]
             );
-            let calibration: f64 = passes
-                .iter()
-                .filter(|p| p.0.starts_with("calibration"))
-                .map(|p| p.1)
-                .sum();
-            assert!(
-                (calibration - ms.calibration).abs() <= 1e-6 * ms.calibration.max(1.0),
-                "{calibration} against {}",
-                ms.calibration
-            );
+            // the steps' interval holds work (on lavapipe at least the first steps: a pass's
+            // last dispatch counts in the next interval, see `gpu::timer`)
+            assert!(passes[4].1 > 0.0, "{passes:?}");
             assert!(
                 ms.sort > 0.0
                     && ms.calibration > 0.0
