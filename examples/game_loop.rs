@@ -9,7 +9,7 @@
 //! density grid and the surfels are made on the GPU (`PipelineParams::gpu_surfels`);
 //! `--cpu-surfels` makes them on the CPU, as the CPU `Pipeline` does, to compare the two;
 //! `--narrow-band` makes the grid sparse (`grid.narrow_band`: the blocks near the surface
-//! chosen on the CPU, filled on the GPU by the gather pass). Needs a GPU or Mesa's lavapipe (on lavapipe, a
+//! chosen on the GPU and filled there by the gather pass). Needs a GPU or Mesa's lavapipe (on lavapipe, a
 //! software rasteriser, it proves the loop works, not how fast a GPU runs it).
 //!
 //! `--json` prints one object: frames, the CPU milliseconds per frame (the CPU stages plus

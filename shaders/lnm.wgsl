@@ -7,14 +7,17 @@
 //   cs_first   per voxel: full and on the border or next to an empty voxel: label 1
 //   cs_second  per voxel: full, not 1, next to a label-1 voxel of at most n_min particles: 2
 //
-// Labels are 0 for empty voxels too; the host keeps the full ones.
+// Labels are 0 for empty voxels too; the host keeps the full ones (an interior voxel: count > 0
+// and label 0). `ResidentBand` (src/lnm/gpu.rs) runs the passes over the binned points of the
+// density's passes (32 bytes a point: a stride of two `vec4`s), counting only.
 
 struct Params {
     // the domain's minimum corner, 1 / voxel edge
     lo: vec4<f32>,
     // voxels along x, y, z; particles
     dims: vec4<u32>,
-    // n_min, fixed-point scale of the offsets, -, -
+    // n_min, fixed-point scale of the offsets, a point's stride in `vec4`s, 1: counts only (no
+    // offsets' sums, no voxel per particle)
     misc: vec4<u32>,
 }
 
@@ -35,14 +38,17 @@ fn cs_count(@builtin(global_invocation_id) id: vec3<u32>) {
     if i >= params.dims.w {
         return;
     }
-    let p = positions[i].xyz;
+    let p = positions[i * params.misc.z].xyz;
     let f = floor((p - params.lo.xyz) * params.lo.w);
     let n = params.dims.xyz;
     // the CPU's `(v.max(0.0) as u32).min(n - 1)`
     let c = min(vec3<u32>(max(f, vec3<f32>(0.0))), n - vec3<u32>(1u));
     let v = index_of(c);
-    voxel_of[i] = v;
     atomicAdd(&counts[v], 1u);
+    if params.misc.w == 1u {
+        return;
+    }
+    voxel_of[i] = v;
     // the offset from the voxel's corner in voxel units, in [0, 1) (clamped particles aside)
     let offset = clamp((p - params.lo.xyz) * params.lo.w - vec3<f32>(c), vec3<f32>(0.0), vec3<f32>(1.0));
     let scale = f32(params.misc.y);

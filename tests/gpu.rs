@@ -132,6 +132,13 @@ fn twins() -> Vec<Twin> {
             fields!(fluid_surfels::lnm::gpu::RawLnmParams; lo, dims, misc),
         ),
         (
+            "sparse_layout.wgsl",
+            density::sparse_gpu::SHADER,
+            "LayoutParams",
+            std::mem::size_of::<density::sparse_gpu::RawLayoutParams>(),
+            fields!(density::sparse_gpu::RawLayoutParams; origin, spacing, dims, count, blocks, total, band_lo, band_inv, band_dims, capacity, bin_origin, bin_inv, bins, reach, margin),
+        ),
+        (
             "ssfr.wgsl",
             fluid_surfels::ssfr::gpu::SHADER,
             "Params",
@@ -1199,6 +1206,146 @@ fn gpu_grid_and_surfels_stay_on_the_gpu() {
         inside_seen > 0,
         "no inside block: the sparse grid's inside blocks untested"
     );
+}
+
+/// The sparse grid's layout found on the GPU (issue 37: no layout made on the CPU) equals the
+/// CPU's, block for block and slot for slot: on the column splash frame's and the double dam
+/// break's chains (refined points of their own radii and weights beside the particles), their
+/// particles alone, a bulk block (inside blocks), and a grid finer than the points (blocks whose
+/// closed ranges only a margin away from a ball).
+#[test]
+fn gpu_sparse_layout_equals_the_cpus() {
+    let Some(ctx) = gpu::context_or_skip("gpu_sparse_layout_equals_the_cpus").unwrap() else {
+        return;
+    };
+    let ddb = double_dam_break();
+    let h_ddb = fluid_surfels::neighbours::support_radius(&ddb).unwrap();
+    let column = column_splash();
+    let cube = scenes::block(&scenes::BlockParams {
+        counts: [22, 22, 22],
+        ..Default::default()
+    })
+    .unwrap();
+    // the chains' points as the density reads them
+    fn chain(particles: &fluid_surfels::ParticleSet, h: f32) -> pipeline::GridInput<'_> {
+        let mut params = PipelineParams {
+            support_radius: Some(h),
+            ..Default::default()
+        };
+        params.refine.steps = 2;
+        let mut pipeline = Pipeline::new(params).unwrap();
+        let (_, input) = pipeline.frame_to_grid(particles, u64::MAX).unwrap();
+        input.expect("a chain with points")
+    }
+    let column_chain = chain(&column.particles, column.support_radius);
+    let ddb_set = fluid_surfels::ParticleSet::from_positions(ddb.clone());
+    let ddb_chain = chain(&ddb_set, h_ddb);
+    let mut cases = vec![
+        ("column chain", column_chain.points(), column_chain.spec),
+        ("double dam break chain", ddb_chain.points(), ddb_chain.spec),
+    ];
+    for (name, points) in [
+        ("double dam break", Points::uniform(&ddb, h_ddb)),
+        (
+            "block",
+            Points::uniform(&cube.particles.positions, cube.support_radius),
+        ),
+    ] {
+        for cells in [3.0, 7.0] {
+            let spec = GridSpec::around(
+                points.positions,
+                points.h,
+                Resolution::CellSize(points.h / cells),
+            )
+            .unwrap();
+            cases.push((name, points, spec));
+        }
+    }
+    let (mut inside, mut empties) = (0, 0);
+    for (name, points, spec) in cases {
+        let band = fluid_surfels::lnm::narrow_band(
+            points.positions,
+            points.max_radius(),
+            &Default::default(),
+        )
+        .unwrap();
+        let cpu = density::sparse_layout(points, &spec, 1 << 30, &band).unwrap();
+        let gpu = density::sparse_gpu::sparse_layout_gpu(&ctx, points, &spec).unwrap();
+        let differ = cpu
+            .states
+            .iter()
+            .zip(&gpu.states)
+            .filter(|(a, b)| a != b)
+            .count();
+        let count = |state: u32| cpu.states.iter().filter(|&&s| s == state).count();
+        let (empty, inner) = (count(u32::MAX), count(u32::MAX - 1));
+        println!(
+            "{name}, cell {:.3}: {} blocks, {empty} empty, {inner} inside, {} evaluated; {differ} states differ",
+            spec.spacing,
+            cpu.states.len(),
+            cpu.evaluated.len()
+        );
+        assert_eq!(gpu.blocks, cpu.blocks, "{name}");
+        assert_eq!(differ, 0, "{name}: block states differ");
+        assert_eq!(gpu.states.len(), cpu.states.len(), "{name}");
+        assert_eq!(
+            gpu.evaluated, cpu.evaluated,
+            "{name}: evaluated blocks differ"
+        );
+        assert!(!cpu.evaluated.is_empty(), "{name}: nothing evaluated");
+        // the bound the values are sized from before a count comes back
+        let bound = density::sparse_gpu::evaluated_bound(&points, &spec);
+        println!(
+            "  bound {bound} ({:.2} of the evaluated)",
+            bound as f64 / cpu.evaluated.len() as f64
+        );
+        assert!(bound >= cpu.evaluated.len() as u64, "{name}: bound {bound}");
+        inside += inner;
+        empties += empty;
+    }
+    assert!(
+        inside > 0 && empties > 0,
+        "no inside or no empty block: a state untested"
+    );
+    // values that hold half the evaluated blocks: those past them read as empty, the count is
+    // the whole one and the fill's dispatch covers the half
+    let points = column_chain.points();
+    let spec = column_chain.spec;
+    let band =
+        fluid_surfels::lnm::narrow_band(points.positions, points.max_radius(), &Default::default())
+            .unwrap();
+    let cpu = density::sparse_layout(points, &spec, 1 << 30, &band).unwrap();
+    let half = cpu.evaluated.len() as u32 / 2;
+    let binned = gpu_density::BinnedPoints::new(&ctx.device, &points, &spec).unwrap();
+    let domain = fluid_surfels::lnm::gpu::ResidentBand::domain(
+        points.positions,
+        points.max_radius(),
+        &Default::default(),
+    )
+    .unwrap();
+    let mut layout = density::sparse_gpu::GpuSparseLayout::new(&ctx.device);
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    layout
+        .record(
+            &ctx,
+            &mut encoder,
+            (&binned, &spec),
+            (domain, points.max_radius()),
+            half,
+        )
+        .unwrap();
+    ctx.queue.submit([encoder.finish()]);
+    let gpu = layout.read(&ctx).unwrap();
+    let count: Vec<u32> = gpu::read_buffer(&ctx, layout.count()).unwrap();
+    assert_eq!(count[..4], [cpu.evaluated.len() as u32, 8, half, 1]);
+    for (b, (&c, &g)) in cpu.states.iter().zip(&gpu.states).enumerate() {
+        let expected = if c < u32::MAX - 1 && c >= half {
+            u32::MAX
+        } else {
+            c
+        };
+        assert_eq!(g, expected, "block {b} with values for {half} blocks");
+    }
 }
 
 /// A sparse grid on the GPU whose inside blocks end crossing edges (issue 37): the GPU does not

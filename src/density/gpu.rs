@@ -21,8 +21,10 @@ use bytemuck::{Pod, Zeroable};
 
 use super::bins::{BinLayout, BinSearch, GpuBinSort, bin_particles};
 use super::sparse::{BLOCK, BLOCK_VALUES, SparseLayout};
+use super::sparse_gpu::GpuSparseLayout;
 use super::{DensityGrid, GridSpec, Kernel, Points};
 use crate::gpu::{self, GpuContext, GpuError};
+use crate::lnm::gpu::BandDomain;
 
 /// The shader's `Params`, std140-compatible: 64 bytes (checked against the WGSL in a test).
 #[repr(C)]
@@ -774,7 +776,8 @@ pub struct GpuSparse {
     /// The value the inside blocks read as (above the iso-value; the surfels compute the exact
     /// value where a crossing ends in one).
     pub inside: f32,
-    /// Evaluated blocks.
+    /// Evaluated blocks the values hold (a layout found on the GPU: the values' capacity, its
+    /// count in [`super::sparse_gpu::GpuSparseLayout::count`]).
     pub evaluated: u32,
 }
 
@@ -865,6 +868,9 @@ struct SparseFill {
     states: gpu::Grow,
     evaluated: gpu::Grow,
     bind: Option<wgpu::BindGroup>,
+    /// The bind group over a layout found on the GPU ([`GridFiller::record_sparse_resident`])
+    /// and the evaluated blocks' buffer it reads.
+    resident_bind: Option<(wgpu::Buffer, wgpu::BindGroup)>,
 }
 
 /// The paper's splatting (§4.1) into a grid that stays on the GPU: the points sorted by slab
@@ -1276,20 +1282,12 @@ impl GridFiller {
         let (device, queue) = (&ctx.device, &ctx.queue);
         let max_binding = gpu::max_binding(device);
         let spec = &layout.spec;
-        let bytes = layout.value_bytes();
-        let state_bytes = layout.states.len() as u64 * 4;
-        if bytes > max_binding || state_bytes > max_binding || spec.cells() > u128::from(u32::MAX) {
-            return Err(GpuError::Validation(format!(
-                "a sparse grid of {} evaluated blocks ({bytes} bytes) and {} block states exceeds the GPU's storage binding limit of {max_binding} bytes; make it on the CPU",
-                layout.evaluated.len(),
-                layout.states.len()
-            )));
-        }
-        if !inside.is_finite() {
-            return Err(GpuError::Validation(format!(
-                "the inside value {inside} of a sparse grid must be finite"
-            )));
-        }
+        let bytes = check_sparse_fill(
+            spec,
+            (layout.evaluated.len() as u64, layout.states.len() as u64),
+            inside,
+            max_binding,
+        )?;
         let (binned, made, _) = self.upload(ctx, encoder, &points, (spec, bytes))?;
         if let Some(before) = before {
             before(encoder, FillPoints::Binned(&binned))?;
@@ -1302,6 +1300,7 @@ impl GridFiller {
             ),
             evaluated: gpu::Grow::new("sparse evaluated blocks", wgpu::BufferUsages::STORAGE),
             bind: None,
+            resident_bind: None,
         });
         let lists = gpu::write_grown(
             device,
@@ -1344,6 +1343,113 @@ impl GridFiller {
         };
         Ok(self.grid_of(spec, binned, Some(sparse)))
     }
+
+    /// [`Self::record_sparse_with`] with the layout found on the GPU (issue 37): `layout`
+    /// records the blocks' states and the evaluated blocks from the binned points and their
+    /// band over `domain` (after `before`), and the fill reads them there, dispatched
+    /// indirectly by their count; nothing of the layout is made on the CPU or read back. The
+    /// values hold `capacity` evaluated blocks (a block past them reads as empty; the count
+    /// comes back a few frames late, [`GpuSparseLayout::plan`]). Errors as
+    /// [`Self::record_sparse`].
+    pub fn record_sparse_resident(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        (points, spec, inside, kernel): (Points<'_>, &GridSpec, f32, Kernel),
+        (layout, domain, capacity): (&mut GpuSparseLayout, BandDomain, u32),
+        before: Option<BeforeFill<'_>>,
+    ) -> Result<GpuGrid, GpuError> {
+        check_inputs(&points)?;
+        let (device, queue) = (&ctx.device, &ctx.queue);
+        let max_binding = gpu::max_binding(device);
+        let blocks = spec
+            .dims
+            .iter()
+            .map(|&n| u64::from(n.div_ceil(BLOCK)))
+            .product();
+        let bytes = check_sparse_fill(spec, (u64::from(capacity), blocks), inside, max_binding)?;
+        let (binned, made, _) = self.upload(ctx, encoder, &points, (spec, bytes))?;
+        if let Some(before) = before {
+            before(encoder, FillPoints::Binned(&binned))?;
+        }
+        layout.record(
+            ctx,
+            encoder,
+            (&binned, spec),
+            (domain, points.max_radius()),
+            capacity,
+        )?;
+        self.created += layout.created();
+        let fill = self.sparse.get_or_insert_with(|| SparseFill {
+            pipeline: gather_pipeline_of(device, "gather_blocks"),
+            states: gpu::Grow::new("sparse block states", wgpu::BufferUsages::STORAGE),
+            evaluated: gpu::Grow::new("sparse evaluated blocks", wgpu::BufferUsages::STORAGE),
+            bind: None,
+            resident_bind: None,
+        });
+        let raw = RawGatherParams::new(spec, &binned, points.h, kernel, (0, capacity))
+            .searching(self.search, points.len());
+        queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));
+        let evaluated = layout.evaluated();
+        let stale = fill
+            .resident_bind
+            .as_ref()
+            .is_none_or(|(e, _)| e != evaluated);
+        if stale || made.contains(&true) {
+            let bind = gpu::buffers_bind_group(
+                device,
+                "gather blocks (layout on the GPU)",
+                &fill.pipeline.get_bind_group_layout(0),
+                &[
+                    &self.uniform,
+                    self.bins.sorted(),
+                    self.bins.starts(),
+                    self.grid.buffer(),
+                    evaluated,
+                ],
+            );
+            fill.resident_bind = Some((evaluated.clone(), bind));
+            self.created += 1;
+        }
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("gather blocks"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&fill.pipeline);
+            pass.set_bind_group(0, fill.resident_bind.as_ref().map(|(_, b)| b), &[]);
+            pass.dispatch_workgroups_indirect(layout.count(), 4);
+        }
+        let sparse = GpuSparse {
+            states: layout.states().clone(),
+            inside,
+            evaluated: capacity,
+        };
+        Ok(self.grid_of(spec, binned, Some(sparse)))
+    }
+}
+
+/// The bytes of a sparse grid's values for `slots` evaluated blocks of `spec` with `blocks`
+/// blocks in all, refused when they or the blocks' states exceed `max_binding` or the inside
+/// value is not finite.
+fn check_sparse_fill(
+    spec: &GridSpec,
+    (slots, blocks): (u64, u64),
+    inside: f32,
+    max_binding: u64,
+) -> Result<u64, GpuError> {
+    let bytes = slots * BLOCK_VALUES as u64 * 4;
+    if bytes > max_binding || blocks * 4 > max_binding || spec.cells() > u128::from(u32::MAX) {
+        return Err(GpuError::Validation(format!(
+            "a sparse grid of {slots} evaluated blocks ({bytes} bytes) and {blocks} block states exceeds the GPU's storage binding limit of {max_binding} bytes; make it on the CPU"
+        )));
+    }
+    if !inside.is_finite() {
+        return Err(GpuError::Validation(format!(
+            "the inside value {inside} of a sparse grid must be finite"
+        )));
+    }
+    Ok(bytes)
 }
 
 /// Fills the density grid on the GPU by `method`, handing slabs to `sink` in increasing z.

@@ -24,6 +24,7 @@ pub mod bins;
 pub mod cpu;
 pub mod gpu;
 pub mod sparse;
+pub mod sparse_gpu;
 
 use std::f32::consts::PI;
 

@@ -44,6 +44,11 @@ pub const BLOCK_VALUES: usize = B * B * B;
 const EMPTY: u32 = u32::MAX;
 const INSIDE: u32 = u32::MAX - 1;
 
+/// The factor on a point's radius within which its ball counts as reaching a block (or a
+/// window of one): a margin of 1e-4 of the radius, so that the dense grid's kernels outside are
+/// exactly 0 despite rounding. The GPU's layout ([`super::sparse_gpu`]) applies the same f32.
+pub const REACH_MARGIN: f32 = 1.0 + 1e-4;
+
 /// What a block holds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum BlockState {
@@ -394,7 +399,8 @@ struct Blocks<'a> {
     /// blocks along each axis
     dims: [usize; 3],
     count: usize,
-    /// the largest radius
+    /// the largest radius with the margin ([`REACH_MARGIN`]): no point farther from a box
+    /// reaches it
     reach: f32,
     /// a block's edge in world units
     side: f32,
@@ -415,7 +421,7 @@ impl<'a> Blocks<'a> {
             band,
             dims,
             count,
-            reach: points.max_radius(),
+            reach: points.max_radius() * REACH_MARGIN,
             side: BLOCK as f32 * spec.spacing,
             inv: 1.0 / band.edge,
             start: vec![0u32; count + 1],
@@ -555,7 +561,7 @@ impl<'a> Blocks<'a> {
                 let mut reached = false;
                 self.for_each_near(lo, hi, &mut |p| {
                     let x = self.points.positions[p as usize];
-                    let r = self.points.radius(p as usize) * (1.0 + 1e-4);
+                    let r = self.points.radius(p as usize) * REACH_MARGIN;
                     let d = (lo - x).max(x - hi).max(Vec3::ZERO);
                     reached = d.length_squared() < r * r;
                     !reached
@@ -665,7 +671,7 @@ impl<'a> Blocks<'a> {
             let d = (box_lo - x).max(x - box_hi).max(Vec3::ZERO);
             // a point whose ball misses the window adds nothing there (the margin as for the
             // empty blocks)
-            if d.length_squared() < (r * (1.0 + 1e-4)).powi(2) {
+            if d.length_squared() < (r * REACH_MARGIN).powi(2) {
                 candidates.push(p);
             }
             true

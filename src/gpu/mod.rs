@@ -248,6 +248,19 @@ pub(crate) fn bind_group(
     })
 }
 
+/// The bind group of group 0 of `pipeline` binding each buffer whole at its binding.
+pub(crate) fn buffer_bind_group(
+    device: &wgpu::Device,
+    pipeline: &wgpu::ComputePipeline,
+    buffers: &[(u32, &wgpu::Buffer)],
+) -> wgpu::BindGroup {
+    let entries: Vec<(u32, wgpu::BindingResource<'_>)> = buffers
+        .iter()
+        .map(|&(binding, b)| (binding, b.as_entire_binding()))
+        .collect();
+    bind_group(device, pipeline, &entries)
+}
+
 /// A 2D texture of one mip level and one sample.
 pub fn texture_2d(
     device: &wgpu::Device,

@@ -24,7 +24,8 @@ pub struct RawLnmParams {
     pub lo: [f32; 4],
     /// voxels along x, y, z; particles
     pub dims: [u32; 4],
-    /// n_min, fixed-point scale of the offsets, -, -
+    /// n_min, fixed-point scale of the offsets, a point's stride in `vec4`s (1: positions
+    /// alone), 1 to count only (no offsets' sums, no voxel per particle)
     pub misc: [u32; 4],
 }
 
@@ -58,22 +59,15 @@ pub fn narrow_band_gpu(
     support_radius: f32,
     params: &LnmParams,
 ) -> Result<NarrowBand, crate::Error> {
-    let (lo, edge, dims) = domain(positions, support_radius, params)?;
+    let (lo, edge, dims) = ResidentBand::domain(positions, support_radius, params)?;
     let total = dims.iter().map(|&d| u64::from(d)).product::<u64>();
-    if total > MAX_DENSE_VOXELS {
-        return Err(LnmError::DenseTooLarge {
-            voxels: total,
-            max: MAX_DENSE_VOXELS,
-        }
-        .into());
-    }
     let n = positions.len();
     let device = &ctx.device;
     let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
     let uniforms = RawLnmParams {
         lo: lo.extend(1.0 / edge).to_array(),
         dims: [dims[0], dims[1], dims[2], n as u32],
-        misc: [params.n_min, SCALE, 0, 0],
+        misc: [params.n_min, SCALE, 1, 0],
     };
     let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
         label: Some("lnm params"),
@@ -106,11 +100,7 @@ pub fn narrow_band_gpu(
     let [count, first, second] =
         crate::gpu::compute_pipelines(device, "lnm", SHADER, ["cs_count", "cs_first", "cs_second"]);
     let group = |p: &wgpu::ComputePipeline, entries: &[(u32, &wgpu::Buffer)]| {
-        let entries: Vec<(u32, wgpu::BindingResource<'_>)> = entries
-            .iter()
-            .map(|&(binding, b)| (binding, b.as_entire_binding()))
-            .collect();
-        crate::gpu::bind_group(device, p, &entries)
+        crate::gpu::buffer_bind_group(device, p, entries)
     };
     let count_group = group(
         &count,
@@ -201,4 +191,167 @@ pub fn narrow_band_gpu(
         labels: particle_labels,
         voxel_of,
     })
+}
+
+/// The band's interior on the GPU, kept there for the passes that read it (issue 37: the sparse
+/// density grid's block states, [`crate::density::sparse_gpu`]): the counting and labelling
+/// passes of [`narrow_band_gpu`] recorded into a frame's encoder over points already on the
+/// GPU, their buffers kept from frame to frame. A voxel `v` is interior when
+/// `counts[v] > 0 && labels[v] == 0`, as in the CPU's band ([`super::NarrowBand`]); the
+/// centroids and each particle's voxel are not made.
+pub struct ResidentBand {
+    pipelines: [wgpu::ComputePipeline; 3],
+    uniform: wgpu::Buffer,
+    counts: crate::gpu::Grow,
+    labels: crate::gpu::Grow,
+    /// The bindings the counting-only passes do not write (the offsets' sums, the voxel of
+    /// each particle): the smallest buffer.
+    unused: crate::gpu::Grow,
+    /// The points bound and the bind groups of the three passes.
+    binds: Option<(wgpu::Buffer, [wgpu::BindGroup; 3])>,
+    created: usize,
+}
+
+/// Where a band's voxels lie: the domain's minimum corner, the voxel's edge and the voxels
+/// along each axis ([`ResidentBand::domain`]).
+pub type BandDomain = (Vec3, f32, [u32; 3]);
+
+impl ResidentBand {
+    /// Compiles the passes for `device`.
+    #[must_use]
+    pub fn new(device: &wgpu::Device) -> Self {
+        let usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
+        Self {
+            pipelines: crate::gpu::compute_pipelines(
+                device,
+                "resident band",
+                SHADER,
+                ["cs_count", "cs_first", "cs_second"],
+            ),
+            uniform: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("resident band params"),
+                size: std::mem::size_of::<RawLnmParams>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            counts: crate::gpu::Grow::new("band counts", usage),
+            labels: crate::gpu::Grow::new("band labels", usage),
+            unused: crate::gpu::Grow::new("band (unused)", usage),
+            binds: None,
+            created: 0,
+        }
+    }
+
+    /// The domain of the band of points whose largest radius is `support_radius` and whose
+    /// positions are `positions` (the CPU's [`super::narrow_band`] over them has these voxels),
+    /// refused as [`narrow_band_gpu`] refuses (too many voxels for the dense layout).
+    pub fn domain(
+        positions: &[Vec3],
+        support_radius: f32,
+        params: &LnmParams,
+    ) -> Result<BandDomain, LnmError> {
+        let (lo, edge, dims) = domain(positions, support_radius, params)?;
+        let total = dims.iter().map(|&d| u64::from(d)).product::<u64>();
+        if total > MAX_DENSE_VOXELS {
+            return Err(LnmError::DenseTooLarge {
+                voxels: total,
+                max: MAX_DENSE_VOXELS,
+            });
+        }
+        Ok((lo, edge, dims))
+    }
+
+    /// Records the band of the `count` points of `points` (each `stride` `vec4`s apart, its
+    /// position first) over `domain` into `encoder`: each voxel's count and label, in
+    /// [`Self::counts`] and [`Self::labels`] once the encoder's work has run. `n_min`: the
+    /// paper's, [`LnmParams::n_min`].
+    pub fn record(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        (points, stride, count): (&wgpu::Buffer, u32, u32),
+        (lo, edge, dims): BandDomain,
+        n_min: u32,
+    ) -> Result<(), GpuError> {
+        let (device, queue) = (&ctx.device, &ctx.queue);
+        let total = dims.iter().map(|&d| u64::from(d)).product::<u64>();
+        if total > MAX_DENSE_VOXELS || total * 4 > crate::gpu::max_binding(device) {
+            return Err(GpuError::Validation(format!(
+                "a band of {total} voxels exceeds the dense layout's {MAX_DENSE_VOXELS} or the GPU's storage binding limit"
+            )));
+        }
+        let made = [
+            self.counts.reserve(device, total * 4),
+            self.labels.reserve(device, total * 4),
+            self.unused.reserve(device, 0),
+        ];
+        self.created = made.iter().filter(|&&m| m).count();
+        if self.created > 0 || self.binds.as_ref().is_none_or(|(p, _)| p != points) {
+            let group = |p: &wgpu::ComputePipeline, entries: &[(u32, &wgpu::Buffer)]| {
+                crate::gpu::buffer_bind_group(device, p, entries)
+            };
+            let (counts, labels, unused) = (
+                self.counts.buffer(),
+                self.labels.buffer(),
+                self.unused.buffer(),
+            );
+            let [count_pass, first, second] = &self.pipelines;
+            let binds = [
+                group(
+                    count_pass,
+                    &[
+                        (0, &self.uniform),
+                        (1, points),
+                        (2, counts),
+                        (3, unused),
+                        (4, unused),
+                    ],
+                ),
+                group(first, &[(0, &self.uniform), (2, counts), (5, labels)]),
+                group(second, &[(0, &self.uniform), (2, counts), (5, labels)]),
+            ];
+            self.binds = Some((points.clone(), binds));
+            self.created += 3;
+        }
+        let uniforms = RawLnmParams {
+            lo: lo.extend(1.0 / edge).to_array(),
+            dims: [dims[0], dims[1], dims[2], count],
+            misc: [n_min, SCALE, stride, 1],
+        };
+        queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&uniforms));
+        encoder.clear_buffer(self.counts.buffer(), 0, Some(total * 4));
+        let (_, binds) = self.binds.as_ref().expect("made above");
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("resident band"),
+            timestamp_writes: None,
+        });
+        for (i, (pipeline, bind)) in self.pipelines.iter().zip(binds).enumerate() {
+            let (gx, gy) = groups(if i == 0 { u64::from(count) } else { total });
+            if gx * gy == 0 {
+                continue;
+            }
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, bind, &[]);
+            pass.dispatch_workgroups(gx, gy, 1);
+        }
+        Ok(())
+    }
+
+    /// Each voxel's particle count (x fastest over the domain's voxels).
+    #[must_use]
+    pub fn counts(&self) -> &wgpu::Buffer {
+        self.counts.buffer()
+    }
+
+    /// Each voxel's label: 1 and 2 the paper's layers, 0 interior (or empty: count 0).
+    #[must_use]
+    pub fn labels(&self) -> &wgpu::Buffer {
+        self.labels.buffer()
+    }
+
+    /// Buffers and bind groups the last [`Self::record`] made (0 once they are large enough).
+    #[must_use]
+    pub fn created(&self) -> usize {
+        self.created
+    }
 }

@@ -13,7 +13,10 @@
 //! filled on the GPU ([`crate::density::gpu::GridFiller`]: the paper's splatting by default,
 //! or the gather pass, `grid.gpu_method`) and the surfels extracted
 //! there ([`crate::surfels::gpu::ResidentSurfels`]: crossings, a prefix sum, the projection onto
-//! the iso-surface), written into the buffer that the splatting draws by an indirect draw;
+//! the iso-surface), written into the buffer that the splatting draws by an indirect draw; a
+//! sparse grid (`grid.narrow_band`) finds its blocks there too
+//! ([`crate::density::sparse_gpu::GpuSparseLayout`]: the LNM band of the points and the blocks'
+//! states, the evaluated blocks' values sized from a count read back a few frames late);
 //! the optics stage (the light's splatting of the water, the caustics, the camera's splatting,
 //! the refraction, reflection and the final image) runs on the GPU, and the frame is presented
 //! by a full-screen pass. The views are fitted to the particles' box (the surfels never come back
@@ -35,6 +38,8 @@ use glam::Vec3;
 
 use super::{Frame, Pipeline, PipelineParams, SurfelSource, Through, ms};
 use crate::density::gpu::{FillPoints, GridFiller};
+use crate::density::sparse::BLOCK_VALUES;
+use crate::density::sparse_gpu::GpuSparseLayout;
 use crate::gpu::timer::{Mark, StageTimer};
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::optics::gpu::{OpticsGpu, PreparedOptics};
@@ -156,6 +161,8 @@ struct GpuChain {
     /// The boundary calibration's factors and weights, found where the grid is filled from the
     /// points (with the gather pass: the splatting draws its own copy of the points).
     weights: WeightPasses,
+    /// A sparse grid's layout on the GPU, made on first use.
+    layout: Option<GpuSparseLayout>,
     /// The bytes of the last grid's values: every point's, or a sparse grid's evaluated
     /// blocks'.
     grid_bytes: u64,
@@ -307,6 +314,9 @@ impl GpuPipeline {
     pub fn after_submit(&mut self) {
         if let Some(chain) = &mut self.chain {
             chain.surfels.after_submit();
+            if let Some(layout) = &mut chain.layout {
+                layout.after_submit();
+            }
         }
         if let Some(timer) = &mut self.timer {
             timer.after_submit();
@@ -476,6 +486,7 @@ impl GpuPipeline {
             filler: GridFiller::with_method(device, self.cpu.params().grid.gpu_method),
             surfels: ResidentSurfels::new(device),
             weights: WeightPasses::new(device),
+            layout: None,
             grid_bytes: 0,
         });
         let (params, points) = (self.cpu.params(), input.points());
@@ -499,19 +510,21 @@ impl GpuPipeline {
             .solve
             .as_ref()
             .map_or_else(Vec::new, |s| sheet_points(&points, s.particles, &s.normals));
-        // a sparse grid: which blocks to fill, on the CPU (the LNM band of the points, their
-        // blocks), their values on the GPU
+        // a sparse grid: which blocks to fill and their values, on the GPU (the LNM band of the
+        // points and the blocks' states, `density::sparse_gpu`); the values sized from a count
+        // read back a few frames late (before one has come back, from an upper bound found on
+        // the CPU, `GpuSparseLayout::plan`), the grid coarsened where the whole grid's blocks
+        // exceed the memory budget and that bound does too
         let mut spec = input.spec;
-        let layout = if sparse {
-            let band = super::sparse_band(&points)?;
+        let resident = if sparse {
             let limit = params
                 .grid
                 .memory_budget
                 .min(crate::gpu::max_binding(device));
-            let (layout, warning) = sparse_layout_within(points, &mut spec, limit, &band)?;
-            frame.warnings.extend(warning);
-            frame.detail.cell = spec.spacing;
-            Some(layout)
+            let layout = chain
+                .layout
+                .get_or_insert_with(|| GpuSparseLayout::new(device));
+            Some(plan_sparse(layout, points, (&mut spec, limit), &mut frame)?)
         } else {
             None
         };
@@ -551,13 +564,15 @@ impl GpuPipeline {
             weights_made = weights.created();
             Ok(())
         };
-        let grid = if let Some(layout) = &layout {
+        let grid = if let Some((domain, capacity)) = resident {
             let inside = super::sparse_inside(kernel, &params.surfels, points.h);
-            chain.grid_bytes = layout.value_bytes();
-            chain.filler.record_sparse_with(
+            chain.grid_bytes = u64::from(capacity) * BLOCK_VALUES as u64 * 4;
+            let layout = chain.layout.as_mut().expect("made above");
+            chain.filler.record_sparse_resident(
                 &ctx,
                 encoder,
-                (points, layout, inside, kernel),
+                (points, &spec, inside, kernel),
+                (layout, domain, capacity),
                 Some(&mut solve),
             )?
         } else {
@@ -894,56 +909,87 @@ impl GpuPipeline {
     }
 }
 
-/// The sparse layout of `points` on `spec` within `limit` bytes; where its evaluated blocks do
-/// not fit (the dense grid fits the budget, [`super::grid_for`], but a sparse one of a small or
-/// thin body evaluates blocks that overhang it, and the points' kernels that reach farther than
-/// the weights let them add nothing there), `spec` coarsened by steps of 5 % until they do,
-/// with a warning.
-fn sparse_layout_within(
+/// A sparse grid's plan for `layout` (`spec` coarsened where its blocks exceed `limit` bytes,
+/// [`sparse_spec_within`]): the band's domain and the evaluated blocks its values are to hold
+/// ([`GpuSparseLayout::plan`]), the warnings in `frame`.
+fn plan_sparse(
+    layout: &mut GpuSparseLayout,
+    points: crate::density::Points<'_>,
+    (spec, limit): (&mut crate::density::GridSpec, u64),
+    frame: &mut Frame,
+) -> Result<(crate::lnm::gpu::BandDomain, u32), Error> {
+    frame
+        .warnings
+        .extend(sparse_spec_within(points, spec, limit)?);
+    frame.detail.cell = spec.spacing;
+    let domain = crate::lnm::gpu::ResidentBand::domain(
+        points.positions,
+        points.max_radius(),
+        &crate::lnm::LnmParams::default(),
+    )?;
+    let slots = limit / (BLOCK_VALUES as u64 * 4);
+    let capacity = layout.plan(&points, spec, slots.min(u64::from(u32::MAX)) as u32);
+    if layout.overflowed() {
+        frame.warnings.push(format!(
+            "a recent frame's sparse density grid had {} evaluated blocks, more than the {} its values held (the memory budget or the GPU's binding limit allows {slots}): those past them were left empty",
+            layout.last_count().unwrap_or(0),
+            layout.capacity()
+        ));
+    }
+    Ok((domain, capacity))
+}
+
+/// The grid `spec` of a sparse grid of `points` coarsened, by steps of 5 %, until an upper
+/// bound of its evaluated blocks' values and its blocks' states
+/// ([`crate::density::sparse_gpu::evaluated_bound`]) fits `limit` bytes, with a warning when it
+/// was (the dense grid fits the budget, [`super::grid_for`], but a sparse one of a small or
+/// thin body evaluates blocks that overhang it). The bound is found here only when the whole
+/// grid's blocks would not fit.
+fn sparse_spec_within(
     points: crate::density::Points<'_>,
     spec: &mut crate::density::GridSpec,
     limit: u64,
-    band: &crate::lnm::NarrowBand,
-) -> Result<(crate::density::SparseLayout, Option<String>), Error> {
-    use crate::density::{DensityError, GridSpec, Resolution};
-    let first = *spec;
-    let mut needed = 0;
-    for _ in 0..200 {
-        match crate::density::sparse_layout(points, spec, limit, band) {
-            Ok(layout) => {
-                let warning = (spec.spacing != first.spacing).then(|| {
-                    let mib = |b: u128| b as f64 / (1u64 << 20) as f64;
-                    format!(
-                        "the sparse density grid's blocks at spacing {:.5} ({:.2} MiB) exceed the memory budget of {:.2} MiB; \
-                         coarsened to spacing {:.5} ({} x {} x {}): the surface loses detail finer than that (raise grid.memory_budget)",
-                        first.spacing,
-                        mib(needed),
-                        mib(u128::from(limit)),
-                        spec.spacing,
-                        spec.dims[0],
-                        spec.dims[1],
-                        spec.dims[2],
-                    )
-                });
-                return Ok((layout, warning));
-            }
-            Err(DensityError::TooLarge { bytes, .. }) => {
-                if needed == 0 {
-                    needed = bytes;
-                }
-                *spec = GridSpec::around(
-                    points.positions,
-                    points.max_radius(),
-                    Resolution::CellSize(spec.spacing * 1.05),
-                )?;
-            }
-            Err(e) => return Err(e.into()),
+) -> Result<Option<String>, Error> {
+    use crate::density::{GridSpec, Resolution, sparse_gpu::evaluated_bound};
+    let block_bytes = BLOCK_VALUES as u128 * 4 + 8;
+    let blocks = |s: &GridSpec| {
+        s.dims
+            .iter()
+            .map(|&n| u128::from(n.div_ceil(crate::density::sparse::BLOCK)))
+            .product::<u128>()
+    };
+    let needed = |s: &GridSpec| {
+        let whole = blocks(s) * block_bytes;
+        if whole <= u128::from(limit) {
+            return whole;
         }
+        u128::from(evaluated_bound(&points, s)) * (BLOCK_VALUES as u128 * 4) + blocks(s) * 8
+    };
+    let first = *spec;
+    let wanted = needed(spec);
+    let mut steps = 0;
+    while needed(spec) > u128::from(limit) && steps < 200 {
+        *spec = GridSpec::around(
+            points.positions,
+            points.max_radius(),
+            Resolution::CellSize(spec.spacing * 1.05),
+        )?;
+        steps += 1;
     }
-    Ok((
-        crate::density::sparse_layout(points, spec, limit, band)?,
-        None,
-    ))
+    Ok((spec.spacing != first.spacing).then(|| {
+        let mib = |b: u128| b as f64 / (1u64 << 20) as f64;
+        format!(
+            "the sparse density grid's blocks at spacing {:.5} (up to {:.2} MiB) exceed the memory budget of {:.2} MiB; \
+             coarsened to spacing {:.5} ({} x {} x {}): the surface loses detail finer than that (raise grid.memory_budget)",
+            first.spacing,
+            mib(wanted),
+            mib(u128::from(limit)),
+            spec.spacing,
+            spec.dims[0],
+            spec.dims[1],
+            spec.dims[2],
+        )
+    }))
 }
 
 fn check_size((w, h): (u32, u32)) -> Result<(), Error> {
