@@ -11,6 +11,7 @@
 //! cargo run --release --example viewer -- --renderer particle-splat   # Adams et al. 2006
 //! cargo run --release --example viewer -- --renderer ray-cast         # Xiao et al. (slow on lavapipe)
 //! cargo run --release --example viewer -- --renderer ssfr             # Oliveira and Paiva, screen space
+//! cargo run --release --example viewer -- --narrow-band               # the density grid sparse
 //! ```
 //!
 //! Keys: Space pause/play, Right (or N) one frame on, S next surfel source (chain, particles,
@@ -46,6 +47,7 @@ struct Args {
     splats: bool,
     size: (u32, u32),
     renderer: Renderer,
+    narrow_band: bool,
 }
 
 fn args() -> std::result::Result<Args, String> {
@@ -57,6 +59,7 @@ fn args() -> std::result::Result<Args, String> {
         splats: false,
         size: (640, 480),
         renderer: Renderer::Ewa,
+        narrow_band: false,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -67,6 +70,7 @@ fn args() -> std::result::Result<Args, String> {
             "--frames" => a.frames = value()?.parse().map_err(|e| format!("--frames: {e}"))?,
             "--out" => a.out = PathBuf::from(value()?),
             "--splats" => a.splats = true,
+            "--narrow-band" => a.narrow_band = true,
             "--renderer" => {
                 let v = value()?;
                 a.renderer = RENDERERS
@@ -122,15 +126,18 @@ impl Source {
         })
     }
 
-    fn params(&self) -> PipelineParams {
-        match self {
+    /// The pipeline's settings for this source, the density grid sparse with `narrow_band`.
+    fn params(&self, narrow_band: bool) -> PipelineParams {
+        let mut params = match self {
             Self::Column(sim) => PipelineParams {
                 support_radius: Some(sim.support_radius()),
                 scene: column_pool(ColumnParams::default().tank),
                 ..Default::default()
             },
             Self::Files { .. } => PipelineParams::default(),
-        }
+        };
+        params.grid.narrow_band = narrow_band;
+        params
     }
 
     fn particles(&self) -> Result<ParticleSet> {
@@ -228,9 +235,10 @@ impl Viewer {
         format: wgpu::TextureFormat,
         size: (u32, u32),
         source: Source,
-        show_splats: bool,
+        (show_splats, narrow_band): (bool, bool),
     ) -> Result<Self> {
-        let gpu = GpuPipeline::new(&device, &queue, format, size, &source.params())?;
+        let params = source.params(narrow_band);
+        let gpu = GpuPipeline::new(&device, &queue, format, size, &params)?;
         Ok(Self {
             device,
             queue,
@@ -355,7 +363,7 @@ fn headless(args: &Args) -> Result<()> {
         format,
         args.size,
         source,
-        args.splats,
+        (args.splats, args.narrow_band),
     )?;
     viewer.gpu.cpu_mut().set_renderer(args.renderer);
     for f in 0..args.frames {
@@ -460,7 +468,14 @@ impl Windowed {
         };
         surface.configure(&device, &config);
         let source = Source::new(self.args.input.as_deref())?;
-        let mut viewer = Viewer::new(device, queue, format, (w, h), source, self.args.splats)?;
+        let mut viewer = Viewer::new(
+            device,
+            queue,
+            format,
+            (w, h),
+            source,
+            (self.args.splats, self.args.narrow_band),
+        )?;
         viewer.gpu.cpu_mut().set_renderer(self.args.renderer);
         viewer.update()?;
         self.state = Some((window, surface, config, viewer));
