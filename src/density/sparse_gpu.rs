@@ -91,11 +91,23 @@ pub struct GpuSparseLayout {
     last: Option<(GridSpec, [u32; 3])>,
     /// The evaluated blocks' count, read back a few frames late (no wait).
     readback: gpu::AsyncRead,
-    /// The count of the last read-back's frame.
-    last_count: Option<u32>,
+    /// The frame whose count is being read back.
+    pending: Option<Counted>,
+    /// The frame whose count came back last.
+    counted: Option<Counted>,
     /// The evaluated blocks the last frame's values held.
     capacity: u32,
     created: usize,
+}
+
+/// A frame whose evaluated blocks were counted: the count (once read back), its points, its
+/// grid's spacing and the blocks its values held.
+#[derive(Clone, Copy, Debug)]
+struct Counted {
+    blocks: u32,
+    points: usize,
+    spacing: f32,
+    capacity: u32,
 }
 
 /// Blocks along each axis of a grid of `spec`.
@@ -137,32 +149,35 @@ impl GpuSparseLayout {
             binds: None,
             last: None,
             readback: gpu::AsyncRead::new(device, "sparse evaluated count readback", 4),
-            last_count: None,
+            pending: None,
+            counted: None,
             capacity: 0,
             created: 0,
         }
     }
 
     /// The evaluated blocks the next frame's values are to hold, at most `limit`, never less
-    /// than the last frame's (the buffer only grows): while no count has come back, or after
-    /// one that did not fit, [`evaluated_bound`] of `points` on `spec` (an upper bound known
-    /// before the pass: one pass over the points on the CPU); otherwise half again a recent
-    /// count once it comes within a quarter of the capacity (no work on the CPU). Takes the
-    /// count of a finished read-back first.
+    /// than the last frame's (the buffer only grows). From a recent frame's count, read back a
+    /// few frames late, where that frame is like this one (it fitted its values, this frame
+    /// has at most a quarter more points and a grid spacing within a tenth of its): half
+    /// again that count once it comes within a quarter of the capacity, no work on the CPU.
+    /// Otherwise (no count yet, a count that did not fit, a frame unlike the counted one: a
+    /// new body, another level of detail) [`evaluated_bound`] of `points` on `spec`, an upper
+    /// bound known before the pass (one pass over the points on the CPU). Takes the count of a
+    /// finished read-back first.
     pub fn plan(&mut self, points: &Points<'_>, spec: &GridSpec, limit: u32) -> u32 {
         self.take_count();
-        let wanted = match self.last_count {
-            Some(c) if c <= self.capacity => {
-                if c.saturating_add(c / 4) > self.capacity {
-                    c.saturating_add(c / 2)
-                } else {
-                    self.capacity
-                }
+        let like = self.counted.filter(|c| {
+            c.blocks <= c.capacity
+                && points.len() as f64 <= 1.25 * c.points as f64
+                && (spec.spacing / c.spacing - 1.0).abs() <= 0.1
+        });
+        let wanted = match like {
+            Some(c) if c.blocks.saturating_add(c.blocks / 4) > self.capacity => {
+                c.blocks.saturating_add(c.blocks / 2)
             }
-            last => {
-                let bound = evaluated_bound(points, spec).min(u64::from(u32::MAX)) as u32;
-                last.map_or(bound, |c| bound.max(c.saturating_add(c / 2)))
-            }
+            Some(_) => self.capacity,
+            None => evaluated_bound(points, spec).min(u64::from(u32::MAX)) as u32,
         };
         wanted.max(self.capacity).max(64).min(limit)
     }
@@ -175,16 +190,21 @@ impl GpuSparseLayout {
 
     fn take_count(&mut self) {
         if let Some(bytes) = self.readback.take() {
-            self.last_count = bytes
+            let blocks = bytes
                 .get(..4)
                 .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]));
+            self.counted = self
+                .pending
+                .take()
+                .zip(blocks)
+                .map(|(c, blocks)| Counted { blocks, ..c });
         }
     }
 
     /// The evaluated blocks of the frame whose count came back last (`None` before one has).
     #[must_use]
     pub fn last_count(&self) -> Option<u32> {
-        self.last_count
+        self.counted.map(|c| c.blocks)
     }
 
     /// The evaluated blocks the last recorded frame's values held.
@@ -197,7 +217,13 @@ impl GpuSparseLayout {
     /// held (those past them read as empty).
     #[must_use]
     pub fn overflowed(&self) -> bool {
-        self.last_count.is_some_and(|c| c > self.capacity)
+        self.counted.is_some_and(|c| c.blocks > c.capacity)
+    }
+
+    /// The evaluated blocks the values held in the frame whose count came back last.
+    #[must_use]
+    pub fn counted_capacity(&self) -> Option<u32> {
+        self.counted.map(|c| c.capacity)
     }
 
     /// Records the layout of the grid `spec` over the points `binned` (binned over the box of
@@ -305,7 +331,14 @@ impl GpuSparseLayout {
             pass.dispatch_workgroups(x, y, 1);
         }
         drop(pass);
-        self.readback.copy(encoder, self.count.buffer(), 0);
+        if self.readback.copy(encoder, self.count.buffer(), 0) {
+            self.pending = Some(Counted {
+                blocks: 0,
+                points: binned.count,
+                spacing: spec.spacing,
+                capacity,
+            });
+        }
         Ok(())
     }
 

@@ -933,7 +933,7 @@ fn plan_sparse(
         frame.warnings.push(format!(
             "a recent frame's sparse density grid had {} evaluated blocks, more than the {} its values held (the memory budget or the GPU's binding limit allows {slots}): those past them were left empty",
             layout.last_count().unwrap_or(0),
-            layout.capacity()
+            layout.counted_capacity().unwrap_or(0)
         ));
     }
     Ok((domain, capacity))

@@ -541,7 +541,8 @@ fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
 /// read-back and no wait. The surfel buffers hold [`ResidentSurfels::capacity`] surfels, a first
 /// guess from the grid (its box's faces in cells, times three) that grows from the count read
 /// back asynchronously a few frames later (mapped after a submit, looked at by a later
-/// `record`); until it has grown, the surfels past the capacity are left out
+/// `record`), scaled by how many more points the frame has than the counted one (a body that
+/// grows at once); until it has grown, the surfels past the capacity are left out
 /// ([`ResidentSurfels::overflowed`]). After the first frames of a sequence `record` creates
 /// nothing ([`ResidentSurfels::created`]).
 pub struct ResidentSurfels {
@@ -557,6 +558,9 @@ pub struct ResidentSurfels {
     bind: Option<(wgpu::BindGroup, [wgpu::Buffer; 4])>,
     capacity: u32,
     last_count: Option<u32>,
+    /// The points of the frame whose count is being read back, and of the one counted last.
+    pending_points: Option<usize>,
+    counted_points: Option<usize>,
     created: usize,
     iso: f32,
     spacing: f32,
@@ -610,6 +614,8 @@ impl ResidentSurfels {
             bind: None,
             capacity: 0,
             last_count: None,
+            pending_points: None,
+            counted_points: None,
             created: 0,
             iso: 0.0,
             spacing: 0.0,
@@ -684,11 +690,22 @@ impl ResidentSurfels {
         }
         let [nx, ny, nz] = spec.dims.map(u64::from);
         let guess = (3 * 2 * (nx * ny + ny * nz + nz * nx)).min(u64::from(u32::MAX)) as u32;
-        let wanted = self
-            .last_count
-            .map_or(guess, |c| c.saturating_add(c / 2))
-            .max(self.capacity)
-            .max(1024);
+        // a recent count, half again, times the growth of the points since its frame (at least
+        // the guess where they grew by more than a quarter)
+        let wanted = match (self.last_count, self.counted_points) {
+            (Some(c), Some(counted)) => {
+                let grown = points.len() as f64 / counted.max(1) as f64;
+                let scaled = (1.5 * f64::from(c) * grown.max(1.0)).min(f64::from(u32::MAX)) as u32;
+                if grown > 1.25 {
+                    scaled.max(guess)
+                } else {
+                    scaled
+                }
+            }
+            _ => guess,
+        }
+        .max(self.capacity)
+        .max(1024);
         self.capacity = wanted;
         // the points as the grid's filler binned and uploaded them: not binned again
         let binned = binned_of(grid, &points)?;
@@ -760,7 +777,9 @@ impl ResidentSurfels {
             pass.set_bind_group(0, bind, &[]);
             pass.dispatch_workgroups_indirect(&self.args, 0);
         }
-        self.readback.copy(encoder, &self.total, 0);
+        if self.readback.copy(encoder, &self.total, 0) {
+            self.pending_points = Some(points.len());
+        }
         self.iso = iso;
         self.spacing = spec.spacing;
         Ok(())
@@ -778,6 +797,7 @@ impl ResidentSurfels {
             self.last_count = bytes
                 .get(..4)
                 .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]));
+            self.counted_points = self.pending_points.take();
         }
     }
 
