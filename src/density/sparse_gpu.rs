@@ -115,16 +115,6 @@ fn blocks_of(spec: &GridSpec) -> [u32; 3] {
     spec.dims.map(|n| n.div_ceil(BLOCK))
 }
 
-/// Workgroups of 64 for `n` invocations (`x + y * 65,535 * 64` in the WGSL).
-fn groups_64(n: u64) -> (u32, u32) {
-    let g = n.div_ceil(64);
-    if g <= 65_535 {
-        (g as u32, 1)
-    } else {
-        (65_535, g.div_ceil(65_535) as u32)
-    }
-}
-
 impl GpuSparseLayout {
     /// Compiles the passes for `device`.
     #[must_use]
@@ -318,7 +308,7 @@ impl GpuSparseLayout {
         self.last = Some((*spec, blocks));
         self.capacity = capacity;
         let (_, _, binds) = self.binds.as_ref().expect("made above");
-        let (sx, sy) = groups_64(total);
+        let (sx, sy) = crate::lnm::gpu::groups(total);
         let scan = (scan_groups as u32).clamp(1, 65_535);
         let scan = (scan, (scan_groups as u32).div_ceil(scan).max(1));
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {

@@ -42,8 +42,8 @@ const SCALE: u32 = 1 << 16;
 const MAX_FIXED_COUNT: u32 = (i32::MAX as u32) / SCALE;
 
 /// Workgroups of 64 for `n` invocations: `(x, y)` with `x <= 65535` (the WGSL's index is
-/// `x + y * 65535 * 64`).
-fn groups(n: u64) -> (u32, u32) {
+/// `x + y * 65535 * 64`; `density::sparse_gpu`'s passes index so too).
+pub(crate) fn groups(n: u64) -> (u32, u32) {
     let g = n.div_ceil(64);
     if g <= 65_535 {
         (g as u32, 1)
