@@ -1072,6 +1072,9 @@ pub enum FillPoints<'a> {
     /// The splatting's copy sorted by slab of four planes, of this many points (with the
     /// splatting, second).
     Sorted(&'a wgpu::Buffer, usize),
+    /// No copy: a sparse grid's layout found on the GPU is recorded, the fill comes next
+    /// ([`GridFiller::record_sparse_resident`], second; a hook that times passes marks it).
+    Laid,
 }
 
 impl GridFiller {
@@ -1369,7 +1372,8 @@ impl GridFiller {
             .product();
         let bytes = check_sparse_fill(spec, (u64::from(capacity), blocks), inside, max_binding)?;
         let (binned, made, _) = self.upload(ctx, encoder, &points, (spec, bytes))?;
-        if let Some(before) = before {
+        let mut before = before;
+        if let Some(before) = before.as_mut() {
             before(encoder, FillPoints::Binned(&binned))?;
         }
         layout.record(
@@ -1379,6 +1383,9 @@ impl GridFiller {
             (domain, points.max_radius()),
             capacity,
         )?;
+        if let Some(before) = before.as_mut() {
+            before(encoder, FillPoints::Laid)?;
+        }
         self.created += layout.created();
         let fill = self.sparse.get_or_insert_with(|| SparseFill {
             pipeline: gather_pipeline_of(device, "gather_blocks"),

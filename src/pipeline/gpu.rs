@@ -37,6 +37,7 @@ use std::time::Instant;
 use glam::Vec3;
 
 use super::{Frame, Pipeline, PipelineParams, SurfelSource, Through, ms};
+use crate::density::GridSpec;
 use crate::density::gpu::{FillPoints, GridFiller};
 use crate::density::sparse::BLOCK_VALUES;
 use crate::density::sparse_gpu::GpuSparseLayout;
@@ -115,7 +116,8 @@ pub struct GpuStageMs {
     /// The boundary calibration: its factors and the sheet's weights' Jacobi steps (0 when
     /// the CPU made the grid or the chain has no calibration to solve).
     pub calibration: f64,
-    /// Filling the density grid from the sorted, calibrated points (0 when the CPU made it).
+    /// Filling the density grid from the sorted, calibrated points, a sparse grid's layout
+    /// included (0 when the CPU made it).
     pub density: f64,
     /// Extracting the surfels (0 when the CPU made them).
     pub surfels: f64,
@@ -359,7 +361,9 @@ impl GpuPipeline {
     /// `"calibration"`, `"density"`, `"surfels"`, `"caustics"`, `"image"`) and within the
     /// calibration its passes (`"calibration: factors"`, `"calibration: targets"`,
     /// `"calibration: compaction"`, `"calibration: steps"`, `"calibration: apply"`; the stage's
-    /// own entry then holds what ran after its last pass). Read back as [`Self::gpu_stage_ms`]
+    /// own entry then holds what ran after its last pass), and with a sparse grid its layout
+    /// (`"density: layout"`, the band and the blocks' states; `"density"` then the fill).
+    /// Read back as [`Self::gpu_stage_ms`]
     /// is; `None` before the first arrives.
     #[must_use]
     pub fn gpu_pass_ms(&self) -> Option<Vec<(&'static str, f64)>> {
@@ -531,8 +535,14 @@ impl GpuPipeline {
         let weights = &mut chain.weights;
         let mut weights_made = 0;
         let mut solve = |encoder: &mut wgpu::CommandEncoder, copy: FillPoints<'_>| {
-            if let FillPoints::Binned(_) = copy {
-                mark(encoder, Mark::Stage(mark::SORTED));
+            match copy {
+                FillPoints::Binned(_) => mark(encoder, Mark::Stage(mark::SORTED)),
+                // the sparse grid's layout, timed apart from the fill
+                FillPoints::Laid => {
+                    mark(encoder, Mark::Pass("density: layout"));
+                    return Ok(());
+                }
+                FillPoints::Sorted(..) => {}
             }
             let Some(s) = input.solve.as_ref() else {
                 mark(encoder, Mark::Stage(mark::CALIBRATED));
@@ -560,6 +570,7 @@ impl GpuPipeline {
                     mark(encoder, Mark::Stage(mark::CALIBRATED));
                 }
                 FillPoints::Sorted(copy, count) => weights.apply_to(device, encoder, copy, count),
+                FillPoints::Laid => {}
             }
             weights_made = weights.created();
             Ok(())
@@ -598,20 +609,7 @@ impl GpuPipeline {
                 chain.surfels.capacity()
             ));
         }
-        // with the paper's calibration the surface lies farther out: the grid's box bounds it
-        frame.shape = self
-            .cpu
-            .grid_water_shape(particles.positions, &frame.surface, frame.radius, &spec)
-            .or_else(|| {
-                let far =
-                    spec.origin + spec.spacing * Vec3::from(spec.dims.map(|d| d as f32 - 1.0));
-                let grid_box = Some((spec.origin, far));
-                Some(WaterShape {
-                    drawn: grid_box,
-                    surface: grid_box,
-                    level: None,
-                })
-            });
+        frame.shape = Some(water_shape(&self.cpu, particles.positions, &frame, &spec));
         let created = chain.filler.created() + chain.surfels.created() + weights_made;
         frame.surfels_on_gpu = true;
         self.stages = if input.solve.is_some() {
@@ -907,6 +905,22 @@ impl GpuPipeline {
         self.draw_into(encoder, &target.create_view(&Default::default()));
         target
     }
+}
+
+/// The water's shape for the views of a frame whose grid is `spec` (`cpu`: the pipeline that
+/// detected its surface): with the paper's calibration the surface lies farther out than the
+/// particles, so the grid's box bounds it.
+fn water_shape(cpu: &Pipeline, positions: &[Vec3], frame: &Frame, spec: &GridSpec) -> WaterShape {
+    cpu.grid_water_shape(positions, &frame.surface, frame.radius, spec)
+        .unwrap_or_else(|| {
+            let far = spec.origin + spec.spacing * Vec3::from(spec.dims.map(|d| d as f32 - 1.0));
+            let grid_box = Some((spec.origin, far));
+            WaterShape {
+                drawn: grid_box,
+                surface: grid_box,
+                level: None,
+            }
+        })
 }
 
 /// A sparse grid's plan for `layout` (`spec` coarsened where its blocks exceed `limit` bytes,
