@@ -209,7 +209,7 @@ const ENTRIES: [&str; 8] = [
 
 /// Workgroups of a two-dimensional dispatch covering `blocks` blocks of 256 (at most 65,535
 /// along x).
-fn dispatch_of(blocks: u32) -> (u32, u32) {
+pub(crate) fn dispatch_of(blocks: u32) -> (u32, u32) {
     let x = blocks.clamp(1, 65_535);
     (x, blocks.div_ceil(x))
 }

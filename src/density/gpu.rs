@@ -873,6 +873,22 @@ struct SparseFill {
     resident_bind: Option<(wgpu::Buffer, wgpu::BindGroup)>,
 }
 
+impl SparseFill {
+    /// The gather's pipeline and empty lists (the states read back by tests).
+    fn new(device: &wgpu::Device) -> Self {
+        Self {
+            pipeline: gather_pipeline_of(device, "gather_blocks"),
+            states: gpu::Grow::new(
+                "sparse block states",
+                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            ),
+            evaluated: gpu::Grow::new("sparse evaluated blocks", wgpu::BufferUsages::STORAGE),
+            bind: None,
+            resident_bind: None,
+        }
+    }
+}
+
 /// The paper's splatting (§4.1) into a grid that stays on the GPU: the points sorted by slab
 /// of four planes on the GPU ([`GpuBinSort`]), `cs_draws` counting each group's points (its
 /// z-cluster, §4.2) for its indirect draw; per group of four planes a render pass draws them
@@ -1295,16 +1311,7 @@ impl GridFiller {
         if let Some(before) = before {
             before(encoder, FillPoints::Binned(&binned))?;
         }
-        let fill = self.sparse.get_or_insert_with(|| SparseFill {
-            pipeline: gather_pipeline_of(device, "gather_blocks"),
-            states: gpu::Grow::new(
-                "sparse block states",
-                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            ),
-            evaluated: gpu::Grow::new("sparse evaluated blocks", wgpu::BufferUsages::STORAGE),
-            bind: None,
-            resident_bind: None,
-        });
+        let fill = self.sparse.get_or_insert_with(|| SparseFill::new(device));
         let lists = gpu::write_grown(
             device,
             queue,
@@ -1365,10 +1372,9 @@ impl GridFiller {
         check_inputs(&points)?;
         let (device, queue) = (&ctx.device, &ctx.queue);
         let max_binding = gpu::max_binding(device);
-        let blocks = spec
-            .dims
+        let blocks = super::sparse::blocks_of(spec)
+            .map(u64::from)
             .iter()
-            .map(|&n| u64::from(n.div_ceil(BLOCK)))
             .product();
         let bytes = check_sparse_fill(spec, (u64::from(capacity), blocks), inside, max_binding)?;
         let (binned, made, _) = self.upload(ctx, encoder, &points, (spec, bytes))?;
@@ -1387,13 +1393,7 @@ impl GridFiller {
             before(encoder, FillPoints::Laid)?;
         }
         self.created += layout.created();
-        let fill = self.sparse.get_or_insert_with(|| SparseFill {
-            pipeline: gather_pipeline_of(device, "gather_blocks"),
-            states: gpu::Grow::new("sparse block states", wgpu::BufferUsages::STORAGE),
-            evaluated: gpu::Grow::new("sparse evaluated blocks", wgpu::BufferUsages::STORAGE),
-            bind: None,
-            resident_bind: None,
-        });
+        let fill = self.sparse.get_or_insert_with(|| SparseFill::new(device));
         let raw = RawGatherParams::new(spec, &binned, points.h, kernel, (0, capacity))
             .searching(self.search, points.len());
         queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&raw));

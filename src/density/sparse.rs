@@ -242,6 +242,11 @@ impl SparseGrid {
 }
 
 /// The closed range of grid points of block `b` along one axis of `n` points.
+/// Blocks along each axis of a grid of `spec` (`ceil(dims / BLOCK)`).
+pub(crate) fn blocks_of(spec: &GridSpec) -> [u32; 3] {
+    spec.dims.map(|n| n.div_ceil(BLOCK))
+}
+
 fn closed(b: u32, n: u32) -> (u32, u32) {
     let lo = b * BLOCK;
     (lo, (lo + BLOCK).min(n - 1))
@@ -263,7 +268,7 @@ pub fn points_grid_sparse(
     inside: f32,
 ) -> Result<SparseGrid, DensityError> {
     check_sparse(&points, band, iso, inside)?;
-    let blocks = spec.dims.map(|n| n.div_ceil(BLOCK));
+    let blocks = blocks_of(spec);
     let count = blocks.iter().map(|&b| b as u128).product::<u128>();
     let too_large = |bytes: u128| too_large(spec, bytes, memory_limit);
     // per block: its state (4 bytes), its first point (4) and its interior voxel count (2)
@@ -325,7 +330,7 @@ pub fn sparse_layout(
     band: &NarrowBand,
 ) -> Result<SparseLayout, DensityError> {
     check_sparse(&points, band, 0.0, 0.0)?;
-    let blocks = spec.dims.map(|n| n.div_ceil(BLOCK));
+    let blocks = blocks_of(spec);
     let count = blocks.iter().map(|&b| b as u128).product::<u128>();
     // per block: its state (4 bytes), its first point (4) and its interior voxel count (2)
     if count * 10 > u128::from(memory_limit) {

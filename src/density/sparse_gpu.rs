@@ -17,7 +17,7 @@
 use rayon::prelude::*;
 
 use super::gpu::BinnedPoints;
-use super::sparse::{BLOCK, REACH_MARGIN, SparseLayout};
+use super::sparse::{BLOCK, REACH_MARGIN, SparseLayout, blocks_of};
 use super::{GridSpec, Points};
 use crate::gpu::{self, GpuContext, GpuError};
 use crate::lnm::LnmParams;
@@ -108,11 +108,6 @@ struct Counted {
     points: usize,
     spacing: f32,
     capacity: u32,
-}
-
-/// Blocks along each axis of a grid of `spec`.
-fn blocks_of(spec: &GridSpec) -> [u32; 3] {
-    spec.dims.map(|n| n.div_ceil(BLOCK))
 }
 
 impl GpuSparseLayout {
@@ -309,8 +304,7 @@ impl GpuSparseLayout {
         self.capacity = capacity;
         let (_, _, binds) = self.binds.as_ref().expect("made above");
         let (sx, sy) = crate::lnm::gpu::groups(total);
-        let scan = (scan_groups as u32).clamp(1, 65_535);
-        let scan = (scan, (scan_groups as u32).div_ceil(scan).max(1));
+        let scan = super::bins::dispatch_of(scan_groups as u32);
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("sparse layout"),
             timestamp_writes: None,

@@ -287,7 +287,7 @@ impl ResidentBand {
         ];
         self.created = made.iter().filter(|&&m| m).count();
         if self.created > 0 || self.binds.as_ref().is_none_or(|(p, _)| p != points) {
-            let group = |p: &wgpu::ComputePipeline, entries: &[(u32, &wgpu::Buffer)]| {
+            let group = |p, entries: &[(u32, &wgpu::Buffer)]| {
                 crate::gpu::buffer_bind_group(device, p, entries)
             };
             let (counts, labels, unused) = (

@@ -967,9 +967,9 @@ fn sparse_spec_within(
     use crate::density::{GridSpec, Resolution, sparse_gpu::evaluated_bound};
     let block_bytes = BLOCK_VALUES as u128 * 4 + 8;
     let blocks = |s: &GridSpec| {
-        s.dims
+        crate::density::sparse::blocks_of(s)
+            .map(u128::from)
             .iter()
-            .map(|&n| u128::from(n.div_ceil(crate::density::sparse::BLOCK)))
             .product::<u128>()
     };
     let needed = |s: &GridSpec| {
@@ -981,14 +981,17 @@ fn sparse_spec_within(
     };
     let first = *spec;
     let wanted = needed(spec);
-    let mut steps = 0;
-    while needed(spec) > u128::from(limit) && steps < 200 {
+    let mut now = wanted;
+    for _ in 0..200 {
+        if now <= u128::from(limit) {
+            break;
+        }
         *spec = GridSpec::around(
             points.positions,
             points.max_radius(),
             Resolution::CellSize(spec.spacing * 1.05),
         )?;
-        steps += 1;
+        now = needed(spec);
     }
     Ok((spec.spacing != first.spacing).then(|| {
         let mib = |b: u128| b as f64 / (1u64 << 20) as f64;

@@ -475,16 +475,7 @@ impl WeightPasses {
                 .as_ref()
                 .is_none_or(|(b, w, _)| b != points || *w != solved)
         {
-            let bind = gpu::bind_group(
-                device,
-                &self.apply,
-                &[
-                    (0, self.uniform.as_entire_binding()),
-                    (5, solved.as_entire_binding()),
-                    (7, points.as_entire_binding()),
-                    (8, self.split.buffer().as_entire_binding()),
-                ],
-            );
+            let bind = self.apply_bind(device, &solved, points);
             self.copy_bind = Some((points.clone(), solved, bind));
             self.created += 1;
         }
@@ -496,6 +487,26 @@ impl WeightPasses {
         pass.set_pipeline(&self.apply);
         pass.set_bind_group(0, &self.copy_bind.as_ref().expect("made above").2, &[]);
         pass.dispatch_workgroups(all.min(65_535), all.div_ceil(65_535), 1);
+    }
+
+    /// The application's bind group: the weights in `solved` written into the copy of the
+    /// points `points`.
+    fn apply_bind(
+        &self,
+        device: &wgpu::Device,
+        solved: &wgpu::Buffer,
+        points: &wgpu::Buffer,
+    ) -> wgpu::BindGroup {
+        gpu::buffer_bind_group(
+            device,
+            &self.apply,
+            &[
+                (0, &self.uniform),
+                (5, solved),
+                (7, points),
+                (8, self.split.buffer()),
+            ],
+        )
     }
 
     /// The passes' bind groups over this frame's buffers.
@@ -540,18 +551,6 @@ impl WeightPasses {
                     (6, sheet_w[1 - from].as_entire_binding()),
                     (16, sheet_binned.clone()),
                     (17, prefix.clone()),
-                ],
-            )
-        };
-        let apply = |solved: &wgpu::Buffer| {
-            gpu::bind_group(
-                device,
-                &self.apply,
-                &[
-                    (0, uniform.clone()),
-                    (5, solved.as_entire_binding()),
-                    (7, points.clone()),
-                    (8, split.clone()),
                 ],
             )
         };
@@ -629,7 +628,7 @@ impl WeightPasses {
             ),
             steps: [step(0), step(1)],
             steps_whole: [step_whole(0), step_whole(1)],
-            apply: [apply(w[0]), apply(w[1])],
+            apply: w.map(|solved| self.apply_bind(device, solved, &binned.points)),
         }
     }
 }
