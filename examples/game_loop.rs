@@ -5,11 +5,13 @@
 //! compared with the CPU `Pipeline`'s image of the same frame.
 //!
 //! Run: `cargo run --release --example game_loop -- [--frames 60] [--size 320x320]
-//! [--save 0,30,59] [--out DIR] [--json] [--cpu-surfels] [--narrow-band] [--stage-ms]`. The
+//! [--save 0,30,59] [--out DIR] [--json] [--cpu-surfels] [--narrow-band] [--stage-ms]
+//! [--renderer ewa|particle-splat|ray-cast|ssfr]`. The
 //! density grid and the surfels are made on the GPU (`PipelineParams::gpu_surfels`);
 //! `--cpu-surfels` makes them on the CPU, as the CPU `Pipeline` does, to compare the two;
 //! `--narrow-band` makes the grid sparse (`grid.narrow_band`: the blocks near the surface
-//! chosen on the GPU and filled there by the gather pass). Needs a GPU or Mesa's lavapipe (on lavapipe, a
+//! chosen on the GPU and filled there by the gather pass); `--renderer` draws the water with
+//! another renderer (default `ewa`; the others take the CPU's points, see `GpuPipeline`). Needs a GPU or Mesa's lavapipe (on lavapipe, a
 //! software rasteriser, it proves the loop works, not how fast a GPU runs it).
 //!
 //! `--json` prints one object: frames, the CPU milliseconds per frame (the CPU stages plus
@@ -30,7 +32,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use fluid_surfels::gpu::{GpuContext, REQUIRED_FEATURES};
-use fluid_surfels::pipeline::{FrameTimings, GpuPipeline, Pipeline, PipelineParams, Through};
+use fluid_surfels::pipeline::{
+    FrameTimings, GpuPipeline, Pipeline, PipelineParams, Renderer, Through,
+};
 use fluid_surfels::scenes::{ColumnParams, ColumnSim, column_pool};
 use fluid_surfels::splat::psnr;
 
@@ -43,6 +47,7 @@ struct Args {
     cpu_surfels: bool,
     narrow_band: bool,
     stage_ms: bool,
+    renderer: Renderer,
 }
 
 fn args() -> Result<Args, String> {
@@ -55,6 +60,7 @@ fn args() -> Result<Args, String> {
         cpu_surfels: false,
         narrow_band: false,
         stage_ms: false,
+        renderer: Renderer::Ewa,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -82,6 +88,15 @@ fn args() -> Result<Args, String> {
             "--cpu-surfels" => a.cpu_surfels = true,
             "--narrow-band" => a.narrow_band = true,
             "--stage-ms" => a.stage_ms = true,
+            "--renderer" => {
+                let v = value()?;
+                a.renderer = Renderer::ALL
+                    .into_iter()
+                    .find(|r| r.as_str() == v)
+                    .ok_or(format!(
+                        "--renderer {v}: expected ewa, particle-splat, ray-cast or ssfr"
+                    ))?;
+            }
             other => return Err(format!("unknown argument {other}")),
         }
     }
@@ -197,6 +212,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     params.scene.optics.image_size = [args.size.0, args.size.1];
     params.grid.narrow_band = args.narrow_band;
+    params.renderer = args.renderer;
     let mut gpu = GpuPipeline::new(&device, &queue, format, args.size, &params)?;
     if args.stage_ms {
         gpu.time_stages(&device, &queue, true);

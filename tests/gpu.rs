@@ -25,7 +25,8 @@ macro_rules! fields {
     };
 }
 
-/// Every shader's uniform struct with its Rust twin.
+/// Every shader's uniform struct with its Rust twin (a table: one entry per struct).
+#[allow(clippy::too_many_lines)]
 fn twins() -> Vec<Twin> {
     use fluid_surfels::optics::gpu::{RawGeometry, RawOptics, RawView};
     use gpu_density::{RawGatherParams, RawParams};
@@ -172,6 +173,13 @@ fn twins() -> Vec<Twin> {
             "SortParams",
             std::mem::size_of::<density::bins::RawSortParams>(),
             fields!(density::bins::RawSortParams; origin, inv_size, bins, count, shift, groups, entries),
+        ),
+        (
+            "tiles.wgsl",
+            fluid_surfels::view::gpu::SHADER,
+            "TileParams",
+            std::mem::size_of::<fluid_surfels::view::gpu::RawTileParams>(),
+            fields!(fluid_surfels::view::gpu::RawTileParams; view, proj, size, tiles, count, capacity, sentinel, stride),
         ),
     ]
 }
@@ -2635,4 +2643,266 @@ fn gpu_bin_sort_equals_the_cpus() {
         passes_seen.contains(&3) && passes_seen.len() >= 2,
         "radix passes covered: {passes_seen:?}"
     );
+}
+
+/// The spheres' (tile, sphere) pairs in sphere order, as `view::bin`'s tiles hold them.
+fn pairs_in_sphere_order(tiles: &[Vec<u32>]) -> Vec<(u32, u32)> {
+    let mut pairs: Vec<(u32, u32)> = tiles
+        .iter()
+        .enumerate()
+        .flat_map(|(t, items)| items.iter().map(move |&j| (j, t as u32)))
+        .collect();
+    pairs.sort_unstable();
+    pairs.into_iter().map(|(j, t)| (t, j)).collect()
+}
+
+#[test]
+fn gpu_tiles_equal_the_cpus() {
+    use fluid_surfels::view::gpu::GpuTiles;
+    use fluid_surfels::view::{self, Camera, Light, View};
+    use glam::Vec3;
+    let Some(ctx) = gpu::context_or_skip("gpu_tiles_equal_the_cpus").unwrap() else {
+        return;
+    };
+    let (chain, radii, _) = chain_like_points();
+    let ddb = double_dam_break();
+    let params = splat::SplatParams::default();
+    let camera = |eye: Vec3, target: Vec3| Camera {
+        eye,
+        target,
+        ..Default::default()
+    };
+    let perspective =
+        |c: &Camera, (w, h): (u32, u32)| View::new(c, &Light::default(), &params, w, h).unwrap();
+    let centre = chain.iter().copied().sum::<Vec3>() / chain.len() as f32;
+    let ddb_centre = ddb.iter().copied().sum::<Vec3>() / ddb.len() as f32;
+    let ortho = View::window(
+        ddb_centre + Vec3::new(0.3, 2.0, 0.1),
+        Vec3::NEG_Y,
+        Vec3::Z,
+        glam::Vec2::new(0.6, 0.45),
+        true,
+        0.01,
+        10.0,
+        &params,
+        200,
+        150,
+    )
+    .unwrap();
+    let chain_spheres: Vec<(Vec3, f32)> =
+        chain.iter().copied().zip(radii.iter().copied()).collect();
+    let ddb_spheres: Vec<(Vec3, f32)> = ddb.iter().map(|&p| (p, 0.025)).collect();
+    // (name, view, spheres)
+    type Case<'a> = (&'a str, View, &'a [(Vec3, f32)]);
+    let cases: Vec<Case<'_>> = vec![
+        (
+            "the chain's points, 1920x1080 (2 radix passes)",
+            perspective(
+                &camera(centre + Vec3::new(0.4, 0.3, 1.2), centre),
+                (1920, 1080),
+            ),
+            &chain_spheres,
+        ),
+        (
+            "the chain's points, 64x48 (1 radix pass)",
+            perspective(&camera(centre + Vec3::new(0.4, 0.3, 1.2), centre), (64, 48)),
+            &chain_spheres,
+        ),
+        (
+            "the double dam break, 320x240",
+            perspective(
+                &camera(ddb_centre + Vec3::new(0.8, 0.9, 1.5), ddb_centre),
+                (320, 240),
+            ),
+            &ddb_spheres,
+        ),
+        (
+            "the eye among the spheres (whole-screen spheres), 160x120",
+            perspective(&camera(centre, centre + Vec3::X), (160, 120)),
+            &chain_spheres,
+        ),
+        ("an orthographic view, 200x150", ortho, &ddb_spheres),
+        (
+            "no sphere",
+            perspective(&camera(centre + Vec3::Z, centre), (96, 96)),
+            &[],
+        ),
+    ];
+    let mut tiles = GpuTiles::new(&ctx.device);
+    for round in 0..2 {
+        for (name, v, spheres) in &cases {
+            let (tw, cpu) = view::bin(v, spheres.len(), |j| spheres[j]).unwrap();
+            let pairs = pairs_in_sphere_order(&cpu);
+            let mut raw: Vec<[f32; 4]> = spheres.iter().map(|(c, r)| [c.x, c.y, c.z, *r]).collect();
+            // (a buffer is never empty: one unread sphere when there is none)
+            if raw.is_empty() {
+                raw.push([0.0; 4]);
+            }
+            let buffer = wgpu::util::DeviceExt::create_buffer_init(
+                &ctx.device,
+                &wgpu::util::BufferInitDescriptor {
+                    label: Some("spheres"),
+                    contents: bytemuck::cast_slice(&raw),
+                    usage: wgpu::BufferUsages::STORAGE,
+                },
+            );
+            // all the pairs, then (the first round) room for a third of them
+            for capacity in [pairs.len() as u32 + 7, (pairs.len() / 3) as u32] {
+                if round == 1 && capacity < pairs.len() as u32 {
+                    continue;
+                }
+                let mut encoder = ctx.device.create_command_encoder(&Default::default());
+                tiles
+                    .record(
+                        &ctx,
+                        &mut encoder,
+                        v,
+                        (&buffer, spheres.len() as u32, 1),
+                        capacity,
+                    )
+                    .unwrap();
+                ctx.queue.submit([encoder.finish()]);
+                let (gpu_tw, gpu) = tiles.read(&ctx).unwrap();
+                assert_eq!(gpu_tw, tw, "{name}: tiles along x");
+                // the first `capacity` pairs in sphere order, by tile
+                let mut expected = vec![Vec::new(); cpu.len()];
+                for &(t, j) in pairs.iter().take(capacity.max(1) as usize) {
+                    expected[t as usize].push(j);
+                }
+                let differing = (0..cpu.len()).filter(|&t| gpu[t] != expected[t]).count();
+                assert_eq!(
+                    differing,
+                    0,
+                    "{name}, room for {capacity} of {} pairs: {differing} tiles differ",
+                    pairs.len()
+                );
+                let stats = tiles.read_stats(&ctx).unwrap();
+                let fragments: u64 = spheres
+                    .iter()
+                    .filter_map(|&(c, r)| view::sphere_rect(v, c, r))
+                    .map(|[x0, x1, y0, y1]| ((x1 - x0) * (y1 - y0)) as u64)
+                    .sum();
+                assert_eq!(
+                    stats.requested as usize,
+                    pairs.len(),
+                    "{name}: pairs requested"
+                );
+                assert_eq!(stats.fragments, fragments, "{name}: fragments");
+                let most = expected.iter().map(Vec::len).max().unwrap_or(0);
+                assert_eq!(
+                    stats.most_in_tile as usize, most,
+                    "{name}: the longest tile"
+                );
+                if round == 0 {
+                    println!(
+                        "{name}: {} spheres, {} of {} pairs in {} tiles, equal",
+                        spheres.len(),
+                        pairs.len().min(capacity as usize),
+                        pairs.len(),
+                        cpu.len()
+                    );
+                }
+            }
+            if round == 1 {
+                // a new spheres buffer each case: its bind groups made again, nothing else
+                assert!(tiles.created() <= 1, "{name}: buffers made again");
+            }
+        }
+    }
+}
+
+#[test]
+fn gpu_tiles_are_sized_from_late_counts_of_the_same_view() {
+    use fluid_surfels::view::gpu::GpuTiles;
+    use fluid_surfels::view::{self, Camera, Light, View};
+    use glam::Vec3;
+    let Some(ctx) =
+        gpu::context_or_skip("gpu_tiles_are_sized_from_late_counts_of_the_same_view").unwrap()
+    else {
+        return;
+    };
+    let ddb = double_dam_break();
+    let centre = ddb.iter().copied().sum::<Vec3>() / ddb.len() as f32;
+    let params = splat::SplatParams::default();
+    let view_from = |eye: Vec3| {
+        let camera = Camera {
+            eye,
+            target: centre,
+            ..Default::default()
+        };
+        View::new(&camera, &Light::default(), &params, 320, 240).unwrap()
+    };
+    let far = view_from(centre + Vec3::new(0.8, 0.9, 1.5));
+    let near = view_from(centre + Vec3::new(0.4, 0.45, 0.75));
+    let mut tiles = GpuTiles::new(&ctx.device);
+    // (frame, view, spheres' radius): the same view and spheres, then the spheres grown to
+    // twice the radius under the same view (more pairs than the room), then another view
+    let frames: Vec<(&View, f32)> = (0..6)
+        .map(|_| (&far, 0.025))
+        .chain((0..4).map(|_| (&far, 0.05)))
+        .chain((0..2).map(|_| (&near, 0.05)))
+        .collect();
+    let mut log = Vec::new();
+    for (f, (v, r)) in frames.iter().enumerate() {
+        let spheres: Vec<[f32; 4]> = ddb.iter().map(|p| [p.x, p.y, p.z, *r]).collect();
+        let buffer = wgpu::util::DeviceExt::create_buffer_init(
+            &ctx.device,
+            &wgpu::util::BufferInitDescriptor {
+                label: Some("spheres"),
+                contents: bytemuck::cast_slice(&spheres),
+                usage: wgpu::BufferUsages::STORAGE,
+            },
+        );
+        let sphere = |j: usize| (Vec3::from_slice(&spheres[j][..3]), spheres[j][3]);
+        let (room, _) = tiles.plan(v, spheres.len(), sphere).unwrap();
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        tiles
+            .record(
+                &ctx,
+                &mut encoder,
+                v,
+                (&buffer, spheres.len() as u32, 1),
+                room,
+            )
+            .unwrap();
+        ctx.queue.submit([encoder.finish()]);
+        tiles.after_submit();
+        let (_, cpu) = view::bin(v, spheres.len(), sphere).unwrap();
+        let (_, gpu) = tiles.read(&ctx).unwrap();
+        let whole = gpu == cpu;
+        log.push((f, tiles.planned_on_cpu(), room, whole));
+        println!(
+            "frame {f}: radius {r}, counted on the CPU: {}, room {room}, pairs {}, whole: {whole}",
+            tiles.planned_on_cpu(),
+            cpu.iter().map(Vec::len).sum::<usize>()
+        );
+    }
+    // the first frame counts; the next like ones are sized from the statistics once back
+    assert!(log[0].1 && log[0].3, "{log:?}");
+    assert!(
+        log[1..6].iter().any(|l| !l.1),
+        "no frame sized late: {log:?}"
+    );
+    assert!(
+        log[..6].iter().all(|l| l.3),
+        "a like frame lost pairs: {log:?}"
+    );
+    // the grown spheres: the frames sized from the old statistics may lose pairs; once the
+    // statistics of a short frame are back, the next frame is counted and whole again
+    let short = log[6..10].iter().position(|l| !l.3);
+    if let Some(s) = short {
+        let recounted = log[6 + s + 1..10].iter().position(|l| l.1);
+        assert!(recounted.is_some(), "never counted again: {log:?}");
+        let after = 6 + s + 1 + recounted.unwrap();
+        assert!(
+            log[after..10].iter().all(|l| l.3),
+            "short after the count: {log:?}"
+        );
+    }
+    assert!(
+        log[9].3,
+        "the last frame of the grown spheres short: {log:?}"
+    );
+    // another view counts at once
+    assert!(log[10].1 && log[10].3, "{log:?}");
 }

@@ -614,6 +614,13 @@ fn receiver_vertices(stage: &Stage) -> Vec<[f32; 6]> {
 }
 
 impl PreparedOptics {
+    /// Starts what the water's passes read back without a wait (the screen-space renderer's
+    /// tiles' statistics) once the encoder they recorded into is submitted.
+    pub fn after_submit(&mut self) {
+        self.water.light.after_submit();
+        self.water.camera.after_submit();
+    }
+
     /// Makes this frame's stage and surfels current without creating anything, when its
     /// targets fit: the same screen, map and image sizes, receiver triangle count and
     /// environment image. Uniforms, receiver vertices and surfels are written through the queue

@@ -323,6 +323,12 @@ impl GpuPipeline {
         if let Some(timer) = &mut self.timer {
             timer.after_submit();
         }
+        if let Some(pass) = &mut self.pass {
+            pass.after_submit();
+        }
+        if let Some((prepared, _)) = &mut self.prepared {
+            prepared.after_submit();
+        }
     }
 
     /// Times each stage of the frames from the next `prepare` on (`on`), by timestamp queries

@@ -167,6 +167,9 @@ pub trait GpuWaterPass: Any + Send + Sync {
     fn created(&self) -> usize {
         0
     }
+    /// Starts what it reads back without a wait (the screen-space renderer's tiles'
+    /// statistics) once the encoder it recorded into is submitted; nothing by default.
+    fn after_submit(&mut self) {}
     /// For [`WaterSurface::prepare_gpu`]'s downcast to the concrete pass.
     fn as_any_mut(&mut self) -> &mut dyn Any;
 }

@@ -1,7 +1,9 @@
 //! The screen-space passes on the GPU: `shaders/ssfr.wgsl`, compute passes one invocation per
 //! pixel, each the CPU reference's per-pixel function ([`super::cpu`], the specification) over
-//! the same inputs: the spheres and the projected thickness Gaussians binned into the same
-//! 16x16 tiles on the host, in storage buffers. The filters ping-pong between two depth
+//! the same inputs: the spheres and the projected thickness Gaussians in storage buffers,
+//! binned into the same 16x16 tiles as the CPU's on the GPU ([`GpuTiles`], in the encoder
+//! before the passes; the room for their lists from a recent binning of the same view, read
+//! back without a wait, or counted on the CPU). The filters ping-pong between two depth
 //! buffers; the shading after the read-back is the CPU's (`splat::shade`), as for the ray
 //! caster. Tests compare every pass with the CPU's.
 
@@ -9,7 +11,7 @@ use super::cpu::{ScreenSpace, SsfrRender, SsfrTimings, depth_image, project_sour
 use super::{DepthFilter, FilterScales, SsfrError};
 use crate::gpu::{GpuContext, GpuError};
 use crate::splat::{Render, View};
-use crate::view::bin;
+use crate::view::gpu::GpuTiles;
 
 /// The WGSL source of the passes.
 pub const SHADER: &str = include_str!("../../shaders/ssfr.wgsl");
@@ -58,20 +60,22 @@ pub struct GpuSsfr {
     frame: Option<Frame>,
 }
 
-/// A view's inputs, in buffers kept from view to view (grown when a view needs more).
+/// A view's inputs, in buffers kept from view to view (grown when a view needs more): the
+/// spheres and the projected thickness Gaussians, binned into tiles on the GPU (the Gaussians
+/// as spheres of three standard deviations).
 struct Inputs {
     uniform: wgpu::Buffer,
     spheres: crate::gpu::Grow,
-    tile_starts: crate::gpu::Grow,
-    tile_items: crate::gpu::Grow,
     sources: crate::gpu::Grow,
-    source_starts: crate::gpu::Grow,
-    source_items: crate::gpu::Grow,
+    source_spheres: crate::gpu::Grow,
+    tiles: GpuTiles,
+    source_tiles: GpuTiles,
 }
 
 impl Inputs {
     fn new(device: &wgpu::Device) -> Self {
         let storage = |label| crate::gpu::Grow::new(label, wgpu::BufferUsages::STORAGE);
+        let tiles = GpuTiles::new(device);
         Self {
             uniform: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("ssfr params"),
@@ -80,11 +84,10 @@ impl Inputs {
                 mapped_at_creation: false,
             }),
             spheres: storage("ssfr spheres"),
-            tile_starts: storage("ssfr tile starts"),
-            tile_items: storage("ssfr tile items"),
             sources: storage("ssfr sources"),
-            source_starts: storage("ssfr source starts"),
-            source_items: storage("ssfr source items"),
+            source_spheres: storage("ssfr source spheres"),
+            source_tiles: tiles.sharing(device),
+            tiles,
         }
     }
 }
@@ -115,24 +118,6 @@ struct Frame {
     thickness: wgpu::BindGroup,
     thickness_filter: wgpu::BindGroup,
     shade: wgpu::BindGroup,
-}
-
-/// The tile lists as compressed rows: `starts[t]..starts[t + 1]` index `items`.
-fn csr(tiles: &[Vec<u32>]) -> Result<(Vec<u32>, Vec<u32>), SsfrError> {
-    let mut starts = Vec::with_capacity(tiles.len() + 1);
-    let mut items = Vec::new();
-    for t in tiles {
-        if t.len() > MAX_TILE_ITEMS {
-            return Err(SsfrError::TooDense {
-                items: t.len(),
-                limit: MAX_TILE_ITEMS,
-            });
-        }
-        starts.push(items.len() as u32);
-        items.extend_from_slice(t);
-    }
-    starts.push(items.len() as u32);
-    Ok((starts, items))
 }
 
 impl Targets {
@@ -270,10 +255,12 @@ impl GpuSsfr {
         Ok((&t.views.0, &t.views.1))
     }
 
-    /// Uploads `screen`'s spheres and thickness Gaussians for view `v` (binned into tiles on the
-    /// host, as the CPU bins them) through `queue` into buffers kept from view to view (grown
-    /// when a view needs more; the bind groups made anew only then or when the filter or the
-    /// size changes, [`Self::created`]) and makes the targets for its size when they differ.
+    /// Uploads `screen`'s spheres and thickness Gaussians for view `v` through `queue` into
+    /// buffers kept from view to view (grown when a view needs more; the bind groups made anew
+    /// only then or when the filter or the size changes, [`Self::created`]) and makes the
+    /// targets for its size when they differ. Their tiles are binned on the GPU by
+    /// [`Self::encode`] ([`GpuTiles`]), in room planned here ([`GpuTiles::plan`]: refused as
+    /// the CPU's binning refuses, and when a tile would hold more than [`MAX_TILE_ITEMS`]).
     pub fn prepare(
         &mut self,
         device: &wgpu::Device,
@@ -289,40 +276,72 @@ impl GpuSsfr {
                 [c.x, c.y, c.z, r]
             })
             .collect();
-        let (tw, tiles) =
-            bin(v, spheres.len(), |k| screen.sphere_of(k)).map_err(SsfrError::from)?;
-        let (tile_starts, tile_items) = csr(&tiles)?;
         let sources = screen.sources();
         let projected: Vec<[f32; 4]> = project_sources(v, sources)
             .into_iter()
             .map(|p| p.map_or([0.0; 4], |(c, k2, a)| [c.x, c.y, k2, a]))
             .collect();
-        let (_, source_tiles) = bin(v, sources.len(), |k| {
-            (sources[k].centre, 3.0 * sources[k].sigma)
-        })
-        .map_err(SsfrError::from)?;
-        let (source_starts, source_items) = csr(&source_tiles)?;
-        let uniforms = raw_params(screen, v, tw);
+        let source_sphere = |k: usize| (sources[k].centre, 3.0 * sources[k].sigma);
+        let source_spheres: Vec<[f32; 4]> = (0..sources.len())
+            .map(|k| {
+                let (c, r) = source_sphere(k);
+                [c.x, c.y, c.z, r]
+            })
+            .collect();
+        let i = &mut self.inputs;
+        // the tiles' room, from a recent binning of the same view or counted here (refused as
+        // the CPU's binning refuses), and the lists' length limit
+        let (room, most) = i
+            .tiles
+            .plan(v, spheres.len(), |k| screen.sphere_of(k))
+            .map_err(SsfrError::from)?;
+        let (source_room, source_most) = i
+            .source_tiles
+            .plan(v, sources.len(), source_sphere)
+            .map_err(SsfrError::from)?;
+        if most.max(source_most) > MAX_TILE_ITEMS {
+            return Err(SsfrError::TooDense {
+                items: most.max(source_most),
+                limit: MAX_TILE_ITEMS,
+            }
+            .into());
+        }
+        let uniforms = raw_params(screen, v, (w as usize).div_ceil(crate::view::TILE));
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let mut created = 0;
-        if self.size() != (w, h) {
+        if self
+            .targets
+            .as_ref()
+            .map_or((0, 0), |t| (t.width, t.height))
+            != (w, h)
+        {
             self.targets = Some(Targets::new(device, w, h));
             created += 1;
         }
-        let i = &mut self.inputs;
         queue.write_buffer(&i.uniform, 0, bytemuck::bytes_of(&uniforms));
         created += crate::gpu::write_grown(
             device,
             queue,
             [
                 (&mut i.spheres, bytemuck::cast_slice(&spheres)),
-                (&mut i.tile_starts, bytemuck::cast_slice(&tile_starts)),
-                (&mut i.tile_items, bytemuck::cast_slice(&tile_items)),
                 (&mut i.sources, bytemuck::cast_slice(&projected)),
-                (&mut i.source_starts, bytemuck::cast_slice(&source_starts)),
-                (&mut i.source_items, bytemuck::cast_slice(&source_items)),
+                (&mut i.source_spheres, bytemuck::cast_slice(&source_spheres)),
             ],
         );
+        let queued = (device, queue);
+        i.tiles.prepare(
+            queued,
+            v,
+            (i.spheres.buffer(), spheres.len() as u32, 1),
+            room,
+        )?;
+        i.source_tiles.prepare(
+            queued,
+            v,
+            (i.source_spheres.buffer(), sources.len() as u32, 1),
+            source_room,
+        )?;
+        created += i.tiles.created() + i.source_tiles.created();
         let iterations = params.filter_iterations() as usize;
         let index = match params.filter {
             DepthFilter::NarrowRange => Some(0),
@@ -367,15 +386,12 @@ impl GpuSsfr {
         let t = self.targets.as_ref().ok_or_else(unprepared)?;
         let i = &self.inputs;
         let uniform = &i.uniform;
-        let (sphere_buf, tile_starts, tile_items) = (
-            i.spheres.buffer(),
-            i.tile_starts.buffer(),
-            i.tile_items.buffer(),
-        );
+        let (sphere_buf, tile_starts, tile_items) =
+            (i.spheres.buffer(), i.tiles.starts(), i.tiles.items());
         let (source_buf, source_starts, source_items) = (
             i.sources.buffer(),
-            i.source_starts.buffer(),
-            i.source_items.buffer(),
+            i.source_tiles.starts(),
+            i.source_tiles.items(),
         );
         let group = |p: &wgpu::ComputePipeline, entries: &[(u32, wgpu::BindingResource<'_>)]| {
             crate::gpu::bind_group(device, p, entries)
@@ -459,6 +475,13 @@ impl GpuSsfr {
         self.created
     }
 
+    /// Starts the late read of the tiles' statistics ([`GpuTiles::plan`]) once the encoder
+    /// [`Self::encode`] recorded into is submitted.
+    pub fn after_submit(&mut self) {
+        self.inputs.tiles.after_submit();
+        self.inputs.source_tiles.after_submit();
+    }
+
     /// Records the prepared view's passes into `encoder`.
     pub fn encode(&self, encoder: &mut wgpu::CommandEncoder) -> Result<(), GpuError> {
         let (t, f) = match (&self.targets, &self.frame) {
@@ -466,6 +489,8 @@ impl GpuSsfr {
             _ => return Err(unprepared()),
         };
         let groups = (t.width.div_ceil(8), t.height.div_ceil(8));
+        self.inputs.tiles.encode(encoder);
+        self.inputs.source_tiles.encode(encoder);
         {
             let mut pass = encoder.begin_compute_pass(&Default::default());
             pass.set_pipeline(&self.depth);
@@ -547,6 +572,7 @@ impl GpuSsfr {
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         self.encode(&mut encoder)?;
         ctx.queue.submit([encoder.finish()]);
+        self.after_submit();
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Validation(e.to_string()).into());
         }
@@ -592,6 +618,9 @@ impl crate::splat::GpuWaterPass for GpuSsfr {
     }
     fn created(&self) -> usize {
         GpuSsfr::created(self)
+    }
+    fn after_submit(&mut self) {
+        GpuSsfr::after_submit(self);
     }
     fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
         self

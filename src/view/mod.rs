@@ -5,6 +5,8 @@
 //! share (`view_ray`, `world_ray`, `project`), for perspective cameras and for the orthographic
 //! views of a directional light (the optics stage's virtual screen).
 
+pub mod gpu;
+
 use glam::{Mat4, Vec2, Vec3, Vec4, Vec4Swizzles};
 use serde::{Deserialize, Serialize};
 
@@ -497,13 +499,13 @@ impl View {
 }
 
 /// Side of the square screen tiles that renderers bin spheres into (the ray caster, the screen-space passes).
-pub(crate) const TILE: usize = 16;
+pub const TILE: usize = 16;
 
 /// The half-open pixel rectangle (columns, rows) that holds the projection of the sphere at `c`
 /// of radius `r`: the bounding box of its bounding cube's projected corners (perspective maps
 /// convex sets to convex sets). The whole screen when the cube reaches behind the eye; `None`
 /// when it lies wholly behind it or off screen.
-pub(crate) fn sphere_rect(v: &View, c: Vec3, r: f32) -> Option<[usize; 4]> {
+pub fn sphere_rect(v: &View, c: Vec3, r: f32) -> Option<[usize; 4]> {
     let (w, h) = (v.width as f32, v.height as f32);
     let mut lo = Vec2::splat(f32::INFINITY);
     let mut hi = Vec2::splat(f32::NEG_INFINITY);
@@ -535,16 +537,13 @@ pub(crate) fn sphere_rect(v: &View, c: Vec3, r: f32) -> Option<[usize; 4]> {
     (x0 < x1 && y0 < y1).then_some([x0, x1, y0, y1])
 }
 
-/// The `n` spheres (centre and radius of sphere `j`) binned into the screen's 16x16 tiles: tiles
-/// along x and each tile's spheres, in index order (so that any per-tile loop is deterministic).
-/// Refused when their rectangles add up to more pixels than the view's limit or the buffers
-/// would not fit in memory.
-pub(crate) fn bin(
+/// The pixel rectangles of the `n` spheres (centre and radius of sphere `j`), refused when
+/// they add up to more pixels than the view's limit or the buffers would not fit in memory.
+fn checked_rects(
     v: &View,
     n: usize,
     sphere: impl Fn(usize) -> (Vec3, f32) + Sync,
-) -> Result<(usize, Vec<Vec<u32>>), SplatError> {
-    let (w, h) = (v.width as usize, v.height as usize);
+) -> Result<Vec<Option<[usize; 4]>>, SplatError> {
     use rayon::prelude::*;
     let rects: Vec<Option<[usize; 4]>> = (0..n)
         .into_par_iter()
@@ -559,18 +558,67 @@ pub(crate) fn bin(
         .map(|r| ((r[1] - r[0]) * (r[3] - r[2])) as u128)
         .sum();
     check_cost(n, fragments, v)?;
-    let (tw, th) = (w.div_ceil(TILE), h.div_ceil(TILE));
+    Ok(rects)
+}
+
+/// The tiles a pixel rectangle covers, `(first, last)` along x then y (inclusive).
+fn tile_range([x0, x1, y0, y1]: [usize; 4]) -> [usize; 4] {
+    [x0 / TILE, (x1 - 1) / TILE, y0 / TILE, (y1 - 1) / TILE]
+}
+
+/// The `n` spheres (centre and radius of sphere `j`) binned into the screen's 16x16 tiles: tiles
+/// along x and each tile's spheres, in index order (so that any per-tile loop is deterministic).
+/// Refused when their rectangles add up to more pixels than the view's limit or the buffers
+/// would not fit in memory. The CPU reference of [`gpu::GpuTiles`].
+pub fn bin(
+    v: &View,
+    n: usize,
+    sphere: impl Fn(usize) -> (Vec3, f32) + Sync,
+) -> Result<(usize, Vec<Vec<u32>>), SplatError> {
+    let rects = checked_rects(v, n, sphere)?;
+    let (tw, th) = (
+        (v.width as usize).div_ceil(TILE),
+        (v.height as usize).div_ceil(TILE),
+    );
     let mut tiles: Vec<Vec<u32>> = vec![Vec::new(); tw * th];
     for (j, r) in rects.iter().enumerate() {
-        if let Some([x0, x1, y0, y1]) = *r {
-            for ty in y0 / TILE..=(y1 - 1) / TILE {
-                for tx in x0 / TILE..=(x1 - 1) / TILE {
+        if let Some(r) = *r {
+            let [tx0, tx1, ty0, ty1] = tile_range(r);
+            for ty in ty0..=ty1 {
+                for tx in tx0..=tx1 {
                     tiles[ty * tw + tx].push(j as u32);
                 }
             }
         }
     }
     Ok((tw, tiles))
+}
+
+/// What [`bin`] would make of the `n` spheres without making it: its (tile, sphere) pairs in
+/// all and the most spheres of one tile (the room [`gpu::GpuTiles`] needs). Refused as `bin`
+/// refuses.
+pub fn tile_counts(
+    v: &View,
+    n: usize,
+    sphere: impl Fn(usize) -> (Vec3, f32) + Sync,
+) -> Result<(u64, usize), SplatError> {
+    let rects = checked_rects(v, n, sphere)?;
+    let (tw, th) = (
+        (v.width as usize).div_ceil(TILE),
+        (v.height as usize).div_ceil(TILE),
+    );
+    let mut counts = vec![0u32; tw * th];
+    let mut pairs = 0u64;
+    for r in rects.into_iter().flatten() {
+        let [tx0, tx1, ty0, ty1] = tile_range(r);
+        pairs += ((tx1 - tx0 + 1) * (ty1 - ty0 + 1)) as u64;
+        for ty in ty0..=ty1 {
+            for c in &mut counts[ty * tw + tx0..=ty * tw + tx1] {
+                *c += 1;
+            }
+        }
+    }
+    Ok((pairs, counts.into_iter().max().unwrap_or(0) as usize))
 }
 
 /// Errors of surfel rendering.
