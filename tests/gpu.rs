@@ -2645,6 +2645,25 @@ fn gpu_bin_sort_equals_the_cpus() {
     );
 }
 
+/// A storage buffer of `spheres` (centre and radius each; one unread sphere when there is none:
+/// a binding is never empty).
+fn spheres_buffer(ctx: &gpu::GpuContext, spheres: &[[f32; 4]]) -> wgpu::Buffer {
+    let one = [[0.0f32; 4]];
+    let contents = if spheres.is_empty() {
+        &one[..]
+    } else {
+        spheres
+    };
+    wgpu::util::DeviceExt::create_buffer_init(
+        &ctx.device,
+        &wgpu::util::BufferInitDescriptor {
+            label: Some("spheres"),
+            contents: bytemuck::cast_slice(contents),
+            usage: wgpu::BufferUsages::STORAGE,
+        },
+    )
+}
+
 /// The spheres' (tile, sphere) pairs in sphere order, as `view::bin`'s tiles hold them.
 fn pairs_in_sphere_order(tiles: &[Vec<u32>]) -> Vec<(u32, u32)> {
     let mut pairs: Vec<(u32, u32)> = tiles
@@ -2733,19 +2752,8 @@ fn gpu_tiles_equal_the_cpus() {
         for (name, v, spheres) in &cases {
             let (tw, cpu) = view::bin(v, spheres.len(), |j| spheres[j]).unwrap();
             let pairs = pairs_in_sphere_order(&cpu);
-            let mut raw: Vec<[f32; 4]> = spheres.iter().map(|(c, r)| [c.x, c.y, c.z, *r]).collect();
-            // (a buffer is never empty: one unread sphere when there is none)
-            if raw.is_empty() {
-                raw.push([0.0; 4]);
-            }
-            let buffer = wgpu::util::DeviceExt::create_buffer_init(
-                &ctx.device,
-                &wgpu::util::BufferInitDescriptor {
-                    label: Some("spheres"),
-                    contents: bytemuck::cast_slice(&raw),
-                    usage: wgpu::BufferUsages::STORAGE,
-                },
-            );
+            let raw: Vec<[f32; 4]> = spheres.iter().map(|(c, r)| [c.x, c.y, c.z, *r]).collect();
+            let buffer = spheres_buffer(&ctx, &raw);
             // all the pairs, then (the first round) room for a third of them
             for capacity in [pairs.len() as u32 + 7, (pairs.len() / 3) as u32] {
                 if round == 1 && capacity < pairs.len() as u32 {
@@ -2845,14 +2853,7 @@ fn gpu_tiles_are_sized_from_late_counts_of_the_same_view() {
     let mut log = Vec::new();
     for (f, (v, r)) in frames.iter().enumerate() {
         let spheres: Vec<[f32; 4]> = ddb.iter().map(|p| [p.x, p.y, p.z, *r]).collect();
-        let buffer = wgpu::util::DeviceExt::create_buffer_init(
-            &ctx.device,
-            &wgpu::util::BufferInitDescriptor {
-                label: Some("spheres"),
-                contents: bytemuck::cast_slice(&spheres),
-                usage: wgpu::BufferUsages::STORAGE,
-            },
-        );
+        let buffer = spheres_buffer(&ctx, &spheres);
         let sphere = |j: usize| (Vec3::from_slice(&spheres[j][..3]), spheres[j][3]);
         let (room, _) = tiles.plan(v, spheres.len(), sphere).unwrap();
         let mut encoder = ctx.device.create_command_encoder(&Default::default());

@@ -482,7 +482,6 @@ impl GpuTiles {
     }
 
     /// The bind groups over the kept buffers and `spheres`.
-    #[allow(clippy::too_many_lines)]
     fn bind_groups(&self, device: &wgpu::Device, spheres: &wgpu::Buffer) -> Binds {
         let p = &self.pipelines;
         let slice = |s: usize| {
