@@ -1,17 +1,17 @@
 //! Ray casting on the GPU: `shaders/raycast.wgsl` (compute passes: the cast and the normals as a
 //! resumable state machine run until every pixel is done, band of rows by band of rows, then the
-//! bilateral filter) over the points, their screen tiles and two uniform grids in storage
-//! buffers; the shading after the read-back is the CPU's (`splat::shade`). The CPU reference
+//! bilateral filter) over the points, their screen tiles (binned on the GPU before the cast,
+//! [`GpuTiles`], equal to the CPU's) and two uniform grids in storage buffers; the shading after the read-back is the CPU's (`splat::shade`). The CPU reference
 //! ([`super::cpu`]) is the specification; tests compare the two.
 
 use glam::Vec3;
 use wgpu::util::DeviceExt;
 
-use super::cpu::bin_spheres;
-use super::{Caster, RayCast, RayNormals};
+use super::{Caster, RayCast, RayCastError, RayNormals};
 use crate::density::{Kernel, Points};
 use crate::gpu::{GpuContext, GpuError};
 use crate::splat::{Camera, Light, Render, SplatParams, View};
+use crate::view::gpu::GpuTiles;
 
 /// The WGSL source of the passes.
 pub const SHADER: &str = concat!(
@@ -237,8 +237,8 @@ struct Inputs {
     uniforms: wgpu::Buffer,
     grid_uniforms: wgpu::Buffer,
     points: crate::gpu::Grow,
-    tile_start: crate::gpu::Grow,
-    tile_items: crate::gpu::Grow,
+    /// The points' screen tiles, binned on the GPU.
+    tiles: GpuTiles,
     cells: crate::gpu::Grow,
     weights: crate::gpu::Grow,
     bands: Vec<(wgpu::Buffer, (u32, u32))>,
@@ -283,8 +283,7 @@ impl Inputs {
             uniforms: uniform("raycast params", std::mem::size_of::<RawCastParams>()),
             grid_uniforms: uniform("raycast grids", std::mem::size_of::<RawGrids>()),
             points: crate::gpu::Grow::new("raycast points", storage),
-            tile_start: crate::gpu::Grow::new("raycast tile starts", storage),
-            tile_items: crate::gpu::Grow::new("raycast tile items", storage),
+            tiles: GpuTiles::new(device),
             cells: crate::gpu::Grow::new("raycast cells", storage),
             weights: crate::gpu::Grow::new("raycast weights", storage),
             bands,
@@ -418,8 +417,9 @@ impl GpuCaster {
         (&self.views.0, &self.views.1)
     }
 
-    /// Uploads the caster's points, their screen tiles in `view` and the grids, for the next
-    /// [`Self::encode`], through `queue` into buffers kept from view to view (grown when a view
+    /// Uploads the caster's points and the grids, for the next [`Self::encode`] (which bins the
+    /// points into the screen's tiles of `view` on the GPU, in room planned here by
+    /// [`GpuTiles::plan`]), through `queue` into buffers kept from view to view (grown when a view
     /// needs more; the bind groups made anew only then, [`Self::created`]). `view` must have
     /// this caster's size.
     pub fn prepare(
@@ -460,14 +460,20 @@ impl GpuCaster {
     ) -> Result<(), crate::Error> {
         let points = caster.density().points();
         let params = &caster.params;
-        let (tw, tiles) = bin_spheres(caster, v)?;
-        let mut tile_start = Vec::with_capacity(tiles.len() + 1);
-        let mut tile_items = Vec::new();
-        tile_start.push(0u32);
-        for t in &tiles {
-            tile_items.extend_from_slice(t);
-            tile_start.push(tile_items.len() as u32);
-        }
+        // the tiles' room, from a recent binning of nearly this view or counted here (refused
+        // as the CPU's binning refuses), and the longest tile (scaled from a recent binning:
+        // half as much again for the run bound, which must not fall short)
+        let (room, most_in_tile) = self
+            .inputs
+            .tiles
+            .plan(v, points.len(), |j| (points.positions[j], points.radius(j)))
+            .map_err(RayCastError::from)?;
+        let most_in_tile = if self.inputs.tiles.planned_on_cpu() {
+            most_in_tile
+        } else {
+            most_in_tile + most_in_tile / 2
+        };
+        let tw = (v.width as usize).div_ceil(crate::view::TILE);
         let point_data: Vec<[f32; 4]> = (0..points.len())
             .map(|j| points.positions[j].extend(points.radius(j)).to_array())
             .collect();
@@ -486,13 +492,18 @@ impl GpuCaster {
             queue,
             [
                 (&mut inputs.points, bytemuck::cast_slice(&point_data)),
-                (&mut inputs.tile_start, bytemuck::cast_slice(&tile_start)),
-                (&mut inputs.tile_items, bytemuck::cast_slice(&tile_items)),
                 (&mut inputs.cells, bytemuck::cast_slice(&cells)),
                 (&mut inputs.weights, bytemuck::cast_slice(&weights)),
             ],
         );
-        let most = iteration_bound(caster, &tiles, &grids, raw.b[1]);
+        inputs.tiles.prepare(
+            (device, queue),
+            v,
+            (inputs.points.buffer(), points.len() as u32, 1),
+            room,
+        )?;
+        self.created += inputs.tiles.created();
+        let most = iteration_bound(caster, most_in_tile as u64, &grids, raw.b[1]);
         let runs = most.div_ceil(u64::from(BUDGET)) + 1;
         match &mut self.frame {
             Some(frame) if self.created == 0 => {
@@ -533,7 +544,7 @@ impl GpuCaster {
                     &self.init,
                     &[
                         (0, whole(&i.uniforms)),
-                        (2, whole(i.tile_start.buffer())),
+                        (2, whole(i.tiles.starts())),
                         (6, whole(&self.hits)),
                         (7, whole(&self.extra)),
                         (9, whole(&self.state)),
@@ -554,7 +565,7 @@ impl GpuCaster {
                     &[
                         (0, whole(&i.uniforms)),
                         (1, whole(i.points.buffer())),
-                        (3, whole(i.tile_items.buffer())),
+                        (3, whole(i.tiles.items())),
                         (4, whole(i.cells.buffer())),
                         (6, whole(&self.hits)),
                         (7, whole(&self.extra)),
@@ -586,6 +597,12 @@ impl GpuCaster {
         }
     }
 
+    /// Starts the late read of the tiles' statistics ([`GpuTiles::plan`]) once the encoder
+    /// [`Self::encode`] recorded into is submitted.
+    pub fn after_submit(&mut self) {
+        self.inputs.tiles.after_submit();
+    }
+
     /// Records the cast of the prepared frame into `encoder`: the colour and normal-depth
     /// textures hold it once the encoder has run.
     pub fn encode(&self, encoder: &mut wgpu::CommandEncoder) -> Result<(), GpuError> {
@@ -593,6 +610,7 @@ impl GpuCaster {
             .frame
             .as_ref()
             .ok_or_else(|| GpuError::Validation("the ray caster has no prepared frame".into()))?;
+        self.inputs.tiles.encode(encoder);
         for band in &frame.bands {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("raycast"),
@@ -770,10 +788,9 @@ fn raw_params(
 /// An upper bound on the iterations any pixel needs (its tile's spheres, then every sample of the
 /// march from entry to exit at `step`, the bisections, the gradient and the PCA sums, each sum
 /// one iteration per row and per point).
-fn iteration_bound(caster: &Caster<'_>, tiles: &[Vec<u32>], grids: &[CsrGrid], step: f32) -> u64 {
+fn iteration_bound(caster: &Caster<'_>, most_in_tile: u64, grids: &[CsrGrid], step: f32) -> u64 {
     let points = caster.density().points();
     let params = &caster.params;
-    let most_in_tile = tiles.iter().map(|t| t.len() as u64).max().unwrap_or(0);
     let (lo, hi) = (0..points.len()).fold(
         (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
         |(lo, hi), j| {
@@ -825,6 +842,9 @@ impl crate::splat::GpuWaterPass for GpuCaster {
     }
     fn created(&self) -> usize {
         GpuCaster::created(self)
+    }
+    fn after_submit(&mut self) {
+        GpuCaster::after_submit(self);
     }
     fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
         self
