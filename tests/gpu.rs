@@ -2753,7 +2753,17 @@ fn gpu_tiles_equal_the_cpus() {
             let (tw, cpu) = view::bin(v, spheres.len(), |j| spheres[j]).unwrap();
             let pairs = pairs_in_sphere_order(&cpu);
             let raw: Vec<[f32; 4]> = spheres.iter().map(|(c, r)| [c.x, c.y, c.z, *r]).collect();
-            let buffer = spheres_buffer(&ctx, &raw);
+            // the second round reads them as the chain's binned points do (`RawPoint`: two
+            // vec4s a point, its centre and radius first): a stride of 2
+            let (buffer, stride) = if round == 0 {
+                (spheres_buffer(&ctx, &raw), 1)
+            } else {
+                let points: Vec<[f32; 4]> = raw
+                    .iter()
+                    .flat_map(|&s| [s, [1.0, 0.0, 0.0, 0.0]])
+                    .collect();
+                (spheres_buffer(&ctx, &points), 2)
+            };
             // all the pairs, then (the first round) room for a third of them
             for capacity in [pairs.len() as u32 + 7, (pairs.len() / 3) as u32] {
                 if round == 1 && capacity < pairs.len() as u32 {
@@ -2765,7 +2775,7 @@ fn gpu_tiles_equal_the_cpus() {
                         &ctx,
                         &mut encoder,
                         v,
-                        (&buffer, spheres.len() as u32, 1),
+                        (&buffer, spheres.len() as u32, stride),
                         capacity,
                     )
                     .unwrap();
