@@ -473,7 +473,7 @@ impl GpuCaster {
         } else {
             most_in_tile + most_in_tile / 2
         };
-        let tw = (v.width as usize).div_ceil(crate::view::TILE);
+        let tw = v.tiles().0;
         let point_data: Vec<[f32; 4]> = (0..points.len())
             .map(|j| points.positions[j].extend(points.radius(j)).to_array())
             .collect();

@@ -306,7 +306,7 @@ impl GpuSsfr {
             }
             .into());
         }
-        let uniforms = raw_params(screen, v, (w as usize).div_ceil(crate::view::TILE));
+        let uniforms = raw_params(screen, v, v.tiles().0);
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let mut created = 0;
         if self

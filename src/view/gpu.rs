@@ -15,7 +15,7 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use super::{TILE, View};
+use super::View;
 use crate::density::bins::{RawSortParams, dispatch_of};
 use crate::gpu::{self, GpuContext, GpuError};
 
@@ -129,7 +129,7 @@ impl Binned {
     /// matrices within [`NEAR_VIEW`] of this one's (each entry's difference against the
     /// matrix's largest entry). The views a frame fits to the particles' box move a little from
     /// frame to frame; the spheres' tiles then change by about as much.
-    fn same_view(&self, other: &Self) -> bool {
+    fn near_view(&self, other: &Self) -> bool {
         let near = |a: &[f32], b: &[f32]| {
             let scale = a.iter().chain(b).fold(0.0f32, |m, x| m.max(x.abs()));
             a.iter()
@@ -333,10 +333,7 @@ impl GpuTiles {
         (spheres, count, stride): (&wgpu::Buffer, u32, u32),
         capacity: u32,
     ) -> Result<(), GpuError> {
-        let (tw, th) = (
-            (v.width as usize).div_ceil(TILE),
-            (v.height as usize).div_ceil(TILE),
-        );
+        let (tw, th) = v.tiles();
         let tiles = tw * th;
         let capacity = capacity.max(1) as usize;
         let n = count as usize;
@@ -593,7 +590,7 @@ impl GpuTiles {
         let (read, binned) = self.readback.get_mut().ok()?;
         let stats = TileStats::of(bytemuck::cast_slice(&read.take()?));
         if let Some(b) = binned.take() {
-            self.counted.retain(|(c, _)| !c.same_view(&b));
+            self.counted.retain(|(c, _)| !c.near_view(&b));
             if self.counted.len() == VIEWS_KEPT {
                 self.counted.remove(0);
             }
@@ -620,7 +617,7 @@ impl GpuTiles {
     ) -> Result<(u32, usize), super::SplatError> {
         self.late_stats();
         let now = Binned::of(v, n as u32, 0);
-        if let Some((then, stats)) = self.counted.iter().find(|(c, _)| c.same_view(&now))
+        if let Some((then, stats)) = self.counted.iter().find(|(c, _)| c.near_view(&now))
             && stats.requested <= then.capacity
             && stats.fragments <= v.max_fragments
             && (n as u64) * 4 <= u64::from(then.count.max(1)) * 5

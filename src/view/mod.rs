@@ -422,6 +422,15 @@ impl View {
         Vec3::new(q.x, q.y, -p.z)
     }
 
+    /// The screen's 16x16 tiles ([`TILE`]) along x and y, the last of each partial.
+    #[must_use]
+    pub fn tiles(&self) -> (usize, usize) {
+        (
+            (self.width as usize).div_ceil(TILE),
+            (self.height as usize).div_ceil(TILE),
+        )
+    }
+
     /// Whether the view is orthographic.
     #[must_use]
     pub fn is_orthographic(&self) -> bool {
@@ -576,10 +585,7 @@ pub fn bin(
     sphere: impl Fn(usize) -> (Vec3, f32) + Sync,
 ) -> Result<(usize, Vec<Vec<u32>>), SplatError> {
     let rects = checked_rects(v, n, sphere)?;
-    let (tw, th) = (
-        (v.width as usize).div_ceil(TILE),
-        (v.height as usize).div_ceil(TILE),
-    );
+    let (tw, th) = v.tiles();
     let mut tiles: Vec<Vec<u32>> = vec![Vec::new(); tw * th];
     for (j, r) in rects.iter().enumerate() {
         if let Some(r) = *r {
@@ -603,10 +609,7 @@ pub fn tile_counts(
     sphere: impl Fn(usize) -> (Vec3, f32) + Sync,
 ) -> Result<(u64, usize), SplatError> {
     let rects = checked_rects(v, n, sphere)?;
-    let (tw, th) = (
-        (v.width as usize).div_ceil(TILE),
-        (v.height as usize).div_ceil(TILE),
-    );
+    let (tw, th) = v.tiles();
     let mut counts = vec![0u32; tw * th];
     let mut pairs = 0u64;
     for r in rects.into_iter().flatten() {
