@@ -11,7 +11,8 @@
 //! `--cpu-surfels` makes them on the CPU, as the CPU `Pipeline` does, to compare the two;
 //! `--narrow-band` makes the grid sparse (`grid.narrow_band`: the blocks near the surface
 //! chosen on the GPU and filled there by the gather pass); `--renderer` draws the water with
-//! another renderer (default `ewa`; the others take the CPU's points, see `GpuPipeline`). Needs a GPU or Mesa's lavapipe (on lavapipe, a
+//! another renderer (default `ewa`; the others take the CPU's points, the ray caster's weights
+//! solved on the GPU, see `GpuPipeline`). Needs a GPU or Mesa's lavapipe (on lavapipe, a
 //! software rasteriser, it proves the loop works, not how fast a GPU runs it).
 //!
 //! `--json` prints one object: frames, the CPU milliseconds per frame (the CPU stages plus

@@ -408,6 +408,19 @@ fn apply(@builtin(global_invocation_id) id: vec3<u32>) {
     binned_rw[n].weight = s.x + s.y * w_in[index];
 }
 
+// Per point in the points' own order: its weight in the density (as `apply` writes it into
+// the binned points) into `w_out`, for a reader that keeps that order (the ray caster's spheres
+// in `GpuPipeline`, `PointWeights`).
+@compute @workgroup_size(64)
+fn ordered(@builtin(global_invocation_id) id: vec3<u32>) {
+    let j = point_index(id);
+    if j >= params.count {
+        return;
+    }
+    let s = split[j];
+    w_out[j] = s.x + s.y * w_in[j];
+}
+
 // The particles' factors (`chain_input_at_boundary`): the sheet points' normals and the split,
 // written (`thin_pass` and `factors_pass` alone bind them so), each particle's surface normal
 // and class (w: 0 interior, 1 surface, 2 isolated), and each particle's share in a sheet one

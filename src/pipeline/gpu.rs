@@ -23,7 +23,10 @@
 //! to the CPU: half a spacing around the particles, an [`crate::optics::WaterShape`]). With
 //! [`PipelineParams::gpu_surfels`] off, and for a renderer or source without a density grid,
 //! the grid and the surfels are made on the CPU as [`Pipeline`] makes them and uploaded
-//! ([`GpuPipeline::gpu_stages`] says which ran).
+//! ([`GpuPipeline::gpu_stages`] says which ran). The ray-cast renderer with the boundary
+//! calibration draws the CPU's spheres, their factors found on the CPU too, but their weights'
+//! Jacobi steps run on the GPU and the weights stay there for the caster
+//! ([`GpuPipeline::weights_on_gpu`], [`crate::pipeline::boundary::gpu::PointWeights`]).
 //!
 //! Nothing is read back and nothing waits on the GPU on the frame path (the surfel count comes
 //! back asynchronously, a few frames late, to size the surfel buffer: call
@@ -46,7 +49,7 @@ use crate::gpu::{GpuContext, GpuError, entry};
 use crate::optics::gpu::{OpticsGpu, PreparedOptics};
 use crate::optics::{Stage, WaterShape};
 use crate::pipeline::boundary::gpu::{
-    RawSheetPoint, Split, WeightInput, WeightPasses, sheet_points,
+    PointWeights, RawSheetPoint, Split, WeightInput, WeightPasses, sheet_points,
 };
 use crate::splat::gpu::SplatRenderer;
 use crate::splat::water::GpuSurfels;
@@ -60,6 +63,9 @@ const GPU_STAGES: &[&str] = &["density", "surfels", "splats", "optics"];
 const GPU_STAGES_WEIGHTS: &[&str] = &["calibration", "density", "surfels", "splats", "optics"];
 /// ... and with them on the CPU.
 const CPU_STAGES: &[&str] = &["splats", "optics"];
+/// The stages with the ray caster's spheres weighted on the GPU
+/// ([`GpuPipeline::weights_on_gpu`]).
+const SPHERE_STAGES: &[&str] = &["calibration", "splats", "optics"];
 
 /// The WGSL of the presenting pass.
 pub const PRESENT_SHADER: &str = concat!(
@@ -99,6 +105,8 @@ pub struct GpuPipeline {
     shading: Option<SplatRenderer>,
     /// The density grid and the surfels on the GPU, made on first use.
     chain: Option<GpuChain>,
+    /// The ray caster's spheres' weights solved on the GPU, made on first use.
+    sphere_weights: Option<PointWeights>,
     /// The stages the last `prepare` ran on the GPU.
     stages: &'static [&'static str],
     /// Timestamps between the stages, when asked for ([`GpuPipeline::time_stages`]) and the
@@ -253,6 +261,7 @@ impl GpuPipeline {
             pass: None,
             shading: None,
             chain: None,
+            sphere_weights: None,
             stages: CPU_STAGES,
             timer: None,
             cpu,
@@ -272,6 +281,8 @@ impl GpuPipeline {
                 } else {
                     GPU_STAGES
                 };
+        } else if pipeline.weights_on_gpu() {
+            pipeline.stages = SPHERE_STAGES;
         }
         Ok(pipeline)
     }
@@ -283,6 +294,32 @@ impl GpuPipeline {
         self.cpu.params().gpu_surfels
             && self.cpu.params().source != SurfelSource::Refined
             && self.cpu.water_renderer().drawn() == Drawn::Surfels
+    }
+
+    /// Whether `prepare` solves the weights of the ray caster's spheres on the GPU: with
+    /// [`PipelineParams::gpu_surfels`], for the ray-cast renderer with the boundary calibration
+    /// and the chain or particle source. The spheres and their factors (which particles form a
+    /// sheet, how buried each point is) are the CPU's, the Jacobi steps run on the GPU
+    /// ([`PointWeights`]); the weights stay there ([`Frame::weights_on_gpu`]).
+    #[must_use]
+    pub fn weights_on_gpu(&self) -> bool {
+        let params = self.cpu.params();
+        params.gpu_surfels
+            && params.source != SurfelSource::Refined
+            && params.grid.calibration == super::Calibration::Boundary
+            && self.cpu.water_renderer().drawn() == (Drawn::Spheres { calibrated: true })
+    }
+
+    /// The weights of the last frame's spheres solved on the GPU
+    /// ([`GpuPipeline::weights_on_gpu`]), read back (a wait on the device: for tests and tools,
+    /// outside the frame path), in the order of its `render_surfels`; `None` before one.
+    pub fn read_sphere_weights(&self, ctx: &GpuContext) -> Result<Option<Vec<f32>>, Error> {
+        let Some(w) = self.sphere_weights.as_ref() else {
+            return Ok(None);
+        };
+        let mut out: Vec<f32> = crate::gpu::read_buffer(ctx, w.buffer())?;
+        out.truncate(w.count());
+        Ok(Some(out))
     }
 
     /// The bytes of the density grid's values the last [`GpuPipeline::prepare`] filled on the
@@ -469,6 +506,9 @@ impl GpuPipeline {
     ) -> Result<Frame, Error> {
         let particles: ParticleView<'a> = particles.into();
         self.begin_timing();
+        if self.weights_on_gpu() {
+            return self.prepare_spheres(device, queue, encoder, particles);
+        }
         if !self.surfels_on_gpu() {
             self.stages = CPU_STAGES;
             let frame = self.cpu.frame_through(particles, Through::Surfels)?;
@@ -628,6 +668,42 @@ impl GpuPipeline {
         Ok(frame)
     }
 
+    /// [`GpuPipeline::prepare`] for the ray caster's spheres with their weights solved on the
+    /// GPU ([`GpuPipeline::weights_on_gpu`]): the CPU's chain to the spheres and their factors,
+    /// then the weights' sort and Jacobi steps in `encoder` (timed as the calibration, the
+    /// sort's stage 0 ms), then the views.
+    fn prepare_spheres(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        particles: ParticleView<'_>,
+    ) -> Result<Frame, Error> {
+        let (mut frame, input) = self.cpu.frame_to_boundary_input(particles)?;
+        self.stages = SPHERE_STAGES;
+        let Some(input) = input else {
+            // no point: the empty frame the CPU path draws
+            self.prepare_frame(device, queue, encoder, &frame)?;
+            return Ok(frame);
+        };
+        let t = Instant::now();
+        self.mark(encoder, mark::START);
+        let ctx = GpuContext::from_device(device.clone(), queue.clone());
+        let kernel = self.cpu.params().grid.kernel;
+        let tau = self.cpu.iso_value(frame.radius);
+        let weights = self
+            .sphere_weights
+            .get_or_insert_with(|| PointWeights::new(device));
+        weights.record(&ctx, encoder, &input, (frame.radius, kernel, tau))?;
+        let created = weights.created();
+        self.mark(encoder, mark::CALIBRATED);
+        frame.timings.calibration_ms += ms(t);
+        frame.weights_on_gpu = true;
+        self.record(device, queue, encoder, &frame, (true, None))?;
+        self.reused &= created == 0;
+        Ok(frame)
+    }
+
     /// [`GpuPipeline::prepare`] for surfels a CPU [`Pipeline`] already made: records the GPU
     /// passes of `frame.render_surfels` into `encoder`.
     pub fn prepare_frame(
@@ -665,7 +741,7 @@ impl GpuPipeline {
         frame: &Frame,
         (finished, splats): (bool, Option<&wgpu::TextureView>),
     ) -> Result<(), Error> {
-        let points;
+        let (points, gpu_weights);
         let water: Box<dyn WaterSurface + '_>;
         if frame.surfels_on_gpu {
             // the surfels the last `prepare` left on the GPU
@@ -677,11 +753,24 @@ impl GpuPipeline {
             })?;
             water = Box::new(GpuSurfels(chain.surfels.surfel_buffer()));
         } else {
+            // the spheres' weights the last `prepare` left on the GPU
+            gpu_weights = match (frame.weights_on_gpu, self.sphere_weights.as_ref()) {
+                (false, _) => None,
+                (true, Some(w)) => Some(w.buffer().clone()),
+                (true, None) => {
+                    return Err(Error::InvalidArgument {
+                        argument: "frame",
+                        reason: "its weights are on another GpuPipeline's GPU: draw it with the \
+                                 pipeline that prepared it"
+                            .into(),
+                    });
+                }
+            };
             points = self.cpu.water_points(&frame.render_surfels);
-            water = self.cpu.water_of(
+            water = self.cpu.water_with(
                 &frame.render_surfels,
                 points.as_ref(),
-                &frame.render_weights,
+                (&frame.render_weights, gpu_weights.as_ref()),
             )?;
         }
         let shape = self.cpu.shape_of(frame);

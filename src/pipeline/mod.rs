@@ -331,7 +331,9 @@ pub struct PipelineParams {
     /// filled by the gather pass and the surfels extracted there, drawn from the GPU's buffer,
     /// nothing read back. Off, on the CPU as [`Pipeline`] makes them (to compare the two in one
     /// program). Only for the EWA renderer and the chain or particle source (the others have no
-    /// density grid); [`Pipeline`] itself always makes them on the CPU.
+    /// density grid); [`Pipeline`] itself always makes them on the CPU. For the ray-cast
+    /// renderer with the boundary calibration it says where the spheres' weights are solved
+    /// ([`GpuPipeline::weights_on_gpu`]).
     pub gpu_surfels: bool,
 }
 
@@ -658,6 +660,11 @@ pub struct Frame {
     /// are empty, [`DetailReport::surfels`] is a recent frame's count (read back without a
     /// wait), [`GpuPipeline::read_surfels`] reads them back.
     pub surfels_on_gpu: bool,
+    /// The weights of the ray caster's spheres (the boundary calibration's) were solved on the
+    /// GPU ([`GpuPipeline::prepare`] with [`PipelineParams::gpu_surfels`]) and stay there:
+    /// `render_weights` is empty, [`GpuPipeline::read_sphere_weights`] reads them back; the
+    /// frame is drawn by the `GpuPipeline` that prepared it.
+    pub weights_on_gpu: bool,
     /// Where the water is, as the views (camera, pool, the light's screen) are fitted to it,
     /// for surfels on a density grid with the boundary calibration: from the particles
     /// ([`Pipeline::grid_water_shape`]), so that the CPU's pictures and [`GpuPipeline`]'s,
@@ -1097,6 +1104,44 @@ impl Pipeline {
         })
     }
 
+    /// The chain up to the ray caster's spheres with the boundary calibration's factors, for a
+    /// caller that solves their weights ([`boundary::gpu::PointWeights`], on the GPU):
+    /// detection, upsampling, the factors ([`boundary::chain_input_at_boundary`]); the frame's
+    /// `render_surfels` are the spheres of the input's points, its `render_weights` empty.
+    /// `None`: no point.
+    pub(crate) fn frame_to_boundary_input(
+        &mut self,
+        particles: ParticleView<'_>,
+    ) -> Result<(Frame, Option<boundary::BoundaryInput>), Error> {
+        self.in_pool(|p| {
+            let total = Instant::now();
+            let (mut frame, warnings) = p.detect_and_refine(particles, Through::Surfels)?;
+            let t = Instant::now();
+            let input = p.with_boundary_sheet(
+                p.params.source,
+                particles,
+                &frame.surface,
+                frame.refined.as_ref(),
+                frame.radius,
+                |sheet| {
+                    Ok(boundary::chain_input_at_boundary(
+                        particles.positions,
+                        &frame.surface,
+                        sheet,
+                        frame.radius,
+                    )?)
+                },
+            )?;
+            frame.timings.calibration_ms = ms(t);
+            frame.render_surfels =
+                splat::spheres_from(&input.positions, &input.radii, frame.radius, splat::WATER);
+            frame.warnings = warnings;
+            frame.timings.total_ms = ms(total);
+            let input = (!input.positions.is_empty()).then_some(input);
+            Ok((frame, input))
+        })
+    }
+
     /// Stages 1 and 2 of a frame made `through`: detection and, where `through` and the
     /// source need it, upsampling.
     fn detect_and_refine(
@@ -1131,6 +1176,7 @@ impl Pipeline {
             detail: DetailReport::default(),
             warnings: Vec::new(),
             surfels_on_gpu: false,
+            weights_on_gpu: false,
             shape: None,
         };
         // stage 2: upsampling of the surface
@@ -1410,6 +1456,7 @@ impl Pipeline {
             detail: DetailReport::default(),
             warnings: Vec::new(),
             surfels_on_gpu: false,
+            weights_on_gpu: false,
             shape: None,
         };
         let skipped = frame
@@ -1615,11 +1662,23 @@ impl Pipeline {
         points: Option<&'a (Vec<Vec3>, Vec<f32>)>,
         weights: &'a [f32],
     ) -> Result<Box<dyn WaterSurface + 'a>, Error> {
+        self.water_with(surfels, points, (weights, None))
+    }
+
+    /// [`Pipeline::water_of`] with the weights on the CPU or, where `gpu_weights` is given, in
+    /// that buffer on the GPU (`f32` a sphere, in their order: [`Frame::weights_on_gpu`]).
+    pub(crate) fn water_with<'a>(
+        &self,
+        surfels: &'a [Surfel],
+        points: Option<&'a (Vec<Vec3>, Vec<f32>)>,
+        (weights, gpu_weights): (&'a [f32], Option<&'a wgpu::Buffer>),
+    ) -> Result<Box<dyn WaterSurface + 'a>, Error> {
         let (positions, radii) = points.map_or((&[][..], &[][..]), |(p, r)| (&p[..], &r[..]));
         self.water.water(WaterInput {
             surfels,
             points: (positions, radii),
             weights,
+            gpu_weights,
             reference_radius: self.reference_radius(radii),
         })
     }

@@ -320,6 +320,9 @@ pub struct GpuCaster {
     views: (wgpu::TextureView, wgpu::TextureView),
     inputs: Inputs,
     created: usize,
+    /// The weights buffer the bind groups read: the uploaded one, or the caster's own on the
+    /// GPU ([`Caster::with_gpu_weights`]).
+    weights_bound: Option<wgpu::Buffer>,
     frame: Option<Frame>,
 }
 
@@ -395,6 +398,7 @@ impl GpuCaster {
             views,
             inputs: Inputs::new(device, width, height),
             created: 0,
+            weights_bound: None,
             frame: None,
         };
         if let Some(e) = pollster::block_on(scope.pop()) {
@@ -477,8 +481,23 @@ impl GpuCaster {
         let point_data: Vec<[f32; 4]> = (0..points.len())
             .map(|j| points.positions[j].extend(points.radius(j)).to_array())
             .collect();
-        // each point's factor on its term (the boundary calibration's weights; 1 without)
-        let weights: Vec<f32> = (0..points.len()).map(|j| points.weight(j)).collect();
+        // each point's factor on its term (the boundary calibration's weights; 1 without),
+        // uploaded, or read where they were solved on the GPU
+        let given = caster.gpu_weights();
+        if let Some(w) = given
+            && w.size() < points.len() as u64 * 4
+        {
+            return Err(GpuError::Validation(format!(
+                "{} bytes of weights on the GPU for {} points",
+                w.size(),
+                points.len()
+            ))
+            .into());
+        }
+        let weights: Vec<f32> = match given {
+            Some(_) => Vec::new(),
+            None => (0..points.len()).map(|j| points.weight(j)).collect(),
+        };
         let reach = points.max_radius();
         let pca_reach = params.pca_radius * reach;
         let grids = grids_of(caster, pca_reach);
@@ -503,6 +522,12 @@ impl GpuCaster {
             room,
         )?;
         self.created += inputs.tiles.created();
+        let bound = given.unwrap_or(inputs.weights.buffer());
+        if self.weights_bound.as_ref() != Some(bound) {
+            // the bind groups read another weights buffer
+            self.weights_bound = Some(bound.clone());
+            self.created += 1;
+        }
         let most = iteration_bound(caster, most_in_tile as u64, &grids, raw.b[1]);
         let runs = most.div_ceil(u64::from(BUDGET)) + 1;
         match &mut self.frame {
@@ -573,7 +598,10 @@ impl GpuCaster {
                         (10, whole(band)),
                         (11, whole(&self.unfinished)),
                         (12, whole(&i.grid_uniforms)),
-                        (16, whole(i.weights.buffer())),
+                        (
+                            16,
+                            whole(self.weights_bound.as_ref().expect("set by upload")),
+                        ),
                     ],
                 ),
                 groups: *groups,

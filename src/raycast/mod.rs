@@ -293,6 +293,8 @@ pub struct Caster<'a> {
     pca_reach: f32,
     iso: f32,
     params: RayCastParams,
+    /// The points' weights on the GPU instead of in `density` ([`Caster::with_gpu_weights`]).
+    gpu_weights: Option<wgpu::Buffer>,
 }
 
 impl<'a> Caster<'a> {
@@ -313,7 +315,23 @@ impl<'a> Caster<'a> {
             pca_reach,
             iso,
             params: *params,
+            gpu_weights: None,
         })
+    }
+
+    /// The caster with its points' weights in `weights` on the GPU (`f32` a point, in their
+    /// order, solved there: `GpuPipeline`'s boundary calibration) instead of in its density:
+    /// the GPU cast reads them, a CPU cast is refused.
+    #[must_use]
+    pub fn with_gpu_weights(mut self, weights: Option<wgpu::Buffer>) -> Self {
+        self.gpu_weights = weights;
+        self
+    }
+
+    /// The points' weights on the GPU, when they are there ([`Caster::with_gpu_weights`]).
+    #[must_use]
+    pub fn gpu_weights(&self) -> Option<&wgpu::Buffer> {
+        self.gpu_weights.as_ref()
     }
 
     /// The density the rays are cast through.
@@ -450,20 +468,36 @@ impl WaterRenderer for Method {
         true
     }
     fn water<'a>(&self, input: WaterInput<'a>) -> Result<Box<dyn WaterSurface + 'a>, Error> {
-        Ok(Box::new(self.caster(
-            input.points,
-            input.weights,
-            input.reference_radius,
-        )?))
+        Ok(Box::new(
+            self.caster(input.points, input.weights, input.reference_radius)?
+                .with_gpu_weights(input.gpu_weights.cloned()),
+        ))
+    }
+}
+
+impl Caster<'_> {
+    /// Refuses a cast that reads the weights on the CPU when they are on the GPU.
+    fn cpu_weights(&self) -> Result<(), Error> {
+        match self.gpu_weights {
+            Some(_) => Err(Error::InvalidArgument {
+                argument: "water",
+                reason: "its weights were solved on the GPU and stay there: draw it with the \
+                         GpuPipeline that prepared it"
+                    .into(),
+            }),
+            None => Ok(()),
+        }
     }
 }
 
 impl WaterSurface for Caster<'_> {
     fn render(&self, view: &View) -> Result<Render, Error> {
+        self.cpu_weights()?;
         Ok(cpu::render_view_cpu(self, view)?.render)
     }
 
     fn render_gpu(&self, ctx: &crate::gpu::GpuContext, view: &View) -> Result<Render, Error> {
+        self.cpu_weights()?;
         Ok(gpu::render_view_gpu(ctx, self, view)?.render)
     }
 

@@ -56,6 +56,9 @@ pub struct WaterInput<'a> {
     pub points: (&'a [Vec3], &'a [f32]),
     /// The spheres' weights in the density (the boundary calibration's; empty: every one 1).
     pub weights: &'a [f32],
+    /// The same weights on the GPU instead (`f32` a sphere, in their order; solved there by
+    /// `GpuPipeline`): the GPU passes read them, a CPU render of such water is refused.
+    pub gpu_weights: Option<&'a wgpu::Buffer>,
     /// The reference radius (the support radius, or the largest radius before one is known).
     pub reference_radius: f32,
 }

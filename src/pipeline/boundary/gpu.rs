@@ -20,7 +20,8 @@ use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
 use super::{BAND, BURIED, LONE_RADIUS, MAX_WEIGHT, WEIGHT_STEPS};
-use crate::density::gpu::{BinnedPoints, GATHER_REACH, kernel_code, kernel_constant};
+use crate::density::bins::{BinLayout, GpuBinSort, leading_and_rest};
+use crate::density::gpu::{BinnedPoints, GATHER_REACH, kernel_code, kernel_constant, raw_points};
 use crate::density::{GridSpec, Kernel, Points, Resolution};
 use crate::gpu::{self, GpuContext, GpuError};
 use crate::surface::Surface;
@@ -108,6 +109,8 @@ pub struct WeightPasses {
     sheet_scatter: wgpu::ComputePipeline,
     /// The compacted points' solved weights written back to their points.
     sheet_back: wgpu::ComputePipeline,
+    /// The weights in the density in the points' own order ([`Self::write_ordered`]).
+    ordered: wgpu::ComputePipeline,
     uniform: wgpu::Buffer,
     sheet: gpu::Grow,
     split: gpu::Grow,
@@ -125,6 +128,9 @@ pub struct WeightPasses {
     /// The application to another copy of the points ([`Self::apply_to`]): that copy, the
     /// solved weights' buffer it reads, the bind group.
     copy_bind: Option<(wgpu::Buffer, wgpu::Buffer, wgpu::BindGroup)>,
+    /// The weights in order ([`Self::write_ordered`]): the buffer written, the solved
+    /// weights' buffer read, the bind group.
+    ordered_bind: Option<(wgpu::Buffer, wgpu::Buffer, wgpu::BindGroup)>,
     created: usize,
     search: BinSearch,
 }
@@ -159,6 +165,7 @@ impl WeightPasses {
             sheet_scan,
             sheet_scatter,
             sheet_back,
+            ordered,
         ] = gpu::compute_pipelines(
             device,
             "boundary weights",
@@ -174,6 +181,7 @@ impl WeightPasses {
                 "sheet_scan",
                 "sheet_scatter",
                 "sheet_weights_back",
+                "ordered",
             ],
         );
         let storage = wgpu::BufferUsages::STORAGE;
@@ -188,6 +196,7 @@ impl WeightPasses {
             sheet_scan,
             sheet_scatter,
             sheet_back,
+            ordered,
             uniform: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("boundary weights params"),
                 size: std::mem::size_of::<RawWeightParams>() as u64,
@@ -212,6 +221,7 @@ impl WeightPasses {
             ],
             binds: None,
             copy_bind: None,
+            ordered_bind: None,
             created: 0,
             search: BinSearch::Trimmed,
         }
@@ -489,6 +499,49 @@ impl WeightPasses {
         pass.dispatch_workgroups(all.min(65_535), all.div_ceil(65_535), 1);
     }
 
+    /// After [`Self::record`] in the same encoder: each point's weight in the density (its
+    /// interior share plus its sheet weight times its solved weight, what the binned points
+    /// get) written into `out` (`f32` a point, at least `count`, the points of that record)
+    /// in the points' own order, for a reader that keeps it (the ray caster's spheres,
+    /// [`PointWeights`]). The bind group is made anew only when `out` or the solved weights'
+    /// buffer changes (counted in [`Self::created`]).
+    pub fn write_ordered(
+        &mut self,
+        device: &wgpu::Device,
+        encoder: &mut wgpu::CommandEncoder,
+        out: &wgpu::Buffer,
+        count: usize,
+    ) {
+        let solved = self.w[self.solved()].buffer().clone();
+        if self.created > 0
+            || self
+                .ordered_bind
+                .as_ref()
+                .is_none_or(|(o, w, _)| o != out || *w != solved)
+        {
+            let bind = gpu::buffer_bind_group(
+                device,
+                &self.ordered,
+                &[
+                    (0, &self.uniform),
+                    (5, &solved),
+                    (6, out),
+                    (8, self.split.buffer()),
+                ],
+            );
+            self.ordered_bind = Some((out.clone(), solved, bind));
+            self.created += 1;
+        }
+        let all = (count as u32).div_ceil(64).max(1);
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("boundary weights in order"),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&self.ordered);
+        pass.set_bind_group(0, &self.ordered_bind.as_ref().expect("made above").2, &[]);
+        pass.dispatch_workgroups(all.min(65_535), all.div_ceil(65_535), 1);
+    }
+
     /// The application's bind group: the weights in `solved` written into the copy of the
     /// points `points`.
     fn apply_bind(
@@ -633,6 +686,140 @@ impl WeightPasses {
     }
 }
 
+/// The boundary calibration's weights of points given with their split
+/// ([`super::BoundaryInput`]: the interior's own weights, the sheet's factors), solved on the
+/// GPU in the caller's encoder and left there in the points' own order: the ray caster's
+/// spheres in [`crate::pipeline::GpuPipeline`], whose points are the CPU's, so that only the
+/// Jacobi steps (30 of the 35 ms of the CPU's calibration on the column scene) move to the
+/// GPU. The points are sorted into bins on the GPU ([`GpuBinSort`]) over their box padded by
+/// the largest radius, as [`boundary_weights_gpu`] bins them; every buffer is kept from frame
+/// to frame and grows when a frame needs more.
+pub struct PointWeights {
+    sort: GpuBinSort,
+    passes: WeightPasses,
+    out: gpu::Grow,
+    created: usize,
+    count: usize,
+}
+
+impl PointWeights {
+    /// Compiles the passes.
+    #[must_use]
+    pub fn new(device: &wgpu::Device) -> Self {
+        Self {
+            sort: GpuBinSort::new(device),
+            passes: WeightPasses::new(device),
+            out: gpu::Grow::new(
+                "boundary weights in order",
+                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            ),
+            created: 0,
+            count: 0,
+        }
+    }
+
+    /// The buffer [`Self::record`] writes the weights into (kept from frame to frame until a
+    /// frame needs more).
+    #[must_use]
+    pub fn buffer(&self) -> &wgpu::Buffer {
+        self.out.buffer()
+    }
+
+    /// How many points the last [`Self::record`] weighed.
+    #[must_use]
+    pub fn count(&self) -> usize {
+        self.count
+    }
+
+    /// How the next [`Self::record`]s search the bins ([`WeightPasses::set_search`]).
+    pub fn set_search(&mut self, search: BinSearch) {
+        self.passes.set_search(search);
+    }
+
+    /// Buffers and bind groups the last [`Self::record`] made (0 once they are large enough).
+    #[must_use]
+    pub fn created(&self) -> usize {
+        self.created
+    }
+
+    /// Records the sort, the solve and the weights' write in order into `encoder`: once it
+    /// has run, the returned buffer holds each point's weight in the density (`f32` a point,
+    /// the first `input.positions.len()`), the CPU's ([`super::BoundaryInput::solve`]) to
+    /// rounding. `h` is the support radius, `tau` the iso-value. No point: nothing recorded.
+    pub fn record(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        input: &super::BoundaryInput,
+        (h, kernel, tau): (f32, Kernel, f32),
+    ) -> Result<wgpu::Buffer, crate::Error> {
+        let points =
+            Points::with_radii(&input.positions, &input.radii, h).with_weights(&input.base);
+        points.check()?;
+        let n = points.len();
+        if input.normals.len() != n - input.interior.min(n) || input.interior > n {
+            return Err(GpuError::Validation(format!(
+                "{n} points, {} interior, {} normals: one normal per sheet point",
+                input.interior,
+                input.normals.len()
+            ))
+            .into());
+        }
+        let (device, queue) = (&ctx.device, &ctx.queue);
+        let made = self.out.reserve(device, n.max(1) as u64 * 4);
+        self.count = n;
+        if n == 0 {
+            self.created = usize::from(made);
+            return Ok(self.out.buffer().clone());
+        }
+        let reach = points.max_radius();
+        let spec = GridSpec::around(points.positions, reach, Resolution::CellSize(reach))?;
+        let layout = BinLayout::of(&points, &spec);
+        self.sort
+            .record(ctx, encoder, &raw_points(&points), &layout)?;
+        let (leading, rest_radius) = leading_and_rest(&points);
+        let binned = BinnedPoints {
+            points: self.sort.sorted().clone(),
+            starts: self.sort.starts().clone(),
+            bins: layout.bins,
+            bin_size: layout.size,
+            count: n,
+            leading,
+            rest_radius,
+        };
+        let split: Vec<[f32; 2]> = (0..n)
+            .map(|j| {
+                let b = points.weight(j);
+                if j < input.interior {
+                    [b, 0.0]
+                } else {
+                    [0.0, b]
+                }
+            })
+            .collect();
+        let sheet = sheet_points(&points, input.interior, &input.normals);
+        self.passes.record(
+            (device, queue),
+            encoder,
+            &WeightInput {
+                binned: &binned,
+                origin: spec.origin,
+                sheet: &sheet,
+                split: Split::Given(&split),
+                half_spacing: 0.5 * input.spacing,
+                tau,
+                kernel,
+                h,
+            },
+        )?;
+        let created = self.sort.created() + self.passes.created() + usize::from(made);
+        self.passes
+            .write_ordered(device, encoder, self.out.buffer(), n);
+        self.created = created + self.passes.created();
+        Ok(self.out.buffer().clone())
+    }
+}
+
 /// The bind groups of [`WeightPasses`]' passes over one frame's buffers: the two factor passes,
 /// the targets pass, the sheet points' compaction, the steps over the compacted points (from
 /// their weights buffer a and from b) and their weights' write-back, the steps over every point
@@ -741,40 +928,25 @@ pub fn boundary_weights_gpu_searching(
 ) -> Result<Vec<f32>, crate::Error> {
     points.check()?;
     let n = points.len();
-    if normals.len() != n - interior.min(n) || interior > n {
-        return Err(GpuError::Validation(format!(
-            "{n} points, {interior} interior, {} normals: one normal per sheet point",
-            normals.len()
-        ))
-        .into());
-    }
-    let base: Vec<f32> = (0..n).map(|i| points.weight(i)).collect();
     if n == interior {
-        return Ok(base);
+        return Ok((0..n).map(|j| points.weight(j)).collect());
     }
-    let split: Vec<[f32; 2]> = (0..n)
-        .map(|j| {
-            if j < interior {
-                [base[j], 0.0]
-            } else {
-                [0.0, base[j]]
-            }
-        })
-        .collect();
-    let (_, solved) = solve_once(
-        ctx,
-        &points,
-        (interior, normals),
-        Split::Given(&split),
-        (spacing, kernel, tau),
-        search,
-    )?;
-    let w: Vec<f32> = gpu::read_buffer(ctx, &solved)?;
-    let mut out = base;
-    for (j, o) in out.iter_mut().enumerate().skip(interior) {
-        *o *= w[j];
-    }
-    Ok(out)
+    let input = super::BoundaryInput {
+        positions: points.positions.to_vec(),
+        radii: (0..n).map(|j| points.radius(j)).collect(),
+        base: (0..n).map(|j| points.weight(j)).collect(),
+        interior,
+        normals: normals.to_vec(),
+        spacing,
+    };
+    let mut weights = PointWeights::new(&ctx.device);
+    weights.set_search(search);
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    let out = weights.record(ctx, &mut encoder, &input, (points.h, kernel, tau))?;
+    ctx.queue.submit([encoder.finish()]);
+    let mut w: Vec<f32> = gpu::read_buffer(ctx, &out)?;
+    w.truncate(n);
+    Ok(w)
 }
 
 /// The factors of [`super::chain_input_at_boundary`] found on the GPU of `ctx`, with the
