@@ -1897,8 +1897,9 @@ fn gpu_pipeline_makes_the_grid_and_surfels_on_the_gpu() {
 /// their weights on the GPU (`PointWeights`), where they stay. On the column's splash frame
 /// (the raw particles, small views: lavapipe casts every pixel of the light's screen too): the
 /// same spheres as the CPU `Pipeline`'s, their weights the CPU's to rounding (read back
-/// outside the frame path), the finished frame within 40 dB of the CPU's; the next frame makes
-/// nothing; a frame whose weights stay on one pipeline's GPU is refused by another.
+/// outside the frame path), the finished frame within 40 dB of the CPU's; the frame again makes
+/// nothing and waits on nothing; a frame whose weights stay on one pipeline's GPU is refused by
+/// another.
 #[test]
 fn gpu_pipeline_weighs_the_ray_casters_spheres_on_the_gpu() {
     let Some(ctx) = gpu::context_or_skip("gpu_pipeline_weighs_spheres").unwrap() else {
@@ -1947,15 +1948,22 @@ fn gpu_pipeline_weighs_the_ray_casters_spheres_on_the_gpu() {
     // throwaway scaling the solved weights by 1.001 in the write in order: 9.6e-4
     assert!(worst < 1e-4, "weights {worst}");
     assert!(db >= 40.0, "finished frame {db:.1} dB");
-    // the frame again: nothing made, the same picture
-    let (again, next) = gpu.prepare_image(&ctx, particles).unwrap();
-    println!(
-        "again: {} spheres, {:.1} dB against the first",
-        again.render_surfels.len(),
-        splat::psnr(&image, &next)
-    );
+    // the frame again: nothing made, no wait on the device while it is prepared and
+    // submitted, the same picture
+    let waits = gpu::waits();
+    let mut encoder = ctx.device.create_command_encoder(&Default::default());
+    gpu.prepare(&ctx.device, &ctx.queue, &mut encoder, particles)
+        .unwrap();
+    let target = gpu.draw_to_texture(&ctx.device, &mut encoder);
+    ctx.queue.submit([encoder.finish()]);
+    gpu.after_submit();
+    assert_eq!(gpu::waits() - waits, 0, "waits on the frame path");
     assert!(gpu.reused_resources(), "the frame again made GPU resources");
-    assert_eq!(next, image, "the frame again");
+    assert_eq!(
+        gpu::read_rgba8(&ctx, &target).unwrap(),
+        image,
+        "the frame again"
+    );
     // the weights live on this pipeline's GPU: another pipeline refuses the frame
     let mut other = GpuPipeline::new(&ctx.device, &ctx.queue, format, size, &params).unwrap();
     let refused = other.render_frame_image(&ctx, &g).unwrap_err();
