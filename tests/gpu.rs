@@ -2178,6 +2178,66 @@ fn gpu_pipeline_on_the_gpu_meets_bad_frames() {
     }
 }
 
+/// The ray caster's spheres weighted on the GPU on bad frames (issue 37): a non-finite position
+/// is a typed error and the next frame draws as before, an empty frame draws the empty pool, a
+/// lone particle is drawn with the CPU's weight; no panic, no lost device.
+#[test]
+fn gpu_pipeline_weighs_the_spheres_of_bad_frames() {
+    let Some(ctx) = gpu::context_or_skip("gpu_pipeline_weighs_the_spheres_of_bad_frames").unwrap()
+    else {
+        return;
+    };
+    let block = scenes::block(&scenes::BlockParams {
+        counts: [6, 6, 6],
+        ..Default::default()
+    })
+    .unwrap();
+    let size = (32, 32);
+    let mut params = PipelineParams {
+        support_radius: Some(block.support_radius),
+        renderer: pipeline::Renderer::RayCast,
+        ..Default::default()
+    };
+    params.scene.optics.image_size = [size.0, size.1];
+    params.scene.optics.caustics_resolution = Some([32, 32]);
+    params.scene.optics.map_resolution = Some([64, 64]);
+    let format = wgpu::TextureFormat::Rgba8Unorm;
+    let mut gpu = GpuPipeline::new(&ctx.device, &ctx.queue, format, size, &params).unwrap();
+    assert!(gpu.weights_on_gpu());
+    let (first, image) = gpu.prepare_image(&ctx, &block.particles).unwrap();
+    assert!(first.weights_on_gpu && !first.render_surfels.is_empty());
+    let mut bad = block.particles.clone();
+    bad.positions[3].y = f32::NAN;
+    let e = gpu.prepare_image(&ctx, &bad).unwrap_err().to_string();
+    assert!(e.contains("finite"), "{e}");
+    let (_, again) = gpu.prepare_image(&ctx, &block.particles).unwrap();
+    assert_eq!(image, again, "the frame after a refused one");
+    let empty = fluid_surfels::ParticleSet::from_positions(Vec::new());
+    let (frame, dry) = gpu.prepare_image(&ctx, &empty).unwrap();
+    assert!(frame.render_surfels.is_empty() && !frame.weights_on_gpu);
+    let lone = fluid_surfels::ParticleSet::from_positions(vec![block.particles.positions[0]]);
+    let (frame, drop) = gpu.prepare_image(&ctx, &lone).unwrap();
+    let covered = drop
+        .pixels()
+        .zip(dry.pixels())
+        .filter(|(a, b)| a != b)
+        .count();
+    let weights = gpu.read_sphere_weights(&ctx).unwrap().unwrap();
+    let mut cpu = Pipeline::new(params.clone()).unwrap();
+    let on_cpu = cpu.frame_through(&lone, Through::Surfels).unwrap();
+    println!(
+        "a lone particle: {} sphere(s), weights {weights:?} (the CPU's {:?}), {covered} pixels differ from the empty frame",
+        frame.render_surfels.len(),
+        on_cpu.render_weights
+    );
+    assert_eq!(frame.render_surfels, on_cpu.render_surfels);
+    assert_eq!(weights.len(), on_cpu.render_weights.len());
+    for (g, c) in weights.iter().zip(&on_cpu.render_weights) {
+        assert!((g - c).abs() <= 1e-5 * c.abs().max(1.0), "{g} against {c}");
+    }
+    assert!(covered > 0, "the lone drop is not drawn");
+}
+
 /// A sparse grid on the GPU whose body grows at once (issue 37): the values are sized from a
 /// count read back a few frames late only while the frames are like the counted one; a frame
 /// with many more points is sized from the bound, so none of its blocks is left out (the
