@@ -668,7 +668,9 @@ pub struct Frame {
     /// Where the water is, as the views (camera, pool, the light's screen) are fitted to it,
     /// for surfels on a density grid with the boundary calibration: from the particles
     /// ([`Pipeline::grid_water_shape`]), so that the CPU's pictures and [`GpuPipeline`]'s,
-    /// whose surfels stay on the GPU, are seen alike. `None`: fitted to the surfels.
+    /// whose surfels stay on the GPU, are seen alike; for the spheres of the peer renderers,
+    /// their box with the water's level from the particles (`Pipeline::sphere_water_shape`).
+    /// `None`: fitted to the surfels.
     pub shape: Option<optics::WaterShape>,
 }
 
@@ -989,6 +991,14 @@ impl Pipeline {
         frame.shape = frame.grid.as_ref().and_then(|g| {
             self.grid_water_shape(particles.positions, &frame.surface, frame.radius, g.spec())
         });
+        if self.water.drawn() != Drawn::Surfels {
+            frame.shape = Some(self.sphere_water_shape(
+                particles.positions,
+                &frame.surface,
+                frame.radius,
+                &frame.render_surfels,
+            ));
+        }
         if through == Through::Mesh {
             let t = Instant::now();
             frame.mesh = frame.triangulate();
@@ -1135,6 +1145,12 @@ impl Pipeline {
             frame.timings.calibration_ms = ms(t);
             frame.render_surfels =
                 splat::spheres_from(&input.positions, &input.radii, frame.radius, splat::WATER);
+            frame.shape = Some(p.sphere_water_shape(
+                particles.positions,
+                &frame.surface,
+                frame.radius,
+                &frame.render_surfels,
+            ));
             frame.warnings = warnings;
             frame.timings.total_ms = ms(total);
             let input = (!input.positions.is_empty()).then_some(input);
@@ -1880,18 +1896,33 @@ impl Pipeline {
         }
         let out = 0.25 * radius;
         let own = crate::view::widened_bounds(positions.iter().copied(), out + grid.spacing);
-        let up = surface
-            .classes
-            .iter()
-            .zip(&surface.normals)
-            .zip(positions)
-            .filter(|((c, n), _)| **c == ParticleClass::Surface && n.y > 0.5)
-            .map(|((_, n), p)| p.y + out * n.y);
         Some(optics::WaterShape {
             drawn: own,
             surface: own,
-            level: optics::median(up.collect()),
+            level: surface_level(positions, surface, out),
         })
+    }
+
+    /// Where the water of a frame drawn as spheres is (the peer renderers: particle splats,
+    /// ray casting, screen space), from its `spheres` ([`Pipeline::water_shape`]) and, since
+    /// spheres carry no normals, the level of the water from its particles at `positions` as
+    /// [`Pipeline::grid_water_shape`] finds it (the upward-facing surface particles half a
+    /// spacing out, `radius` the support radius). Without a level an automatic pool's walls
+    /// rose half way up the box of the water and its splash: on the dam break's frame, whose
+    /// spray climbs far over its pool, the walls hid the pool's water from the camera in every
+    /// peer renderer's finished frame.
+    fn sphere_water_shape(
+        &self,
+        positions: &[Vec3],
+        surface: &Surface,
+        radius: f32,
+        spheres: &[Surfel],
+    ) -> optics::WaterShape {
+        let mut shape = self.water_shape(spheres, radius);
+        if shape.level.is_none() && radius.is_finite() && radius > 0.0 {
+            shape.level = surface_level(positions, surface, 0.25 * radius);
+        }
+        shape
     }
 
     /// The optics scene of this frame (support radius `radius`, the water's `shape`): the first
@@ -2167,6 +2198,20 @@ pub fn sphere_points(spheres: &[Surfel]) -> (Vec<Vec3>, Vec<f32>) {
         .iter()
         .map(|s| (Vec3::from(s.position), s.radius))
         .unzip()
+}
+
+/// The level of the water's upward-facing surface: the median height of the surface particles
+/// at `positions` (classed in `surface`) whose normal points up, `out` along it (`None`: no
+/// such particle).
+fn surface_level(positions: &[Vec3], surface: &Surface, out: f32) -> Option<f32> {
+    let up = surface
+        .classes
+        .iter()
+        .zip(&surface.normals)
+        .zip(positions)
+        .filter(|((c, n), _)| **c == ParticleClass::Surface && n.y > 0.5)
+        .map(|((_, n), p)| p.y + out * n.y);
+    optics::median(up.collect())
 }
 
 /// A density grid's points: positions, kernel radii (empty: every one the support radius) and
