@@ -571,6 +571,25 @@ pub struct BinnedPoints {
 }
 
 impl BinnedPoints {
+    /// The points `sort` sorts into the bins of `layout` (its buffers, once the encoder it
+    /// recorded into has run).
+    pub(crate) fn sorted_by(
+        sort: &super::bins::GpuBinSort,
+        layout: &super::bins::BinLayout,
+        points: &Points<'_>,
+    ) -> Self {
+        let (leading, rest_radius) = super::bins::leading_and_rest(points);
+        Self {
+            points: sort.sorted().clone(),
+            starts: sort.starts().clone(),
+            bins: layout.bins,
+            bin_size: layout.size,
+            count: points.len(),
+            leading,
+            rest_radius,
+        }
+    }
+
     /// Bins `points` over the box of `spec` and uploads them.
     pub fn new(
         device: &wgpu::Device,
@@ -1248,16 +1267,7 @@ impl GridFiller {
             self.grid.reserve(&ctx.device, bytes),
         ];
         self.created = self.bins.created() + usize::from(made[1]);
-        let (leading, rest_radius) = super::bins::leading_and_rest(points);
-        let binned = BinnedPoints {
-            points: self.bins.sorted().clone(),
-            starts: self.bins.starts().clone(),
-            bins: layout.bins,
-            bin_size: layout.size,
-            count: points.len(),
-            leading,
-            rest_radius,
-        };
+        let binned = BinnedPoints::sorted_by(&self.bins, &layout, points);
         Ok((binned, made, raw))
     }
 

@@ -20,7 +20,7 @@ use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
 use super::{BAND, BURIED, LONE_RADIUS, MAX_WEIGHT, WEIGHT_STEPS};
-use crate::density::bins::{BinLayout, GpuBinSort, leading_and_rest};
+use crate::density::bins::{BinLayout, GpuBinSort};
 use crate::density::gpu::{BinnedPoints, GATHER_REACH, kernel_code, kernel_constant, raw_points};
 use crate::density::{GridSpec, Kernel, Points, Resolution};
 use crate::gpu::{self, GpuContext, GpuError};
@@ -777,16 +777,7 @@ impl PointWeights {
         let layout = BinLayout::of(&points, &spec);
         self.sort
             .record(ctx, encoder, &raw_points(&points), &layout)?;
-        let (leading, rest_radius) = leading_and_rest(&points);
-        let binned = BinnedPoints {
-            points: self.sort.sorted().clone(),
-            starts: self.sort.starts().clone(),
-            bins: layout.bins,
-            bin_size: layout.size,
-            count: n,
-            leading,
-            rest_radius,
-        };
+        let binned = BinnedPoints::sorted_by(&self.sort, &layout, &points);
         let split: Vec<[f32; 2]> = (0..n)
             .map(|j| {
                 let b = points.weight(j);
