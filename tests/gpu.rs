@@ -2102,6 +2102,58 @@ fn gpu_pipeline_frames_on_the_gpu_wait_on_nothing() {
     }
 }
 
+/// The bad frames both pipelines' bad-frame tests draw through `gpu`: `block` (its frame and
+/// image), the same with a NaN (refused as not finite, and the next frame draws as before), no
+/// particle (its frame and the dry pool's image), one particle of the block (the set, its frame
+/// and image).
+struct BadFrames {
+    first: pipeline::Frame,
+    image: image::RgbaImage,
+    empty: pipeline::Frame,
+    dry: image::RgbaImage,
+    lone_set: fluid_surfels::ParticleSet,
+    lone: pipeline::Frame,
+    drop: image::RgbaImage,
+}
+
+fn bad_frames(
+    ctx: &gpu::GpuContext,
+    gpu: &mut GpuPipeline,
+    block: &fluid_surfels::ParticleSet,
+) -> BadFrames {
+    let (first, image) = gpu.prepare_image(ctx, block).unwrap();
+    let mut bad = block.clone();
+    bad.positions[3].y = f32::NAN;
+    let e = gpu.prepare_image(ctx, &bad).unwrap_err().to_string();
+    assert!(e.contains("finite"), "{e}");
+    let (_, again) = gpu.prepare_image(ctx, block).unwrap();
+    assert_eq!(image, again, "the frame after a refused one");
+    let (empty, dry) = gpu
+        .prepare_image(ctx, &fluid_surfels::ParticleSet::from_positions(Vec::new()))
+        .unwrap();
+    assert!(empty.render_surfels.is_empty());
+    let lone_set = fluid_surfels::ParticleSet::from_positions(vec![block.positions[0]]);
+    let (lone, drop) = gpu.prepare_image(ctx, &lone_set).unwrap();
+    BadFrames {
+        first,
+        image,
+        empty,
+        dry,
+        lone_set,
+        lone,
+        drop,
+    }
+}
+
+/// Pixels of `image` that differ from `background`'s.
+fn covered(image: &image::RgbaImage, background: &image::RgbaImage) -> usize {
+    image
+        .pixels()
+        .zip(background.pixels())
+        .filter(|(a, b)| a != b)
+        .count()
+}
+
 /// `GpuPipeline::prepare` with the grid and surfels on the GPU on bad frames (issue 37): a
 /// non-finite position is a typed error, an empty frame draws the empty pool, a lone particle
 /// is drawn, a grid over the memory budget is coarsened with a warning; after each the
@@ -2136,29 +2188,18 @@ fn gpu_pipeline_on_the_gpu_meets_bad_frames() {
         let format = wgpu::TextureFormat::Rgba8Unorm;
         let mut gpu =
             GpuPipeline::new(&ctx.device, &ctx.queue, format, size, &params(1 << 30)).unwrap();
-        let covered = |image: &image::RgbaImage, background: &image::RgbaImage| {
-            image
-                .pixels()
-                .zip(background.pixels())
-                .filter(|(a, b)| a != b)
-                .count()
-        };
-        // the block, then the same with a NaN: refused, and the next frame works
-        let (first, image) = gpu.prepare_image(&ctx, &block.particles).unwrap();
-        assert!(first.surfels_on_gpu);
-        let mut bad = block.particles.clone();
-        bad.positions[3].y = f32::NAN;
-        let e = gpu.prepare_image(&ctx, &bad).unwrap_err().to_string();
-        assert!(e.contains("finite"), "{e}");
-        let (_, again) = gpu.prepare_image(&ctx, &block.particles).unwrap();
-        assert_eq!(image, again, "the frame after a refused one");
-        // no particles: the pool without water; a lone particle: a drop
-        let empty = fluid_surfels::ParticleSet::from_positions(Vec::new());
-        let (frame, dry) = gpu.prepare_image(&ctx, &empty).unwrap();
-        assert!(frame.render_surfels.is_empty());
-        let lone = fluid_surfels::ParticleSet::from_positions(vec![block.particles.positions[0]]);
-        let (frame, drop) = gpu.prepare_image(&ctx, &lone).unwrap();
-        assert!(frame.surfels_on_gpu);
+        // the block, then the same with a NaN: refused, and the next frame works; no particles:
+        // the pool without water; a lone particle: a drop
+        let BadFrames {
+            first,
+            image,
+            dry,
+            lone_set: lone,
+            lone: frame,
+            drop,
+            ..
+        } = bad_frames(&ctx, &mut gpu, &block.particles);
+        assert!(first.surfels_on_gpu && frame.surfels_on_gpu);
         let read = gpu.read_surfels(&ctx).unwrap().unwrap();
         println!(
             "a lone particle: {} surfels, {} pixels differ from the empty frame; the block {}",
@@ -2211,24 +2252,18 @@ fn gpu_pipeline_weighs_the_spheres_of_bad_frames() {
     let format = wgpu::TextureFormat::Rgba8Unorm;
     let mut gpu = GpuPipeline::new(&ctx.device, &ctx.queue, format, size, &params).unwrap();
     assert!(gpu.weights_on_gpu());
-    let (first, image) = gpu.prepare_image(&ctx, &block.particles).unwrap();
+    let BadFrames {
+        first,
+        empty,
+        dry,
+        lone_set: lone,
+        lone: frame,
+        drop,
+        ..
+    } = bad_frames(&ctx, &mut gpu, &block.particles);
     assert!(first.weights_on_gpu && !first.render_surfels.is_empty());
-    let mut bad = block.particles.clone();
-    bad.positions[3].y = f32::NAN;
-    let e = gpu.prepare_image(&ctx, &bad).unwrap_err().to_string();
-    assert!(e.contains("finite"), "{e}");
-    let (_, again) = gpu.prepare_image(&ctx, &block.particles).unwrap();
-    assert_eq!(image, again, "the frame after a refused one");
-    let empty = fluid_surfels::ParticleSet::from_positions(Vec::new());
-    let (frame, dry) = gpu.prepare_image(&ctx, &empty).unwrap();
-    assert!(frame.render_surfels.is_empty() && !frame.weights_on_gpu);
-    let lone = fluid_surfels::ParticleSet::from_positions(vec![block.particles.positions[0]]);
-    let (frame, drop) = gpu.prepare_image(&ctx, &lone).unwrap();
-    let covered = drop
-        .pixels()
-        .zip(dry.pixels())
-        .filter(|(a, b)| a != b)
-        .count();
+    assert!(!empty.weights_on_gpu);
+    let covered = covered(&drop, &dry);
     let weights = gpu.read_sphere_weights(&ctx).unwrap().unwrap();
     let mut cpu = Pipeline::new(params.clone()).unwrap();
     let on_cpu = cpu.frame_through(&lone, Through::Surfels).unwrap();

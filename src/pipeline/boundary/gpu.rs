@@ -478,33 +478,14 @@ impl WeightPasses {
         points: &wgpu::Buffer,
         count: usize,
     ) {
-        let solved = self.w[self.solved()].buffer().clone();
-        if self.created > 0
-            || self
-                .copy_bind
-                .as_ref()
-                .is_none_or(|(b, w, _)| b != points || *w != solved)
-        {
-            let bind = self.apply_bind(device, &solved, points);
-            self.copy_bind = Some((points.clone(), solved, bind));
-            self.created += 1;
-        }
-        let all = (count as u32).div_ceil(64).max(1);
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("boundary weights apply to a copy"),
-            timestamp_writes: None,
-        });
-        pass.set_pipeline(&self.apply);
-        pass.set_bind_group(0, &self.copy_bind.as_ref().expect("made above").2, &[]);
-        pass.dispatch_workgroups(all.min(65_535), all.div_ceil(65_535), 1);
+        self.per_point(device, encoder, PerPoint::Copy, points, count);
     }
 
     /// After [`Self::record`] in the same encoder: each point's weight in the density (its
     /// interior share plus its sheet weight times its solved weight, what the binned points
     /// get) written into `out` (`f32` a point, at least `count`, the points of that record)
     /// in the points' own order, for a reader that keeps it (the ray caster's spheres,
-    /// [`PointWeights`]). The bind group is made anew only when `out` or the solved weights'
-    /// buffer changes (counted in [`Self::created`]).
+    /// [`PointWeights`]).
     pub fn write_ordered(
         &mut self,
         device: &wgpu::Device,
@@ -512,51 +493,80 @@ impl WeightPasses {
         out: &wgpu::Buffer,
         count: usize,
     ) {
+        self.per_point(device, encoder, PerPoint::Ordered, out, count);
+    }
+
+    /// The pass of [`Self::apply_to`] or [`Self::write_ordered`] over `count` points into
+    /// `target`; its bind group made anew only when `target` or the solved weights' buffer
+    /// changes (counted in [`Self::created`]).
+    fn per_point(
+        &mut self,
+        device: &wgpu::Device,
+        encoder: &mut wgpu::CommandEncoder,
+        kind: PerPoint,
+        target: &wgpu::Buffer,
+        count: usize,
+    ) {
         let solved = self.w[self.solved()].buffer().clone();
+        let kept = match kind {
+            PerPoint::Copy => &self.copy_bind,
+            PerPoint::Ordered => &self.ordered_bind,
+        };
         if self.created > 0
-            || self
-                .ordered_bind
+            || kept
                 .as_ref()
-                .is_none_or(|(o, w, _)| o != out || *w != solved)
+                .is_none_or(|(t, w, _)| t != target || *w != solved)
         {
-            let bind = gpu::buffer_bind_group(
-                device,
-                &self.ordered,
-                &[
-                    (0, &self.uniform),
-                    (5, &solved),
-                    (6, out),
-                    (8, self.split.buffer()),
-                ],
-            );
-            self.ordered_bind = Some((out.clone(), solved, bind));
+            let bind = self.target_bind(device, kind, &solved, target);
+            let made = Some((target.clone(), solved, bind));
+            match kind {
+                PerPoint::Copy => self.copy_bind = made,
+                PerPoint::Ordered => self.ordered_bind = made,
+            }
             self.created += 1;
         }
+        let (pipeline, bind, label) = match kind {
+            PerPoint::Copy => (
+                &self.apply,
+                &self.copy_bind,
+                "boundary weights apply to a copy",
+            ),
+            PerPoint::Ordered => (
+                &self.ordered,
+                &self.ordered_bind,
+                "boundary weights in order",
+            ),
+        };
         let all = (count as u32).div_ceil(64).max(1);
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("boundary weights in order"),
+            label: Some(label),
             timestamp_writes: None,
         });
-        pass.set_pipeline(&self.ordered);
-        pass.set_bind_group(0, &self.ordered_bind.as_ref().expect("made above").2, &[]);
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, &bind.as_ref().expect("made above").2, &[]);
         pass.dispatch_workgroups(all.min(65_535), all.div_ceil(65_535), 1);
     }
 
-    /// The application's bind group: the weights in `solved` written into the copy of the
-    /// points `points`.
-    fn apply_bind(
+    /// The bind group of a pass writing the weights in `solved` into `target`: the copy of
+    /// the points `apply` writes in place, or the weights in order.
+    fn target_bind(
         &self,
         device: &wgpu::Device,
+        kind: PerPoint,
         solved: &wgpu::Buffer,
-        points: &wgpu::Buffer,
+        target: &wgpu::Buffer,
     ) -> wgpu::BindGroup {
+        let (pipeline, binding) = match kind {
+            PerPoint::Copy => (&self.apply, 7),
+            PerPoint::Ordered => (&self.ordered, 6),
+        };
         gpu::buffer_bind_group(
             device,
-            &self.apply,
+            pipeline,
             &[
                 (0, &self.uniform),
                 (5, solved),
-                (7, points),
+                (binding, target),
                 (8, self.split.buffer()),
             ],
         )
@@ -681,9 +691,18 @@ impl WeightPasses {
             ),
             steps: [step(0), step(1)],
             steps_whole: [step_whole(0), step_whole(1)],
-            apply: w.map(|solved| self.apply_bind(device, solved, &binned.points)),
+            apply: w.map(|solved| self.target_bind(device, PerPoint::Copy, solved, &binned.points)),
         }
     }
+}
+
+/// Which of the passes writing the solved weights per point ([`WeightPasses::per_point`]).
+#[derive(Clone, Copy)]
+enum PerPoint {
+    /// Into another copy of the binned points, in place (`apply`).
+    Copy,
+    /// Into a buffer in the points' own order (`ordered`).
+    Ordered,
 }
 
 /// The boundary calibration's weights of points given with their split
