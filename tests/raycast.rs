@@ -624,3 +624,98 @@ fn gpu_and_cpu_ray_casts_agree_on_the_chains_points() {
         "covered {c} against {g}, {psnr:.1} dB"
     );
 }
+
+/// A caster whose weights are on the GPU (`Caster::with_weights_on_gpu`, as `GpuPipeline`'s
+/// calibrated spheres) builds no CPU index and casts, from each of two views of one frame (the
+/// inputs made once and shared), what the caster with the same weights on the CPU casts on the
+/// GPU, bit for bit; the CPU refuses to cast it.
+#[test]
+fn a_caster_with_its_weights_on_the_gpu_casts_what_the_cpus_does() {
+    use wgpu::util::DeviceExt;
+    let Some(ctx) = fluid_surfels::gpu::context_or_skip(
+        "a_caster_with_its_weights_on_the_gpu_casts_what_the_cpus_does",
+    )
+    .unwrap() else {
+        return;
+    };
+    let sphere = scenes::sphere(&scenes::SphereParams {
+        radius_in_spacings: 5.0,
+        jitter: 0.1,
+        ..Default::default()
+    })
+    .unwrap();
+    let (positions, h) = (&sphere.particles.positions, sphere.support_radius);
+    // two radius groups and weights that differ from point to point
+    let radii: Vec<f32> = (0..positions.len())
+        .map(|j| if j % 3 == 0 { 0.6 * h } else { h })
+        .collect();
+    let weights: Vec<f32> = (0..positions.len())
+        .map(|j| 0.7 + 0.6 * ((j * 37 % 101) as f32 / 100.0))
+        .collect();
+    let params = RayCastParams::default();
+    let points = Points::with_radii(positions, &radii, h);
+    let on_cpu = Caster::new(points.with_weights(&weights), Kernel::Wyvill, &params).unwrap();
+    let buffer = ctx
+        .device
+        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("weights"),
+            contents: bytemuck::cast_slice(&weights),
+            usage: wgpu::BufferUsages::STORAGE,
+        });
+    let on_gpu = Caster::with_weights_on_gpu(points, Kernel::Wyvill, &params, buffer).unwrap();
+    assert_eq!(on_gpu.groups(), on_cpu.groups());
+    assert_eq!(on_gpu.groups().len(), 2);
+    assert!(on_gpu.density().is_none() && on_cpu.density().is_some());
+    let (lo, hi) = positions
+        .iter()
+        .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(a, b), &q| {
+            (a.min(q), b.max(q))
+        });
+    let near = Camera::framing(lo - h, hi + h);
+    let far = Camera {
+        eye: near.eye + (near.eye - near.target) * 0.5 + Vec3::X * h,
+        ..near
+    };
+    let (light, splat) = (Light::default(), SplatParams::default());
+    // one pass per size, as a frame's camera and light have
+    let mut passes = [
+        raycast::gpu::GpuCaster::new(&ctx.device, SIZE, SIZE).unwrap(),
+        raycast::gpu::GpuCaster::new(&ctx.device, SIZE / 2, SIZE).unwrap(),
+    ];
+    let mut cast = |k: usize, caster: &Caster<'_>, camera: &Camera| {
+        let (w, ht) = passes[k].size();
+        let v = View::new(camera, &light, &splat, w, ht).unwrap();
+        passes[k]
+            .prepare(&ctx.device, &ctx.queue, caster, &v)
+            .unwrap();
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        passes[k].encode(&mut encoder).unwrap();
+        ctx.queue.submit([encoder.finish()]);
+        passes[k].read(&ctx).unwrap()
+    };
+    for (k, camera) in [(0, &near), (1, &far)] {
+        // the GPU's first, so that its passes hold no weights uploaded before
+        let got = cast(k, &on_gpu, camera);
+        let expected = cast(k, &on_cpu, camera);
+        assert!(expected.render.covered_pixels() > 300, "view {k}");
+        assert!(
+            got.render.image == expected.render.image,
+            "view {k}: {:.1} dB apart",
+            fluid_surfels::splat::psnr(&expected.render.image, &got.render.image)
+        );
+        assert_eq!(got.samples, expected.samples, "view {k}");
+    }
+    // the CPU has no index to cast it with: refused, not a picture without water
+    let v = View::new(&near, &light, &splat, SIZE, SIZE).unwrap();
+    let refused = raycast::cpu::render_view_cpu(&on_gpu, &v);
+    assert!(
+        matches!(
+            refused,
+            Err(RayCastError::InvalidParameter { name: "caster", .. })
+        ),
+        "{:?}",
+        refused.err()
+    );
+    let x = positions[0];
+    assert!(on_gpu.pca_normal(x).is_none() && raycast::surface_normal(&on_gpu, x).is_none());
+}

@@ -42,7 +42,7 @@ fn intervals_of(
     d: Vec3,
     out: &mut Vec<(f32, f32)>,
 ) -> f32 {
-    let points = caster.density().points();
+    let points = caster.points();
     let a = d.length_squared();
     let mut chords = 0.0;
     out.clear();
@@ -85,10 +85,18 @@ const VOLUME_SHARE: f32 = 3.0 / (32.0 * std::f32::consts::PI);
 
 /// [`render_cpu`] for a prepared view (perspective or orthographic, such as a light's screen).
 /// Refused before casting, like the splats, when the spheres' screen rectangles add up to more
-/// pixels than the view's limit or the buffers would not fit in memory.
+/// pixels than the view's limit or the buffers would not fit in memory, and for a caster whose
+/// weights are on the GPU ([`Caster::with_weights_on_gpu`]).
 pub fn render_view_cpu(caster: &Caster<'_>, v: &View) -> Result<RayCast, RayCastError> {
+    if caster.density().is_none() {
+        return Err(RayCastError::InvalidParameter {
+            name: "caster",
+            reason: "its weights were solved on the GPU and stay there: the CPU cannot cast it"
+                .into(),
+        });
+    }
     let (w, h) = (v.width as usize, v.height as usize);
-    let points = caster.density().points();
+    let points = caster.points();
     let params = &caster.params;
     // 1. the spheres binned into screen tiles
     let (tw, tiles) = bin_spheres(caster, v)?;
@@ -152,7 +160,7 @@ pub(crate) fn bin_spheres(
     caster: &Caster<'_>,
     v: &View,
 ) -> Result<(usize, Vec<Vec<u32>>), RayCastError> {
-    let points = caster.density().points();
+    let points = caster.points();
     Ok(bin(v, points.len(), |j| {
         (points.positions[j], points.radius(j))
     })?)
@@ -169,7 +177,7 @@ pub(crate) fn finish(
     samples: u64,
 ) -> RayCast {
     let n = hits.len();
-    let points = caster.density().points();
+    let points = caster.points();
     let base = Vec3::from_slice(&crate::splat::WATER[..3]);
     let absorption = Vec3::from(caster.params.absorption) / points.h;
     let mut colour = vec![[0.0f32; 4]; n];

@@ -157,10 +157,10 @@ fn csr_grid(points: &Points<'_>, members: &[u32], lo: Vec3, cell: f32, dims: [u6
 /// last, the PCA grid of reach `pca_reach` over all points; cells grow by a common factor until
 /// all grids together have at most [`MAX_CELLS`].
 fn grids_of(caster: &Caster<'_>, pca_reach: f32) -> Vec<CsrGrid> {
-    let points = caster.density().points();
+    let points = caster.points();
     let mut groups: Vec<(f32, Vec<u32>)> = caster
-        .density()
         .groups()
+        .into_iter()
         .map(|(reach, members)| (reach, members.to_vec()))
         .collect();
     while groups.len() > MAX_GRIDS - 1 {
@@ -216,6 +216,56 @@ impl CsrGrid {
             .max()
             .unwrap_or(0);
         27 * u64::from(fullest)
+    }
+}
+
+/// What the cast of every view reads of one [`Caster`], the same whatever the view: made by the
+/// first view's upload and kept in the caster, so that a frame's views (the light's and the
+/// camera's) convert the points and build the grids once (the grids 1.5-2 ms a view on the
+/// column's splash frame, this project's machine).
+pub(super) struct CastInputs {
+    /// Each point's centre and radius.
+    points: Vec<[f32; 4]>,
+    /// Each point's weight (empty: they are on the GPU, [`Caster::gpu_weights`]).
+    weights: Vec<f32>,
+    /// Every grid's starts, then their items ([`pack_grids`]), and the grids' uniforms.
+    cells: Vec<u32>,
+    grids: RawGrids,
+    /// How many grids (the PCA's last).
+    count: usize,
+    /// The points' largest radius and the PCA's reach.
+    reach: (f32, f32),
+    /// [`iteration_bound`] less the longest tile's spheres.
+    iterations: u64,
+}
+
+impl CastInputs {
+    fn of(caster: &Caster<'_>) -> Self {
+        let points = caster.points();
+        let reach = points.max_radius();
+        let pca_reach = caster.params.pca_radius * reach;
+        let grids = grids_of(caster, pca_reach);
+        let (cells, raw_grids) = pack_grids(&grids);
+        let weights = match caster.gpu_weights() {
+            Some(_) => Vec::new(),
+            None => (0..points.len()).map(|j| points.weight(j)).collect(),
+        };
+        Self {
+            points: (0..points.len())
+                .map(|j| points.positions[j].extend(points.radius(j)).to_array())
+                .collect(),
+            weights,
+            cells,
+            grids: raw_grids,
+            count: grids.len(),
+            reach: (reach, pca_reach),
+            iterations: iteration_bound(
+                caster,
+                0,
+                &grids,
+                caster.params.step * points.min_radius(),
+            ),
+        }
     }
 }
 
@@ -462,8 +512,7 @@ impl GpuCaster {
         caster: &Caster<'_>,
         v: &View,
     ) -> Result<(), crate::Error> {
-        let points = caster.density().points();
-        let params = &caster.params;
+        let points = caster.points();
         // the tiles' room, from a recent binning of nearly this view or counted here (refused
         // as the CPU's binning refuses), and the longest tile (scaled from a recent binning:
         // half as much again for the run bound, which must not fall short)
@@ -478,9 +527,6 @@ impl GpuCaster {
             most_in_tile + most_in_tile / 2
         };
         let tw = v.tiles().0;
-        let point_data: Vec<[f32; 4]> = (0..points.len())
-            .map(|j| points.positions[j].extend(points.radius(j)).to_array())
-            .collect();
         // each point's factor on its term (the boundary calibration's weights; 1 without),
         // uploaded, or read where they were solved on the GPU
         let given = caster.gpu_weights();
@@ -494,25 +540,18 @@ impl GpuCaster {
             ))
             .into());
         }
-        let weights: Vec<f32> = match given {
-            Some(_) => Vec::new(),
-            None => (0..points.len()).map(|j| points.weight(j)).collect(),
-        };
-        let reach = points.max_radius();
-        let pca_reach = params.pca_radius * reach;
-        let grids = grids_of(caster, pca_reach);
-        let (cells, raw_grids) = pack_grids(&grids);
-        let raw = raw_params(caster, v, tw, (reach, pca_reach), grids.len());
+        let cast = caster.gpu_inputs.get_or_init(|| CastInputs::of(caster));
+        let raw = raw_params(caster, v, tw, cast.reach, cast.count);
         let inputs = &mut self.inputs;
         queue.write_buffer(&inputs.uniforms, 0, bytemuck::bytes_of(&raw));
-        queue.write_buffer(&inputs.grid_uniforms, 0, bytemuck::bytes_of(&raw_grids));
+        queue.write_buffer(&inputs.grid_uniforms, 0, bytemuck::bytes_of(&cast.grids));
         self.created = crate::gpu::write_grown(
             device,
             queue,
             [
-                (&mut inputs.points, bytemuck::cast_slice(&point_data)),
-                (&mut inputs.cells, bytemuck::cast_slice(&cells)),
-                (&mut inputs.weights, bytemuck::cast_slice(&weights)),
+                (&mut inputs.points, bytemuck::cast_slice(&cast.points)),
+                (&mut inputs.cells, bytemuck::cast_slice(&cast.cells)),
+                (&mut inputs.weights, bytemuck::cast_slice(&cast.weights)),
             ],
         );
         inputs.tiles.prepare(
@@ -528,7 +567,7 @@ impl GpuCaster {
             self.weights_bound = Some(bound.clone());
             self.created += 1;
         }
-        let most = iteration_bound(caster, most_in_tile as u64, &grids, raw.b[1]);
+        let most = cast.iterations + most_in_tile as u64;
         let runs = most.div_ceil(u64::from(BUDGET)) + 1;
         match &mut self.frame {
             Some(frame) if self.created == 0 => {
@@ -767,7 +806,7 @@ fn raw_params(
     (reach, pca_reach): (f32, f32),
     grids: usize,
 ) -> RawCastParams {
-    let points = caster.density().points();
+    let points = caster.points();
     let params = &caster.params;
     let (_, inv_view, _) = v.matrices();
     let half = v.half_extent();
@@ -789,7 +828,7 @@ fn raw_params(
                 RayNormals::Gradient => 1,
                 RayNormals::Pca => 2,
             },
-            match caster.density().kernel() {
+            match caster.kernel() {
                 Kernel::Wyvill => 0,
                 Kernel::CubicSpline => 1,
             },
@@ -817,7 +856,7 @@ fn raw_params(
 /// march from entry to exit at `step`, the bisections, the gradient and the PCA sums, each sum
 /// one iteration per row and per point).
 fn iteration_bound(caster: &Caster<'_>, most_in_tile: u64, grids: &[CsrGrid], step: f32) -> u64 {
-    let points = caster.density().points();
+    let points = caster.points();
     let params = &caster.params;
     let (lo, hi) = (0..points.len()).fold(
         (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),

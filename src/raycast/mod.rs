@@ -208,11 +208,12 @@ pub struct RayCast {
 /// the density's own kernel rather than the paper's spiky one, so that it is the iso-surface's
 /// exact normal), the PCA normal `N''` (eqs. 3, 4: the least-eigenvalue eigenvector of the
 /// covariance of the neighbours weighted `1 - (r / R)^3`, oriented like `N'`), and their blend
-/// (eqs. 5, 6). `None` where the gradient vanishes.
+/// (eqs. 5, 6). `None` where the gradient vanishes, and for a caster without the CPU's index
+/// ([`Caster::with_weights_on_gpu`]).
 #[must_use]
 pub fn surface_normal(caster: &Caster<'_>, x: Vec3) -> Option<Vec3> {
     let params = &caster.params;
-    let (_, gradient) = caster.density.value_and_gradient(x);
+    let (_, gradient) = caster.density()?.value_and_gradient(x);
     let basic = (-gradient).try_normalize()?;
     if params.normals == RayNormals::Gradient {
         return Some(basic);
@@ -287,14 +288,29 @@ pub fn bilateral(
 
 /// Points ready for ray casting: the density index and the radii the march needs.
 pub struct Caster<'a> {
-    density: ExactDensity<'a>,
-    /// The points in cells of the PCA neighbourhood's reach.
-    pca_grid: CellGrid,
+    points: Points<'a>,
+    kernel: crate::density::Kernel,
+    index: Index<'a>,
     pca_reach: f32,
     iso: f32,
     params: RayCastParams,
-    /// The points' weights on the GPU instead of in `density` ([`Caster::with_gpu_weights`]).
+    /// The points' weights on the GPU instead of in `points` ([`Caster::with_weights_on_gpu`]).
     gpu_weights: Option<wgpu::Buffer>,
+    /// What the GPU cast of every view reads, made by the first view's upload: the views of a
+    /// frame (the light's and the camera's) share it.
+    gpu_inputs: std::sync::OnceLock<gpu::CastInputs>,
+}
+
+/// How a [`Caster`]'s points are indexed.
+enum Index<'a> {
+    /// For the CPU's cast: the density's cells and the PCA neighbourhood's.
+    Cpu {
+        density: ExactDensity<'a>,
+        pca_grid: CellGrid,
+    },
+    /// For the GPU's cast alone (the weights there): the density's radius groups, which the
+    /// GPU's grids index ([`crate::surfels::radius_groups`]).
+    Gpu { groups: Vec<(f32, Vec<u32>)> },
 }
 
 impl<'a> Caster<'a> {
@@ -306,38 +322,89 @@ impl<'a> Caster<'a> {
     ) -> Result<Self, RayCastError> {
         params.validate()?;
         let density = ExactDensity::of(points, kernel)?;
-        let iso = params.iso_fraction * kernel.peak(points.h);
         let pca_reach = params.pca_radius * points.max_radius();
         let pca_grid = CellGrid::new(points.positions, pca_reach).map_err(SurfelError::from)?;
-        Ok(Self {
-            density,
-            pca_grid,
-            pca_reach,
-            iso,
+        Ok(Self::of(
+            points,
+            kernel,
+            params,
+            Index::Cpu { density, pca_grid },
+        ))
+    }
+
+    /// The caster of `points` whose weights are in `weights` on the GPU (`f32` a point, in their
+    /// order, solved there: `GpuPipeline`'s boundary calibration; `points`' own are not read):
+    /// the GPU cast reads them, a CPU cast is refused. The CPU's index is not built (the
+    /// density's and the PCA's cells: 5-7 ms of the column's splash frame on this project's
+    /// machine), only the radius groups the GPU's grids index.
+    pub fn with_weights_on_gpu(
+        points: Points<'a>,
+        kernel: crate::density::Kernel,
+        params: &RayCastParams,
+        weights: wgpu::Buffer,
+    ) -> Result<Self, RayCastError> {
+        params.validate()?;
+        points.check()?;
+        let groups = crate::surfels::radius_groups(&points);
+        let mut caster = Self::of(points, kernel, params, Index::Gpu { groups });
+        caster.gpu_weights = Some(weights);
+        Ok(caster)
+    }
+
+    fn of(
+        points: Points<'a>,
+        kernel: crate::density::Kernel,
+        params: &RayCastParams,
+        index: Index<'a>,
+    ) -> Self {
+        Self {
+            points,
+            kernel,
+            index,
+            pca_reach: params.pca_radius * points.max_radius(),
+            iso: params.iso_fraction * kernel.peak(points.h),
             params: *params,
             gpu_weights: None,
-        })
+            gpu_inputs: std::sync::OnceLock::new(),
+        }
     }
 
-    /// The caster with its points' weights in `weights` on the GPU (`f32` a point, in their
-    /// order, solved there: `GpuPipeline`'s boundary calibration) instead of in its density:
-    /// the GPU cast reads them, a CPU cast is refused.
-    #[must_use]
-    pub fn with_gpu_weights(mut self, weights: Option<wgpu::Buffer>) -> Self {
-        self.gpu_weights = weights;
-        self
-    }
-
-    /// The points' weights on the GPU, when they are there ([`Caster::with_gpu_weights`]).
+    /// The points' weights on the GPU, when they are there ([`Caster::with_weights_on_gpu`]).
     #[must_use]
     pub fn gpu_weights(&self) -> Option<&wgpu::Buffer> {
         self.gpu_weights.as_ref()
     }
 
-    /// The density the rays are cast through.
+    /// The density the CPU's rays are cast through; `None` for a caster whose weights are on
+    /// the GPU ([`Caster::with_weights_on_gpu`]).
     #[must_use]
-    pub fn density(&self) -> &ExactDensity<'a> {
-        &self.density
+    pub fn density(&self) -> Option<&ExactDensity<'a>> {
+        match &self.index {
+            Index::Cpu { density, .. } => Some(density),
+            Index::Gpu { .. } => None,
+        }
+    }
+
+    /// The points cast.
+    #[must_use]
+    pub fn points(&self) -> &Points<'a> {
+        &self.points
+    }
+
+    /// The density function.
+    #[must_use]
+    pub fn kernel(&self) -> crate::density::Kernel {
+        self.kernel
+    }
+
+    /// The density's groups of similar radii: each group's reach and its points
+    /// ([`ExactDensity::groups`]).
+    #[must_use]
+    pub fn groups(&self) -> Vec<(f32, &[u32])> {
+        match &self.index {
+            Index::Cpu { density, .. } => density.groups().collect(),
+            Index::Gpu { groups } => groups.iter().map(|(r, m)| (*r, m.as_slice())).collect(),
+        }
     }
 
     /// The absolute iso-value.
@@ -348,17 +415,21 @@ impl<'a> Caster<'a> {
 
     /// The PCA normal at `x` (unoriented): eqs. 3 and 4 over the points within `pca_radius` of
     /// their own radius, with the paper's weight `1 - (r / R)^3`. `None` with fewer than four
-    /// neighbours or a covariance without a clear least direction (a line or a blob).
+    /// neighbours or a covariance without a clear least direction (a line or a blob), and for a
+    /// caster without the CPU's index ([`Caster::with_weights_on_gpu`]).
     #[must_use]
     pub fn pca_normal(&self, x: Vec3) -> Option<Vec3> {
-        let points = self.density.points();
+        let Index::Cpu { pca_grid, .. } = &self.index else {
+            return None;
+        };
+        let points = &self.points;
         let scale = self.params.pca_radius;
         let (mut total, mut count) = (0.0f32, 0usize);
         let mut weighted = Vec3::ZERO;
         let mut second = Mat3::ZERO;
         // one pass: sum w, sum w e and sum w e e^T with e = p - x (about x, for precision),
         // then the covariance about the weighted mean (eqs. 3, 4)
-        self.pca_grid.for_each_within(x, self.pca_reach, |j| {
+        pca_grid.for_each_within(x, self.pca_reach, |j| {
             let j = j as usize;
             let e = points.positions[j] - x;
             let q = e.length() / (scale * points.radius(j));
@@ -387,6 +458,7 @@ impl<'a> Caster<'a> {
     /// marches from the first entry to the last exit, takes the same samples; those in the gaps
     /// between intervals are zero and skipped here), the first bracket `[t_(k-1), t_k]` that
     /// crosses refined by the bisection steps. The density evaluations are added to `samples`.
+    /// `None` for a caster without the CPU's index ([`Caster::with_weights_on_gpu`]).
     pub fn first_crossing(
         &self,
         o: Vec3,
@@ -395,9 +467,10 @@ impl<'a> Caster<'a> {
         dt: f32,
         samples: &mut u64,
     ) -> Option<f32> {
+        let density = self.density()?;
         let inside = |t: f32, samples: &mut u64| {
             *samples += 1;
-            self.density.value(o + t * d) >= self.iso
+            density.value(o + t * d) >= self.iso
         };
         let t0 = intervals.first()?.0;
         if inside(t0, samples) {
@@ -468,10 +541,15 @@ impl WaterRenderer for Method {
         true
     }
     fn water<'a>(&self, input: WaterInput<'a>) -> Result<Box<dyn WaterSurface + 'a>, Error> {
-        Ok(Box::new(
-            self.caster(input.points, input.weights, input.reference_radius)?
-                .with_gpu_weights(input.gpu_weights.cloned()),
-        ))
+        Ok(Box::new(match input.gpu_weights {
+            Some(weights) => Caster::with_weights_on_gpu(
+                Points::with_radii(input.points.0, input.points.1, input.reference_radius),
+                self.kernel,
+                &self.params,
+                weights.clone(),
+            )?,
+            None => self.caster(input.points, input.weights, input.reference_radius)?,
+        }))
     }
 }
 

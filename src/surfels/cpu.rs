@@ -57,55 +57,35 @@ impl<'a> ExactDensity<'a> {
     pub fn of(points: Points<'a>, kernel: Kernel) -> Result<Self, SurfelError> {
         points.check()?;
         let mut groups = Vec::new();
-        let uniform;
-        let radii = match (points.radii, points.weights) {
-            (Some(r), _) => Some(r),
-            (None, Some(_)) => {
-                uniform = vec![points.h; points.len()];
-                Some(uniform.as_slice())
+        for (reach, run) in radius_groups(&points) {
+            if points.radii.is_none() && points.weights.is_none() {
+                // every point of radius `h` and weight 1: one group over the positions as given
+                groups.push(Group {
+                    reach,
+                    grid: CellGrid::new(points.positions, reach)?,
+                    members: run,
+                    cell_radii: None,
+                    cell_weights: None,
+                });
+                continue;
             }
-            (None, None) => None,
-        };
-        match radii {
-            None => groups.push(Group {
-                reach: points.h,
-                grid: CellGrid::new(points.positions, points.h)?,
-                members: (0..points.len() as u32).collect(),
-                cell_radii: None,
-                cell_weights: None,
-            }),
-            Some(radii) => {
-                // quarter octaves of the radius, so a group's cells are at most 19 % too large
-                let key = |r: f32| (r.log2() * 4.0).floor() as i32;
-                // each point's key once (a key per comparison cost a logarithm each)
-                let keys: Vec<i32> = radii.iter().map(|&r| key(r)).collect();
-                let mut order: Vec<u32> = (0..points.len() as u32).collect();
-                order.sort_unstable_by_key(|&i| (keys[i as usize], i));
-                for run in order.chunk_by(|&a, &b| keys[a as usize] == keys[b as usize]) {
-                    let reach = run.iter().map(|&i| radii[i as usize]).fold(0.0, f32::max);
-                    let pos: Vec<Vec3> =
-                        run.iter().map(|&i| points.positions[i as usize]).collect();
-                    let grid = CellGrid::new(&pos, reach)?;
-                    let cell_radii = grid
-                        .order()
-                        .iter()
-                        .map(|&slot| radii[run[slot as usize] as usize])
-                        .collect();
-                    let cell_weights = points.weights.map(|w| {
-                        grid.order()
-                            .iter()
-                            .map(|&slot| w[run[slot as usize] as usize])
-                            .collect()
-                    });
-                    groups.push(Group {
-                        reach,
-                        grid,
-                        members: run.to_vec(),
-                        cell_radii: Some(cell_radii),
-                        cell_weights,
-                    });
-                }
-            }
+            let pos: Vec<Vec3> = run.iter().map(|&i| points.positions[i as usize]).collect();
+            let grid = CellGrid::new(&pos, reach)?;
+            let in_cells = |values: &dyn Fn(usize) -> f32| -> Vec<f32> {
+                grid.order()
+                    .iter()
+                    .map(|&slot| values(run[slot as usize] as usize))
+                    .collect()
+            };
+            let cell_radii = Some(in_cells(&|i| points.radius(i)));
+            let cell_weights = points.weights.map(|w| in_cells(&|i| w[i]));
+            groups.push(Group {
+                reach,
+                grid,
+                members: run,
+                cell_radii,
+                cell_weights,
+            });
         }
         Ok(Self {
             points,
@@ -285,6 +265,30 @@ impl<'a> ExactDensity<'a> {
         }
         sum
     }
+}
+
+/// The groups of similar radius [`ExactDensity`] indexes `points` in, each as its reach (its
+/// largest radius) and its points' indices: quarter octaves of the radius (so a group's cells
+/// are at most 19 % too large), in the order of the radii, each group's points in their own
+/// order; one group of reach `h` when the points have no radii of their own. For indexes of the
+/// same groups built elsewhere (the ray caster's grids on the GPU).
+#[must_use]
+pub fn radius_groups(points: &Points<'_>) -> Vec<(f32, Vec<u32>)> {
+    let Some(radii) = points.radii else {
+        return vec![(points.h, (0..points.len() as u32).collect())];
+    };
+    let key = |r: f32| (r.log2() * 4.0).floor() as i32;
+    // each point's key once (a key per comparison cost a logarithm each)
+    let keys: Vec<i32> = radii.iter().map(|&r| key(r)).collect();
+    let mut order: Vec<u32> = (0..points.len() as u32).collect();
+    order.sort_unstable_by_key(|&i| (keys[i as usize], i));
+    order
+        .chunk_by(|&a, &b| keys[a as usize] == keys[b as usize])
+        .map(|run| {
+            let reach = run.iter().map(|&i| radii[i as usize]).fold(0.0, f32::max);
+            (reach, run.to_vec())
+        })
+        .collect()
 }
 
 /// The crossings of the iso-value `iso` on the edges of z plane `k` (`plane`, `nx * ny` values):

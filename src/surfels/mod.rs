@@ -18,7 +18,9 @@
 pub mod cpu;
 pub mod gpu;
 
-pub use cpu::{ExactDensity, SurfelExtractor, extract, extract_points, extract_sparse};
+pub use cpu::{
+    ExactDensity, SurfelExtractor, extract, extract_points, extract_sparse, radius_groups,
+};
 
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
