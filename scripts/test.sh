@@ -105,7 +105,7 @@ fi
   "dask[distributed]>=2023.1" "meshio>=5" "usd-core>=24"
 wheel_dir="$(mktemp -d)"
 wheel_start=$(date +%s)
-# the dev profile (optimised, see Cargo.toml) shares the examples' build of the library and its
+# the dev profile (optimised, see Cargo.toml) shares the test build's library and its
 # dependencies (the same features: see python/Cargo.toml); --strip keeps the wheel small
 "$py_env/bin/maturin" build --locked --quiet --profile dev --strip \
   --manifest-path python/Cargo.toml --interpreter "$py_env/bin/python" --out "$wheel_dir"
