@@ -663,8 +663,18 @@ fn a_caster_with_its_weights_on_the_gpu_casts_what_the_cpus_does() {
             usage: wgpu::BufferUsages::STORAGE,
         });
     let on_gpu = Caster::with_weights_on_gpu(points, Kernel::Wyvill, &params, buffer).unwrap();
+    // the groups the GPU's grids index: the two radii, each with its own points (both casters
+    // find them through `radius_groups`, so checked against the radii themselves too)
     assert_eq!(on_gpu.groups(), on_cpu.groups());
-    assert_eq!(on_gpu.groups().len(), 2);
+    let groups = on_gpu.groups();
+    assert_eq!(groups.len(), 2);
+    for (reach, members) in groups {
+        assert!(!members.is_empty());
+        assert!(
+            members.iter().all(|&j| radii[j as usize] == reach),
+            "{reach}"
+        );
+    }
     assert!(on_gpu.density().is_none() && on_cpu.density().is_some());
     let (lo, hi) = positions
         .iter()

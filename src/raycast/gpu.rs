@@ -235,15 +235,14 @@ pub(super) struct CastInputs {
     count: usize,
     /// The points' largest radius and the PCA's reach.
     reach: (f32, f32),
-    /// [`iteration_bound`] less the longest tile's spheres.
+    /// [`iteration_bound`]: a view adds its longest tile's spheres.
     iterations: u64,
 }
 
 impl CastInputs {
     fn of(caster: &Caster<'_>) -> Self {
         let points = caster.points();
-        let reach = points.max_radius();
-        let pca_reach = caster.params.pca_radius * reach;
+        let (reach, pca_reach) = (points.max_radius(), caster.pca_reach);
         let grids = grids_of(caster, pca_reach);
         let (cells, raw_grids) = pack_grids(&grids);
         let weights = match caster.gpu_weights() {
@@ -259,12 +258,7 @@ impl CastInputs {
             grids: raw_grids,
             count: grids.len(),
             reach: (reach, pca_reach),
-            iterations: iteration_bound(
-                caster,
-                0,
-                &grids,
-                caster.params.step * points.min_radius(),
-            ),
+            iterations: iteration_bound(caster, &grids, caster.params.step * points.min_radius()),
         }
     }
 }
@@ -852,10 +846,10 @@ fn raw_params(
     }
 }
 
-/// An upper bound on the iterations any pixel needs (its tile's spheres, then every sample of the
-/// march from entry to exit at `step`, the bisections, the gradient and the PCA sums, each sum
-/// one iteration per row and per point).
-fn iteration_bound(caster: &Caster<'_>, most_in_tile: u64, grids: &[CsrGrid], step: f32) -> u64 {
+/// An upper bound on the iterations any pixel needs besides its tile's spheres (every sample of
+/// the march from entry to exit at `step`, the bisections, the gradient and the PCA sums, each
+/// sum one iteration per row and per point): the same for every view of the caster.
+fn iteration_bound(caster: &Caster<'_>, grids: &[CsrGrid], step: f32) -> u64 {
     let points = caster.points();
     let params = &caster.params;
     let (lo, hi) = (0..points.len()).fold(
@@ -880,11 +874,7 @@ fn iteration_bound(caster: &Caster<'_>, most_in_tile: u64, grids: &[CsrGrid], st
         .map(|g| g.most_visited() + 9)
         .sum::<u64>()
         + 2;
-    most_in_tile
-        + 2
-        + (march + u64::from(params.bisection_steps) + 1) * per_sum
-        + pca_grid.most_visited()
-        + 11
+    2 + (march + u64::from(params.bisection_steps) + 1) * per_sum + pca_grid.most_visited() + 11
 }
 
 impl crate::splat::GpuWaterPass for GpuCaster {
