@@ -434,6 +434,13 @@ fn column_setup(size: (u32, u32)) -> (scenes::ColumnSim, PipelineParams) {
         ..Default::default()
     };
     params.scene.optics.image_size = [size.0, size.1];
+    // a small virtual screen and caustics map: at the defaults (256 and 512 texels) the caustics
+    // cost lavapipe 1.7 s of each frame whatever the image size, and what these tests compare
+    // (CPU and GPU, frames and resources) does not depend on them; the one test of the optics
+    // at their defaults (`gpu_pipeline_equals_the_gpu_optics_and_the_cpu_pipeline`) sets them
+    // back
+    params.scene.optics.caustics_resolution = Some([64, 64]);
+    params.scene.optics.map_resolution = Some([128, 128]);
     (sim, params)
 }
 
@@ -451,7 +458,10 @@ fn gpu_pipeline_equals_the_gpu_optics_and_the_cpu_pipeline() {
         return;
     };
     let size = (160, 160);
-    let (mut sim, params) = column_setup(size);
+    let (mut sim, mut params) = column_setup(size);
+    // the optics at their defaults
+    params.scene.optics.caustics_resolution = None;
+    params.scene.optics.map_resolution = None;
     let mut cpu = Pipeline::new(params.clone()).unwrap();
     let frame = pipeline::column_frame(
         &mut cpu,
@@ -567,10 +577,6 @@ fn gpu_pipeline_with_the_peer_renderers_equals_the_cpu_pipeline() {
     ] {
         let (mut sim, mut params) = column_setup(size);
         params.renderer = renderer;
-        // a small virtual screen and caustics map (the renderers are compared here, not the
-        // caustics, which cost lavapipe most of each of these frames at the defaults)
-        params.scene.optics.caustics_resolution = Some([64, 64]);
-        params.scene.optics.map_resolution = Some([128, 128]);
         // the raw particles for the ray caster, to keep the test short on lavapipe (the chain's
         // points are tests/raycast.rs's)
         if renderer == pipeline::Renderer::RayCast {
@@ -1986,11 +1992,7 @@ fn gpu_pipeline_frames_on_the_gpu_wait_on_nothing() {
         return;
     };
     let size = (96, 96);
-    let (_, mut dense) = column_setup(size);
-    // a small virtual screen and caustics map: the caustics took half of lavapipe's frame at
-    // the defaults (256 and 512 texels), and what this test checks does not depend on them
-    dense.scene.optics.caustics_resolution = Some([64, 64]);
-    dense.scene.optics.map_resolution = Some([128, 128]);
+    let (_, dense) = column_setup(size);
     let mut sparse = dense.clone();
     sparse.grid.narrow_band = true;
     for params in [dense, sparse] {
@@ -2183,6 +2185,9 @@ fn gpu_pipeline_on_the_gpu_meets_bad_frames() {
                 ..Default::default()
             };
             p.scene.optics.image_size = [size.0, size.1];
+            // a small virtual screen and caustics map (see `column_setup`)
+            p.scene.optics.caustics_resolution = Some([32, 32]);
+            p.scene.optics.map_resolution = Some([64, 64]);
             p
         };
         let format = wgpu::TextureFormat::Rgba8Unorm;
