@@ -147,6 +147,13 @@ fn twins() -> Vec<Twin> {
             fields!(fluid_surfels::ssfr::gpu::RawSsfrParams; inv_view, screen, a, b, c, base, absorb),
         ),
         (
+            "ssfr_band.wgsl",
+            fluid_surfels::ssfr::gpu::BAND_SHADER,
+            "SsfrBand",
+            std::mem::size_of::<fluid_surfels::ssfr::gpu::RawSsfrBand>(),
+            fields!(fluid_surfels::ssfr::gpu::RawSsfrBand; a, b, view, proj, screen),
+        ),
+        (
             "present.wgsl",
             pipeline::gpu::PRESENT_SHADER,
             "Present",
@@ -3106,4 +3113,111 @@ fn gpu_tiles_are_sized_from_late_counts_of_the_same_view() {
     );
     // another view counts at once
     assert!(log[10].1 && log[10].3, "{log:?}");
+}
+
+/// The tiles of an orthographic view whose window follows the water from frame to frame (a
+/// light's screen, fitted to each frame's water: it moves and resizes, so it is never the same
+/// view twice) are sized from the statistics of the view before, scaled by how the pixel's
+/// size changed (issue 37: the light's tiles were counted on the CPU every frame): after the
+/// first frame none is counted on the CPU, and every frame holds all its pairs, item for item
+/// the CPU's binning, and its longest tile within half again of the one planned (an estimate:
+/// a window moved by part of a tile regroups the spheres, measured up to 10 % over the plan
+/// of a nearly equal view, whose late size has no margin; the ray caster, which bounds its
+/// iterations by it, adds half again to a late size), through
+/// windows that drift, grow and shrink by up to 8 % a frame and then halve at once (the
+/// spheres twice as large on the screen).
+#[test]
+fn gpu_tiles_of_a_moving_light_screen_are_sized_from_late_counts() {
+    use fluid_surfels::view::gpu::GpuTiles;
+    use fluid_surfels::view::{self, View};
+    use glam::{Vec2, Vec3};
+    let Some(ctx) =
+        gpu::context_or_skip("gpu_tiles_of_a_moving_light_screen_are_sized_from_late_counts")
+            .unwrap()
+    else {
+        return;
+    };
+    let ddb = double_dam_break();
+    let (lo, hi) = ddb
+        .iter()
+        .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(a, b), &p| {
+            (a.min(p), b.max(p))
+        });
+    let centre = 0.5 * (lo + hi);
+    let extent = 0.6 * (hi - lo).max_element();
+    let params = splat::SplatParams::default();
+    let light = Vec3::new(0.2, 1.0, 0.3).normalize();
+    let window = |shift: Vec3, scale: f32| {
+        View::window(
+            centre + shift + light * 3.0,
+            -light,
+            Vec3::Z,
+            Vec2::splat(extent * scale),
+            true,
+            0.01,
+            10.0,
+            &params,
+            186,
+            256,
+        )
+        .unwrap()
+    };
+    // (shift, scale) per frame: drifting and breathing, then halved
+    let frames: Vec<(Vec3, f32)> = (0..8)
+        .map(|f| {
+            let t = f as f32;
+            (
+                Vec3::new(0.02 * t, 0.0, -0.015 * t),
+                1.0 + 0.08 * (t * 1.3).sin(),
+            )
+        })
+        .chain((0..3).map(|_| (Vec3::ZERO, 0.5)))
+        .collect();
+    let spheres: Vec<[f32; 4]> = ddb.iter().map(|p| [p.x, p.y, p.z, 0.02]).collect();
+    let buffer = spheres_buffer(&ctx, &spheres);
+    let sphere = |j: usize| (Vec3::from_slice(&spheres[j][..3]), spheres[j][3]);
+    let mut tiles = GpuTiles::new(&ctx.device);
+    let mut log = Vec::new();
+    for (f, &(shift, scale)) in frames.iter().enumerate() {
+        let v = window(shift, scale);
+        let (room, most) = tiles.plan(&v, spheres.len(), sphere).unwrap();
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        tiles
+            .record(
+                &ctx,
+                &mut encoder,
+                &v,
+                (&buffer, spheres.len() as u32, 1),
+                room,
+            )
+            .unwrap();
+        ctx.queue.submit([encoder.finish()]);
+        tiles.after_submit();
+        let (_, cpu) = view::bin(&v, spheres.len(), sphere).unwrap();
+        let (_, gpu) = tiles.read(&ctx).unwrap();
+        let pairs: usize = cpu.iter().map(Vec::len).sum();
+        let longest = cpu.iter().map(Vec::len).max().unwrap_or(0);
+        println!(
+            "frame {f}: scale {scale:.3}, counted on the CPU: {}, room {room} for {pairs} pairs, longest tile {longest} (planned {most})",
+            tiles.planned_on_cpu()
+        );
+        log.push((
+            f,
+            tiles.planned_on_cpu(),
+            gpu == cpu,
+            longest <= most + most / 2,
+        ));
+    }
+    assert!(log[0].1, "{log:?}");
+    assert!(
+        log.iter().all(|l| l.2 && l.3),
+        "a frame lost pairs or its longest tile: {log:?}"
+    );
+    // the statistics come back a few frames late: from then on, nothing counted on the CPU
+    let first = log.iter().position(|l| l.0 > 0 && !l.1);
+    assert!(first.is_some(), "never sized late: {log:?}");
+    assert!(
+        log[first.unwrap()..].iter().all(|l| !l.1),
+        "counted again: {log:?}"
+    );
 }

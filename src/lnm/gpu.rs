@@ -35,7 +35,7 @@ const _: () = assert!(std::mem::size_of::<RawLnmParams>() == 48);
 pub const MAX_DENSE_VOXELS: u64 = 1 << 25;
 
 /// Fixed-point scale of a particle's offset in its voxel (`[0, 1)` voxel edges).
-const SCALE: u32 = 1 << 16;
+pub(crate) const SCALE: u32 = 1 << 16;
 
 /// A voxel with more particles than this could overflow its `i32` sums; its centroid is
 /// summed on the host instead.

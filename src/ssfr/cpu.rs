@@ -50,14 +50,22 @@ pub struct SsfrRender {
 }
 
 /// Points prepared for screen-space rendering: the narrow band (when asked) and the thickness
-/// sources, computed once and drawn from any number of views (the light's and the camera's).
+/// sources, made once and drawn from any number of views (the light's and the camera's). Made
+/// by [`ScreenSpace::new`]; [`ScreenSpace::deferred`] makes them on the first CPU use instead,
+/// so that the GPU passes ([`super::gpu::GpuSsfr`]), which make their own band on the GPU, leave
+/// the CPU without that work.
 pub struct ScreenSpace<'a> {
     positions: &'a [Vec3],
     radii: &'a [f32],
     h: f32,
     params: SsfrParams,
+    prepared: std::sync::OnceLock<Result<Prepared, SsfrError>>,
+}
+
+/// The band, the points drawn in the depth pass and the thickness sources of a
+/// [`ScreenSpace`].
+struct Prepared {
     band: Option<NarrowBand>,
-    /// The points drawn in the depth pass.
     drawn: Vec<u32>,
     sources: Vec<ThicknessSource>,
 }
@@ -72,6 +80,20 @@ impl<'a> ScreenSpace<'a> {
     /// Prepares `positions` with their radii (kernel supports); `h` is the reference support
     /// radius (the narrow band's voxel edge, the filters' depth scales).
     pub fn new(
+        positions: &'a [Vec3],
+        radii: &'a [f32],
+        h: f32,
+        params: &SsfrParams,
+    ) -> Result<Self, SsfrError> {
+        let screen = Self::deferred(positions, radii, h, params)?;
+        screen.prepared()?;
+        Ok(screen)
+    }
+
+    /// [`ScreenSpace::new`] with the inputs checked but the narrow band and the thickness
+    /// sources made on their first use on the CPU (an error of the band's then comes from the
+    /// render that needed it): the GPU passes make their own.
+    pub fn deferred(
         positions: &'a [Vec3],
         radii: &'a [f32],
         h: f32,
@@ -102,8 +124,27 @@ impl<'a> ScreenSpace<'a> {
                 reason: "radius not finite and > 0",
             });
         }
+        Ok(Self {
+            positions,
+            radii,
+            h,
+            params: *params,
+            prepared: std::sync::OnceLock::new(),
+        })
+    }
+
+    /// The band, the drawn points and the sources, made on the first call.
+    fn prepared(&self) -> Result<&Prepared, SsfrError> {
+        self.prepared
+            .get_or_init(|| self.prepare())
+            .as_ref()
+            .map_err(Clone::clone)
+    }
+
+    fn prepare(&self) -> Result<Prepared, SsfrError> {
+        let (positions, radii, params) = (self.positions, self.radii, &self.params);
         let (band, drawn, sources) = if params.narrow_band {
-            let band = crate::lnm::narrow_band(positions, h, &params.lnm)?;
+            let band = crate::lnm::narrow_band(positions, self.h, &params.lnm)?;
             let drawn = band.particles();
             // eq. 3: one Gaussian per full voxel at its particles' centroid, their volume
             let mut volume = vec![0.0f32; band.voxels.len()];
@@ -135,33 +176,38 @@ impl<'a> ScreenSpace<'a> {
                 .collect();
             (None, (0..positions.len() as u32).collect(), sources)
         };
-        Ok(Self {
-            positions,
-            radii,
-            h,
-            params: *params,
+        Ok(Prepared {
             band,
             drawn,
             sources,
         })
     }
 
-    /// The narrow band, when the parameters ask for one.
+    /// The points with their kernel radii, as given.
+    #[must_use]
+    pub fn points(&self) -> (&'a [Vec3], &'a [f32]) {
+        (self.positions, self.radii)
+    }
+
+    /// The narrow band, when the parameters ask for one (none when it could not be made: the
+    /// render says why).
     #[must_use]
     pub fn band(&self) -> Option<&NarrowBand> {
-        self.band.as_ref()
+        self.prepared().ok().and_then(|p| p.band.as_ref())
     }
 
-    /// Points drawn in the depth pass (the band's, or all).
+    /// Points drawn in the depth pass (the band's, or all; none when the band could not be
+    /// made).
     #[must_use]
     pub fn drawn(&self) -> usize {
-        self.drawn.len()
+        self.prepared().map_or(0, |p| p.drawn.len())
     }
 
-    /// The Gaussians of the thickness (voxels with the band, points without).
+    /// The Gaussians of the thickness (voxels with the band, points without; none when the
+    /// band could not be made).
     #[must_use]
     pub fn sources(&self) -> &[ThicknessSource] {
-        &self.sources
+        self.prepared().map_or(&[], |p| p.sources.as_slice())
     }
 
     /// The parameters.
@@ -170,10 +216,10 @@ impl<'a> ScreenSpace<'a> {
         &self.params
     }
 
-    /// Sphere `k` of the depth pass: centre and world radius.
+    /// Sphere `k` (below [`Self::drawn`]) of the depth pass: centre and world radius.
     #[must_use]
     pub fn sphere_of(&self, k: usize) -> (Vec3, f32) {
-        let j = self.drawn[k] as usize;
+        let j = self.prepared().map_or(k, |p| p.drawn[k] as usize);
         (self.positions[j], self.params.sphere_radius * self.radii[j])
     }
 
@@ -192,8 +238,10 @@ impl<'a> ScreenSpace<'a> {
     /// Every pass from one view (perspective, or orthographic such as a light's screen).
     pub fn render_view(&self, v: &View) -> Result<SsfrRender, SsfrError> {
         let mut timings = SsfrTimings::default();
+        // the band and sources, when deferred: their time is the depth pass's
         let t = Instant::now();
-        let raw = self.depth(v)?;
+        let prepared = self.prepared()?;
+        let raw = self.depth(v, prepared.drawn.len())?;
         timings.depth_ms = ms(t);
         let t = Instant::now();
         let mut image = depth_image(v, raw.clone());
@@ -206,7 +254,7 @@ impl<'a> ScreenSpace<'a> {
         );
         timings.filter_ms = ms(t);
         let t = Instant::now();
-        let thickness = thickness_image(v, &self.sources)?;
+        let thickness = thickness_image(v, &prepared.sources)?;
         let thickness = filter_thickness(
             &thickness,
             &image,
@@ -246,10 +294,10 @@ impl<'a> ScreenSpace<'a> {
     }
 
     /// Pass 1: the nearest sphere's depth per pixel (exact ray-sphere intersections).
-    fn depth(&self, v: &View) -> Result<Vec<f32>, SsfrError> {
+    fn depth(&self, v: &View, drawn: usize) -> Result<Vec<f32>, SsfrError> {
         let (w, hgt) = (v.width as usize, v.height as usize);
         let sphere = |k: usize| self.sphere_of(k);
-        let (tw, tiles) = bin(v, self.drawn.len(), sphere)?;
+        let (tw, tiles) = bin(v, drawn, sphere)?;
         Ok((0..w * hgt)
             .into_par_iter()
             .map(|i| {

@@ -1,9 +1,11 @@
 //! The screen-space passes on the GPU: `shaders/ssfr.wgsl`, compute passes one invocation per
 //! pixel, each the CPU reference's per-pixel function ([`super::cpu`], the specification) over
-//! the same inputs: the spheres and the projected thickness Gaussians in storage buffers,
-//! binned into the same 16x16 tiles as the CPU's on the GPU ([`GpuTiles`], in the encoder
-//! before the passes; the room for their lists from a recent binning of the same view, read
-//! back without a wait, or counted on the CPU). The filters ping-pong between two depth
+//! the same inputs: the spheres and the projected thickness Gaussians in storage buffers, made
+//! on the GPU from the points with the narrow band (`GpuBand`, `shaders/ssfr_band.wgsl`; the
+//! CPU's uploaded without it), binned into the same 16x16 tiles as the CPU's on the GPU
+//! ([`GpuTiles`], in the encoder before the passes; the room for their lists from a recent
+//! binning of a like view, read back without a wait, or counted on the CPU). The filters
+//! ping-pong between two depth
 //! buffers; the shading after the read-back is the CPU's (`splat::shade`), as for the ray
 //! caster. Tests compare every pass with the CPU's.
 
@@ -15,6 +17,30 @@ use crate::view::gpu::GpuTiles;
 
 /// The WGSL source of the passes.
 pub const SHADER: &str = include_str!("../../shaders/ssfr.wgsl");
+
+/// The WGSL source of the narrow band's passes and of the inputs made from it (`GpuBand`).
+pub const BAND_SHADER: &str = concat!(
+    include_str!("../../shaders/lnm.wgsl"),
+    include_str!("../../shaders/ssfr_band.wgsl")
+);
+
+/// The band passes' own uniforms (`SsfrBand` in the WGSL, 176 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RawSsfrBand {
+    /// sphere radius and thickness sigma in kernel radii, the reference radius, the voxel edge
+    pub a: [f32; 4],
+    /// voxels of the domain, -, -, -
+    pub b: [u32; 4],
+    /// the view: world to view, view to clip
+    pub view: [[f32; 4]; 4],
+    pub proj: [[f32; 4]; 4],
+    /// width, height, the pixel's world size at depth 1 (orthographic: the pixel's),
+    /// orthographic (1) or perspective (0)
+    pub screen: [f32; 4],
+}
+
+const _: () = assert!(std::mem::size_of::<RawSsfrBand>() == 176);
 
 /// The uniforms of the passes (`Params` in the WGSL, 160 bytes).
 #[repr(C)]
@@ -62,7 +88,8 @@ pub struct GpuSsfr {
 
 /// A view's inputs, in buffers kept from view to view (grown when a view needs more): the
 /// spheres and the projected thickness Gaussians, binned into tiles on the GPU (the Gaussians
-/// as spheres of three standard deviations).
+/// as spheres of three standard deviations); made on the CPU and uploaded, or made on the GPU
+/// from the points by the band's passes (`GpuBand`).
 struct Inputs {
     uniform: wgpu::Buffer,
     spheres: crate::gpu::Grow,
@@ -70,6 +97,254 @@ struct Inputs {
     source_spheres: crate::gpu::Grow,
     tiles: GpuTiles,
     source_tiles: GpuTiles,
+    band: GpuBand,
+    /// Whether the last [`GpuSsfr::prepare`] made the inputs on the GPU.
+    band_on_gpu: bool,
+}
+
+/// The passes' entry points, in the order [`GpuBand`] keeps their pipelines.
+const BAND_ENTRIES: [&str; 7] = [
+    "cs_count",
+    "cs_first",
+    "cs_second",
+    "cs_radii",
+    "cs_spheres",
+    "cs_sources",
+    "cs_project",
+];
+
+/// The narrow band of the points and the screen-space inputs made from it on the GPU (issue 37:
+/// `ScreenSpace` made them on the CPU for every frame), `shaders/ssfr_band.wgsl` over the
+/// points uploaded with their radii: the band on the dense voxels of its domain (the passes of
+/// `lnm.wgsl`, as `lnm::gpu::ResidentBand` runs them but with each voxel's offsets' sum and each
+/// point's voxel), then a depth sphere per point (radius 0 outside the band) and a thickness
+/// Gaussian per voxel (radius 0 where it is empty), so that each list's length is known on the
+/// host (the points, the voxels) and each tile's items are the CPU's, in the CPU's order; the
+/// Gaussians projected into the view. Equal to the CPU's inputs to the fixed-point sums (the
+/// centroids within 2^-16 voxel edges, the radii within 2^-12 of the reference radius, the
+/// volumes within 2^-24 of a point of radius h), tested in `tests/gpu.rs`.
+struct GpuBand {
+    pipelines: [wgpu::ComputePipeline; BAND_ENTRIES.len()],
+    lnm_uniform: wgpu::Buffer,
+    uniform: wgpu::Buffer,
+    points: crate::gpu::Grow,
+    counts: crate::gpu::Grow,
+    sums: crate::gpu::Grow,
+    voxel_of: crate::gpu::Grow,
+    labels: crate::gpu::Grow,
+    radius_sums: crate::gpu::Grow,
+    props: crate::gpu::Grow,
+    /// The passes' bind groups, with the output buffers they hold (grown by the inputs made on
+    /// the CPU too).
+    binds: Option<([wgpu::BindGroup; BAND_ENTRIES.len()], [wgpu::Buffer; 3])>,
+    /// Points and voxels of the last [`GpuBand::prepare`].
+    count: u32,
+    voxels: u32,
+}
+
+impl GpuBand {
+    fn new(device: &wgpu::Device) -> Self {
+        let uniform = |label, size| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        // (read back by the tests)
+        let storage = |label| {
+            crate::gpu::Grow::new(
+                label,
+                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            )
+        };
+        Self {
+            pipelines: crate::gpu::compute_pipelines(
+                device,
+                "ssfr band",
+                BAND_SHADER,
+                BAND_ENTRIES,
+            ),
+            lnm_uniform: uniform(
+                "ssfr band lnm params",
+                std::mem::size_of::<crate::lnm::gpu::RawLnmParams>() as u64,
+            ),
+            uniform: uniform(
+                "ssfr band params",
+                std::mem::size_of::<RawSsfrBand>() as u64,
+            ),
+            points: storage("ssfr band points"),
+            counts: storage("ssfr band counts"),
+            sums: storage("ssfr band sums"),
+            voxel_of: storage("ssfr band voxel of"),
+            labels: storage("ssfr band labels"),
+            radius_sums: storage("ssfr band radius sums"),
+            props: storage("ssfr band source props"),
+            binds: None,
+            count: 0,
+            voxels: 0,
+        }
+    }
+
+    /// Uploads the points of `screen`, writes the passes' uniforms for view `v` and the band's
+    /// `domain`, and makes the buffers (the outputs: `spheres`, a `vec4` per point;
+    /// `source_spheres` and `projected`, one per voxel) and bind groups the passes need; how
+    /// many it made.
+    fn prepare(
+        &mut self,
+        (device, queue): (&wgpu::Device, &wgpu::Queue),
+        screen: &ScreenSpace<'_>,
+        v: &View,
+        (lo, edge, dims): crate::lnm::gpu::BandDomain,
+        [spheres, source_spheres, projected]: [&mut crate::gpu::Grow; 3],
+    ) -> usize {
+        let (positions, radii) = screen.points();
+        let n = positions.len() as u64;
+        let voxels = dims.iter().map(|&d| u64::from(d)).product::<u64>();
+        let points: Vec<[f32; 4]> = positions
+            .iter()
+            .zip(radii)
+            .map(|(p, &r)| p.extend(r).to_array())
+            .collect();
+        let made = [
+            self.points
+                .write(device, queue, bytemuck::cast_slice(&points)),
+            self.counts.reserve(device, voxels * 4),
+            self.sums.reserve(device, voxels * 12),
+            self.voxel_of.reserve(device, n * 4),
+            self.labels.reserve(device, voxels * 4),
+            self.radius_sums.reserve(device, voxels * 8),
+            self.props.reserve(device, voxels * 8),
+            spheres.reserve(device, n * 16),
+            source_spheres.reserve(device, voxels * 16),
+            projected.reserve(device, voxels * 16),
+        ];
+        let mut created = made.iter().filter(|&&m| m).count();
+        let outputs = [&*spheres, &*source_spheres, &*projected].map(|g| g.buffer().clone());
+        if created > 0 || self.binds.as_ref().is_none_or(|(_, held)| *held != outputs) {
+            self.binds = Some((
+                self.bind_groups(device, [spheres, source_spheres, projected]),
+                outputs,
+            ));
+            created += BAND_ENTRIES.len();
+        }
+        self.count = n as u32;
+        self.voxels = voxels as u32;
+        let lnm = crate::lnm::gpu::RawLnmParams {
+            lo: lo.extend(1.0 / edge).to_array(),
+            dims: [dims[0], dims[1], dims[2], n as u32],
+            misc: [screen.params().lnm.n_min, crate::lnm::gpu::SCALE, 1, 0],
+        };
+        queue.write_buffer(&self.lnm_uniform, 0, bytemuck::bytes_of(&lnm));
+        let params = screen.params();
+        let (view, _, proj) = v.matrices();
+        let image = depth_image(v, Vec::new());
+        let band = RawSsfrBand {
+            a: [
+                params.sphere_radius,
+                params.thickness_sigma,
+                screen.reference_radius(),
+                edge,
+            ],
+            b: [voxels as u32, 0, 0, 0],
+            view: view.to_cols_array_2d(),
+            proj: proj.to_cols_array_2d(),
+            screen: [
+                v.width as f32,
+                v.height as f32,
+                image.pixel_size,
+                if v.is_orthographic() { 1.0 } else { 0.0 },
+            ],
+        };
+        queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(&band));
+        created
+    }
+
+    /// The passes' bind groups over the kept buffers and the outputs.
+    fn bind_groups(
+        &self,
+        device: &wgpu::Device,
+        [spheres, source_spheres, projected]: [&crate::gpu::Grow; 3],
+    ) -> [wgpu::BindGroup; BAND_ENTRIES.len()] {
+        let (lnm, band) = (&self.lnm_uniform, &self.uniform);
+        let (points, counts, sums, voxel_of, labels, radius_sums, props) = (
+            self.points.buffer(),
+            self.counts.buffer(),
+            self.sums.buffer(),
+            self.voxel_of.buffer(),
+            self.labels.buffer(),
+            self.radius_sums.buffer(),
+            self.props.buffer(),
+        );
+        let (spheres, source_spheres, projected) = (
+            spheres.buffer(),
+            source_spheres.buffer(),
+            projected.buffer(),
+        );
+        let entries: [&[(u32, &wgpu::Buffer)]; BAND_ENTRIES.len()] = [
+            &[(0, lnm), (1, points), (2, counts), (3, sums), (4, voxel_of)],
+            &[(0, lnm), (2, counts), (5, labels)],
+            &[(0, lnm), (2, counts), (5, labels)],
+            &[
+                (0, lnm),
+                (1, points),
+                (4, voxel_of),
+                (6, band),
+                (7, radius_sums),
+            ],
+            &[
+                (0, lnm),
+                (1, points),
+                (4, voxel_of),
+                (5, labels),
+                (6, band),
+                (8, spheres),
+            ],
+            &[
+                (0, lnm),
+                (2, counts),
+                (3, sums),
+                (6, band),
+                (7, radius_sums),
+                (9, source_spheres),
+                (10, props),
+            ],
+            &[(6, band), (9, source_spheres), (10, props), (11, projected)],
+        ];
+        std::array::from_fn(|k| {
+            crate::gpu::buffer_bind_group(device, &self.pipelines[k], entries[k])
+        })
+    }
+
+    /// Records the passes [`Self::prepare`] made ready into `encoder`.
+    fn encode(&self, encoder: &mut wgpu::CommandEncoder) {
+        let Some((binds, _)) = self.binds.as_ref() else {
+            return;
+        };
+        let (n, voxels) = (u64::from(self.count), u64::from(self.voxels));
+        encoder.clear_buffer(self.counts.buffer(), 0, Some(voxels * 4));
+        encoder.clear_buffer(self.sums.buffer(), 0, Some(voxels * 12));
+        encoder.clear_buffer(self.radius_sums.buffer(), 0, Some(voxels * 8));
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("ssfr band"),
+            timestamp_writes: None,
+        });
+        // per point: the counts; per voxel: the labels; per point: the radii and spheres; per
+        // voxel: the sources and their projection
+        for (k, items) in [n, voxels, voxels, n, n, voxels, voxels]
+            .into_iter()
+            .enumerate()
+        {
+            let (gx, gy) = crate::lnm::gpu::groups(items);
+            if gx * gy == 0 {
+                continue;
+            }
+            pass.set_pipeline(&self.pipelines[k]);
+            pass.set_bind_group(0, &binds[k], &[]);
+            pass.dispatch_workgroups(gx, gy, 1);
+        }
+    }
 }
 
 impl Inputs {
@@ -88,6 +363,8 @@ impl Inputs {
             source_spheres: storage("ssfr source spheres"),
             source_tiles: tiles.sharing(device),
             tiles,
+            band: GpuBand::new(device),
+            band_on_gpu: false,
         }
     }
 }
@@ -255,11 +532,15 @@ impl GpuSsfr {
         Ok((&t.views.0, &t.views.1))
     }
 
-    /// Uploads `screen`'s spheres and thickness Gaussians for view `v` through `queue` into
-    /// buffers kept from view to view (grown when a view needs more; the bind groups made anew
-    /// only then or when the filter or the size changes, [`Self::created`]) and makes the
-    /// targets for its size when they differ. Their tiles are binned on the GPU by
-    /// [`Self::encode`] ([`GpuTiles`]), in room planned here ([`GpuTiles::plan`]: refused as
+    /// Makes `screen`'s spheres and thickness Gaussians for view `v` in buffers kept from view
+    /// to view (grown when a view needs more; the bind groups made anew only then or when the
+    /// filter or the size changes, [`Self::created`]) and makes the targets for its size when
+    /// they differ. With the narrow band (the default) they are made on the GPU from the points
+    /// (`GpuBand`: the CPU uploads the points and plans); without it, or where the band's
+    /// dense domain would not fit the GPU's buffers, on the CPU ([`ScreenSpace`]'s) and
+    /// uploaded. Their tiles are binned on the GPU by [`Self::encode`] ([`GpuTiles`]), in room
+    /// planned here ([`GpuTiles::plan`]: from a recent binning of the same view, else counted
+    /// on the CPU, for the band's inputs over every point and every voxel, a bound; refused as
     /// the CPU's binning refuses, and when a tile would hold more than [`MAX_TILE_ITEMS`]).
     pub fn prepare(
         &mut self,
@@ -270,35 +551,61 @@ impl GpuSsfr {
     ) -> Result<(), crate::Error> {
         let params = screen.params();
         let (w, h) = (v.width, v.height);
-        let spheres: Vec<[f32; 4]> = (0..screen.drawn())
-            .map(|k| {
-                let (c, r) = screen.sphere_of(k);
-                [c.x, c.y, c.z, r]
-            })
-            .collect();
-        let sources = screen.sources();
-        let projected: Vec<[f32; 4]> = project_sources(v, sources)
-            .into_iter()
-            .map(|p| p.map_or([0.0; 4], |(c, k2, a)| [c.x, c.y, k2, a]))
-            .collect();
-        let source_sphere = |k: usize| (sources[k].centre, 3.0 * sources[k].sigma);
-        let source_spheres: Vec<[f32; 4]> = (0..sources.len())
-            .map(|k| {
-                let (c, r) = source_sphere(k);
-                [c.x, c.y, c.z, r]
-            })
-            .collect();
         let i = &mut self.inputs;
-        // the tiles' room, from a recent binning of the same view or counted here (refused as
-        // the CPU's binning refuses), and the lists' length limit
-        let (room, most) = i
-            .tiles
-            .plan(v, spheres.len(), |k| screen.sphere_of(k))
-            .map_err(SsfrError::from)?;
-        let (source_room, source_most) = i
-            .source_tiles
-            .plan(v, sources.len(), source_sphere)
-            .map_err(SsfrError::from)?;
+        let mut created = 0;
+        let ((room, most), (source_room, source_most), counts) =
+            if let Some((domain, plans)) = band_plan(device, i, screen, v) {
+                created += i.band.prepare(
+                    (device, queue),
+                    screen,
+                    v,
+                    domain,
+                    [&mut i.spheres, &mut i.source_spheres, &mut i.sources],
+                );
+                i.band_on_gpu = true;
+                let voxels = domain.2.iter().product::<u32>();
+                (plans.0, plans.1, (screen.points().0.len(), voxels as usize))
+            } else {
+                i.band_on_gpu = false;
+                let spheres: Vec<[f32; 4]> = (0..screen.drawn())
+                    .map(|k| {
+                        let (c, r) = screen.sphere_of(k);
+                        [c.x, c.y, c.z, r]
+                    })
+                    .collect();
+                let sources = screen.sources();
+                let projected: Vec<[f32; 4]> = project_sources(v, sources)
+                    .into_iter()
+                    .map(|p| p.map_or([0.0; 4], |(c, k2, a)| [c.x, c.y, k2, a]))
+                    .collect();
+                let source_sphere = |k: usize| (sources[k].centre, 3.0 * sources[k].sigma);
+                let source_spheres: Vec<[f32; 4]> = (0..sources.len())
+                    .map(|k| {
+                        let (c, r) = source_sphere(k);
+                        [c.x, c.y, c.z, r]
+                    })
+                    .collect();
+                // the tiles' room, from a recent binning of the same view or counted here
+                // (refused as the CPU's binning refuses), and the lists' length limit
+                let plans = (
+                    i.tiles
+                        .plan(v, spheres.len(), |k| screen.sphere_of(k))
+                        .map_err(SsfrError::from)?,
+                    i.source_tiles
+                        .plan(v, sources.len(), source_sphere)
+                        .map_err(SsfrError::from)?,
+                );
+                created += crate::gpu::write_grown(
+                    device,
+                    queue,
+                    [
+                        (&mut i.spheres, bytemuck::cast_slice(&spheres)),
+                        (&mut i.sources, bytemuck::cast_slice(&projected)),
+                        (&mut i.source_spheres, bytemuck::cast_slice(&source_spheres)),
+                    ],
+                );
+                (plans.0, plans.1, (spheres.len(), sources.len()))
+            };
         if most.max(source_most) > MAX_TILE_ITEMS {
             return Err(SsfrError::TooDense {
                 items: most.max(source_most),
@@ -308,7 +615,6 @@ impl GpuSsfr {
         }
         let uniforms = raw_params(screen, v, v.tiles().0);
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let mut created = 0;
         if self
             .targets
             .as_ref()
@@ -318,27 +624,15 @@ impl GpuSsfr {
             self.targets = Some(Targets::new(device, w, h));
             created += 1;
         }
+        let i = &mut self.inputs;
         queue.write_buffer(&i.uniform, 0, bytemuck::bytes_of(&uniforms));
-        created += crate::gpu::write_grown(
-            device,
-            queue,
-            [
-                (&mut i.spheres, bytemuck::cast_slice(&spheres)),
-                (&mut i.sources, bytemuck::cast_slice(&projected)),
-                (&mut i.source_spheres, bytemuck::cast_slice(&source_spheres)),
-            ],
-        );
         let queued = (device, queue);
-        i.tiles.prepare(
-            queued,
-            v,
-            (i.spheres.buffer(), spheres.len() as u32, 1),
-            room,
-        )?;
+        i.tiles
+            .prepare(queued, v, (i.spheres.buffer(), counts.0 as u32, 1), room)?;
         i.source_tiles.prepare(
             queued,
             v,
-            (i.source_spheres.buffer(), sources.len() as u32, 1),
+            (i.source_spheres.buffer(), counts.1 as u32, 1),
             source_room,
         )?;
         created += i.tiles.created() + i.source_tiles.created();
@@ -468,6 +762,13 @@ impl GpuSsfr {
         })
     }
 
+    /// Whether the last [`Self::prepare`] made the view's inputs on the GPU (`GpuBand`: the
+    /// narrow band's, where its domain fits), not on the CPU.
+    #[must_use]
+    pub fn band_on_gpu(&self) -> bool {
+        self.inputs.band_on_gpu
+    }
+
     /// Buffers, targets and bind groups the last [`Self::prepare`] made (0 in the steady state
     /// of a sequence).
     #[must_use]
@@ -489,6 +790,9 @@ impl GpuSsfr {
             _ => return Err(unprepared()),
         };
         let groups = (t.width.div_ceil(8), t.height.div_ceil(8));
+        if self.inputs.band_on_gpu {
+            self.inputs.band.encode(encoder);
+        }
         self.inputs.tiles.encode(encoder);
         self.inputs.source_tiles.encode(encoder);
         {
@@ -580,6 +884,55 @@ impl GpuSsfr {
         out.timings.depth_ms = started.elapsed().as_secs_f64() * 1e3;
         Ok(out)
     }
+}
+
+/// Where [`GpuBand`] makes the view's inputs of `screen` on the GPU: with the narrow band, every
+/// radius at most the reference radius (its fixed-point sums' range), the band's dense domain
+/// within the layout's and the GPU's limits, and the tiles' room planned over every point and
+/// every voxel (a voxel's Gaussian lies in the sphere around the voxel's centre that reaches its
+/// corners and three sigma of its largest radius beyond). `None` otherwise: the inputs are then
+/// made on the CPU, whose band and binning say why a view cannot be drawn.
+#[allow(clippy::type_complexity)]
+fn band_plan(
+    device: &wgpu::Device,
+    i: &mut Inputs,
+    screen: &ScreenSpace<'_>,
+    v: &View,
+) -> Option<(crate::lnm::gpu::BandDomain, ((u32, usize), (u32, usize)))> {
+    let params = screen.params();
+    let (positions, radii) = screen.points();
+    let h = screen.reference_radius();
+    let largest = radii.iter().fold(0.0f32, |m, &r| m.max(r));
+    if !params.narrow_band || largest > h {
+        return None;
+    }
+    let domain = crate::lnm::gpu::ResidentBand::domain(positions, h, &params.lnm).ok()?;
+    let (lo, edge, dims) = domain;
+    let voxels = dims.iter().map(|&d| u64::from(d)).product::<u64>();
+    let limit = crate::gpu::max_binding(device);
+    if voxels * 16 > limit || positions.len() as u64 * 16 > limit {
+        return None;
+    }
+    let spheres = i
+        .tiles
+        .plan(v, positions.len(), |k| {
+            (positions[k], params.sphere_radius * radii[k])
+        })
+        .ok()?;
+    let reach = 0.5 * 3f32.sqrt() * edge + 3.0 * params.thickness_sigma * largest;
+    let (nx, ny) = (dims[0] as usize, dims[1] as usize);
+    let sources = i
+        .source_tiles
+        .plan(v, voxels as usize, |k| {
+            let coord = glam::Vec3::new(
+                (k % nx) as f32,
+                ((k / nx) % ny) as f32,
+                (k / (nx * ny)) as f32,
+            );
+            (lo + (coord + 0.5) * edge, reach)
+        })
+        .ok()?;
+    Some((domain, (spheres, sources)))
 }
 
 fn unprepared() -> GpuError {

@@ -687,7 +687,8 @@ impl WaterRenderer for Method {
     }
     fn water<'a>(&self, input: WaterInput<'a>) -> Result<Box<dyn WaterSurface + 'a>, Error> {
         let (positions, radii) = input.points;
-        Ok(Box::new(ScreenSpace::new(
+        // the band made on the first CPU render: a GPU render makes its own
+        Ok(Box::new(ScreenSpace::deferred(
             positions,
             radii,
             input.reference_radius,

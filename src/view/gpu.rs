@@ -140,6 +140,42 @@ impl Binned {
             && near(&self.view[..16], &other.view[..16])
             && near(&self.view[16..], &other.view[16..])
     }
+
+    /// How the spheres' tiles may have changed since `then` when both are orthographic views
+    /// of the same size looking the same way (each entry of their rotations within
+    /// [`NEAR_VIEW`]) whose windows differ: a light's screen fitted to each frame's water, which
+    /// moves and resizes with it. Their pixels per world unit differ by `sx` along x and `sy`
+    /// along y, so a sphere's rectangle covers at most `max(sx, 1) max(sy, 1)` times as many
+    /// tiles (a rectangle of `w` pixels spans `w / 16 + 1` tiles at most), and a tile holds at
+    /// most `max(1 / sx, 1) max(1 / sy, 1)` times as many spheres (those of that many tiles of
+    /// the view before, for spheres whose rectangle is under a tile; approximately); those two
+    /// factors. A window moved across the water changes which tiles a sphere meets, not (beyond
+    /// its edges) how many.
+    fn scaled_from(&self, then: &Self) -> Option<(f64, f64)> {
+        // (an orthographic projection's last row is (0, 0, 0, 1))
+        let orthographic = |m: &[f32; 32]| m[16 + 11] == 0.0 && m[16 + 15] == 1.0;
+        let rotation = [0, 1, 2, 4, 5, 6, 8, 9, 10];
+        let turned = rotation
+            .iter()
+            .any(|&k| (self.view[k] - then.view[k]).abs() > NEAR_VIEW);
+        if self.size != then.size
+            || turned
+            || !orthographic(&self.view)
+            || !orthographic(&then.view)
+        {
+            return None;
+        }
+        let ratio =
+            |k: usize| f64::from(self.view[16 + k].abs()) / f64::from(then.view[16 + k].abs());
+        let (sx, sy) = (ratio(0), ratio(5));
+        if !(sx.is_finite() && sy.is_finite() && sx > 0.0 && sy > 0.0) {
+            return None;
+        }
+        Some((
+            sx.max(1.0) * sy.max(1.0),
+            (1.0 / sx).max(1.0) * (1.0 / sy).max(1.0),
+        ))
+    }
 }
 
 /// The bind groups, one per pass (each pipeline has its own layout, derived from the bindings
@@ -603,12 +639,17 @@ impl GpuTiles {
     /// `v` ([`Self::prepare`]'s capacity) and the most spheres one tile will hold, without a
     /// wait: from the statistics of a recent binning that came back ([`Self::late_stats`],
     /// taken here) where that binning is like this one (nearly the same view: the same size,
-    /// the matrices within 1 % of their largest entry; every pair fitted, at most a quarter more spheres: its pairs scaled by the spheres' growth, the
-    /// room kept while they stay a quarter under it, else half as much again); otherwise
-    /// counted on the CPU ([`super::tile_counts`], refused as `view::bin` refuses: a frame of a
-    /// moving camera pays this, the rectangles without the lists), with a quarter more room. A like frame whose spheres
-    /// spread over more tiles than that room leaves the pairs past it out (in sphere order)
-    /// until its statistics come back, a few frames later: the next frame is counted then.
+    /// the matrices within 1 % of their largest entry; every pair fitted, at most a quarter
+    /// more spheres: its pairs scaled by the spheres' growth, the room kept while they stay a
+    /// quarter under it, else half as much again) or where its view is an orthographic one of
+    /// the same size looking the same way with another window (a light's screen fitted to each
+    /// frame's water: its pairs and longest tile scaled by the spheres' growth and by how the
+    /// pixel's size changed, `Binned::scaled_from`, with half again as much room and for the
+    /// longest tile); otherwise counted on the CPU ([`super::tile_counts`],
+    /// refused as `view::bin` refuses: a frame of a moving camera pays this, the rectangles
+    /// without the lists), with a quarter more room. A like frame whose spheres spread over
+    /// more tiles than that room leaves the pairs past it out (in sphere order) until its
+    /// statistics come back, a few frames later: the next frame is counted then.
     pub fn plan(
         &mut self,
         v: &View,
@@ -632,6 +673,26 @@ impl GpuTiles {
             };
             self.planned_on_cpu = false;
             return Ok((room.min(u64::from(u32::MAX)) as u32, most));
+        }
+        if let Some((then, stats, (area, crowd))) = self
+            .counted
+            .iter()
+            .rev()
+            .find_map(|(c, s)| now.scaled_from(c).map(|f| (c, s, f)))
+            && stats.requested <= then.capacity
+            && (n as u64) * 4 <= u64::from(then.count.max(1)) * 5
+        {
+            let growth = (n as f64 / f64::from(then.count.max(1))).max(1.0);
+            let fragments = stats.fragments as f64 * growth * area;
+            if fragments <= v.max_fragments as f64 {
+                let needed = (f64::from(stats.requested) * growth * area).ceil();
+                let room = (needed * 1.5).ceil().min(f64::from(u32::MAX)) as u32;
+                // (an estimate: a window moved by part of a tile regroups the spheres into
+                // tiles, measured up to 16 % more in the longest; half again)
+                let most = (stats.most_in_tile as f64 * growth * crowd * 1.5).ceil() as usize;
+                self.planned_on_cpu = false;
+                return Ok((room, most));
+            }
         }
         self.planned_on_cpu = true;
         let (pairs, most) = super::tile_counts(v, n, sphere)?;
