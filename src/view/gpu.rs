@@ -680,7 +680,10 @@ impl GpuTiles {
             .rev()
             .find_map(|(c, s)| now.scaled_from(c).map(|f| (c, s, f)))
             && stats.requested <= then.capacity
-            && (n as u64) * 4 <= u64::from(then.count.max(1)) * 5
+            // (a binning of no sphere, or of none on its screen, scales to no room: the empty
+            // frame before a lone drop's)
+            && stats.requested > 0
+            && (n as u64) * 4 <= u64::from(then.count) * 5
         {
             let growth = (n as f64 / f64::from(then.count.max(1))).max(1.0);
             let fragments = stats.fragments as f64 * growth * area;
