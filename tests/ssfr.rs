@@ -394,7 +394,8 @@ fn thickness_difference(a: &[f32], b: &[f32]) -> f32 {
 /// the CPU's uploaded into the same kept buffers (a stale bind group of the band's passes after
 /// the CPU's inputs grew them put the thickness 0.28 of its largest off, 47 dB: found so). A
 /// voxel of 3,000 coincident points (its volume from the mean radius, past the fixed-point cube
-/// sums' range) meets the CPU's thickness too.
+/// sums' range) meets the CPU's thickness too; a drop far from the body (a dense domain of a
+/// million mostly empty voxels) keeps the CPU's sparse band.
 #[test]
 fn gpu_passes_match_the_cpu_reference_for_every_filter() {
     let Some(ctx) =
@@ -479,6 +480,16 @@ fn gpu_passes_match_the_cpu_reference_for_every_filter() {
     let thickness = thickness_difference(&cpu.thickness, &g.thickness);
     println!("3,000 coincident points: thickness within {thickness:.1e} of its largest");
     assert!(gpu.band_on_gpu() && thickness < 1e-4, "{thickness:.1e}");
+    // a drop far from the body: a dense domain of mostly empty voxels, the CPU's sparse band
+    let mut spray = p.clone();
+    spray.push(p[0] + Vec3::splat(100.0 * h));
+    let spray_radii = vec![h; spray.len()];
+    let screen = ScreenSpace::new(&spray, &spray_radii, h, &SsfrParams::default()).unwrap();
+    let cpu = screen.render_view(&perspective).unwrap();
+    let g = gpu.render(&ctx, &screen, &perspective).unwrap();
+    let thickness = thickness_difference(&cpu.thickness, &g.thickness);
+    println!("a far drop: the CPU's band, thickness within {thickness:.1e} of its largest");
+    assert!(!gpu.band_on_gpu() && thickness < 1e-4, "{thickness:.1e}");
     // the passes were kept through every case (their buffers rewritten, grown where a case
     // needed more); the last case again creates nothing and draws the same picture
     let params = SsfrParams {

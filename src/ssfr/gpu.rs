@@ -886,11 +886,21 @@ impl GpuSsfr {
     }
 }
 
+/// The most voxels of the band's dense domain per point for [`GpuBand`] (the bulk holds about 8
+/// points a voxel, so a domain eight times emptier than the bulk per point: 544 bytes of the
+/// band's buffers a point at most), beyond [`DENSE_ALWAYS`] voxels.
+const DENSE_PER_POINT: u64 = 8;
+
+/// Voxels of the band's dense domain [`GpuBand`] takes whatever the points (4.5 MB of its
+/// buffers).
+const DENSE_ALWAYS: u64 = 1 << 16;
+
 /// Where [`GpuBand`] makes the view's inputs of `screen` on the GPU: with the narrow band, every
 /// radius at most the reference radius (its fixed-point sums' range), the band's dense domain
 /// within the layout's and the GPU's limits, and the tiles' room planned over every point and
 /// every voxel (a voxel's Gaussian lies in the sphere around the voxel's centre that reaches its
-/// corners and three sigma of its largest radius beyond). `None` otherwise: the inputs are then
+/// corners and three sigma of its largest radius beyond), the domain at most [`DENSE_PER_POINT`]
+/// voxels a point (or [`DENSE_ALWAYS`]). `None` otherwise: the inputs are then
 /// made on the CPU, whose band and binning say why a view cannot be drawn.
 #[allow(clippy::type_complexity)]
 fn band_plan(
@@ -909,8 +919,11 @@ fn band_plan(
     let domain = crate::lnm::gpu::ResidentBand::domain(positions, h, &params.lnm).ok()?;
     let (lo, edge, dims) = domain;
     let voxels = dims.iter().map(|&d| u64::from(d)).product::<u64>();
+    // the dense domain's buffers (68 bytes a voxel) kept near the points' own: a domain of far
+    // spray, mostly empty voxels, keeps the CPU's sparse band
     let limit = crate::gpu::max_binding(device);
-    if voxels * 16 > limit || positions.len() as u64 * 16 > limit {
+    let n = positions.len() as u64;
+    if voxels * 16 > limit || n * 16 > limit || voxels > DENSE_PER_POINT * n + DENSE_ALWAYS {
         return None;
     }
     let spheres = i
