@@ -5,9 +5,8 @@
 //! CPU's uploaded without it), binned into the same 16x16 tiles as the CPU's on the GPU
 //! ([`GpuTiles`], in the encoder before the passes; the room for their lists from a recent
 //! binning of a like view, read back without a wait, or counted on the CPU). The filters
-//! ping-pong between two depth
-//! buffers; the shading after the read-back is the CPU's (`splat::shade`), as for the ray
-//! caster. Tests compare every pass with the CPU's.
+//! ping-pong between two depth buffers; the shading after the read-back is the CPU's
+//! (`splat::shade`), as for the ray caster. Tests compare every pass with the CPU's.
 
 use super::cpu::{ScreenSpace, SsfrRender, SsfrTimings, depth_image, project_sources};
 use super::{DepthFilter, FilterScales, SsfrError};
@@ -537,8 +536,8 @@ impl GpuSsfr {
     /// filter or the size changes, [`Self::created`]) and makes the targets for its size when
     /// they differ. With the narrow band (the default) they are made on the GPU from the points
     /// (`GpuBand`: the CPU uploads the points and plans); without it, or where the band's
-    /// dense domain would not fit the GPU's buffers, on the CPU ([`ScreenSpace`]'s) and
-    /// uploaded. Their tiles are binned on the GPU by [`Self::encode`] ([`GpuTiles`]), in room
+    /// dense domain would not fit the GPU's buffers or be mostly empty (far spray), on the CPU
+    /// ([`ScreenSpace`]'s) and uploaded. Their tiles are binned on the GPU by [`Self::encode`] ([`GpuTiles`]), in room
     /// planned here ([`GpuTiles::plan`]: from a recent binning of the same view, else counted
     /// on the CPU, for the band's inputs over every point and every voxel, a bound; refused as
     /// the CPU's binning refuses, and when a tile would hold more than [`MAX_TILE_ITEMS`]).
@@ -886,9 +885,9 @@ impl GpuSsfr {
     }
 }
 
-/// The most voxels of the band's dense domain per point for [`GpuBand`] (the bulk holds about 8
-/// points a voxel, so a domain eight times emptier than the bulk per point: 544 bytes of the
-/// band's buffers a point at most), beyond [`DENSE_ALWAYS`] voxels.
+/// The most voxels of the band's dense domain per point for [`GpuBand`], beyond
+/// [`DENSE_ALWAYS`] voxels: a domain up to 64 times emptier than the bulk (about 8 points a
+/// voxel), 544 bytes of the band's buffers a point at most.
 const DENSE_PER_POINT: u64 = 8;
 
 /// Voxels of the band's dense domain [`GpuBand`] takes whatever the points (4.5 MB of its
