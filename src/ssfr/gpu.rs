@@ -552,8 +552,19 @@ impl GpuSsfr {
         let (w, h) = (v.width, v.height);
         let i = &mut self.inputs;
         let mut created = 0;
+        // the two paths bin other lists (a sphere per point and a Gaussian per voxel, or the
+        // band's spheres and a Gaussian per full voxel or per point): a binning's statistics
+        // size only the lists of its own path (the CPU's lists sized from the GPU's
+        // statistics lost most of their Gaussians' pairs: found by tests/ssfr.rs)
+        let last_on_gpu = i.band_on_gpu;
+        let domain = band_domain(device, screen);
+        if domain.is_some() && !last_on_gpu {
+            i.tiles.forget();
+            i.source_tiles.forget();
+        }
+        let planned = domain.and_then(|d| band_plan(i, screen, v, d).map(|p| (d, p)));
         let ((room, most), (source_room, source_most), counts) =
-            if let Some((domain, plans)) = band_plan(device, i, screen, v) {
+            if let Some((domain, plans)) = planned {
                 created += i.band.prepare(
                     (device, queue),
                     screen,
@@ -565,6 +576,10 @@ impl GpuSsfr {
                 let voxels = domain.2.iter().product::<u32>();
                 (plans.0, plans.1, (screen.points().0.len(), voxels as usize))
             } else {
+                if last_on_gpu {
+                    i.tiles.forget();
+                    i.source_tiles.forget();
+                }
                 i.band_on_gpu = false;
                 let spheres: Vec<[f32; 4]> = (0..screen.drawn())
                     .map(|k| {
@@ -894,30 +909,23 @@ const DENSE_PER_POINT: u64 = 8;
 /// buffers).
 const DENSE_ALWAYS: u64 = 1 << 16;
 
-/// Where [`GpuBand`] makes the view's inputs of `screen` on the GPU: with the narrow band, every
-/// radius at most the reference radius (its fixed-point sums' range), the band's dense domain
-/// within the layout's and the GPU's limits, and the tiles' room planned over every point and
-/// every voxel (a voxel's Gaussian lies in the sphere around the voxel's centre that reaches its
-/// corners and three sigma of its largest radius beyond), the domain at most [`DENSE_PER_POINT`]
-/// voxels a point (or [`DENSE_ALWAYS`]). `None` otherwise: the inputs are then
-/// made on the CPU, whose band and binning say why a view cannot be drawn.
-#[allow(clippy::type_complexity)]
-fn band_plan(
+/// The band's dense domain where [`GpuBand`] may make the view's inputs of `screen` on the GPU:
+/// with the narrow band, every radius at most the reference radius (its fixed-point sums'
+/// range), the domain within the layout's and the GPU's limits and at most
+/// [`DENSE_PER_POINT`] voxels a point (or [`DENSE_ALWAYS`]). `None` otherwise: the inputs are
+/// then made on the CPU, whose band says why a view cannot be drawn.
+fn band_domain(
     device: &wgpu::Device,
-    i: &mut Inputs,
     screen: &ScreenSpace<'_>,
-    v: &View,
-) -> Option<(crate::lnm::gpu::BandDomain, ((u32, usize), (u32, usize)))> {
+) -> Option<crate::lnm::gpu::BandDomain> {
     let params = screen.params();
     let (positions, radii) = screen.points();
     let h = screen.reference_radius();
-    let largest = radii.iter().fold(0.0f32, |m, &r| m.max(r));
-    if !params.narrow_band || largest > h {
+    if !params.narrow_band || radii.iter().any(|&r| r > h) {
         return None;
     }
     let domain = crate::lnm::gpu::ResidentBand::domain(positions, h, &params.lnm).ok()?;
-    let (lo, edge, dims) = domain;
-    let voxels = dims.iter().map(|&d| u64::from(d)).product::<u64>();
+    let voxels = domain.2.iter().map(|&d| u64::from(d)).product::<u64>();
     // the dense domain's buffers (68 bytes a voxel) kept near the points' own: a domain of far
     // spray, mostly empty voxels, keeps the CPU's sparse band
     let limit = crate::gpu::max_binding(device);
@@ -925,6 +933,23 @@ fn band_plan(
     if voxels * 16 > limit || n * 16 > limit || voxels > DENSE_PER_POINT * n + DENSE_ALWAYS {
         return None;
     }
+    Some(domain)
+}
+
+/// The tiles' room for [`GpuBand`]'s inputs of `screen` over `domain` in view `v`: planned over
+/// every point and every voxel that holds a point (a voxel's Gaussian lies in the sphere around
+/// the voxel's centre that reaches its corners and three sigma of the largest radius beyond).
+/// `None` where the CPU's binning would refuse them (the CPU's inputs then say why).
+fn band_plan(
+    i: &mut Inputs,
+    screen: &ScreenSpace<'_>,
+    v: &View,
+    (lo, edge, dims): crate::lnm::gpu::BandDomain,
+) -> Option<((u32, usize), (u32, usize))> {
+    let params = screen.params();
+    let (positions, radii) = screen.points();
+    let largest = radii.iter().fold(0.0f32, |m, &r| m.max(r));
+    let voxels = dims.iter().map(|&d| d as usize).product::<usize>();
     let spheres = i
         .tiles
         .plan(v, positions.len(), |k| {
@@ -933,18 +958,37 @@ fn band_plan(
         .ok()?;
     let reach = 0.5 * 3f32.sqrt() * edge + 3.0 * params.thickness_sigma * largest;
     let (nx, ny) = (dims[0] as usize, dims[1] as usize);
+    // which voxels hold a point, found only when the plan counts on the CPU (an empty voxel's
+    // Gaussian has radius 0 there, and no tile holds it: `sphere_rect` of radius 0 is empty);
+    // each point's voxel as `lnm.wgsl`'s `cs_count` and the CPU's band find it
+    let full = std::sync::OnceLock::new();
+    let full = || {
+        full.get_or_init(|| {
+            let inv = 1.0 / edge;
+            let at = |x: f32, n: u32| (x.max(0.0) as u32).min(n - 1) as usize;
+            let mut full = vec![false; voxels];
+            for &p in positions {
+                let c = ((p - lo) * inv).floor();
+                full[at(c.x, dims[0]) + nx * (at(c.y, dims[1]) + ny * at(c.z, dims[2]))] = true;
+            }
+            full
+        })
+    };
     let sources = i
         .source_tiles
-        .plan(v, voxels as usize, |k| {
+        .plan(v, voxels, |k| {
             let coord = glam::Vec3::new(
                 (k % nx) as f32,
                 ((k / nx) % ny) as f32,
                 (k / (nx * ny)) as f32,
             );
-            (lo + (coord + 0.5) * edge, reach)
+            (
+                lo + (coord + 0.5) * edge,
+                if full()[k] { reach } else { 0.0 },
+            )
         })
         .ok()?;
-    Some((domain, (spheres, sources)))
+    Some((spheres, sources))
 }
 
 fn unprepared() -> GpuError {

@@ -612,6 +612,16 @@ impl GpuTiles {
         }
     }
 
+    /// Forgets the statistics of the binnings so far, those on their way back included: the
+    /// next [`Self::plan`] counts on the CPU. For a caller whose next lists are of another kind
+    /// than the last (other spheres in a like number), whose statistics would size them wrong.
+    pub fn forget(&mut self) {
+        self.counted.clear();
+        if let Ok(r) = self.readback.get_mut() {
+            r.1 = None;
+        }
+    }
+
     /// Starts the mapping of the statistics' copy once the encoder [`Self::record`] wrote into
     /// is submitted.
     pub fn after_submit(&mut self) {

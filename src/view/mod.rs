@@ -515,6 +515,11 @@ pub const TILE: usize = 16;
 /// convex sets to convex sets). The whole screen when the cube reaches behind the eye; `None`
 /// when it lies wholly behind it or off screen.
 pub fn sphere_rect(v: &View, c: Vec3, r: f32) -> Option<[usize; 4]> {
+    // a sphere of radius 0 covers no pixel centre: its corners are its centre, the pixel span
+    // from it to itself is empty (the same answer as below, without the projections)
+    if r == 0.0 {
+        return None;
+    }
     let (w, h) = (v.width as f32, v.height as f32);
     let mut lo = Vec2::splat(f32::INFINITY);
     let mut hi = Vec2::splat(f32::NEG_INFINITY);
