@@ -273,12 +273,11 @@ impl GpuBinSort {
         let usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
         Self {
             pipelines,
-            uniform: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("bin sort params"),
-                size: stride * (1 + MAX_PASSES as u64),
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }),
+            uniform: crate::gpu::uniform_buffer(
+                device,
+                "bin sort params",
+                stride * (1 + MAX_PASSES as u64),
+            ),
             stride,
             points: gpu::Grow::new("unsorted points", usage),
             pairs: [

@@ -1119,12 +1119,11 @@ impl GridFiller {
         let storage = wgpu::BufferUsages::STORAGE;
         Self {
             pipeline: gather_pipeline(device),
-            uniform: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("gather params"),
-                size: std::mem::size_of::<RawGatherParams>() as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }),
+            uniform: crate::gpu::uniform_buffer(
+                device,
+                "gather params",
+                std::mem::size_of::<RawGatherParams>() as u64,
+            ),
             bins: GpuBinSort::new(device),
             grid: gpu::Grow::new("density grid", storage | wgpu::BufferUsages::COPY_SRC),
             bind: None,

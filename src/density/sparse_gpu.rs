@@ -118,12 +118,11 @@ impl GpuSparseLayout {
         Self {
             band: ResidentBand::new(device),
             pipelines: gpu::compute_pipelines(device, "sparse layout", SHADER, ENTRIES),
-            uniform: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("sparse layout params"),
-                size: std::mem::size_of::<RawLayoutParams>() as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }),
+            uniform: crate::gpu::uniform_buffer(
+                device,
+                "sparse layout params",
+                std::mem::size_of::<RawLayoutParams>() as u64,
+            ),
             states: gpu::Grow::new("sparse block states", usage),
             evaluated: gpu::Grow::new("sparse evaluated blocks", usage),
             scan: gpu::Grow::new("sparse layout scan", usage),

@@ -228,6 +228,16 @@ pub(crate) fn compute_pipelines_with<const N: usize>(
     })
 }
 
+/// A uniform buffer of `size` bytes, written through the queue.
+pub(crate) fn uniform_buffer(device: &wgpu::Device, label: &str, size: u64) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size,
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
+}
+
 /// The bind group of group 0 of `pipeline` from `(binding, resource)` pairs.
 pub(crate) fn bind_group(
     device: &wgpu::Device,

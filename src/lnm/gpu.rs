@@ -228,12 +228,11 @@ impl ResidentBand {
                 SHADER,
                 ["cs_count", "cs_first", "cs_second"],
             ),
-            uniform: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("resident band params"),
-                size: std::mem::size_of::<RawLnmParams>() as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }),
+            uniform: crate::gpu::uniform_buffer(
+                device,
+                "resident band params",
+                std::mem::size_of::<RawLnmParams>() as u64,
+            ),
             counts: crate::gpu::Grow::new("band counts", usage),
             labels: crate::gpu::Grow::new("band labels", usage),
             unused: crate::gpu::Grow::new("band (unused)", usage),

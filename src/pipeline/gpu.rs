@@ -247,12 +247,8 @@ impl GpuPipeline {
             multiview_mask: None,
             cache: None,
         });
-        let uniform = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("present"),
-            size: std::mem::size_of::<RawPresent>() as u64,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let uniform =
+            crate::gpu::uniform_buffer(device, "present", std::mem::size_of::<RawPresent>() as u64);
         crate::splat::gpu::check_device(device, size.0, size.1)?;
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Validation(e.to_string()).into());

@@ -290,14 +290,7 @@ struct Inputs {
 
 impl Inputs {
     fn new(device: &wgpu::Device, width: u32, height: u32) -> Self {
-        let uniform = |label, size: usize| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: size as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            })
-        };
+        let uniform = |label, size: usize| crate::gpu::uniform_buffer(device, label, size as u64);
         let band_rows = band_rows(width);
         let group_x = width.div_ceil(8);
         let mut bands = Vec::new();

@@ -325,12 +325,11 @@ impl SplatRenderer {
             cache: None,
         });
         let targets = create_targets(device, width, height);
-        let uniforms = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("splat uniforms (queued)"),
-            size: std::mem::size_of::<RawUniforms>() as u64,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let uniforms = crate::gpu::uniform_buffer(
+            device,
+            "splat uniforms (queued)",
+            std::mem::size_of::<RawUniforms>() as u64,
+        );
         let layouts = [&splat_layout, &attributes_layout, &shade_layout];
         let bound = bind_groups(device, layouts, &targets, &uniforms);
         if let Some(e) = pollster::block_on(scope.pop()) {

@@ -143,14 +143,7 @@ struct GpuBand {
 
 impl GpuBand {
     fn new(device: &wgpu::Device) -> Self {
-        let uniform = |label, size| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            })
-        };
+        let uniform = |label, size| crate::gpu::uniform_buffer(device, label, size);
         // (read back by the tests)
         let storage = |label| {
             crate::gpu::Grow::new(
@@ -351,12 +344,11 @@ impl Inputs {
         let storage = |label| crate::gpu::Grow::new(label, wgpu::BufferUsages::STORAGE);
         let tiles = GpuTiles::new(device);
         Self {
-            uniform: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("ssfr params"),
-                size: std::mem::size_of::<RawSsfrParams>() as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }),
+            uniform: crate::gpu::uniform_buffer(
+                device,
+                "ssfr params",
+                std::mem::size_of::<RawSsfrParams>() as u64,
+            ),
             spheres: storage("ssfr spheres"),
             sources: storage("ssfr sources"),
             source_spheres: storage("ssfr source spheres"),

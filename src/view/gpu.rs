@@ -253,14 +253,7 @@ impl GpuTiles {
         let stride = (std::mem::size_of::<RawSortParams>() as u64).next_multiple_of(u64::from(
             device.limits().min_uniform_buffer_offset_alignment,
         ));
-        let uniform = |label, size| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            })
-        };
+        let uniform = |label, size| crate::gpu::uniform_buffer(device, label, size);
         // (read back by the tests)
         let usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
         Self {

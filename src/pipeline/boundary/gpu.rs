@@ -197,12 +197,11 @@ impl WeightPasses {
             sheet_scatter,
             sheet_back,
             ordered,
-            uniform: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("boundary weights params"),
-                size: std::mem::size_of::<RawWeightParams>() as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }),
+            uniform: crate::gpu::uniform_buffer(
+                device,
+                "boundary weights params",
+                std::mem::size_of::<RawWeightParams>() as u64,
+            ),
             sheet: gpu::Grow::new("sheet points", storage | wgpu::BufferUsages::COPY_SRC),
             split: gpu::Grow::new("points' split", storage | wgpu::BufferUsages::COPY_SRC),
             classes: gpu::Grow::new("particle classes", storage),
