@@ -470,26 +470,30 @@ fn gpu_passes_match_the_cpu_reference_for_every_filter() {
             }
         }
     }
+    // the CPU's and the GPU's thickness of `points` (radius h each) from the perspective view,
+    // and whether the GPU made its band
+    let mut thickness_of = |points: &[Vec3]| {
+        let radii = vec![h; points.len()];
+        let screen = ScreenSpace::new(points, &radii, h, &SsfrParams::default()).unwrap();
+        let cpu = screen.render_view(&perspective).unwrap();
+        let g = gpu.render(&ctx, &screen, &perspective).unwrap();
+        (
+            thickness_difference(&cpu.thickness, &g.thickness),
+            gpu.band_on_gpu(),
+        )
+    };
     // coincident points: one voxel of 3,000
     let mut heap = p.clone();
     heap.extend(std::iter::repeat_n(p[0], 3000));
-    let heap_radii = vec![h; heap.len()];
-    let screen = ScreenSpace::new(&heap, &heap_radii, h, &SsfrParams::default()).unwrap();
-    let cpu = screen.render_view(&perspective).unwrap();
-    let g = gpu.render(&ctx, &screen, &perspective).unwrap();
-    let thickness = thickness_difference(&cpu.thickness, &g.thickness);
+    let (thickness, on_gpu) = thickness_of(&heap);
     println!("3,000 coincident points: thickness within {thickness:.1e} of its largest");
-    assert!(gpu.band_on_gpu() && thickness < 1e-4, "{thickness:.1e}");
+    assert!(on_gpu && thickness < 1e-4, "{thickness:.1e}");
     // a drop far from the body: a dense domain of mostly empty voxels, the CPU's sparse band
     let mut spray = p.clone();
     spray.push(p[0] + Vec3::splat(100.0 * h));
-    let spray_radii = vec![h; spray.len()];
-    let screen = ScreenSpace::new(&spray, &spray_radii, h, &SsfrParams::default()).unwrap();
-    let cpu = screen.render_view(&perspective).unwrap();
-    let g = gpu.render(&ctx, &screen, &perspective).unwrap();
-    let thickness = thickness_difference(&cpu.thickness, &g.thickness);
+    let (thickness, on_gpu) = thickness_of(&spray);
     println!("a far drop: the CPU's band, thickness within {thickness:.1e} of its largest");
-    assert!(!gpu.band_on_gpu() && thickness < 1e-4, "{thickness:.1e}");
+    assert!(!on_gpu && thickness < 1e-4, "{thickness:.1e}");
     // the passes were kept through every case (their buffers rewritten, grown where a case
     // needed more); the last case again creates nothing and draws the same picture
     let params = SsfrParams {

@@ -56,6 +56,22 @@ fn ring() -> impl Iterator<Item = [i64; 3]> {
         .map(|k| [k % 3 - 1, (k / 3) % 3 - 1, k / 9 - 1])
 }
 
+/// The voxel of `p` in a domain from `lo` of voxels `1 / inv` wide, `dims` along each axis,
+/// clamped into it: `floor((p - lo) * inv)`, times the inverse edge and not divided by the edge,
+/// as a product is correctly rounded in WGSL too (a quotient only within 2.5 ulp), so that the
+/// GPU's passes (`lnm.wgsl`'s `cs_count`) find the same voxels.
+pub(crate) fn voxel_at(p: Vec3, lo: Vec3, inv: f32, dims: [u32; 3]) -> [u32; 3] {
+    let c = ((p - lo) * inv).floor();
+    let at = |v: f32, n: u32| (v.max(0.0) as u32).min(n - 1);
+    [at(c.x, dims[0]), at(c.y, dims[1]), at(c.z, dims[2])]
+}
+
+/// The index of voxel `c` in the dense layout of `dims` voxels (x fastest, then y, then z: the
+/// CPU's key order).
+pub(crate) fn dense_index(c: [u32; 3], dims: [u32; 3]) -> usize {
+    c[0] as usize + dims[0] as usize * (c[1] as usize + dims[1] as usize * c[2] as usize)
+}
+
 /// The domain of the band: its minimum corner, the voxel edge and the voxels along each axis,
 /// with every input checked (shared by the CPU and GPU paths).
 pub(crate) fn domain(
@@ -118,15 +134,8 @@ fn sparse_band(
     dims: [u32; 3],
     params: &LnmParams,
 ) -> NarrowBand {
-    // a particle's voxel (clamped into the domain)
-    // times the inverse edge, not divided by the edge: a product is correctly rounded in WGSL
-    // too (a quotient only within 2.5 ulp), so the GPU twin finds the same voxels
     let inv = 1.0 / edge;
-    let voxel_of = |p: Vec3| -> u64 {
-        let c = ((p - lo) * inv).floor();
-        let at = |v: f32, n: u32| (v.max(0.0) as u32).min(n - 1);
-        key([at(c.x, dims[0]), at(c.y, dims[1]), at(c.z, dims[2])])
-    };
+    let voxel_of = |p: Vec3| -> u64 { key(voxel_at(p, lo, inv, dims)) };
     // (key, index) pairs sorted together: no lookup of a key through its index while sorting
     let mut pairs: Vec<(u64, u32)> = positions
         .par_iter()
@@ -302,13 +311,9 @@ fn dense_band(
     let inv = 1.0 / edge;
     let (nx, ny, nz) = (dims[0] as usize, dims[1] as usize, dims[2] as usize);
     let total = nx * ny * nz;
-    let at = |v: f32, n: u32| (v.max(0.0) as u32).min(n - 1) as usize;
     let dense_of: Vec<u32> = positions
         .par_iter()
-        .map(|&p| {
-            let c = ((p - lo) * inv).floor();
-            (at(c.x, dims[0]) + nx * (at(c.y, dims[1]) + ny * at(c.z, dims[2]))) as u32
-        })
+        .map(|&p| dense_index(voxel_at(p, lo, inv, dims), dims) as u32)
         .collect();
     let mut counts = vec![0u32; total];
     for &v in &dense_of {

@@ -25,6 +25,7 @@ pub mod cpu;
 pub mod gpu;
 
 pub use cpu::{Layout, narrow_band, narrow_band_in};
+pub(crate) use cpu::{dense_index, voxel_at};
 
 /// Errors of the narrow band.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

@@ -554,7 +554,8 @@ impl GpuSsfr {
             i.tiles.forget();
             i.source_tiles.forget();
         }
-        let planned = domain.and_then(|d| band_plan(i, screen, v, d).map(|p| (d, p)));
+        let planned =
+            domain.and_then(|(d, largest)| band_plan(i, screen, v, (d, largest)).map(|p| (d, p)));
         let ((room, most), (source_room, source_most), counts) =
             if let Some((domain, plans)) = planned {
                 created += i.band.prepare(
@@ -904,16 +905,17 @@ const DENSE_ALWAYS: u64 = 1 << 16;
 /// The band's dense domain where [`GpuBand`] may make the view's inputs of `screen` on the GPU:
 /// with the narrow band, every radius at most the reference radius (its fixed-point sums'
 /// range), the domain within the layout's and the GPU's limits and at most
-/// [`DENSE_PER_POINT`] voxels a point (or [`DENSE_ALWAYS`]). `None` otherwise: the inputs are
-/// then made on the CPU, whose band says why a view cannot be drawn.
+/// [`DENSE_PER_POINT`] voxels a point (or [`DENSE_ALWAYS`]); with the largest radius. `None`
+/// otherwise: the inputs are then made on the CPU, whose band says why a view cannot be drawn.
 fn band_domain(
     device: &wgpu::Device,
     screen: &ScreenSpace<'_>,
-) -> Option<crate::lnm::gpu::BandDomain> {
+) -> Option<(crate::lnm::gpu::BandDomain, f32)> {
     let params = screen.params();
     let (positions, radii) = screen.points();
     let h = screen.reference_radius();
-    if !params.narrow_band || radii.iter().any(|&r| r > h) {
+    let largest = radii.iter().fold(0.0f32, |m, &r| m.max(r));
+    if !params.narrow_band || largest > h {
         return None;
     }
     let domain = crate::lnm::gpu::ResidentBand::domain(positions, h, &params.lnm).ok()?;
@@ -925,10 +927,11 @@ fn band_domain(
     if voxels * 16 > limit || n * 16 > limit || voxels > DENSE_PER_POINT * n + DENSE_ALWAYS {
         return None;
     }
-    Some(domain)
+    Some((domain, largest))
 }
 
-/// The tiles' room for [`GpuBand`]'s inputs of `screen` over `domain` in view `v`: planned over
+/// The tiles' room for [`GpuBand`]'s inputs of `screen` over `domain` (its points' largest
+/// radius `largest`) in view `v`: planned over
 /// every point and every voxel that holds a point (a voxel's Gaussian lies in the sphere around
 /// the voxel's centre that reaches its corners and three sigma of the largest radius beyond).
 /// `None` where the CPU's binning would refuse them (the CPU's inputs then say why).
@@ -936,11 +939,10 @@ fn band_plan(
     i: &mut Inputs,
     screen: &ScreenSpace<'_>,
     v: &View,
-    (lo, edge, dims): crate::lnm::gpu::BandDomain,
+    ((lo, edge, dims), largest): (crate::lnm::gpu::BandDomain, f32),
 ) -> Option<((u32, usize), (u32, usize))> {
     let params = screen.params();
     let (positions, radii) = screen.points();
-    let largest = radii.iter().fold(0.0f32, |m, &r| m.max(r));
     let voxels = dims.iter().map(|&d| d as usize).product::<usize>();
     let spheres = i
         .tiles
@@ -957,11 +959,9 @@ fn band_plan(
     let full = || {
         full.get_or_init(|| {
             let inv = 1.0 / edge;
-            let at = |x: f32, n: u32| (x.max(0.0) as u32).min(n - 1) as usize;
             let mut full = vec![false; voxels];
             for &p in positions {
-                let c = ((p - lo) * inv).floor();
-                full[at(c.x, dims[0]) + nx * (at(c.y, dims[1]) + ny * at(c.z, dims[2]))] = true;
+                full[crate::lnm::dense_index(crate::lnm::voxel_at(p, lo, inv, dims), dims)] = true;
             }
             full
         })
