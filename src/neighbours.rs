@@ -25,6 +25,23 @@ use serde::{Deserialize, Serialize};
 /// to balance two to sixteen threads on a million particles.
 const CHUNK: usize = 4096;
 
+/// Particles of a run of cells whose distances [`CellGrid::for_each_slot_within`] tests at once.
+const SCAN_BLOCK: usize = 32;
+
+/// The particles of `block` (at most [`SCAN_BLOCK`]) within `sqrt(r2)` of `p`, as their
+/// places in it, in order: listed with no branch, a test per particle that fails for most of
+/// them costing more in mispredictions than the distances (the dam break's neighbour search
+/// at two steps 20 -> 14 ms on one thread, its boundary calibration 216 -> 200 ms).
+#[inline]
+fn near_in<'n>(block: &[Vec3], p: Vec3, r2: f32, near: &'n mut [u8; SCAN_BLOCK]) -> &'n [u8] {
+    let mut m = 0;
+    for (i, q) in block.iter().enumerate() {
+        near[m] = i as u8;
+        m += usize::from(q.distance_squared(p) <= r2);
+    }
+    &near[..m]
+}
+
 /// Longest grid axis, in cells, that the search accepts (keys must fit in 64 bits).
 const MAX_CELLS_PER_AXIS: u64 = 1 << 21;
 
@@ -380,10 +397,13 @@ impl CellGrid {
     #[inline]
     pub fn for_each_slot_within(&self, p: Vec3, radius: f32, mut visit: impl FnMut(usize, Vec3)) {
         let r2 = radius * radius;
+        let mut near = [0u8; SCAN_BLOCK];
         self.for_each_run(p, radius, |range| {
-            for (s, &q) in self.sorted[range.clone()].iter().enumerate() {
-                if q.distance_squared(p) <= r2 {
-                    visit(range.start + s, q);
+            let run = &self.sorted[range.clone()];
+            for (b, block) in run.chunks(SCAN_BLOCK).enumerate() {
+                for &i in near_in(block, p, r2, &mut near) {
+                    let s = b * SCAN_BLOCK + i as usize;
+                    visit(range.start + s, run[s]);
                 }
             }
         });
@@ -435,10 +455,13 @@ impl CellGrid {
         mut visit: impl FnMut(usize, Vec3) -> ControlFlow<()>,
     ) -> ControlFlow<()> {
         let r2 = radius * radius;
+        let mut near = [0u8; SCAN_BLOCK];
         self.try_for_each_run(p, radius, |range| {
-            for (s, &q) in self.sorted[range.clone()].iter().enumerate() {
-                if q.distance_squared(p) <= r2 {
-                    visit(range.start + s, q)?;
+            let run = &self.sorted[range.clone()];
+            for (b, block) in run.chunks(SCAN_BLOCK).enumerate() {
+                for &i in near_in(block, p, r2, &mut near) {
+                    let s = b * SCAN_BLOCK + i as usize;
+                    visit(range.start + s, run[s])?;
                 }
             }
             ControlFlow::Continue(())
