@@ -292,41 +292,52 @@ impl CellGrid {
         }
         let dims = dims_f.map(|d| d as u64);
         let inv = 1.0 / cell;
+        // `(p - lo) * inv` is at least 0, so the cast's truncation is the floor (no call into
+        // libm per axis: `floorf` is not inlined on the baseline x86-64 target)
         let key_of = |p: Vec3| {
-            let c = ((p - lo) * inv).floor();
+            let c = (p - lo) * inv;
             let cx = (c.x as u64).min(dims[0] - 1);
             let cy = (c.y as u64).min(dims[1] - 1);
             let cz = (c.z as u64).min(dims[2] - 1);
             cx + dims[0] * (cy + dims[1] * cz)
         };
-        let mut keyed: Vec<(u64, u32)> = positions
-            .par_iter()
-            .enumerate()
-            .map(|(i, &p)| (key_of(p), i as u32))
-            .collect();
-        // Sorting (key, index) pairs keeps the order deterministic whatever the thread count.
-        keyed.par_sort_unstable();
-        let sorted = keyed
-            .par_iter()
-            .map(|&(_, i)| positions[i as usize])
-            .collect();
-        let order = keyed.par_iter().map(|&(_, i)| i).collect();
+        let keys: Vec<u64> = positions.par_iter().map(|&p| key_of(p)).collect();
         let total_cells = dims[0] * dims[1] * dims[2];
         // A dense start table costs 4 bytes a cell: allow a few cells per particle, and at
         // least 4 MiB, so that sparse surfaces in large boxes stay on the fast path.
         let dense_limit = (8 * positions.len() as u64).max(1 << 20);
-        let index = if total_cells <= dense_limit {
+        // The particles ordered by (cell key, index), deterministic whatever the thread count:
+        // by counting where the start table is dense (one pass, no sort), else by sorting the
+        // pairs.
+        let (order, index): (Vec<u32>, CellIndex) = if total_cells <= dense_limit {
             let mut start = vec![0u32; total_cells as usize + 1];
-            for &(k, _) in &keyed {
+            for &k in &keys {
                 start[k as usize + 1] += 1;
             }
             for c in 0..total_cells as usize {
                 start[c + 1] += start[c];
             }
-            CellIndex::Dense(start)
+            let mut next = start[..total_cells as usize].to_vec();
+            let mut order = vec![0u32; positions.len()];
+            for (i, &k) in keys.iter().enumerate() {
+                let slot = &mut next[k as usize];
+                order[*slot as usize] = i as u32;
+                *slot += 1;
+            }
+            (order, CellIndex::Dense(start))
         } else {
-            CellIndex::Sparse(keyed.iter().map(|&(k, _)| k).collect())
+            let mut keyed: Vec<(u64, u32)> = keys
+                .par_iter()
+                .enumerate()
+                .map(|(i, &k)| (k, i as u32))
+                .collect();
+            keyed.par_sort_unstable();
+            (
+                keyed.par_iter().map(|&(_, i)| i).collect(),
+                CellIndex::Sparse(keyed.iter().map(|&(k, _)| k).collect()),
+            )
         };
+        let sorted = order.par_iter().map(|&i| positions[i as usize]).collect();
         Ok(Self {
             origin: lo,
             cell,
@@ -338,7 +349,9 @@ impl CellGrid {
     }
 
     fn cell_of(&self, p: Vec3) -> [u64; 3] {
-        let c = ((p - self.origin) / self.cell).floor().max(Vec3::ZERO);
+        // the cast truncates a float of at least 0 to its floor and takes a negative one (or
+        // NaN) to 0, as the floor and the clamp to 0 would
+        let c = (p - self.origin) / self.cell;
         [
             (c.x as u64).min(self.dims[0] - 1),
             (c.y as u64).min(self.dims[1] - 1),
