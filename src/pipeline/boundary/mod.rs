@@ -72,6 +72,10 @@ pub const LISTED_TARGETS: usize = 200_000;
 /// Targets per list chunk of the Jacobi steps' terms.
 const TERMS_CHUNK: usize = 1024;
 
+/// Terms a chunk's lists make room for per target at first: more than most targets have (47
+/// on the dam break at two steps; untouched room costs no memory).
+const TERMS_PER_TARGET: usize = 80;
+
 /// The largest weight a refined point gets (a point alone at the tip of a spike).
 pub const MAX_WEIGHT: f32 = 16.0;
 
@@ -210,8 +214,10 @@ fn weights_listing(
                 .map(|chunk| {
                     let mut l = Listed {
                         ends: Vec::with_capacity(chunk.len() + 1),
-                        codes: Vec::new(),
-                        kernels: Vec::new(),
+                        // room for the terms of most chunks at once (about 47 a target at
+                        // two steps on the dam break): no copies as the lists grow
+                        codes: Vec::with_capacity(chunk.len() * TERMS_PER_TARGET),
+                        kernels: Vec::with_capacity(chunk.len() * TERMS_PER_TARGET),
                         first: Vec::with_capacity(chunk.len()),
                     };
                     l.ends.push(0);
