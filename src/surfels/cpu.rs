@@ -45,9 +45,7 @@ impl Group {
             None => fill_kernels(kernel, h, x, at, &[h; BLOCK][..at[0].len()], out),
         }
     }
-}
 
-impl Group {
     /// The squared distances `(x_j - x).length_squared()` from `x` of the points in
     /// cell-order `slots` (at most [`BLOCK`]) into `out`, as [`CellGrid::for_each_slot_within`]
     /// computes them.
