@@ -45,23 +45,6 @@ impl Group {
             None => fill_kernels(kernel, h, x, at, &[h; BLOCK][..at[0].len()], out),
         }
     }
-
-    /// The squared distances `(x_j - x).length_squared()` from `x` of the points in
-    /// cell-order `slots` (at most [`BLOCK`]) into `out`, as [`CellGrid::for_each_slot_within`]
-    /// computes them.
-    #[inline]
-    fn distances(&self, slots: std::ops::Range<usize>, x: Vec3, out: &mut [f32; BLOCK]) {
-        let n = slots.len();
-        let (xs, ys, zs) = (
-            &self.xs[slots.clone()],
-            &self.ys[slots.clone()],
-            &self.zs[slots],
-        );
-        for (i, o) in out[..n].iter_mut().enumerate() {
-            let (dx, dy, dz) = (xs[i] - x.x, ys[i] - x.y, zs[i] - x.z);
-            *o = dx * dx + dy * dy + dz * dz;
-        }
-    }
 }
 
 /// [`Group::kernels`] of the points at `at` (one array per axis) with radii `radii`.
@@ -187,33 +170,17 @@ impl<'a> ExactDensity<'a> {
         let mut sum = 0.0;
         let mut grad = Vec3::ZERO;
         let h = self.points.h;
-        let (mut d2, mut near) = ([0.0f32; BLOCK], [0u8; BLOCK]);
         for g in &self.groups {
-            let reach2 = g.reach * g.reach;
-            let sorted = g.grid.sorted();
             // the positions and radii in the grid's cell order: the same terms in the same order
-            // as through the point indices, without the indirection; a block's distances at
-            // once, then its points within reach listed (no branch) and only their terms
-            // computed (a gradient for every point scanned, as the other sums compute their
-            // kernels, cost more than it saved)
-            g.grid.for_each_range_within(x, g.reach, |run| {
-                for slots in blocks(run) {
-                    let n = slots.len();
-                    g.distances(slots.clone(), x, &mut d2);
-                    let mut m = 0;
-                    for (i, &d) in d2[..n].iter().enumerate() {
-                        near[m] = i as u8;
-                        m += usize::from(d <= reach2);
-                    }
-                    for &i in &near[..m] {
-                        let slot = slots.start + i as usize;
-                        let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
-                        let w = g.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
-                        let (v, dv) = self.kernel.weighted_and_gradient(x - sorted[slot], r, h);
-                        sum += w * v;
-                        grad += w * dv;
-                    }
-                }
+            // as through the point indices, without the indirection; only the points within
+            // reach, which the scan lists without a branch (a gradient for every point scanned,
+            // as the value sums compute their kernels, cost more than it saved)
+            g.grid.for_each_slot_within(x, g.reach, |slot, q| {
+                let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
+                let w = g.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
+                let (v, dv) = self.kernel.weighted_and_gradient(x - q, r, h);
+                sum += w * v;
+                grad += w * dv;
             });
         }
         (sum, grad)
