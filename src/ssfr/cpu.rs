@@ -219,7 +219,11 @@ impl<'a> ScreenSpace<'a> {
     /// Sphere `k` (below [`Self::drawn`]) of the depth pass: centre and world radius.
     #[must_use]
     pub fn sphere_of(&self, k: usize) -> (Vec3, f32) {
-        let j = self.prepared().map_or(k, |p| p.drawn[k] as usize);
+        self.sphere_at(self.prepared().map_or(k, |p| p.drawn[k] as usize))
+    }
+
+    /// The depth pass's sphere of point `j`: centre and world radius.
+    fn sphere_at(&self, j: usize) -> (Vec3, f32) {
         (self.positions[j], self.params.sphere_radius * self.radii[j])
     }
 
@@ -241,7 +245,7 @@ impl<'a> ScreenSpace<'a> {
         // the band and sources, when deferred: their time is the depth pass's
         let t = Instant::now();
         let prepared = self.prepared()?;
-        let raw = self.depth(v, prepared.drawn.len())?;
+        let raw = self.depth(v, &prepared.drawn)?;
         timings.depth_ms = ms(t);
         let t = Instant::now();
         let mut image = depth_image(v, raw.clone());
@@ -294,10 +298,12 @@ impl<'a> ScreenSpace<'a> {
     }
 
     /// Pass 1: the nearest sphere's depth per pixel (exact ray-sphere intersections).
-    fn depth(&self, v: &View, drawn: usize) -> Result<Vec<f32>, SsfrError> {
+    fn depth(&self, v: &View, drawn: &[u32]) -> Result<Vec<f32>, SsfrError> {
         let (w, hgt) = (v.width as usize, v.height as usize);
-        let sphere = |k: usize| self.sphere_of(k);
-        let (tw, tiles) = bin(v, drawn, sphere)?;
+        // the drawn points read directly, not through `sphere_of`'s check that the band is
+        // made: this runs for every sphere of every pixel's tile
+        let sphere = |k: usize| self.sphere_at(drawn[k] as usize);
+        let (tw, tiles) = bin(v, drawn.len(), sphere)?;
         Ok((0..w * hgt)
             .into_par_iter()
             .map(|i| {
