@@ -28,13 +28,19 @@ struct Params {
 @group(0) @binding(4) var<storage, read_write> voxel_of: array<u32>;
 @group(0) @binding(5) var<storage, read_write> labels: array<u32>;
 
+// The invocation's index in a dispatch of 64-wide groups laid out as `lnm::gpu::groups` lays
+// them out (at most 65,535 groups a row, then more rows); ssfr_band.wgsl's passes use it too.
+fn invocation(id: vec3<u32>) -> u32 {
+    return id.x + id.y * 65535u * 64u;
+}
+
 fn index_of(c: vec3<u32>) -> u32 {
     return c.x + params.dims.x * (c.y + params.dims.y * c.z);
 }
 
 @compute @workgroup_size(64)
 fn cs_count(@builtin(global_invocation_id) id: vec3<u32>) {
-    let i = id.x + id.y * 65535u * 64u;
+    let i = invocation(id);
     if i >= params.dims.w {
         return;
     }
@@ -76,7 +82,7 @@ fn voxel_coord(v: u32) -> vec3<i32> {
 
 @compute @workgroup_size(64)
 fn cs_first(@builtin(global_invocation_id) id: vec3<u32>) {
-    let v = id.x + id.y * 65535u * 64u;
+    let v = invocation(id);
     let total = params.dims.x * params.dims.y * params.dims.z;
     if v >= total {
         return;
@@ -105,7 +111,7 @@ fn cs_first(@builtin(global_invocation_id) id: vec3<u32>) {
 
 @compute @workgroup_size(64)
 fn cs_second(@builtin(global_invocation_id) id: vec3<u32>) {
-    let v = id.x + id.y * 65535u * 64u;
+    let v = invocation(id);
     let total = params.dims.x * params.dims.y * params.dims.z;
     if v >= total {
         return;

@@ -56,7 +56,7 @@ const OFFSET_COUNT: u32 = 32767u;
 
 @compute @workgroup_size(64)
 fn cs_radii(@builtin(global_invocation_id) id: vec3<u32>) {
-    let i = id.x + id.y * 65535u * 64u;
+    let i = invocation(id);
     if i >= params.dims.w {
         return;
     }
@@ -68,7 +68,7 @@ fn cs_radii(@builtin(global_invocation_id) id: vec3<u32>) {
 
 @compute @workgroup_size(64)
 fn cs_spheres(@builtin(global_invocation_id) id: vec3<u32>) {
-    let i = id.x + id.y * 65535u * 64u;
+    let i = invocation(id);
     if i >= params.dims.w {
         return;
     }
@@ -79,7 +79,7 @@ fn cs_spheres(@builtin(global_invocation_id) id: vec3<u32>) {
 
 @compute @workgroup_size(64)
 fn cs_sources(@builtin(global_invocation_id) id: vec3<u32>) {
-    let v = id.x + id.y * 65535u * 64u;
+    let v = invocation(id);
     if v >= ssfr_band.b.x {
         return;
     }
@@ -115,7 +115,7 @@ fn cs_sources(@builtin(global_invocation_id) id: vec3<u32>) {
 
 @compute @workgroup_size(64)
 fn cs_project(@builtin(global_invocation_id) id: vec3<u32>) {
-    let v = id.x + id.y * 65535u * 64u;
+    let v = invocation(id);
     if v >= ssfr_band.b.x {
         return;
     }
