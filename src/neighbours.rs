@@ -20,6 +20,7 @@ use glam::Vec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use wide::{CmpLe, f32x4};
 
 /// Particles processed per parallel task: large enough to amortise task overhead, small enough
 /// to balance two to sixteen threads on a million particles.
@@ -28,18 +29,47 @@ const CHUNK: usize = 4096;
 /// Particles of a run of cells whose distances [`CellGrid::for_each_slot_within`] tests at once.
 const SCAN_BLOCK: usize = 32;
 
-/// The particles of `block` (at most [`SCAN_BLOCK`]) within `sqrt(r2)` of `p`, as their
-/// places in it, in order: listed with no branch, a test per particle that fails for most of
-/// them costing more in mispredictions than the distances (the dam break's neighbour search
-/// at two steps 20 -> 14 ms on one thread, its boundary calibration 216 -> 200 ms).
+/// The particles of a block (at most [`SCAN_BLOCK`], its coordinates one array per axis)
+/// within `sqrt(r2)` of `p`, as the bits of their places in it: the distances of the whole
+/// block at once (vectorised, as `(q - p).length_squared()` computes them, so the same
+/// particles pass), then one bit per test, with no branch: a test that fails for most of them
+/// costs more in mispredictions than the distances (the dam break's neighbour search at two
+/// steps 20 -> 14 ms on one thread, its boundary calibration 216 -> 200 ms, when they were
+/// listed one at a time).
 #[inline]
-fn near_in<'n>(block: &[Vec3], p: Vec3, r2: f32, near: &'n mut [u8; SCAN_BLOCK]) -> &'n [u8] {
-    let mut m = 0;
-    for (i, q) in block.iter().enumerate() {
-        near[m] = i as u8;
-        m += usize::from(q.distance_squared(p) <= r2);
+fn near_mask(axes: &[Vec<f32>; 3], block: std::ops::Range<usize>, p: Vec3, r2: f32) -> u32 {
+    let n = block.len();
+    debug_assert!((1..=SCAN_BLOCK).contains(&n));
+    let [xs, ys, zs] = axes;
+    let (px, py, pz, r2) = (
+        f32x4::splat(p.x),
+        f32x4::splat(p.y),
+        f32x4::splat(p.z),
+        f32x4::splat(r2),
+    );
+    // four at a time: the arrays run on past the last slot by `LANES - 1` (infinite) values, so
+    // that every load is whole; the bits beyond the block are cleared at the end
+    let lanes = |a: &[f32], i: usize| {
+        f32x4::from(<[f32; LANES]>::try_from(&a[i..i + LANES]).expect("padded"))
+    };
+    let mut mask = 0u32;
+    for (g, i) in (block.start..block.end).step_by(LANES).enumerate() {
+        let (dx, dy, dz) = (lanes(xs, i) - px, lanes(ys, i) - py, lanes(zs, i) - pz);
+        let d2 = dx * dx + dy * dy + dz * dz;
+        mask |= (d2.cmp_le(r2).move_mask() as u32) << (LANES * g);
     }
-    &near[..m]
+    mask & (u32::MAX >> (SCAN_BLOCK - n))
+}
+
+/// Distances [`near_mask`] computes at once: one SSE vector.
+const LANES: usize = 4;
+
+/// The blocks of at most [`SCAN_BLOCK`] slots a run is scanned in.
+#[inline]
+fn blocks_of(run: std::ops::Range<usize>) -> impl Iterator<Item = std::ops::Range<usize>> {
+    run.clone()
+        .step_by(SCAN_BLOCK)
+        .map(move |a| a..(a + SCAN_BLOCK).min(run.end))
 }
 
 /// Longest grid axis, in cells, that the search accepts (keys must fit in 64 bits).
@@ -260,6 +290,8 @@ pub struct CellGrid {
     dims: [u64; 3],
     /// positions in cell order
     sorted: Vec<Vec3>,
+    /// the same positions one array per axis, for the scans' distances ([`near_mask`])
+    axes: [Vec<f32>; 3],
     /// cell-order slot -> particle index
     order: Vec<u32>,
     index: CellIndex,
@@ -337,12 +369,19 @@ impl CellGrid {
                 CellIndex::Sparse(keyed.iter().map(|&(k, _)| k).collect()),
             )
         };
-        let sorted = order.par_iter().map(|&i| positions[i as usize]).collect();
+        let sorted: Vec<Vec3> = order.par_iter().map(|&i| positions[i as usize]).collect();
+        // one array per axis, run on by `LANES - 1` infinite values ([`near_mask`])
+        let axis = |c: fn(&Vec3) -> f32| -> Vec<f32> {
+            let pad = std::iter::repeat_n(f32::INFINITY, LANES - 1);
+            sorted.iter().map(c).chain(pad).collect()
+        };
+        let axes = [axis(|p| p.x), axis(|p| p.y), axis(|p| p.z)];
         Ok(Self {
             origin: lo,
             cell,
             dims,
             sorted,
+            axes,
             order,
             index,
         })
@@ -410,13 +449,13 @@ impl CellGrid {
     #[inline]
     pub fn for_each_slot_within(&self, p: Vec3, radius: f32, mut visit: impl FnMut(usize, Vec3)) {
         let r2 = radius * radius;
-        let mut near = [0u8; SCAN_BLOCK];
         self.for_each_run(p, radius, |range| {
-            let run = &self.sorted[range.clone()];
-            for (b, block) in run.chunks(SCAN_BLOCK).enumerate() {
-                for &i in near_in(block, p, r2, &mut near) {
-                    let s = b * SCAN_BLOCK + i as usize;
-                    visit(range.start + s, run[s]);
+            for block in blocks_of(range) {
+                let mut near = near_mask(&self.axes, block.clone(), p, r2);
+                while near != 0 {
+                    let s = block.start + near.trailing_zeros() as usize;
+                    near &= near - 1;
+                    visit(s, self.sorted[s]);
                 }
             }
         });
@@ -468,13 +507,13 @@ impl CellGrid {
         mut visit: impl FnMut(usize, Vec3) -> ControlFlow<()>,
     ) -> ControlFlow<()> {
         let r2 = radius * radius;
-        let mut near = [0u8; SCAN_BLOCK];
         self.try_for_each_run(p, radius, |range| {
-            let run = &self.sorted[range.clone()];
-            for (b, block) in run.chunks(SCAN_BLOCK).enumerate() {
-                for &i in near_in(block, p, r2, &mut near) {
-                    let s = b * SCAN_BLOCK + i as usize;
-                    visit(range.start + s, run[s])?;
+            for block in blocks_of(range) {
+                let mut near = near_mask(&self.axes, block.clone(), p, r2);
+                while near != 0 {
+                    let s = block.start + near.trailing_zeros() as usize;
+                    near &= near - 1;
+                    visit(s, self.sorted[s])?;
                 }
             }
             ControlFlow::Continue(())
@@ -491,6 +530,14 @@ impl CellGrid {
     #[must_use]
     pub fn sorted(&self) -> &[Vec3] {
         &self.sorted
+    }
+
+    /// The positions in cell order, one array per axis (the terms of a run of slots computed
+    /// several at a time, as [`crate::surfels::ExactDensity`]'s sums do).
+    #[must_use]
+    pub fn axes(&self) -> [&[f32]; 3] {
+        let n = self.sorted.len();
+        [&self.axes[0][..n], &self.axes[1][..n], &self.axes[2][..n]]
     }
 
     /// The neighbourhoods of every particle within the cell size, in parallel.
@@ -785,6 +832,39 @@ mod tests {
                     truth[i],
                     "seed {seed}, case {case}"
                 );
+            }
+        }
+    }
+
+    #[test]
+    fn near_masks_pass_the_particles_a_scalar_test_passes() {
+        let seed = seed();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let n = 200;
+        let mut positions: Vec<Vec3> = (0..n)
+            .map(|_| Vec3::new(rng.random(), rng.random(), rng.random()))
+            .collect();
+        // one exactly at the radius, one at the query itself
+        let p = Vec3::new(0.5, 0.5, 0.5);
+        positions[7] = p + Vec3::new(0.25, 0.0, 0.0);
+        positions[40] = p;
+        let grid = CellGrid::new(&positions, 1.0).unwrap();
+        let r2 = 0.25f32 * 0.25;
+        for start in [0, 5, 31, 100, 168] {
+            for len in 1..=SCAN_BLOCK {
+                let block = start..start + len;
+                let mask = near_mask(&grid.axes, block.clone(), p, r2);
+                for (bit, s) in block.clone().enumerate() {
+                    let near = grid.sorted()[s].distance_squared(p) <= r2;
+                    assert_eq!(
+                        mask >> bit & 1 == 1,
+                        near,
+                        "seed {seed}, slot {s} of {block:?}"
+                    );
+                }
+                if len < SCAN_BLOCK {
+                    assert_eq!(mask >> len, 0, "seed {seed}: bits beyond {block:?}");
+                }
             }
         }
     }

@@ -306,7 +306,8 @@ enum Index<'a> {
     /// For the CPU's cast: the density's cells and the PCA neighbourhood's.
     Cpu {
         density: ExactDensity<'a>,
-        pca_grid: CellGrid,
+        /// boxed: the GPU's variant is a small list
+        pca_grid: Box<CellGrid>,
     },
     /// For the GPU's cast alone (the weights there): the density's radius groups, which the
     /// GPU's grids index ([`crate::surfels::radius_groups`]).
@@ -328,7 +329,10 @@ impl<'a> Caster<'a> {
             points,
             kernel,
             params,
-            Index::Cpu { density, pca_grid },
+            Index::Cpu {
+                density,
+                pca_grid: Box::new(pca_grid),
+            },
         ))
     }
 

@@ -35,11 +35,7 @@ impl Group {
         x: Vec3,
         out: &mut [f32; BLOCK],
     ) {
-        let at = [
-            &self.xs[slots.clone()],
-            &self.ys[slots.clone()],
-            &self.zs[slots.clone()],
-        ];
+        let at = self.grid.axes().map(|a| &a[slots.clone()]);
         match &self.cell_radii {
             Some(r) => fill_kernels(kernel, h, x, at, &r[slots], out),
             None => fill_kernels(kernel, h, x, at, &[h; BLOCK][..at[0].len()], out),
@@ -86,26 +82,12 @@ struct Group {
     cell_radii: Option<Vec<f32>>,
     /// the weight of each point in the grid's cell order (`None`: every point has 1)
     cell_weights: Option<Vec<f32>>,
-    /// the grid's positions in its cell order, one array per axis: the terms of a run of slots
-    /// computed several at a time ([`Group::kernels`])
-    xs: Vec<f32>,
-    ys: Vec<f32>,
-    zs: Vec<f32>,
 }
 
 /// Slots a sum computes the kernels of at once (a run of cells' slots is cut into blocks of
 /// this many): the kernels of a block vectorise, and the block's terms are then summed in the
 /// slots' order, each as the one-at-a-time sum would add it.
 const BLOCK: usize = 16;
-
-/// One coordinate array per axis of positions.
-fn axes(positions: &[Vec3]) -> [Vec<f32>; 3] {
-    [
-        positions.iter().map(|p| p.x).collect(),
-        positions.iter().map(|p| p.y).collect(),
-        positions.iter().map(|p| p.z).collect(),
-    ]
-}
 
 impl<'a> ExactDensity<'a> {
     /// Indexes the particles for density queries with effective radius `h`.
@@ -121,16 +103,12 @@ impl<'a> ExactDensity<'a> {
             if points.radii.is_none() && points.weights.is_none() {
                 // every point of radius `h` and weight 1: one group over the positions as given
                 let grid = CellGrid::new(points.positions, reach)?;
-                let [xs, ys, zs] = axes(grid.sorted());
                 groups.push(Group {
                     reach,
                     grid,
                     members: run,
                     cell_radii: None,
                     cell_weights: None,
-                    xs,
-                    ys,
-                    zs,
                 });
                 continue;
             }
@@ -144,16 +122,12 @@ impl<'a> ExactDensity<'a> {
             };
             let cell_radii = Some(in_cells(&|i| points.radius(i)));
             let cell_weights = points.weights.map(|w| in_cells(&|i| w[i]));
-            let [xs, ys, zs] = axes(grid.sorted());
             groups.push(Group {
                 reach,
                 grid,
                 members: run,
                 cell_radii,
                 cell_weights,
-                xs,
-                ys,
-                zs,
             });
         }
         Ok(Self {
