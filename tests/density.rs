@@ -31,6 +31,17 @@ fn streaming_equals_whole_grid_and_the_naive_reference() {
             .unwrap();
             assert_eq!(streamed, whole.values, "{kernel:?}, slabs of {slab} planes");
         }
+        // a buffer of earlier frames, longer or shorter and holding old values, gives the same
+        let cells = whole.values.len();
+        for old in [
+            vec![7.0f32; cells + 100],
+            vec![-3.0f32; cells / 2],
+            vec![1.0f32; cells],
+        ] {
+            let points = density::Points::uniform(&p, h);
+            let reused = density::points_grid_in(points, &spec, kernel, 1 << 30, old).unwrap();
+            assert_eq!(reused.values, whole.values, "{kernel:?}, a reused buffer");
+        }
         let naive = density::density_naive(&p, &spec, kernel, h).unwrap();
         let max = naive.max();
         let (worst, at) = naive
