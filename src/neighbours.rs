@@ -64,12 +64,15 @@ fn near_mask(axes: &[Vec<f32>; 3], block: std::ops::Range<usize>, p: Vec3, r2: f
 /// Distances [`near_mask`] computes at once: one SSE vector.
 const LANES: usize = 4;
 
-/// The blocks of at most [`SCAN_BLOCK`] slots a run is scanned in.
+/// The blocks of at most `size` slots a run of slots is cut into, in order.
 #[inline]
-fn blocks_of(run: std::ops::Range<usize>) -> impl Iterator<Item = std::ops::Range<usize>> {
+pub(crate) fn blocks_of(
+    run: std::ops::Range<usize>,
+    size: usize,
+) -> impl Iterator<Item = std::ops::Range<usize>> {
     run.clone()
-        .step_by(SCAN_BLOCK)
-        .map(move |a| a..(a + SCAN_BLOCK).min(run.end))
+        .step_by(size)
+        .map(move |a| a..(a + size).min(run.end))
 }
 
 /// Longest grid axis, in cells, that the search accepts (keys must fit in 64 bits).
@@ -450,7 +453,7 @@ impl CellGrid {
     pub fn for_each_slot_within(&self, p: Vec3, radius: f32, mut visit: impl FnMut(usize, Vec3)) {
         let r2 = radius * radius;
         self.for_each_run(p, radius, |range| {
-            for block in blocks_of(range) {
+            for block in blocks_of(range, SCAN_BLOCK) {
                 let mut near = near_mask(&self.axes, block.clone(), p, r2);
                 while near != 0 {
                     let s = block.start + near.trailing_zeros() as usize;
@@ -508,7 +511,7 @@ impl CellGrid {
     ) -> ControlFlow<()> {
         let r2 = radius * radius;
         self.try_for_each_run(p, radius, |range| {
-            for block in blocks_of(range) {
+            for block in blocks_of(range, SCAN_BLOCK) {
                 let mut near = near_mask(&self.axes, block.clone(), p, r2);
                 while near != 0 {
                     let s = block.start + near.trailing_zeros() as usize;

@@ -221,7 +221,8 @@ pub fn splat_points_slabs(
     Ok(())
 }
 
-/// The points sorted by z for the slabs' clusters (z-clustering, §4.2).
+/// The points sorted by z for the slabs' clusters (z-clustering, §4.2): a slab takes the
+/// points within the largest radius of its planes.
 struct Clusters {
     /// point indices by z (ties by index)
     order: Vec<u32>,
@@ -269,8 +270,8 @@ impl Clusters {
 /// Planes of a slab that [`points_grid_in`] fills in one task.
 const SLAB_PLANES: u32 = 4;
 
-/// The whole density grid (the values [`splat_slabs`] hands out, filled in place); refused when it would need more than
-/// `memory_limit` bytes.
+/// The whole density grid (the values [`splat_slabs`] hands out, filled in place); refused
+/// when it would need more than `memory_limit` bytes.
 pub fn density_grid(
     positions: &[Vec3],
     spec: &GridSpec,

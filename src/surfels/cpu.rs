@@ -6,7 +6,7 @@ use rayon::prelude::*;
 
 use super::{CONVERGED, SurfelError, SurfelParams, Surfels, iso_of};
 use crate::density::{DensityGrid, GridSpec, Kernel, Points};
-use crate::neighbours::CellGrid;
+use crate::neighbours::{CellGrid, blocks_of};
 
 /// The exact density of the particles and its gradient at a point.
 ///
@@ -60,13 +60,6 @@ fn fill_kernels(
         let (dx, dy, dz) = (xs[i] - x.x, ys[i] - x.y, zs[i] - x.z);
         out[i] = kernel.weighted_r2(dx * dx + dy * dy + dz * dz, radii[i], h);
     }
-}
-
-/// The blocks of [`BLOCK`] slots a run is cut into.
-fn blocks(run: std::ops::Range<usize>) -> impl Iterator<Item = std::ops::Range<usize>> {
-    run.clone()
-        .step_by(BLOCK)
-        .map(move |a| a..(a + BLOCK).min(run.end))
 }
 
 /// Bits of a term code ([`ExactDensity::value_and_kernels`]) that name the group.
@@ -236,7 +229,7 @@ impl<'a> ExactDensity<'a> {
         let (mut kept_codes, mut kept) = ([0u32; BLOCK], [0.0f32; BLOCK]);
         for (gi, g) in self.groups.iter().enumerate() {
             g.grid.for_each_range_within(x, g.reach, |run| {
-                for slots in blocks(run) {
+                for slots in blocks_of(run, BLOCK) {
                     g.kernels(self.kernel, h, slots.clone(), x, &mut k);
                     let w = g.cell_weights.as_ref().map(|w| &w[slots.clone()]);
                     let mut m = 0;
@@ -293,7 +286,7 @@ impl<'a> ExactDensity<'a> {
         let mut k = [0.0; BLOCK];
         for g in &self.groups {
             let reached = g.grid.try_for_each_range_within(x, g.reach, |run| {
-                for slots in blocks(run) {
+                for slots in blocks_of(run, BLOCK) {
                     g.kernels(self.kernel, h, slots.clone(), x, &mut k);
                     let w = g.cell_weights.as_ref().map(|w| &w[slots.clone()]);
                     for i in 0..slots.len() {
@@ -320,7 +313,7 @@ impl<'a> ExactDensity<'a> {
         let mut k = [0.0; BLOCK];
         for g in &self.groups {
             g.grid.for_each_range_within(x, g.reach, |run| {
-                for slots in blocks(run) {
+                for slots in blocks_of(run, BLOCK) {
                     g.kernels(self.kernel, h, slots.clone(), x, &mut k);
                     let w = g.cell_weights.as_ref().map(|w| &w[slots.clone()]);
                     for i in 0..slots.len() {
