@@ -224,12 +224,18 @@ fn emit(
     let k = p / plane;
     let here = grid_point(i, j, k);
     let v = end_value(i, j, k);
-    // linear interpolation along each crossed edge, as the CPU's `lerp`; none past the capacity
+    let dims = params.dims;
+    // each crossed edge's point by the cubic through the values along its line, as the CPU's
+    // `crossing_t` (linear at the grid's border); none past the capacity
     if (m & 1u) != 0u {
         let w = end_value(i + 1u, j, k);
         let there = grid_point(i + 1u, j, k);
         if at < params.capacity {
-            surfels[at].position = here + (there - here) * ((params.iso - v) / (w - v));
+            var t = linear_t(v, w);
+            if i >= 1u && i + 2u < dims.x {
+                t = crossing_t(end_value(i - 1u, j, k), v, w, end_value(i + 2u, j, k));
+            }
+            surfels[at].position = here + (there - here) * t;
         }
         at += 1u;
     }
@@ -237,15 +243,66 @@ fn emit(
         let w = end_value(i, j + 1u, k);
         let there = grid_point(i, j + 1u, k);
         if at < params.capacity {
-            surfels[at].position = here + (there - here) * ((params.iso - v) / (w - v));
+            var t = linear_t(v, w);
+            if j >= 1u && j + 2u < dims.y {
+                t = crossing_t(end_value(i, j - 1u, k), v, w, end_value(i, j + 2u, k));
+            }
+            surfels[at].position = here + (there - here) * t;
         }
         at += 1u;
     }
     if (m & 4u) != 0u && at < params.capacity {
         let u = end_value(i, j, k - 1u);
         let under = grid_point(i, j, k - 1u);
-        surfels[at].position = under + (here - under) * ((params.iso - u) / (v - u));
+        var t = linear_t(u, v);
+        if k >= 2u && k + 1u < dims.z {
+            t = crossing_t(end_value(i, j, k - 2u), u, v, end_value(i, j, k + 1u));
+        }
+        surfels[at].position = under + (here - under) * t;
     }
+}
+
+// The linear interpolation's fraction of an edge from `v` to `w` at the iso-value.
+fn linear_t(v: f32, w: f32) -> f32 {
+    return (params.iso - v) / (w - v);
+}
+
+// `surfels::crossing_t` with the values `u` and `z` one point before and after the edge: the
+// root in [0, 1] of the cubic through (-1, u), (0, v), (1, w), (2, z), by Newton's steps from
+// the linear interpolation kept inside the bracket the signs give (halving it where a step
+// would leave it) until a step is under 1e-6 of the edge (`CUBIC_TOLERANCE`), at most 40
+// (`CUBIC_STEPS`).
+fn crossing_t(u: f32, v: f32, w: f32, z: f32) -> f32 {
+    let iso = params.iso;
+    let c1 = (-2.0 * u - 3.0 * v + 6.0 * w - z) / 6.0;
+    let c2 = (u - 2.0 * v + w) / 2.0;
+    let c3 = (-u + 3.0 * v - 3.0 * w + z) / 6.0;
+    let below = v < iso;
+    var lo = 0.0;
+    var hi = 1.0;
+    var t = clamp(linear_t(v, w), 0.0, 1.0);
+    for (var s = 0u; s < 40u; s++) {
+        let f = v + t * (c1 + t * (c2 + t * c3)) - iso;
+        if f == 0.0 {
+            return t;
+        }
+        if (f < 0.0) == below {
+            lo = t;
+        } else {
+            hi = t;
+        }
+        let df = c1 + t * (2.0 * c2 + t * (3.0 * c3));
+        let newton = t - f / df;
+        var next = 0.5 * (lo + hi);
+        if newton > lo && newton < hi {
+            next = newton;
+        }
+        if abs(next - t) <= 1e-6 {
+            return next;
+        }
+        t = next;
+    }
+    return t;
 }
 
 // The points' density at x (w) and its analytic gradient (xyz): `ExactDensity::value_and_gradient`,

@@ -18,8 +18,10 @@
 //! on either side of it; every edge lies in the closed range of the block that holds its lower
 //! end, so a block whose closed range is all zero or all inside owns no crossing, and the
 //! extraction ([`crate::surfels::SurfelExtractor::from_sparse`]) scans only the evaluated
-//! blocks. An inside point that ends a crossing edge (next to a point below the iso-value) gets
-//! its exact value, the dense grid's, so that edge's surfel is placed as on the dense grid. The
+//! blocks. An inside point that ends a crossing edge or lies one beyond its end (one or two
+//! points from a point below the iso-value along an axis) gets its exact value, the dense
+//! grid's, so that edge's surfel is placed as on the dense grid (by the values along the edge's
+//! line, [`crate::surfels::crossing_t`]). The
 //! one assumption is the band's: an interior voxel's density is above the iso-value, which fails
 //! only for a cavity smaller than a voxel; tested on analytic shapes and both real files.
 //!
@@ -782,20 +784,28 @@ fn fill_inside(out: &mut [f32], masks: &[[u64; 8]], inside: f32) {
     }
 }
 
-/// The grid points next to `p` along the axes, within the grid.
-fn axis_neighbours([i, j, k]: [u32; 3], n: [u32; 3]) -> [Option<[u32; 3]>; 6] {
-    [
-        (i > 0).then(|| [i - 1, j, k]),
-        (i + 1 < n[0]).then(|| [i + 1, j, k]),
-        (j > 0).then(|| [i, j - 1, k]),
-        (j + 1 < n[1]).then(|| [i, j + 1, k]),
-        (k > 0).then(|| [i, j, k - 1]),
-        (k + 1 < n[2]).then(|| [i, j, k + 1]),
-    ]
+/// The grid points one and two steps from `p` along the axes, within the grid: the ends of
+/// the edges at `p` and the points one beyond them, whose values place a crossing
+/// ([`crate::surfels::crossing_t`]).
+fn axis_neighbours(p: [u32; 3], n: [u32; 3]) -> [Option<[u32; 3]>; 12] {
+    let mut out = [None; 12];
+    for (t, slot) in out.iter_mut().enumerate() {
+        let (axis, d) = (t / 4, [-2, -1, 1, 2][t % 4]);
+        *slot = p[axis]
+            .checked_add_signed(d)
+            .filter(|&c| c < n[axis])
+            .map(|c| {
+                let mut q = p;
+                q[axis] = c;
+                q
+            });
+    }
+    out
 }
 
-/// An inside point next to a point below the iso-value ends a crossing edge, whose surfel is
-/// placed by both values: such points (rare: a dip of the density next to the band's interior,
+/// An inside point one or two steps along an axis from a point below the iso-value ends a
+/// crossing edge or lies one point beyond its end, and the surfel is placed by the values along
+/// the edge's line ([`crate::surfels::crossing_t`]): such points (rare: a dip of the density next to the band's interior,
 /// as where the chain's fine surface points meet the interior particles) get their exact value,
 /// the dense grid's, an inside block holding one becoming an evaluated one. In rounds: an end
 /// whose exact value is below the iso-value was no inside point, and its inside neighbours end
@@ -911,7 +921,8 @@ fn exact_round(
     exact
 }
 
-/// The inside points next to a point off the inside below the iso-value ([`exact_ends`]): among
+/// The inside points one or two steps along an axis from a point off the inside below the
+/// iso-value ([`exact_ends`]): among
 /// the interior points of the evaluated blocks and the points of the inside blocks next to a
 /// block that is not inside.
 fn crossing_ends(g: &SparseGrid, b: &Blocks<'_>, iso: f32) -> Vec<[u32; 3]> {

@@ -4,7 +4,7 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
-use super::{CONVERGED, SurfelError, SurfelParams, Surfels, iso_of};
+use super::{CONVERGED, SurfelError, SurfelParams, Surfels, crossing_t, iso_of};
 use crate::density::{DensityGrid, GridSpec, Kernel, Points};
 use crate::neighbours::{CellGrid, blocks_of};
 
@@ -350,53 +350,90 @@ pub fn radius_groups(points: &Points<'_>) -> Vec<(f32, Vec<u32>)> {
         .collect()
 }
 
-/// The crossings of the iso-value `iso` on the edges of z plane `k` (`plane`, `nx * ny` values):
-/// its x and y edges, and its z edges down to the plane before (`previous`, none at the first),
-/// in (row, point, then x, y and z edge) order.
+/// The z planes around plane `k` that its crossings read: `k - 2`, `k - 1` (none at the first
+/// planes), `k` and `k + 1` (none past the last, or not yet known: see [`plane_crossings`]).
+struct Around<'p> {
+    below2: Option<&'p [f32]>,
+    below: Option<&'p [f32]>,
+    plane: &'p [f32],
+    above: Option<&'p [f32]>,
+}
+
+/// The crossings of the iso-value `iso` on the edges of z plane `k` (`around.plane`, `nx * ny`
+/// values): its x and y edges, and its z edges down to the plane below (none at the first), in
+/// (row, point, then x, y and z edge) order, each placed by [`crossing_t`] on the values along
+/// its line. With `around.above` unknown (`pending`), the z edges are placed linearly and
+/// their places in the list and points `(i, j)` are returned, to be placed again once the
+/// plane above is known ([`z_crossing`]).
 fn plane_crossings(
     spec: &GridSpec,
     iso: f32,
     k: u32,
-    plane: &[f32],
-    previous: Option<&[f32]>,
-) -> Vec<Vec3> {
+    around: &Around<'_>,
+    pending: bool,
+) -> (Vec<Vec3>, Vec<Pending>) {
     let [nx, ny, _] = spec.dims;
     let (nx, ny) = (nx as usize, ny as usize);
+    let plane = around.plane;
     let at = |i: usize, j: usize| spec.point(i as u32, j as u32, k);
     let cross = |a: f32, b: f32| (a < iso) != (b < iso);
     let mut found = Vec::new();
+    let mut later = Vec::new();
     for j in 0..ny {
         for i in 0..nx {
-            let v = plane[i + nx * j];
+            let p = i + nx * j;
+            let v = plane[p];
             if i + 1 < nx {
-                let w = plane[i + 1 + nx * j];
+                let w = plane[p + 1];
                 if cross(v, w) {
-                    found.push(at(i, j).lerp(at(i + 1, j), (iso - v) / (w - v)));
+                    let outer = (i >= 1 && i + 2 < nx).then(|| (plane[p - 1], plane[p + 2]));
+                    found.push(at(i, j).lerp(at(i + 1, j), crossing_t(v, w, outer, iso)));
                 }
             }
             if j + 1 < ny {
-                let w = plane[i + nx * (j + 1)];
+                let w = plane[p + nx];
                 if cross(v, w) {
-                    found.push(at(i, j).lerp(at(i, j + 1), (iso - v) / (w - v)));
+                    let outer = (j >= 1 && j + 2 < ny).then(|| (plane[p - nx], plane[p + 2 * nx]));
+                    found.push(at(i, j).lerp(at(i, j + 1), crossing_t(v, w, outer, iso)));
                 }
             }
-            if let Some(prev) = previous {
-                let u = prev[i + nx * j];
-                if cross(u, v) {
-                    let below = spec.point(i as u32, j as u32, k - 1);
-                    found.push(below.lerp(at(i, j), (iso - u) / (v - u)));
+            if let Some(below) = around.below
+                && cross(below[p], v)
+            {
+                if pending {
+                    later.push((found.len(), i as u32, j as u32));
                 }
+                found.push(z_crossing(spec, iso, k, around, (i as u32, j as u32)));
             }
         }
     }
-    found
+    (found, later)
 }
+
+/// The crossing on the z edge from point `(i, j)` of plane `k - 1` to plane `k`
+/// ([`plane_crossings`]).
+fn z_crossing(spec: &GridSpec, iso: f32, k: u32, around: &Around<'_>, (i, j): (u32, u32)) -> Vec3 {
+    let p = i as usize + spec.dims[0] as usize * j as usize;
+    let below = around.below.expect("a plane below");
+    let (u, v) = (below[p], around.plane[p]);
+    let outer = around.below2.zip(around.above).map(|(b2, a)| (b2[p], a[p]));
+    spec.point(i, j, k - 1)
+        .lerp(spec.point(i, j, k), crossing_t(u, v, outer, iso))
+}
+
+/// A z crossing placed before the plane above it was known: its place in the list and its
+/// point `(i, j)` ([`plane_crossings`]).
+type Pending = (usize, u32, u32);
 
 /// Collects edge crossings plane by plane.
 pub struct SurfelExtractor {
     spec: GridSpec,
     iso: f32,
-    previous: Option<(u32, Vec<f32>)>,
+    /// The last planes pushed (at most three, the latest last) with the index of the first.
+    kept: (u32, Vec<Vec<f32>>),
+    /// The z crossings of the latest plane placed before the plane above it was known: their
+    /// places in `crossings` and points, placed again by the next push.
+    pending: Vec<Pending>,
     crossings: Vec<Vec3>,
 }
 
@@ -407,13 +444,14 @@ impl SurfelExtractor {
         Self {
             spec,
             iso,
-            previous: None,
+            kept: (0, Vec::new()),
+            pending: Vec::new(),
             crossings: Vec::new(),
         }
     }
 
-    /// Takes the next z plane (`k` in increasing order, `nx * ny` values); only a copy of the
-    /// latest plane is kept.
+    /// Takes the next z plane (`k` in increasing order, `nx * ny` values); copies of the
+    /// latest three planes are kept.
     pub fn push_plane(&mut self, k: u32, plane: &[f32]) {
         self.push_planes(k, plane);
     }
@@ -451,30 +489,37 @@ impl SurfelExtractor {
                                     + t
                             };
                             let here = spec.point(i, j, k);
+                            // the values one point before and one after the edge, where
+                            // the grid has them (every one that is not inside is the dense
+                            // grid's; the sparse grid makes those inside exact,
+                            // `exact_ends`)
                             if i + 1 < nx {
                                 let w = grid.at(i + 1, j, k);
                                 if cross(v, w) {
-                                    out.push((
-                                        key(k, 0),
-                                        here.lerp(spec.point(i + 1, j, k), (iso - v) / (w - v)),
-                                    ));
+                                    let outer = (i >= 1 && i + 2 < nx)
+                                        .then(|| (grid.at(i - 1, j, k), grid.at(i + 2, j, k)));
+                                    let t = crossing_t(v, w, outer, iso);
+                                    out.push((key(k, 0), here.lerp(spec.point(i + 1, j, k), t)));
                                 }
                             }
                             if j + 1 < ny {
                                 let w = grid.at(i, j + 1, k);
                                 if cross(v, w) {
-                                    out.push((
-                                        key(k, 1),
-                                        here.lerp(spec.point(i, j + 1, k), (iso - v) / (w - v)),
-                                    ));
+                                    let outer = (j >= 1 && j + 2 < ny)
+                                        .then(|| (grid.at(i, j - 1, k), grid.at(i, j + 2, k)));
+                                    let t = crossing_t(v, w, outer, iso);
+                                    out.push((key(k, 1), here.lerp(spec.point(i, j + 1, k), t)));
                                 }
                             }
                             if k + 1 < nz {
                                 let w = grid.at(i, j, k + 1);
                                 if cross(v, w) {
+                                    let outer = (k >= 1 && k + 2 < nz)
+                                        .then(|| (grid.at(i, j, k - 1), grid.at(i, j, k + 2)));
+                                    let t = crossing_t(v, w, outer, iso);
                                     out.push((
                                         key(k + 1, 2),
-                                        here.lerp(spec.point(i, j, k + 1), (iso - v) / (w - v)),
+                                        here.lerp(spec.point(i, j, k + 1), t),
                                     ));
                                 }
                             }
@@ -488,7 +533,8 @@ impl SurfelExtractor {
         Self {
             spec,
             iso,
-            previous: None,
+            kept: (0, Vec::new()),
+            pending: Vec::new(),
             crossings: found.into_iter().map(|c| c.1).collect(),
         }
     }
@@ -506,34 +552,65 @@ impl SurfelExtractor {
         if plane == 0 || planes.is_empty() {
             return;
         }
-        let previous = self.previous.as_ref().map(|(_, p)| p.as_slice());
-        let (spec, iso) = (&self.spec, self.iso);
-        let found: Vec<Vec<Vec3>> = planes
-            .par_chunks(plane)
-            .enumerate()
-            .map(|(dk, values)| {
-                let before = if dk == 0 {
-                    previous
-                } else {
-                    Some(&planes[(dk - 1) * plane..dk * plane])
-                };
-                plane_crossings(spec, iso, k0 + dk as u32, values, before)
+        let (spec, iso, nz) = (&self.spec, self.iso, self.spec.dims[2]);
+        let count = (planes.len() / plane) as u32;
+        let (first_kept, kept) = (self.kept.0, &self.kept.1);
+        // plane `k`: of this push, or one of the kept ones
+        let plane_at = |k: u32| -> Option<&[f32]> {
+            if k >= k0 {
+                let d = (k - k0) as usize;
+                (d < count as usize).then(|| &planes[d * plane..(d + 1) * plane])
+            } else {
+                k.checked_sub(first_kept)
+                    .and_then(|d| kept.get(d as usize))
+                    .map(Vec::as_slice)
+            }
+        };
+        let around = |k: u32| Around {
+            below2: k.checked_sub(2).and_then(plane_at),
+            below: k.checked_sub(1).and_then(plane_at),
+            plane: plane_at(k).expect("a plane of this push"),
+            above: (k + 1 < nz).then(|| plane_at(k + 1)).flatten(),
+        };
+        // the z crossings of the last push's last plane, now that the plane above is known
+        if let Some(k) = k0.checked_sub(1)
+            && !self.pending.is_empty()
+        {
+            let a = Around {
+                below2: k.checked_sub(2).and_then(plane_at),
+                below: k.checked_sub(1).and_then(plane_at),
+                plane: plane_at(k).expect("the kept plane"),
+                above: plane_at(k0),
+            };
+            for &(at, i, j) in &self.pending {
+                self.crossings[at] = z_crossing(spec, iso, k, &a, (i, j));
+            }
+        }
+        let found: Vec<(Vec<Vec3>, Vec<Pending>)> = (k0..k0 + count)
+            .into_par_iter()
+            .map(|k| {
+                let a = around(k);
+                // the last plane's z edges wait for the plane above, unless it is the grid's last
+                let pending = a.above.is_none() && k + 1 < nz;
+                plane_crossings(spec, iso, k, &a, pending)
             })
             .collect();
-        for f in found {
+        self.pending.clear();
+        for (f, later) in found {
+            let offset = self.crossings.len();
+            self.pending
+                .extend(later.into_iter().map(|(at, i, j)| (offset + at, i, j)));
             self.crossings.extend(f);
         }
-        // keep the last plane for the z edges of the next one, reusing the buffer
-        let last = planes.len() / plane - 1;
-        let values = &planes[last * plane..(last + 1) * plane];
-        match &mut self.previous {
-            Some((pk, buffer)) => {
-                buffer.clear();
-                buffer.extend_from_slice(values);
-                *pk = k0 + last as u32;
-            }
-            None => self.previous = Some((k0 + last as u32, values.to_vec())),
-        }
+        // keep the last three planes for the z edges of the next ones
+        let last = k0 + count - 1;
+        let from = last.saturating_sub(2);
+        let mut next: Vec<Vec<f32>> = (from..=last)
+            .filter_map(|k| plane_at(k).map(<[f32]>::to_vec))
+            .collect();
+        let first = last + 1 - next.len() as u32;
+        std::mem::swap(&mut self.kept.1, &mut next);
+        self.kept.0 = first;
     }
 
     /// Projects the crossings onto the exact iso-surface and returns the surfels.
