@@ -66,7 +66,7 @@ const LANES: usize = 4;
 
 /// The blocks of at most `size` slots a run of slots is cut into, in order.
 #[inline]
-pub(crate) fn blocks_of(
+fn blocks_of(
     run: std::ops::Range<usize>,
     size: usize,
 ) -> impl Iterator<Item = std::ops::Range<usize>> {
@@ -421,31 +421,6 @@ impl CellGrid {
         self.for_each_slot_within(p, radius, |s, _| visit(self.order[s]));
     }
 
-    /// The runs of cell-order slots that [`Self::for_each_slot_within`] scans for `radius` (<=
-    /// the cell size) around `p`, in the same order, the particles beyond `radius` not left out:
-    /// for sums whose terms are zero there anyway, computed for a run at a time (several terms
-    /// at once, with no test per particle).
-    #[inline]
-    pub fn for_each_range_within(
-        &self,
-        p: Vec3,
-        radius: f32,
-        visit: impl FnMut(std::ops::Range<usize>),
-    ) {
-        self.for_each_run(p, radius, visit);
-    }
-
-    /// [`Self::for_each_range_within`] until `visit` breaks.
-    #[inline]
-    pub fn try_for_each_range_within(
-        &self,
-        p: Vec3,
-        radius: f32,
-        visit: impl FnMut(std::ops::Range<usize>) -> ControlFlow<()>,
-    ) -> ControlFlow<()> {
-        self.try_for_each_run(p, radius, visit)
-    }
-
     /// [`Self::for_each_within`] handing out the particle's cell-order slot and position
     /// (`visit(slot, x_j)`, the particle being [`Self::order`]`[slot]`): the positions are read
     /// where the grid keeps them, in cell order, with no lookup through the particle index.
@@ -533,14 +508,6 @@ impl CellGrid {
     #[must_use]
     pub fn sorted(&self) -> &[Vec3] {
         &self.sorted
-    }
-
-    /// The positions in cell order, one array per axis (the terms of a run of slots computed
-    /// several at a time, as [`crate::surfels::ExactDensity`]'s sums do).
-    #[must_use]
-    pub fn axes(&self) -> [&[f32]; 3] {
-        let n = self.sorted.len();
-        [&self.axes[0][..n], &self.axes[1][..n], &self.axes[2][..n]]
     }
 
     /// The neighbourhoods of every particle within the cell size, in parallel.

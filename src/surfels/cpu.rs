@@ -6,7 +6,7 @@ use rayon::prelude::*;
 
 use super::{CONVERGED, SurfelError, SurfelParams, Surfels, crossing_t, iso_of};
 use crate::density::{DensityGrid, GridSpec, Kernel, Points};
-use crate::neighbours::{CellGrid, blocks_of};
+use crate::neighbours::CellGrid;
 
 /// The exact density of the particles and its gradient at a point.
 ///
@@ -18,48 +18,6 @@ pub struct ExactDensity<'a> {
     points: Points<'a>,
     groups: Vec<Group>,
     kernel: Kernel,
-}
-
-impl Group {
-    /// The kernels (without the weights) at `x` of the points in cell-order `slots` (at most
-    /// [`BLOCK`]) into `out`: [`Kernel::weighted_r2`] of the squared distance
-    /// `(x_j - x).length_squared()` (the terms of the sums are these times the points'
-    /// weights, the same operations in every sum, so that they agree bit for bit), zero beyond
-    /// the point's radius.
-    #[inline]
-    fn kernels(
-        &self,
-        kernel: Kernel,
-        h: f32,
-        slots: std::ops::Range<usize>,
-        x: Vec3,
-        out: &mut [f32; BLOCK],
-    ) {
-        let at = self.grid.axes().map(|a| &a[slots.clone()]);
-        match &self.cell_radii {
-            Some(r) => fill_kernels(kernel, h, x, at, &r[slots], out),
-            None => fill_kernels(kernel, h, x, at, &[h; BLOCK][..at[0].len()], out),
-        }
-    }
-}
-
-/// [`Group::kernels`] of the points at `at` (one array per axis) with radii `radii`.
-#[inline(always)]
-fn fill_kernels(
-    kernel: Kernel,
-    h: f32,
-    x: Vec3,
-    at: [&[f32]; 3],
-    radii: &[f32],
-    out: &mut [f32; BLOCK],
-) {
-    let n = radii.len();
-    let [xs, ys, zs] = at.map(|a| &a[..n]);
-    let out = &mut out[..n];
-    for i in 0..n {
-        let (dx, dy, dz) = (xs[i] - x.x, ys[i] - x.y, zs[i] - x.z);
-        out[i] = kernel.weighted_r2(dx * dx + dy * dy + dz * dz, radii[i], h);
-    }
 }
 
 /// Bits of a term code ([`ExactDensity::value_and_kernels`]) that name the group.
@@ -76,11 +34,6 @@ struct Group {
     /// the weight of each point in the grid's cell order (`None`: every point has 1)
     cell_weights: Option<Vec<f32>>,
 }
-
-/// Slots a sum computes the kernels of at once (a run of cells' slots is cut into blocks of
-/// this many): the kernels of a block vectorise, and the block's terms are then summed in the
-/// slots' order, each as the one-at-a-time sum would add it.
-const BLOCK: usize = 16;
 
 impl<'a> ExactDensity<'a> {
     /// Indexes the particles for density queries with effective radius `h`.
@@ -140,8 +93,8 @@ impl<'a> ExactDensity<'a> {
         for g in &self.groups {
             // the positions and radii in the grid's cell order: the same terms in the same order
             // as through the point indices, without the indirection; only the points within
-            // reach, which the scan lists without a branch (a gradient for every point scanned,
-            // as the value sums compute their kernels, cost more than it saved)
+            // reach, which the scan lists without a branch (a gradient for every point scanned
+            // cost more than it saved), as in the value sums
             g.grid.for_each_slot_within(x, g.reach, |slot, q| {
                 let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
                 let w = g.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
@@ -225,25 +178,17 @@ impl<'a> ExactDensity<'a> {
         }
         let mut sum = 0.0;
         let h = self.points.h;
-        let mut k = [0.0; BLOCK];
-        let (mut kept_codes, mut kept) = ([0u32; BLOCK], [0.0f32; BLOCK]);
         for (gi, g) in self.groups.iter().enumerate() {
-            g.grid.for_each_range_within(x, g.reach, |run| {
-                for slots in blocks_of(run, BLOCK) {
-                    g.kernels(self.kernel, h, slots.clone(), x, &mut k);
-                    let w = g.cell_weights.as_ref().map(|w| &w[slots.clone()]);
-                    let mut m = 0;
-                    for i in 0..slots.len() {
-                        // the term is the weight times the kernel, listed apart
-                        sum += w.map_or(1.0, |w| w[i]) * k[i];
-                        // a zero kernel adds +0 to a sum of terms >= 0: left out, the sums
-                        // unchanged (each written, kept only if nonzero: no branch)
-                        kept_codes[m] = (((slots.start + i) as u32) << TERM_GROUP_BITS) | gi as u32;
-                        kept[m] = k[i];
-                        m += usize::from(k[i] != 0.0);
-                    }
-                    codes.extend_from_slice(&kept_codes[..m]);
-                    kernels.extend_from_slice(&kept[..m]);
+            // only the points within the group's reach, which the scan lists without a branch:
+            // every other point's kernel is zero (the reach is at least its radius) and would
+            // add +0 to a sum of terms >= 0
+            g.grid.for_each_slot_within(x, g.reach, |slot, q| {
+                let (w, k) = self.weight_and_kernel(g, slot, q, x, h);
+                // the term is the weight times the kernel, listed apart (a zero one left out)
+                sum += w * k;
+                if k != 0.0 {
+                    codes.push(((slot as u32) << TERM_GROUP_BITS) | gi as u32);
+                    kernels.push(k);
                 }
             });
         }
@@ -283,20 +228,15 @@ impl<'a> ExactDensity<'a> {
     pub fn value_up_to(&self, x: Vec3, limit: f32) -> f32 {
         let mut sum = 0.0;
         let h = self.points.h;
-        let mut k = [0.0; BLOCK];
         for g in &self.groups {
-            let reached = g.grid.try_for_each_range_within(x, g.reach, |run| {
-                for slots in blocks_of(run, BLOCK) {
-                    g.kernels(self.kernel, h, slots.clone(), x, &mut k);
-                    let w = g.cell_weights.as_ref().map(|w| &w[slots.clone()]);
-                    for i in 0..slots.len() {
-                        sum += w.map_or(1.0, |w| w[i]) * k[i];
-                        if sum >= limit {
-                            return std::ops::ControlFlow::Break(());
-                        }
-                    }
+            // the points within the group's reach (every other adds +0), as in `value`
+            let reached = g.grid.try_for_each_slot_within(x, g.reach, |slot, q| {
+                sum += self.term(g, slot, q, x, h);
+                if sum >= limit {
+                    std::ops::ControlFlow::Break(())
+                } else {
+                    std::ops::ControlFlow::Continue(())
                 }
-                std::ops::ControlFlow::Continue(())
             });
             if reached.is_break() {
                 break;
@@ -310,19 +250,33 @@ impl<'a> ExactDensity<'a> {
     pub fn value(&self, x: Vec3) -> f32 {
         let mut sum = 0.0;
         let h = self.points.h;
-        let mut k = [0.0; BLOCK];
         for g in &self.groups {
-            g.grid.for_each_range_within(x, g.reach, |run| {
-                for slots in blocks_of(run, BLOCK) {
-                    g.kernels(self.kernel, h, slots.clone(), x, &mut k);
-                    let w = g.cell_weights.as_ref().map(|w| &w[slots.clone()]);
-                    for i in 0..slots.len() {
-                        sum += w.map_or(1.0, |w| w[i]) * k[i];
-                    }
-                }
+            // only the points within the group's reach, which the scan lists without a branch:
+            // every other point's kernel is zero (the reach is at least its radius) and would
+            // add +0 to a sum of terms >= 0, so the sum is every point's, bit for bit
+            g.grid.for_each_slot_within(x, g.reach, |slot, q| {
+                sum += self.term(g, slot, q, x, h);
             });
         }
         sum
+    }
+
+    /// The term of group `g`'s point in cell-order slot `slot` (at `q`) at `x`: its weight
+    /// times its kernel ([`Self::weight_and_kernel`]), the same operations in every sum, so
+    /// that they agree bit for bit.
+    #[inline(always)]
+    fn term(&self, g: &Group, slot: usize, q: Vec3, x: Vec3, h: f32) -> f32 {
+        let (w, k) = self.weight_and_kernel(g, slot, q, x, h);
+        w * k
+    }
+
+    /// The weight and the kernel ([`Kernel::weighted_r2`] of its own radius, zero beyond it)
+    /// at `x` of group `g`'s point in cell-order slot `slot` (at `q`).
+    #[inline(always)]
+    fn weight_and_kernel(&self, g: &Group, slot: usize, q: Vec3, x: Vec3, h: f32) -> (f32, f32) {
+        let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
+        let w = g.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
+        (w, self.kernel.weighted_r2((q - x).length_squared(), r, h))
     }
 }
 
