@@ -195,6 +195,20 @@ fn streamed_extraction_equals_whole_grid_extraction() {
     .unwrap();
     let streamed = extractor.finish(&ExactDensity::new(p, Kernel::Wyvill, h).unwrap(), &params);
     assert_eq!(streamed, whole);
+    // a plane left out or planes pushed out of order (a caller's mistake) give surfels, not a
+    // panic: the z edges whose plane above never followed keep their linear places
+    let iso = params.iso_fraction * Kernel::Wyvill.peak(h);
+    let grid = density::density_grid(p, &spec, Kernel::Wyvill, h, 1 << 30).unwrap();
+    let plane = (spec.dims[0] * spec.dims[1]) as usize;
+    let half = spec.dims[2] / 2;
+    let mut gappy = SurfelExtractor::new(spec, iso);
+    gappy.push_planes(0, &grid.values[..half as usize * plane]);
+    for k in (half + 1..spec.dims[2]).chain([3, 7, 4]) {
+        let at = k as usize * plane;
+        gappy.push_plane(k, &grid.values[at..at + plane]);
+    }
+    let out = gappy.finish(&ExactDensity::new(p, Kernel::Wyvill, h).unwrap(), &params);
+    assert!(!out.is_empty());
     assert!(
         surfels::extract(
             &density::density_grid(p, &spec, Kernel::Wyvill, h, 1 << 30).unwrap(),

@@ -527,13 +527,16 @@ impl SurfelExtractor {
             above: (k + 1 < nz).then(|| plane_at(k + 1)).flatten(),
         };
         // the z crossings of the last push's last plane, now that the plane above is known
+        // (pushed out of order, the planes do not follow: they keep their linear places)
         if let Some(k) = k0.checked_sub(1)
             && !self.pending.is_empty()
+            && let Some(plane) = plane_at(k)
+            && let Some(below) = k.checked_sub(1).and_then(plane_at)
         {
             let a = Around {
                 below2: k.checked_sub(2).and_then(plane_at),
-                below: k.checked_sub(1).and_then(plane_at),
-                plane: plane_at(k).expect("the kept plane"),
+                below: Some(below),
+                plane,
                 above: plane_at(k0),
             };
             for &(at, i, j) in &self.pending {
