@@ -291,9 +291,8 @@ pub struct CellGrid {
     origin: Vec3,
     cell: f32,
     dims: [u64; 3],
-    /// positions in cell order
-    sorted: Vec<Vec3>,
-    /// the same positions one array per axis, for the scans' distances ([`near_mask`])
+    /// positions in cell order, one array per axis (the scans' distances four at a time,
+    /// [`near_mask`]), each run on by `LANES - 1` infinite values
     axes: [Vec<f32>; 3],
     /// cell-order slot -> particle index
     order: Vec<u32>,
@@ -372,18 +371,20 @@ impl CellGrid {
                 CellIndex::Sparse(keyed.iter().map(|&(k, _)| k).collect()),
             )
         };
-        let sorted: Vec<Vec3> = order.par_iter().map(|&i| positions[i as usize]).collect();
         // one array per axis, run on by `LANES - 1` infinite values ([`near_mask`])
         let axis = |c: fn(&Vec3) -> f32| -> Vec<f32> {
             let pad = std::iter::repeat_n(f32::INFINITY, LANES - 1);
-            sorted.iter().map(c).chain(pad).collect()
+            order
+                .iter()
+                .map(|&i| c(&positions[i as usize]))
+                .chain(pad)
+                .collect()
         };
         let axes = [axis(|p| p.x), axis(|p| p.y), axis(|p| p.z)];
         Ok(Self {
             origin: lo,
             cell,
             dims,
-            sorted,
             axes,
             order,
             index,
@@ -433,7 +434,7 @@ impl CellGrid {
                 while near != 0 {
                     let s = block.start + near.trailing_zeros() as usize;
                     near &= near - 1;
-                    visit(s, self.sorted[s]);
+                    visit(s, self.position(s));
                 }
             }
         });
@@ -459,7 +460,7 @@ impl CellGrid {
         mut run: impl FnMut(std::ops::Range<usize>) -> ControlFlow<()>,
     ) -> ControlFlow<()> {
         debug_assert!(radius <= self.cell * 1.0001);
-        if self.sorted.is_empty() {
+        if self.order.is_empty() {
             return ControlFlow::Continue(());
         }
         let [cx, cy, cz] = self.cell_of(p);
@@ -491,7 +492,7 @@ impl CellGrid {
                 while near != 0 {
                     let s = block.start + near.trailing_zeros() as usize;
                     near &= near - 1;
-                    visit(s, self.sorted[s])?;
+                    visit(s, self.position(s))?;
                 }
             }
             ControlFlow::Continue(())
@@ -504,16 +505,18 @@ impl CellGrid {
         &self.order
     }
 
-    /// The positions in cell order: slot `s` holds particle [`Self::order`]`[s]`.
+    /// The position in cell-order slot `s`, particle [`Self::order`]`[s]`.
     #[must_use]
-    pub fn sorted(&self) -> &[Vec3] {
-        &self.sorted
+    #[inline]
+    pub fn position(&self, s: usize) -> Vec3 {
+        let [xs, ys, zs] = &self.axes;
+        Vec3::new(xs[s], ys[s], zs[s])
     }
 
     /// The neighbourhoods of every particle within the cell size, in parallel.
     #[must_use]
     pub fn all_neighbours(&self) -> Neighbourhoods {
-        let n = self.sorted.len();
+        let n = self.order.len();
         let chunks: Vec<Rows> = (0..n.div_ceil(CHUNK))
             .into_par_iter()
             .map(|c| {
@@ -521,7 +524,7 @@ impl CellGrid {
                 let mut rows = Rows::new(slots.len(), slots.len() * 40);
                 for s in slots {
                     let me = self.order[s];
-                    self.for_each_within(self.sorted[s], self.cell, |j| {
+                    self.for_each_within(self.position(s), self.cell, |j| {
                         if j != me {
                             rows.indices.push(j);
                         }
@@ -825,7 +828,7 @@ mod tests {
                 let block = start..start + len;
                 let mask = near_mask(&grid.axes, block.clone(), p, r2);
                 for (bit, s) in block.clone().enumerate() {
-                    let near = grid.sorted()[s].distance_squared(p) <= r2;
+                    let near = grid.position(s).distance_squared(p) <= r2;
                     assert_eq!(
                         mask >> bit & 1 == 1,
                         near,

@@ -307,7 +307,6 @@ pub fn points_grid_in(
     // pages: no fresh allocation to fault in and copy a slab at a time, 14.6 MB a frame for the
     // dam break at two steps)
     let cells = spec.cells() as usize;
-    values.truncate(cells);
     values.resize(cells, 0.0);
     if cells > 0 {
         let plane = spec.dims[0] as usize * spec.dims[1] as usize;

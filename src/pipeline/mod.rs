@@ -216,8 +216,8 @@ pub struct GridParams {
     /// evaluated; the same surfels, in the same order, as the dense grid (tested), in less
     /// memory (measured: 19 against 87 MiB on the dam break's chain; 1.3-1.7x faster on `bench
     /// density`'s 150k block, but 1.2-1.4x slower than the dense grid on the dam break's chain,
-    /// whose dense grid has since become faster: each point's disk is set up again for every
-    /// run of blocks it reaches). In [`GpuPipeline`] the blocks
+    /// whose dense grid has since become faster; not profiled, the likely cause each point's
+    /// disk set up again for every run of blocks it reaches). In [`GpuPipeline`] the blocks
     /// are chosen on the CPU and filled on the GPU, whose grid buffer then holds the evaluated
     /// blocks only ([`GpuPipeline::gpu_grid_bytes`]). Default off.
     pub narrow_band: bool,

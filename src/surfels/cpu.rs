@@ -35,6 +35,17 @@ struct Group {
     cell_weights: Option<Vec<f32>>,
 }
 
+impl Group {
+    /// The radius and the weight of the point in cell-order slot `slot` (`h` and 1 where the
+    /// group has none of its own).
+    #[inline(always)]
+    fn radius_and_weight(&self, slot: usize, h: f32) -> (f32, f32) {
+        let r = self.cell_radii.as_ref().map_or(h, |r| r[slot]);
+        let w = self.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
+        (r, w)
+    }
+}
+
 impl<'a> ExactDensity<'a> {
     /// Indexes the particles for density queries with effective radius `h`.
     pub fn new(positions: &'a [Vec3], kernel: Kernel, h: f32) -> Result<Self, SurfelError> {
@@ -96,8 +107,7 @@ impl<'a> ExactDensity<'a> {
             // reach, which the scan lists without a branch (a gradient for every point scanned
             // cost more than it saved), as in the value sums
             g.grid.for_each_slot_within(x, g.reach, |slot, q| {
-                let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
-                let w = g.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
+                let (r, w) = g.radius_and_weight(slot, h);
                 let (v, dv) = self.kernel.weighted_and_gradient(x - q, r, h);
                 sum += w * v;
                 grad += w * dv;
@@ -274,8 +284,7 @@ impl<'a> ExactDensity<'a> {
     /// at `x` of group `g`'s point in cell-order slot `slot` (at `q`).
     #[inline(always)]
     fn weight_and_kernel(&self, g: &Group, slot: usize, q: Vec3, x: Vec3, h: f32) -> (f32, f32) {
-        let r = g.cell_radii.as_ref().map_or(h, |r| r[slot]);
-        let w = g.cell_weights.as_ref().map_or(1.0, |w| w[slot]);
+        let (r, w) = g.radius_and_weight(slot, h);
         (w, self.kernel.weighted_r2((q - x).length_squared(), r, h))
     }
 }
@@ -357,18 +366,31 @@ fn plane_crossings(
                 if pending {
                     later.push((found.len(), i as u32, j as u32));
                 }
-                found.push(z_crossing(spec, iso, k, around, (i as u32, j as u32)));
+                found.push(z_crossing(
+                    spec,
+                    iso,
+                    k,
+                    below,
+                    around,
+                    (i as u32, j as u32),
+                ));
             }
         }
     }
     (found, later)
 }
 
-/// The crossing on the z edge from point `(i, j)` of plane `k - 1` to plane `k`
-/// ([`plane_crossings`]).
-fn z_crossing(spec: &GridSpec, iso: f32, k: u32, around: &Around<'_>, (i, j): (u32, u32)) -> Vec3 {
+/// The crossing on the z edge from point `(i, j)` of plane `k - 1` (`below`, `around.below`)
+/// to plane `k` ([`plane_crossings`]).
+fn z_crossing(
+    spec: &GridSpec,
+    iso: f32,
+    k: u32,
+    below: &[f32],
+    around: &Around<'_>,
+    (i, j): (u32, u32),
+) -> Vec3 {
     let p = i as usize + spec.dims[0] as usize * j as usize;
-    let below = around.below.expect("a plane below");
     let (u, v) = (below[p], around.plane[p]);
     let outer = around.below2.zip(around.above).map(|(b2, a)| (b2[p], a[p]));
     spec.point(i, j, k - 1)
@@ -540,7 +562,7 @@ impl SurfelExtractor {
                 above: plane_at(k0),
             };
             for &(at, i, j) in &self.pending {
-                self.crossings[at] = z_crossing(spec, iso, k, &a, (i, j));
+                self.crossings[at] = z_crossing(spec, iso, k, below, &a, (i, j));
             }
         }
         let found: Vec<(Vec<Vec3>, Vec<Pending>)> = (k0..k0 + count)
@@ -559,15 +581,32 @@ impl SurfelExtractor {
                 .extend(later.into_iter().map(|(at, i, j)| (offset + at, i, j)));
             self.crossings.extend(f);
         }
-        // keep the last three planes for the z edges of the next ones
+        // keep the last three planes for the z edges of the next ones: those of the kept ones
+        // still wanted where they run on into this push, then this push's, copied into the
+        // buffers of the kept planes they replace
         let last = k0 + count - 1;
-        let from = last.saturating_sub(2);
-        let mut next: Vec<Vec<f32>> = (from..=last)
-            .filter_map(|k| plane_at(k).map(<[f32]>::to_vec))
-            .collect();
-        let first = last + 1 - next.len() as u32;
-        std::mem::swap(&mut self.kept.1, &mut next);
-        self.kept.0 = first;
+        let (first_old, old) = (self.kept.0, std::mem::take(&mut self.kept.1));
+        let follows = first_old + old.len() as u32 == k0;
+        let first = last
+            .saturating_sub(2)
+            .max(if follows { first_old } else { k0 });
+        let mut next = Vec::with_capacity(3);
+        let mut spare = Vec::new();
+        for (k, values) in (first_old..).zip(old) {
+            if k >= first && follows {
+                next.push(values);
+            } else {
+                spare.push(values);
+            }
+        }
+        for k in first.max(k0)..=last {
+            let d = (k - k0) as usize;
+            let mut buffer: Vec<f32> = spare.pop().unwrap_or_default();
+            buffer.clear();
+            buffer.extend_from_slice(&planes[d * plane..(d + 1) * plane]);
+            next.push(buffer);
+        }
+        self.kept = (first, next);
     }
 
     /// Projects the crossings onto the exact iso-surface and returns the surfels.
