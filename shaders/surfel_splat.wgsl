@@ -5,10 +5,10 @@
 //
 // 1. vs_splat + fs_visibility: each surfel becomes a screen-aligned quad bounding the projection of
 //    its disk (the projected corners of the disk's bounding rectangle, which contain the disk's
-//    projection because perspective maps convex sets to convex sets), widened by the low-pass
-//    radius. Per fragment the view ray meets the disk's plane (perspective-correct depth); outside
-//    the disk the fragment is discarded; the depth written is pushed back along the ray by
-//    epsilon = depth_offset * radius.
+//    projection because perspective maps convex sets to convex sets), joined with the low-pass
+//    filter's circle around the projected centre. Per fragment the view ray meets the disk's plane
+//    (perspective-correct depth); outside the disk and the filter the fragment is discarded; the
+//    depth written is pushed back along the ray by epsilon = depth_offset * radius.
 // 2. vs_splat + fs_attributes: depth-tested against pass 1 without writes; adds (colour * w, w) and
 //    (normal * w, depth * w) into two Rgba32Float targets, w = exp(-sharpness * r^2) with
 //    r^2 = min(r3^2, r2^2): r3 the object-space distance in the disk (1 at its rim), r2 the
@@ -127,6 +127,9 @@ struct Frame {
     screen: vec4<f32>,
 }
 
+// Mirror: splat::RECT_MARGIN_PX (a quad's reach beyond the pixels its weight can cover).
+const RECT_MARGIN_PX: f32 = 0.0625;
+
 // The per-surfel set-up of passes 1 and 2 (mirror: `frame` in src/splat/mod.rs).
 fn splat_frame(position: vec3<f32>, radius: f32, normal: vec3<f32>, stretch: f32, tangent_in: vec3<f32>) -> Frame {
     var f: Frame;
@@ -171,8 +174,8 @@ fn splat_frame(position: vec3<f32>, radius: f32, normal: vec3<f32>, stretch: f32
             offset = eps;
         }
         f.screen = vec4<f32>(centre_px.xy, r_px, offset);
-        lo = max(lo, centre_px.xy - vec2<f32>(r_px + 1.0));
-        hi = min(hi, centre_px.xy + vec2<f32>(r_px + 1.0));
+        lo = max(lo, centre_px.xy - vec2<f32>(r_px + RECT_MARGIN_PX));
+        hi = min(hi, centre_px.xy + vec2<f32>(r_px + RECT_MARGIN_PX));
     } else {
         var s = vec2<f32>(1.0, 1.0);
         var all_front = true;
@@ -188,13 +191,15 @@ fn splat_frame(position: vec3<f32>, radius: f32, normal: vec3<f32>, stretch: f32
             mn = min(mn, q.xy);
             mx = max(mx, q.xy);
         }
-        // a disk that reaches behind the camera: the whole screen (rare, exact)
-        let margin = u.low_pass + 1.0;
+        let centre = select(vec2<f32>(-1.0e15), centre_px.xy, centre_px.z > 0.0);
+        // the projected square's pixels joined with the low-pass filter's circle (mirror:
+        // `frame`); a disk that reaches behind the camera: the whole screen (rare, exact)
         if (all_front) {
-            lo = max(lo, mn - vec2<f32>(margin));
-            hi = min(hi, mx + vec2<f32>(margin));
+            let reach = vec2<f32>(u.low_pass);
+            lo = max(lo, min(mn, centre - reach) - vec2<f32>(RECT_MARGIN_PX));
+            hi = min(hi, max(mx, centre + reach) + vec2<f32>(RECT_MARGIN_PX));
         }
-        f.screen = vec4<f32>(select(vec2<f32>(-1.0e15), centre_px.xy, centre_px.z > 0.0), 0.0, eps);
+        f.screen = vec4<f32>(centre, 0.0, eps);
     }
     if (hi.x <= lo.x || hi.y <= lo.y) {
         return f;

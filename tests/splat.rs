@@ -617,3 +617,92 @@ fn the_gpu_twin_refuses_bad_views_with_the_splat_error() {
         }
     }
 }
+
+/// Every pixel whose centre a splat's weight covers (`splat::fragment` keeps it) lies in the
+/// splat's screen rectangle (`splat::frame`), which both renderers draw (the GPU's quad, the
+/// CPU's loops): the rectangle is only the projected disk's box joined with the low-pass circle,
+/// plus `RECT_MARGIN_PX`. Random disks and ellipses from sub-pixel to wide, every orientation
+/// (edge-on included), near and far, three low-pass radii, the three modes; pixels scanned over
+/// the whole screen.
+#[test]
+fn splat_rectangles_hold_every_pixel_the_weight_covers() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let (w, h) = (48u32, 32u32);
+    let camera = Camera {
+        eye: Vec3::new(0.2, 0.5, 3.0),
+        target: Vec3::ZERO,
+        ..Default::default()
+    };
+    let mut covered = 0usize;
+    let mut in_rects = 0usize;
+    for mode in [SplatMode::Ewa, SplatMode::Spheres, SplatMode::Sprites] {
+        for low_pass_px in [0.0, 1.0, 2.5] {
+            let params = SplatParams {
+                mode,
+                low_pass_px,
+                ..Default::default()
+            };
+            let v = splat::View::new(&camera, &Light::default(), &params, w, h).unwrap();
+            for _ in 0..400 {
+                let normal = random_direction(&mut rng);
+                let position = Vec3::new(
+                    rng.random_range(-1.2..1.2),
+                    rng.random_range(-0.8..0.8),
+                    rng.random_range(-2.0..2.5),
+                );
+                let radius = 10f32.powf(rng.random_range(-3.0..-0.5));
+                let s = if rng.random_bool(0.5) {
+                    Surfel::disk(position, normal, radius, splat::WATER)
+                } else {
+                    let tangent = random_direction(&mut rng);
+                    let stretch = rng.random_range(0.2..3.0);
+                    Surfel::ellipse(
+                        position,
+                        normal,
+                        tangent,
+                        radius,
+                        radius * stretch,
+                        splat::WATER,
+                    )
+                };
+                let Some(f) = splat::frame(&s, &v) else {
+                    continue;
+                };
+                in_rects +=
+                    ((f.rect.z - f.rect.x).max(0.0) * (f.rect.w - f.rect.y).max(0.0)) as usize;
+                for y in 0..h {
+                    for x in 0..w {
+                        let pixel = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+                        if splat::fragment(pixel, &f, &v).is_some() {
+                            covered += 1;
+                            assert!(
+                                pixel.x >= f.rect.x
+                                    && pixel.x < f.rect.z
+                                    && pixel.y >= f.rect.y
+                                    && pixel.y < f.rect.w,
+                                "{mode:?}, low-pass {low_pass_px}: pixel {pixel} is covered by \
+                                 {s:?} but lies outside its rectangle {:?}",
+                                f.rect
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+    println!("{covered} covered pixels in rectangles of {in_rects} pixels in all");
+    assert!(
+        covered > 10_000,
+        "too few covered pixels to test: {covered}"
+    );
+}
+
+/// A direction uniform enough for the tests: a normalised point of the cube `[-1, 1]^3`.
+fn random_direction(rng: &mut ChaCha8Rng) -> Vec3 {
+    Vec3::new(
+        rng.random_range(-1.0..1.0f32),
+        rng.random_range(-1.0..1.0f32),
+        rng.random_range(-1.0..1.0f32),
+    )
+    .normalize_or(Vec3::Z)
+}

@@ -639,7 +639,8 @@ pub enum SplatError {
     #[error("image size {width}x{height} must be between 1 and {max} on each side")]
     InvalidSize { width: u32, height: u32, max: u32 },
     /// The splats would cover more pixels than the limit: the work grows with the image size
-    /// times the splats' screen areas, which the low-pass radius widens quadratically.
+    /// times the splats' screen areas, which a low-pass radius wider than the disks widens
+    /// quadratically.
     #[error(
         "the {surfels} splats would cover {fragments} pixel fragments ({} per splat, with a low-pass radius of {low_pass_px} px) at {width}x{height}, over the limit of {limit}: lower the low-pass radius (--low-pass) or the image size, or raise the limit (`SplatParams::max_fragments`, --max-fragments)",
         fragments / (*surfels as u128).max(1)
