@@ -871,3 +871,53 @@ fn cpu_caustics_do_not_depend_on_the_thread_count() {
         );
     }
 }
+
+/// The receiver's views kept from frame to frame (`ReceiverViews`: the light's geometry map, the
+/// camera's receiver hits) give the caustics and the frame of a fresh computation, bit for bit:
+/// frames over the same views and pool, then the pool's floor alone seen through the same views
+/// (the kept ones must not be read), then a moved camera, then the first pool again.
+#[test]
+fn kept_receiver_views_give_the_fresh_frames() {
+    use fluid_surfels::optics::{
+        ReceiverViews, caustics_of, caustics_reusing, frame_of, frame_reusing,
+    };
+    let (low, surfels) = pool_scene(0.8, Vec3::new(0.3, 1.0, 0.2));
+    let mut floor = low.clone();
+    floor.receiver.kind = ReceiverKind::Plane;
+    let mut moved = low.clone();
+    moved.camera = Some(fluid_surfels::splat::Camera {
+        eye: Vec3::new(1.5, 3.0, 2.5),
+        target: Vec3::new(0.0, 0.3, 0.0),
+        ..Default::default()
+    });
+    let stage = |scene: &OpticsScene| Stage::new(scene, &surfels).unwrap();
+    // the floor's stage with the pool's views and camera: only the receiver changes
+    let pool = stage(&low);
+    let mut floor = stage(&floor);
+    floor.views = pool.views;
+    floor.camera = pool.camera;
+    let water: &[Surfel] = &surfels;
+    let mut kept = ReceiverViews::default();
+    for (k, stage) in [pool, stage(&low), floor, stage(&moved), stage(&low)]
+        .iter()
+        .enumerate()
+    {
+        let fresh = caustics_of(stage, &water).unwrap();
+        let reused = caustics_reusing(stage, &water, &mut kept).unwrap();
+        assert!(
+            fresh == reused,
+            "frame {k}: the caustics differ from a fresh computation"
+        );
+        let size = (64, 48);
+        let a = frame_of(stage, &water, &fresh, size).unwrap();
+        let b = frame_reusing(stage, &water, &fresh, size, &mut kept).unwrap();
+        assert_eq!(
+            a.linear, b.linear,
+            "frame {k}: the picture differs from a fresh one"
+        );
+        assert!(
+            a.linear.iter().any(|p| p[3] > 0.0),
+            "frame {k}: no water drawn"
+        );
+    }
+}

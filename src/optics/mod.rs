@@ -60,9 +60,10 @@ use serde::{Deserialize, Serialize};
 use crate::splat::{Camera, SplatError, SplatParams, Surfel, View};
 
 pub use cpu::{
-    Caustics, FrameImage, caustics_cpu, caustics_of, frame_cpu, frame_of, receiver_irradiance,
+    Caustics, FrameImage, ReceiverViews, caustics_cpu, caustics_of, caustics_reusing, frame_cpu,
+    frame_of, frame_reusing, receiver_irradiance,
 };
-pub use receiver::{Container, Receiver, ReceiverGeometry, ReceiverKind};
+pub use receiver::{Container, Nearest, Receiver, ReceiverGeometry, ReceiverKind};
 
 /// Errors of the optics stage.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

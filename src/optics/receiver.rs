@@ -408,6 +408,14 @@ impl ReceiverGeometry {
     /// The closest hit of the ray `origin + t dir`, `t` in `(t_min, inf)`.
     #[must_use]
     pub fn intersect(&self, origin: Vec3, dir: Vec3, t_min: f32) -> Option<Hit> {
+        self.nearest(origin, dir, t_min)
+            .map(|near| self.hit_at(origin, dir, near))
+    }
+
+    /// [`Self::intersect`] as the ray's parameter and the triangle it meets, 8 bytes to keep
+    /// (`optics::ReceiverViews`); [`Self::hit_at`] makes the hit of them, bit for bit.
+    #[must_use]
+    pub fn nearest(&self, origin: Vec3, dir: Vec3, t_min: f32) -> Option<Nearest> {
         if !(origin.is_finite() && dir.is_finite()) || dir.length_squared() == 0.0 {
             return None;
         }
@@ -424,17 +432,33 @@ impl ReceiverGeometry {
         }) {
             return None;
         }
-        let tri = &self.tris[indices[hit.primitive_id as usize] as usize];
-        let mut n = Vec3::from(tri.compute_normal());
+        Some(Nearest {
+            t: hit.t,
+            triangle: indices[hit.primitive_id as usize],
+        })
+    }
+
+    /// The hit of the ray `origin + t dir` that [`Self::nearest`] found.
+    #[must_use]
+    pub fn hit_at(&self, origin: Vec3, dir: Vec3, near: Nearest) -> Hit {
+        let dir = dir + Vec3::ZERO;
+        let mut n = Vec3::from(self.tris[near.triangle as usize].compute_normal());
         if n.dot(dir) > 0.0 {
             n = -n;
         }
-        Some(Hit {
-            t: hit.t,
-            position: origin + dir * hit.t,
+        Hit {
+            t: near.t,
+            position: origin + dir * near.t,
             normal: n,
-        })
+        }
     }
+}
+
+/// A ray's closest hit as [`ReceiverGeometry::nearest`] finds it: its parameter and triangle.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Nearest {
+    pub t: f32,
+    pub triangle: u32,
 }
 
 /// Möller-Trumbore with a small tolerance on the barycentric coordinates, so that a ray along an

@@ -766,6 +766,8 @@ pub struct Pipeline {
     water: Box<dyn WaterRenderer>,
     /// The threads of `params.threads`, when given.
     pool: Option<std::sync::Arc<rayon::ThreadPool>>,
+    /// The receiver as the light's map and the camera saw it last frame ([`optics::ReceiverViews`]).
+    receiver_views: optics::ReceiverViews,
 }
 
 /// A function told each warning of a frame as soon as it is known.
@@ -786,6 +788,7 @@ impl Pipeline {
             drawn: None,
             levels_before: std::collections::HashMap::new(),
             water: water_renderer(&params),
+            receiver_views: optics::ReceiverViews::default(),
             pool: match params.threads {
                 Some(n) => Some(std::sync::Arc::new(
                     rayon::ThreadPoolBuilder::new()
@@ -1714,10 +1717,11 @@ impl Pipeline {
             let scene = self.fitted_scene(&shape, frame.radius)?;
             let t = Instant::now();
             let stage = Stage::fitted(&scene, &shape, None)?;
-            let caustics = optics::caustics_of(&stage, water)?;
+            let caustics = optics::caustics_reusing(&stage, water, &mut self.receiver_views)?;
             frame.timings.caustics_ms = ms(t);
             let t = Instant::now();
-            let f = optics::frame_of(&stage, water, &caustics, (w, h))?;
+            let f =
+                optics::frame_reusing(&stage, water, &caustics, (w, h), &mut self.receiver_views)?;
             frame.timings.image_ms = ms(t);
             frame.camera = Some(stage.camera);
             frame.finished = Some(Finished {
