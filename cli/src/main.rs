@@ -129,8 +129,8 @@ fn quiet_lavapipe() {
 /// pipeline faults its buffers in afresh: on the dam break at 640x480 (`bench pipeline --detail
 /// auto`, 2 cores) 16,600 page faults a frame, a tenth of the frame's CPU time in the kernel.
 /// The command line keeps up to 64 MiB free per allocator arena and serves allocations under
-/// 32 MiB from its heaps: measured there, the frame 255-271 -> 242-246 ms (median of 9, two
-/// rounds, alternating), system time 0.41-0.62 -> 0.10-0.20 s over ten frames, peak RSS 87-91
+/// 32 MiB from its heaps: measured there, the frame 255-271 -> 245-246 ms (medians of 9, these
+/// values set through `GLIBC_TUNABLES`, two runs each, a quiet hour), system time 0.41-0.62 -> 0.10-0.20 s over ten frames, peak RSS 87-91
 /// -> 119-135 MB. Only on glibc, and not when `GLIBC_TUNABLES` is set (the user's own
 /// settings win). The library leaves its host's allocator alone.
 fn keep_freed_memory() {

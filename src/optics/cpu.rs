@@ -147,7 +147,7 @@ fn add_texel(map: &mut [[f32; 4]], width: u32, x: u32, y: u32, v: Vec3) {
 /// Returns the share of `value` deposited. `deposit_triangle` in the WGSL.
 /// The map is handed in bands of rows (`band`: the map's rows `rows`, `width` texels each), so
 /// that bands take their triangles at once ([`caustics_of`]); the share returned is the band's.
-/// The texels are given as [`deposit_texels`] makes them.
+/// `texels` are the map's [`DepositTexel`]s.
 fn deposit_owned(
     (band, rows): (&mut [[f32; 4]], std::ops::Range<u32>),
     view: &View,
@@ -173,41 +173,55 @@ fn deposit_owned(
 
 /// A caustics map texel as [`deposit_owned`] tests it: the depth of the receiver it shows and
 /// the depth a triangle may lie off it ([`depth_bias`]). Both depend on the texel alone, so
-/// they are found once a frame, not once for each triangle that covers the texel (the column's
-/// splash frame: 731,416 visits of 189,440 texels by 24,889 triangles).
-#[derive(Clone, Copy)]
+/// they are found with the geometry map ([`MapTexel`]), not once for each triangle that covers
+/// the texel (the column's splash frame: 731,416 visits of 189,440 texels by 24,889 triangles).
+#[derive(Clone, Copy, Debug)]
 struct DepositTexel {
     depth: f32,
     bias: f32,
 }
 
-/// [`DepositTexel`] of every texel of the map `view` (its `geometry` and `normals`): the depth
-/// NaN where no light is deposited (no receiver, or a container's outer face).
-fn deposit_texels(
-    view: &View,
-    (geometry, normals): (&[[f32; 4]], &[[f32; 4]]),
-) -> Vec<DepositTexel> {
-    let w = view.width;
-    geometry
-        .par_iter()
-        .zip(normals)
-        .enumerate()
-        .map(|(i, (g, n))| {
-            let (x, y) = (i as u32 % w, i as u32 / w);
-            let depth = g[3];
-            if !(depth > 0.0 && n[3] == 0.0) {
-                return DepositTexel {
-                    depth: f32::NAN,
-                    bias: 0.0,
-                };
-            }
-            let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+/// A texel of the light's geometry map: the receiver point it shows and its depth (`w`, 0:
+/// none), the receiver's normal facing the light (`w` 1 on a container's outer face), and its
+/// [`DepositTexel`] (the depth NaN where no light is deposited: no receiver, or an outer face).
+#[derive(Clone, Copy, Debug)]
+struct MapTexel {
+    geometry: [f32; 4],
+    normal: [f32; 4],
+    deposit: DepositTexel,
+}
+
+impl MapTexel {
+    /// Texel `(x, y)` of the map `map` over the stage's receiver.
+    fn of(stage: &Stage, map: &View, (x, y): (u32, u32)) -> Self {
+        let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+        let (o, d) = map.world_ray(centre);
+        let none = DepositTexel {
+            depth: f32::NAN,
+            bias: 0.0,
+        };
+        let Some(h) = stage.receiver.intersect(o, d, 0.0) else {
+            return Self {
+                geometry: [0.0; 4],
+                normal: [0.0; 4],
+                deposit: none,
+            };
+        };
+        let outer = stage.receiver.outer_face(h.position, h.normal);
+        let deposit = if h.t > 0.0 && !outer {
             DepositTexel {
-                depth,
-                bias: depth_bias(view, centre, depth, Vec4::from(*n).truncate()),
+                depth: h.t,
+                bias: depth_bias(map, centre, h.t, h.normal),
             }
-        })
-        .collect()
+        } else {
+            none
+        };
+        Self {
+            geometry: h.position.extend(h.t).to_array(),
+            normal: h.normal.extend(f32::from(u8::from(outer))).to_array(),
+            deposit,
+        }
+    }
 }
 
 /// The depth a lookup in a light's map allows between a point and the surface a texel shows:
@@ -334,28 +348,28 @@ pub fn caustics_reusing(
 /// they are 189,440 and 262,144 rays a frame.
 #[derive(Debug, Default)]
 pub struct ReceiverViews {
-    map: Option<Seen<([f32; 4], [f32; 4])>>,
-    camera: Option<Seen<Option<super::receiver::Nearest>>>,
+    map: Option<Seen<MapTexels>>,
+    camera: Option<Seen<Vec<Option<super::receiver::Nearest>>>>,
 }
 
-/// What one view saw of one receiver: per pixel, row-major.
+/// What one view saw of one receiver.
 #[derive(Debug)]
 struct Seen<T> {
     view: View,
     triangles: Vec<[Vec3; 3]>,
     container: Option<super::Container>,
-    pixels: Vec<T>,
+    value: T,
 }
 
-impl<T: Send> Seen<T> {
-    /// The pixels of `view` over the receiver of `stage`: kept ones when they are of the same
-    /// view and receiver, else `pixel(x, y)` for each, kept for the next call.
+impl<T> Seen<T> {
+    /// What `view` sees of the receiver of `stage`: the kept value when it is of the same view
+    /// and receiver, else `make()`, kept for the next call.
     fn of<'a>(
         kept: &'a mut Option<Self>,
         stage: &Stage,
         view: &View,
-        pixel: impl Fn(u32, u32) -> T + Sync,
-    ) -> &'a [T] {
+        make: impl FnOnce() -> T,
+    ) -> &'a T {
         let receiver = &stage.receiver;
         let same = kept.as_ref().is_some_and(|k| {
             k.view == *view
@@ -363,19 +377,44 @@ impl<T: Send> Seen<T> {
                 && k.triangles == receiver.triangles
         });
         if !same {
-            let w = view.width;
-            let pixels = (0..(view.width * view.height) as usize)
-                .into_par_iter()
-                .map(|i| pixel(i as u32 % w, i as u32 / w))
-                .collect();
             *kept = Some(Self {
                 view: *view,
                 triangles: receiver.triangles.clone(),
                 container: receiver.container,
-                pixels,
+                value: make(),
             });
         }
-        &kept.as_ref().expect("kept above").pixels
+        &kept.as_ref().expect("kept above").value
+    }
+}
+
+/// `pixel(x, y)` of every pixel of `view`, row-major, in parallel.
+fn per_pixel<T: Send>(view: &View, pixel: impl Fn(u32, u32) -> T + Sync) -> Vec<T> {
+    let w = view.width;
+    (0..(view.width * view.height) as usize)
+        .into_par_iter()
+        .map(|i| pixel(i as u32 % w, i as u32 / w))
+        .collect()
+}
+
+/// The light's geometry map ([`MapTexel`] a texel), one array per field: the deposit's tests
+/// packed together for its hot loop.
+#[derive(Debug)]
+struct MapTexels {
+    geometry: Vec<[f32; 4]>,
+    normals: Vec<[f32; 4]>,
+    deposit: Vec<DepositTexel>,
+}
+
+impl MapTexels {
+    /// The map `map` over the receiver of `stage`.
+    fn of(stage: &Stage, map: &View) -> Self {
+        let texels = per_pixel(map, |x, y| MapTexel::of(stage, map, (x, y)));
+        Self {
+            geometry: texels.iter().map(|t| t.geometry).collect(),
+            normals: texels.iter().map(|t| t.normal).collect(),
+            deposit: texels.iter().map(|t| t.deposit).collect(),
+        }
     }
 }
 
@@ -434,25 +473,10 @@ fn caustics_of_render(
             v
         })
         .collect();
-    // the geometry map: the receiver seen from the light, per map texel (kept while the map's
-    // view and the receiver stay)
-    let (geometry, normals): (Vec<[f32; 4]>, Vec<[f32; 4]>) =
-        Seen::of(&mut seen.map, stage, &map, |x, y| {
-            let (o, d) = map.world_ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
-            match stage.receiver.intersect(o, d, 0.0) {
-                Some(h) => {
-                    let outer = stage.receiver.outer_face(h.position, h.normal);
-                    (
-                        h.position.extend(h.t).to_array(),
-                        h.normal.extend(f32::from(u8::from(outer))).to_array(),
-                    )
-                }
-                None => ([0.0; 4], [0.0; 4]),
-            }
-        })
-        .par_iter()
-        .copied()
-        .unzip();
+    // the geometry map: the receiver seen from the light, per map texel, with each texel's
+    // deposit test (kept while the map's view and the receiver stay)
+    let texels = Seen::of(&mut seen.map, stage, &map, || MapTexels::of(stage, &map));
+    let (geometry, normals) = (texels.geometry.clone(), texels.normals.clone());
     // 4. caustics triangles: their fates in parallel, deposited band by band (deterministic)
     let fates = fates_of(stage, &screen, &map, &vertices, &geometry);
     let deposits: Vec<([Vec3; 3], Vec3)> = fates
@@ -462,7 +486,7 @@ fn caustics_of_render(
             _ => None,
         })
         .collect();
-    let (flux, share) = deposit_in_bands(&deposits, &map, (&geometry, &normals));
+    let (flux, share) = deposit_in_bands(&deposits, &map, &texels.deposit);
     let mut out = Caustics {
         screen,
         map,
@@ -612,12 +636,11 @@ fn fates_of(
 fn deposit_in_bands(
     deposits: &[([Vec3; 3], Vec3)],
     map: &View,
-    (geometry, normals): (&[[f32; 4]], &[[f32; 4]]),
+    texels: &[DepositTexel],
 ) -> (Vec<[f32; 4]>, Vec<f32>) {
     let (mw, mh) = (map.width, map.height);
     let band_rows = mh.div_ceil(MAP_BANDS).max(1);
     let mut flux = vec![[0.0f32; 4]; (mw * mh) as usize];
-    let texels = deposit_texels(map, (geometry, normals));
     let band_shares: Vec<Vec<(u32, f32)>> = flux
         .par_chunks_mut((band_rows * mw).max(1) as usize)
         .enumerate()
@@ -630,7 +653,7 @@ fn deposit_in_bands(
                 });
                 // a band no row of the triangle's box reaches takes nothing
                 if hi >= rows.start as f32 - 1.0 && lo <= rows.end as f32 + 1.0 {
-                    let share = deposit_owned((&mut *band, rows.clone()), map, &texels, q, f);
+                    let share = deposit_owned((&mut *band, rows.clone()), map, texels, q, f);
                     shares.push((t as u32, share));
                 }
             }
@@ -934,9 +957,11 @@ fn frame_of_render(
     let size = (view.width, view.height);
     let ray = |x: u32, y: u32| view.world_ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
     // the receiver each pixel's ray meets first (kept while the view and the receiver stay)
-    let hits = Seen::of(&mut seen.camera, stage, view, |x, y| {
-        let (o, d) = ray(x, y);
-        stage.receiver.nearest(o, d.normalize(), 0.0)
+    let hits = Seen::of(&mut seen.camera, stage, view, || {
+        per_pixel(view, |x, y| {
+            let (o, d) = ray(x, y);
+            stage.receiver.nearest(o, d.normalize(), 0.0)
+        })
     });
     let linear: Vec<[f32; 4]> = (0..(size.0 * size.1) as usize)
         .into_par_iter()

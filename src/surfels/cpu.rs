@@ -349,14 +349,14 @@ fn plane_crossings(
             if i + 1 < nx {
                 let w = plane[p + 1];
                 if cross(v, w) {
-                    let outer = (i >= 1 && i + 2 < nx).then(|| (plane[p - 1], plane[p + 2]));
+                    let outer = beside(i, nx, |c| plane[c + nx * j]);
                     found.push(at(i, j).lerp(at(i + 1, j), crossing_t(v, w, outer, iso)));
                 }
             }
             if j + 1 < ny {
                 let w = plane[p + nx];
                 if cross(v, w) {
-                    let outer = (j >= 1 && j + 2 < ny).then(|| (plane[p - nx], plane[p + 2 * nx]));
+                    let outer = beside(j, ny, |c| plane[i + nx * c]);
                     found.push(at(i, j).lerp(at(i, j + 1), crossing_t(v, w, outer, iso)));
                 }
             }
@@ -378,6 +378,14 @@ fn plane_crossings(
         }
     }
     (found, later)
+}
+
+/// The values one point before and one after the edge from point `c` to `c + 1` of a line of
+/// `n` grid points (`at(c')`: the value at point `c'`), which place its crossing with the
+/// edge's own ([`crossing_t`]); `None` where the edge touches the grid's border.
+#[inline]
+fn beside(c: usize, n: usize, at: impl Fn(usize) -> f32) -> Option<(f32, f32)> {
+    (c >= 1 && c + 2 < n).then(|| (at(c - 1), at(c + 2)))
 }
 
 /// The crossing on the z edge from point `(i, j)` of plane `k - 1` (`below`, `around.below`)
@@ -472,8 +480,9 @@ impl SurfelExtractor {
                             if i + 1 < nx {
                                 let w = grid.at(i + 1, j, k);
                                 if cross(v, w) {
-                                    let outer = (i >= 1 && i + 2 < nx)
-                                        .then(|| (grid.at(i - 1, j, k), grid.at(i + 2, j, k)));
+                                    let outer = beside(i as usize, nx as usize, |c| {
+                                        grid.at(c as u32, j, k)
+                                    });
                                     let t = crossing_t(v, w, outer, iso);
                                     out.push((key(k, 0), here.lerp(spec.point(i + 1, j, k), t)));
                                 }
@@ -481,8 +490,9 @@ impl SurfelExtractor {
                             if j + 1 < ny {
                                 let w = grid.at(i, j + 1, k);
                                 if cross(v, w) {
-                                    let outer = (j >= 1 && j + 2 < ny)
-                                        .then(|| (grid.at(i, j - 1, k), grid.at(i, j + 2, k)));
+                                    let outer = beside(j as usize, ny as usize, |c| {
+                                        grid.at(i, c as u32, k)
+                                    });
                                     let t = crossing_t(v, w, outer, iso);
                                     out.push((key(k, 1), here.lerp(spec.point(i, j + 1, k), t)));
                                 }
@@ -490,8 +500,9 @@ impl SurfelExtractor {
                             if k + 1 < nz {
                                 let w = grid.at(i, j, k + 1);
                                 if cross(v, w) {
-                                    let outer = (k >= 1 && k + 2 < nz)
-                                        .then(|| (grid.at(i, j, k - 1), grid.at(i, j, k + 2)));
+                                    let outer = beside(k as usize, nz as usize, |c| {
+                                        grid.at(i, j, c as u32)
+                                    });
                                     let t = crossing_t(v, w, outer, iso);
                                     out.push((
                                         key(k + 1, 2),
