@@ -6,13 +6,15 @@
 //!
 //! Run: `cargo run --release --example game_loop -- [--frames 60] [--size 320x320]
 //! [--save 0,30,59] [--out DIR] [--json] [--cpu-surfels] [--narrow-band] [--stage-ms]
-//! [--renderer ewa|particle-splat|ray-cast|ssfr]`. The
+//! [--renderer ewa|particle-splat|ray-cast|ssfr] [--orbit DEGREES]`. The
 //! density grid and the surfels are made on the GPU (`PipelineParams::gpu_surfels`);
 //! `--cpu-surfels` makes them on the CPU, as the CPU `Pipeline` does, to compare the two;
 //! `--narrow-band` makes the grid sparse (`grid.narrow_band`: the blocks near the surface
 //! chosen on the GPU and filled there by the gather pass); `--renderer` draws the water with
 //! another renderer (default `ewa`; the others take the CPU's points, the ray caster's weights
-//! solved on the GPU, see `GpuPipeline`). Needs a GPU or Mesa's lavapipe (on lavapipe, a
+//! solved on the GPU, see `GpuPipeline`); `--orbit` turns the camera by that many degrees a
+//! frame around the point it looks at, as a game's camera moves (the CPU reference follows it).
+//! Needs a GPU or Mesa's lavapipe (on lavapipe, a
 //! software rasteriser, it proves the loop works, not how fast a GPU runs it).
 //!
 //! `--json` prints one object: frames, the CPU milliseconds per frame (the CPU stages plus
@@ -50,6 +52,7 @@ struct Args {
     narrow_band: bool,
     stage_ms: bool,
     renderer: Renderer,
+    orbit_degrees: f32,
 }
 
 fn args() -> Result<Args, String> {
@@ -63,6 +66,7 @@ fn args() -> Result<Args, String> {
         narrow_band: false,
         stage_ms: false,
         renderer: Renderer::Ewa,
+        orbit_degrees: 0.0,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -90,6 +94,12 @@ fn args() -> Result<Args, String> {
             "--cpu-surfels" => a.cpu_surfels = true,
             "--narrow-band" => a.narrow_band = true,
             "--stage-ms" => a.stage_ms = true,
+            "--orbit" => {
+                a.orbit_degrees = value()?.parse().map_err(|e| format!("--orbit: {e}"))?;
+                if !a.orbit_degrees.is_finite() {
+                    return Err("--orbit must be a finite number of degrees".into());
+                }
+            }
             "--renderer" => {
                 let v = value()?;
                 a.renderer = Renderer::ALL
@@ -125,6 +135,20 @@ fn add_share(mean: &mut FrameTimings, timings: &FrameTimings, frames: usize) {
         (&mut mean.surfels_ms, timings.surfels_ms),
     ] {
         *sum += ms / n;
+    }
+}
+
+/// Turns the pipelines' camera by `degrees` around the point it looks at, about its up axis,
+/// from the second frame on (the first fits it).
+fn orbit(gpu: &mut GpuPipeline, reference: &mut Pipeline, frame: usize, degrees: f32) {
+    if frame > 0
+        && degrees != 0.0
+        && let Some(mut camera) = gpu.cpu().camera()
+    {
+        let turn = glam::Quat::from_axis_angle(camera.up.normalize(), degrees.to_radians());
+        camera.eye = camera.target + turn * (camera.eye - camera.target);
+        gpu.cpu_mut().set_camera(camera);
+        reference.set_camera(camera);
     }
 }
 
@@ -216,9 +240,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     params.grid.narrow_band = args.narrow_band;
     params.renderer = args.renderer;
     let mut gpu = GpuPipeline::new(&device, &queue, format, args.size, &params)?;
-    if args.stage_ms {
-        gpu.time_stages(&device, &queue, true);
-    }
+    // (off by default)
+    gpu.time_stages(&device, &queue, args.stage_ms);
     // the CPU reference, stepped in lockstep (detection every frame for the same hysteresis)
     let mut reference = Pipeline::new(params)?;
     let query = timestamps.then(|| timestamp_query(&device));
@@ -232,6 +255,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (mut reused, mut grid_bytes) = (0, 0u64);
     for f in 0..args.frames {
         let save = args.save.contains(&f);
+        // the camera fitted on the first frame, turned around its target from then on
+        orbit(&mut gpu, &mut reference, f, args.orbit_degrees);
         let t = Instant::now();
         let mut encoder = device.create_command_encoder(&Default::default());
         if let Some((set, _, _)) = &query {
