@@ -6,14 +6,18 @@
 //!
 //! Run: `cargo run --release --example game_loop -- [--frames 60] [--size 320x320]
 //! [--save 0,30,59] [--out DIR] [--json] [--cpu-surfels] [--narrow-band] [--stage-ms]
-//! [--renderer ewa|particle-splat|ray-cast|ssfr] [--orbit DEGREES]`. The
+//! [--renderer ewa|particle-splat|ray-cast|ssfr] [--orbit DEGREES] [--input FILE
+//! [--particles N]]`. The
 //! density grid and the surfels are made on the GPU (`PipelineParams::gpu_surfels`);
 //! `--cpu-surfels` makes them on the CPU, as the CPU `Pipeline` does, to compare the two;
 //! `--narrow-band` makes the grid sparse (`grid.narrow_band`: the blocks near the surface
 //! chosen on the GPU and filled there by the gather pass); `--renderer` draws the water with
 //! another renderer (default `ewa`; the others take the CPU's points, the ray caster's weights
 //! solved on the GPU, see `GpuPipeline`); `--orbit` turns the camera by that many degrees a
-//! frame around the point it looks at, as a game's camera moves (the CPU reference follows it).
+//! frame around the point it looks at, as a game's camera moves (the CPU reference follows it);
+//! `--input` draws a particle file's frame every frame instead of the column simulation (the
+//! automatic pool; `--particles N` resamples it to about N particles first, the same body on a
+//! finer lattice: the 100,000-particle double dam break).
 //! Needs a GPU or Mesa's lavapipe (on lavapipe, a
 //! software rasteriser, it proves the loop works, not how fast a GPU runs it).
 //!
@@ -35,6 +39,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
+use fluid_surfels::ParticleSet;
 use fluid_surfels::gpu::{GpuContext, REQUIRED_FEATURES};
 use fluid_surfels::pipeline::{
     FrameTimings, GpuPipeline, Pipeline, PipelineParams, Renderer, Through,
@@ -53,6 +58,8 @@ struct Args {
     stage_ms: bool,
     renderer: Renderer,
     orbit_degrees: f32,
+    input: Option<PathBuf>,
+    particles: Option<usize>,
 }
 
 fn args() -> Result<Args, String> {
@@ -67,6 +74,8 @@ fn args() -> Result<Args, String> {
         stage_ms: false,
         renderer: Renderer::Ewa,
         orbit_degrees: 0.0,
+        input: None,
+        particles: None,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -94,6 +103,10 @@ fn args() -> Result<Args, String> {
             "--cpu-surfels" => a.cpu_surfels = true,
             "--narrow-band" => a.narrow_band = true,
             "--stage-ms" => a.stage_ms = true,
+            "--input" => a.input = Some(PathBuf::from(value()?)),
+            "--particles" => {
+                a.particles = Some(value()?.parse().map_err(|e| format!("--particles: {e}"))?);
+            }
             "--orbit" => {
                 a.orbit_degrees = value()?.parse().map_err(|e| format!("--orbit: {e}"))?;
                 if !a.orbit_degrees.is_finite() {
@@ -115,12 +128,77 @@ fn args() -> Result<Args, String> {
     if a.frames == 0 {
         return Err("--frames must be at least 1".into());
     }
+    if a.particles.is_some() && a.input.is_none() {
+        return Err("--particles resamples an --input file".into());
+    }
     if a.save.is_empty() {
         a.save = vec![0, a.frames / 2, a.frames - 1];
     }
     a.save.retain(|&f| f < a.frames);
     a.save.dedup();
     Ok(a)
+}
+
+/// The particles the loop draws: the column simulation, stepped every frame, or a file's frame
+/// (resampled on request), drawn again every frame as a paused game's would be.
+enum Particles {
+    Column(Box<ColumnSim>),
+    File(ParticleSet, String),
+}
+
+impl Particles {
+    /// The particles `args` ask for and the pipeline's parameters for them (the column's pool
+    /// and support radius; a file's automatic pool, and its support radius twice the spacing
+    /// estimated from it, scaled with the spacing when resampled).
+    fn of(args: &Args) -> Result<(Self, PipelineParams), Box<dyn std::error::Error>> {
+        let Some(path) = &args.input else {
+            let sim = ColumnSim::new(ColumnParams::default())?;
+            let params = PipelineParams {
+                support_radius: Some(sim.support_radius()),
+                scene: column_pool(ColumnParams::default().tank),
+                ..Default::default()
+            };
+            return Ok((Self::Column(Box::new(sim)), params));
+        };
+        let set = fluid_surfels::io::read_particles(path, None)?;
+        let mut radius = 2.0 * fluid_surfels::neighbours::estimate_spacing(&set.positions)?;
+        let mut source = path.display().to_string();
+        let set = match args.particles {
+            Some(n) => {
+                let (fine, h) = fluid_surfels::scenes::resample(&set.positions, radius, n)?;
+                source = format!("{source}, resampled from {} particles", set.len());
+                radius = h;
+                ParticleSet::from_positions(fine)
+            }
+            None => set,
+        };
+        let params = PipelineParams {
+            support_radius: Some(radius),
+            ..Default::default()
+        };
+        Ok((Self::File(set, source), params))
+    }
+
+    fn particles(&self) -> &ParticleSet {
+        match self {
+            Self::Column(sim) => sim.particles(),
+            Self::File(set, _) => set,
+        }
+    }
+
+    fn source(&self) -> &str {
+        match self {
+            Self::Column(_) => "the column scene",
+            Self::File(_, source) => source,
+        }
+    }
+
+    /// The next frame: the column's next step; a file's frame again.
+    fn step(&mut self) {
+        if let Self::Column(sim) = self {
+            sim.step_frame();
+        }
+    }
 }
 
 /// Adds `timings`' share of a mean over `frames` to `mean` (the stages `prepare` runs).
@@ -229,13 +307,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
 
     // --- once: the pipeline for the game's target ---
     let format = wgpu::TextureFormat::Rgba8UnormSrgb;
-    let mut sim = ColumnSim::new(ColumnParams::default())?;
-    let mut params = PipelineParams {
-        support_radius: Some(sim.support_radius()),
-        scene: column_pool(ColumnParams::default().tank),
-        gpu_surfels: !args.cpu_surfels,
-        ..Default::default()
-    };
+    let (mut sim, mut params) = Particles::of(&args)?;
+    params.gpu_surfels = !args.cpu_surfels;
     params.scene.optics.image_size = [args.size.0, args.size.1];
     params.grid.narrow_band = args.narrow_band;
     params.renderer = args.renderer;
@@ -306,12 +379,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }));
         }
         gpu.cpu_mut().recycle(frame);
-        sim.step_frame();
+        sim.step();
     }
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     let report = serde_json::json!({
         "adapter": format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type),
         "frames": args.frames,
+        "particles": sim.particles().len(),
+        "source": sim.source(),
         "frames_reusing_gpu_resources": reused,
         "size": [args.size.0, args.size.1],
         "cpu_ms_mean": mean(&cpu_ms),

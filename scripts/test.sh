@@ -84,6 +84,13 @@ section "example: the whole chain in a game loop on the caller's device (GpuPipe
 grep -q '"psnr_against_cpu_db"' "$example_out/game_loop.json"
 grep -q '"gpu_stages":\["calibration","density","surfels","splats","optics"\]' "$example_out/game_loop.json"
 test -s "$example_out/game_loop/frame_0002.png"
+section "the device script's game loops at a tiny size (the column, a moving camera, the double dam break resampled)"
+mkdir -p "$example_out/device"
+cp "$examples/game_loop" tests/data/double_dam_break_frame_26_4732_particles.vtk "$example_out/device/"
+SIZE=48x32 FRAMES=2 PARTICLES=8000 scripts/device_game_loop.sh "$example_out/device" "$example_out/device/out"
+for run in column column_moving ddb_8000; do
+  grep -q '"psnr_against_cpu_db"' "$example_out/device/out/$run.json"
+done
 section "example: the viewer without a window (headless), 2 frames"
 "$examples/viewer" --headless --frames 2 --size 96x72 --out "$example_out/viewer"
 test -s "$example_out/viewer/frame_0001.png"
