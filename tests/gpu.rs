@@ -3115,6 +3115,53 @@ fn gpu_tiles_are_sized_from_late_counts_of_the_same_view() {
     assert!(log[10].1 && log[10].3, "{log:?}");
 }
 
+/// Bins `spheres` into the tiles of each of `views` in turn, one frame each, with one
+/// `GpuTiles` (planned, recorded, submitted and its statistics let come back, as a game's frames
+/// do), against the CPU's `view::bin`: per frame its index, whether it was counted on the CPU,
+/// whether it held every pair item for item, and whether its longest tile lies within half again
+/// of the one planned.
+fn bin_views(
+    ctx: &gpu::GpuContext,
+    spheres: &[[f32; 4]],
+    views: impl Iterator<Item = fluid_surfels::view::View>,
+) -> Vec<(usize, bool, bool, bool)> {
+    use fluid_surfels::view::{self, gpu::GpuTiles};
+    let buffer = spheres_buffer(ctx, spheres);
+    let sphere = |j: usize| (glam::Vec3::from_slice(&spheres[j][..3]), spheres[j][3]);
+    let mut tiles = GpuTiles::new(&ctx.device);
+    let mut log = Vec::new();
+    for (f, v) in views.enumerate() {
+        let (room, most) = tiles.plan(&v, spheres.len(), sphere).unwrap();
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        tiles
+            .record(
+                ctx,
+                &mut encoder,
+                &v,
+                (&buffer, spheres.len() as u32, 1),
+                room,
+            )
+            .unwrap();
+        ctx.queue.submit([encoder.finish()]);
+        tiles.after_submit();
+        let (_, cpu) = view::bin(&v, spheres.len(), sphere).unwrap();
+        let (_, gpu) = tiles.read(ctx).unwrap();
+        let pairs: usize = cpu.iter().map(Vec::len).sum();
+        let longest = cpu.iter().map(Vec::len).max().unwrap_or(0);
+        println!(
+            "frame {f}: counted on the CPU: {}, room {room} for {pairs} pairs, longest tile {longest} (planned {most})",
+            tiles.planned_on_cpu()
+        );
+        log.push((
+            f,
+            tiles.planned_on_cpu(),
+            gpu == cpu,
+            longest <= most + most / 2,
+        ));
+    }
+    log
+}
+
 /// The tiles of an orthographic view whose window follows the water from frame to frame (a
 /// light's screen, fitted to each frame's water: it moves and resizes, so it is never the same
 /// view twice) are sized from the statistics of the view before, scaled by how the pixel's
@@ -3128,8 +3175,7 @@ fn gpu_tiles_are_sized_from_late_counts_of_the_same_view() {
 /// spheres twice as large on the screen).
 #[test]
 fn gpu_tiles_of_a_moving_light_screen_are_sized_from_late_counts() {
-    use fluid_surfels::view::gpu::GpuTiles;
-    use fluid_surfels::view::{self, View};
+    use fluid_surfels::view::View;
     use glam::{Vec2, Vec3};
     let Some(ctx) =
         gpu::context_or_skip("gpu_tiles_of_a_moving_light_screen_are_sized_from_late_counts")
@@ -3174,40 +3220,11 @@ fn gpu_tiles_of_a_moving_light_screen_are_sized_from_late_counts() {
         .chain((0..3).map(|_| (Vec3::ZERO, 0.5)))
         .collect();
     let spheres: Vec<[f32; 4]> = ddb.iter().map(|p| [p.x, p.y, p.z, 0.02]).collect();
-    let buffer = spheres_buffer(&ctx, &spheres);
-    let sphere = |j: usize| (Vec3::from_slice(&spheres[j][..3]), spheres[j][3]);
-    let mut tiles = GpuTiles::new(&ctx.device);
-    let mut log = Vec::new();
-    for (f, &(shift, scale)) in frames.iter().enumerate() {
-        let v = window(shift, scale);
-        let (room, most) = tiles.plan(&v, spheres.len(), sphere).unwrap();
-        let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        tiles
-            .record(
-                &ctx,
-                &mut encoder,
-                &v,
-                (&buffer, spheres.len() as u32, 1),
-                room,
-            )
-            .unwrap();
-        ctx.queue.submit([encoder.finish()]);
-        tiles.after_submit();
-        let (_, cpu) = view::bin(&v, spheres.len(), sphere).unwrap();
-        let (_, gpu) = tiles.read(&ctx).unwrap();
-        let pairs: usize = cpu.iter().map(Vec::len).sum();
-        let longest = cpu.iter().map(Vec::len).max().unwrap_or(0);
-        println!(
-            "frame {f}: scale {scale:.3}, counted on the CPU: {}, room {room} for {pairs} pairs, longest tile {longest} (planned {most})",
-            tiles.planned_on_cpu()
-        );
-        log.push((
-            f,
-            tiles.planned_on_cpu(),
-            gpu == cpu,
-            longest <= most + most / 2,
-        ));
-    }
+    let log = bin_views(
+        &ctx,
+        &spheres,
+        frames.iter().map(|&(shift, scale)| window(shift, scale)),
+    );
     assert!(log[0].1, "{log:?}");
     assert!(
         log.iter().all(|l| l.2 && l.3),
@@ -3233,8 +3250,7 @@ fn gpu_tiles_of_a_moving_light_screen_are_sized_from_late_counts() {
 /// every recent one is counted on the CPU.
 #[test]
 fn gpu_tiles_of_a_moving_camera_are_sized_from_late_counts() {
-    use fluid_surfels::view::gpu::GpuTiles;
-    use fluid_surfels::view::{self, Camera, Light, View};
+    use fluid_surfels::view::{Camera, Light, View};
     use glam::Vec3;
     let Some(ctx) =
         gpu::context_or_skip("gpu_tiles_of_a_moving_camera_are_sized_from_late_counts").unwrap()
@@ -3265,40 +3281,7 @@ fn gpu_tiles_of_a_moving_camera_are_sized_from_late_counts() {
         View::new(&camera, &Light::default(), &params, 320, 240).unwrap()
     };
     let spheres: Vec<[f32; 4]> = ddb.iter().map(|p| [p.x, p.y, p.z, 0.02]).collect();
-    let buffer = spheres_buffer(&ctx, &spheres);
-    let sphere = |j: usize| (Vec3::from_slice(&spheres[j][..3]), spheres[j][3]);
-    let mut tiles = GpuTiles::new(&ctx.device);
-    let mut log = Vec::new();
-    for f in 0..15 {
-        let v = view_at(f);
-        let (room, most) = tiles.plan(&v, spheres.len(), sphere).unwrap();
-        let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        tiles
-            .record(
-                &ctx,
-                &mut encoder,
-                &v,
-                (&buffer, spheres.len() as u32, 1),
-                room,
-            )
-            .unwrap();
-        ctx.queue.submit([encoder.finish()]);
-        tiles.after_submit();
-        let (_, cpu) = view::bin(&v, spheres.len(), sphere).unwrap();
-        let (_, gpu) = tiles.read(&ctx).unwrap();
-        let pairs: usize = cpu.iter().map(Vec::len).sum();
-        let longest = cpu.iter().map(Vec::len).max().unwrap_or(0);
-        println!(
-            "frame {f}: counted on the CPU: {}, room {room} for {pairs} pairs, longest tile {longest} (planned {most})",
-            tiles.planned_on_cpu()
-        );
-        log.push((
-            f,
-            tiles.planned_on_cpu(),
-            gpu == cpu,
-            longest <= most + most / 2,
-        ));
-    }
+    let log = bin_views(&ctx, &spheres, (0..15).map(view_at));
     assert!(log[0].1, "{log:?}");
     assert!(
         log.iter().all(|l| l.2 && l.3),
