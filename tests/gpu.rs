@@ -3247,7 +3247,8 @@ fn gpu_tiles_of_a_moving_light_screen_are_sized_from_late_counts() {
 /// first frame none is counted on the CPU until the camera cuts to another place, every frame
 /// holds all its pairs, item for item the CPU's binning, and its longest tile within half again
 /// of the one planned (the ray caster adds half again to a late size). A cut to a view far from
-/// every recent one is counted on the CPU.
+/// every recent one is counted on the CPU; after it the camera turns on and moves in among the
+/// spheres, some behind the eye (its pairs 28,467 -> 53,766), sized late again.
 #[test]
 fn gpu_tiles_of_a_moving_camera_are_sized_from_late_counts() {
     use fluid_surfels::view::{Camera, Light, View};
@@ -3261,7 +3262,8 @@ fn gpu_tiles_of_a_moving_camera_are_sized_from_late_counts() {
     let centre = ddb.iter().copied().sum::<Vec3>() / ddb.len() as f32;
     let params = splat::SplatParams::default();
     // frame f: the eye turning 1.5 degrees a frame around the water, 2 % nearer a frame, the
-    // point looked at drifting sideways; frame 14 cuts to a view from the other side, close
+    // point looked at drifting sideways; frame 14 cuts to a view from the other side, close,
+    // and from there the eye goes on turning and moves in among the spheres (some behind it)
     let view_at = |f: usize| {
         let (angle, distance, drift) = if f < 14 {
             let t = f as f32;
@@ -3271,7 +3273,12 @@ fn gpu_tiles_of_a_moving_camera_are_sized_from_late_counts() {
                 Vec3::new(0.01 * t, 0.0, -0.008 * t),
             )
         } else {
-            (3.8, 0.9, Vec3::ZERO)
+            let t = (f - 14) as f32;
+            (
+                3.8 + t * 1.5f32.to_radians(),
+                0.9 * 0.9f32.powf(t),
+                Vec3::ZERO,
+            )
         };
         let camera = Camera {
             eye: centre + distance * Vec3::new(angle.cos(), 0.55, angle.sin()),
@@ -3281,7 +3288,7 @@ fn gpu_tiles_of_a_moving_camera_are_sized_from_late_counts() {
         View::new(&camera, &Light::default(), &params, 320, 240).unwrap()
     };
     let spheres: Vec<[f32; 4]> = ddb.iter().map(|p| [p.x, p.y, p.z, 0.02]).collect();
-    let log = bin_views(&ctx, &spheres, (0..15).map(view_at));
+    let log = bin_views(&ctx, &spheres, (0..26).map(view_at));
     assert!(log[0].1, "{log:?}");
     assert!(
         log.iter().all(|l| l.2 && l.3),
@@ -3294,4 +3301,10 @@ fn gpu_tiles_of_a_moving_camera_are_sized_from_late_counts() {
         "counted again while the camera moved: {log:?}"
     );
     assert!(log[14].1, "the cut not counted: {log:?}");
+    let again = log[15..].iter().position(|l| !l.1);
+    assert!(again.is_some(), "never sized late after the cut: {log:?}");
+    assert!(
+        log[15 + again.unwrap()..].iter().all(|l| !l.1),
+        "counted again after the cut: {log:?}"
+    );
 }

@@ -195,8 +195,8 @@ impl Binned {
     /// are not alike so or the change is larger than [`MOST_GROWTH`] (such a frame is
     /// counted). One pass over the spheres estimates, in both views, the tiles and pixels each
     /// sphere's rectangle covers from its centre's depth alone (`f r / z` pixels, `f` the focal
-    /// length in pixels; the whole screen for a sphere that reaches the eye, nothing for one off
-    /// the screen), far cheaper than the rectangles themselves; the factors are the ratios of
+    /// length in pixels; the whole screen for a sphere whose bounding cube reaches behind the
+    /// eye, nothing for one wholly behind it or off the screen), far cheaper than the rectangles themselves; the factors are the ratios of
     /// the two views' sums (the pairs', the fragments'), and for the longest tile `1 / s^2`
     /// with `s` the most any sphere seen in both shrank (spheres that shrink crowd into fewer
     /// tiles). Estimates: they follow a camera that turns, comes nearer or pans (which spheres
@@ -255,6 +255,9 @@ impl Binned {
 #[derive(Clone, Copy)]
 struct Footprint {
     clip: glam::Mat4,
+    /// How far a sphere's bounding cube reaches in depth per unit of its radius (the L1 norm of
+    /// the view's depth row: its corners' depths lie within `z +- r reach`).
+    reach: f32,
     /// Pixels per unit of `x / z` and `y / z`, times two (a sphere's side per unit of `r / z`).
     focal: glam::Vec2,
     size: glam::Vec2,
@@ -286,6 +289,7 @@ impl Footprint {
         let size = glam::Vec2::new(b.size.0 as f32, b.size.1 as f32);
         Self {
             clip: proj * view,
+            reach: view.x_axis.z.abs() + view.y_axis.z.abs() + view.z_axis.z.abs(),
             focal: size * glam::Vec2::new(proj.x_axis.x, proj.y_axis.y),
             size,
             per_tile: 1.0 / super::TILE as f32,
@@ -307,7 +311,11 @@ impl Footprint {
             let t = (s.min(self.size) * self.per_tile).as_uvec2() + 1;
             (t.x * t.y) as f32
         };
-        if z <= r {
+        if z + r * self.reach <= 0.0 {
+            // its bounding cube wholly behind the eye: not drawn (`sphere_rect`)
+            return Covered::NONE;
+        }
+        if z - r * self.reach <= 0.0 {
             // its bounding cube reaches behind the eye: the whole screen (`sphere_rect`)
             return Covered {
                 tiles: tiles_of(self.size),
