@@ -857,8 +857,8 @@ impl GpuTiles {
     /// longest tile) or a perspective one of the same size turned by a few degrees at most (a
     /// moving camera: scaled alike by how the spheres' tiles and pixels change between the two
     /// views, estimated in one pass over the spheres from their centres' depths,
-    /// `Binned::scaled_perspective`: 0.19 ms for the dam break's 24,389 spheres on this
-    /// 2-core machine, where counting them takes 1.4 ms); otherwise counted on the CPU
+    /// `Binned::scaled_perspective`: 0.19-0.32 ms for the dam break's 24,389 spheres on this
+    /// 2-core machine, where counting them takes 1.3-1.9 ms); otherwise counted on the CPU
     /// ([`super::tile_counts`], refused as `view::bin` refuses: the first frame and a camera's
     /// cut pay this, the rectangles without the lists), with a quarter more room. A like frame
     /// whose spheres spread over more tiles than that room leaves the pairs past it out (in
