@@ -768,6 +768,9 @@ pub struct Pipeline {
     pool: Option<std::sync::Arc<rayon::ThreadPool>>,
     /// The receiver as the light's map and the camera saw it last frame ([`optics::ReceiverViews`]).
     receiver_views: optics::ReceiverViews,
+    /// The boundary calibration's term lists, their memory kept for the next frame
+    /// ([`boundary::TermLists`]).
+    term_lists: std::sync::Mutex<boundary::TermLists>,
 }
 
 /// A function told each warning of a frame as soon as it is known.
@@ -789,6 +792,7 @@ impl Pipeline {
             levels_before: std::collections::HashMap::new(),
             water: water_renderer(&params),
             receiver_views: optics::ReceiverViews::default(),
+            term_lists: std::sync::Mutex::default(),
             pool: match params.threads {
                 Some(n) => Some(std::sync::Arc::new(
                     rayon::ThreadPoolBuilder::new()
@@ -1368,9 +1372,13 @@ impl Pipeline {
     ) -> Result<boundary::ChainPoints, Error> {
         let (kernel, tau) = (self.params.grid.kernel, self.iso_value(radius));
         self.with_boundary_sheet(source, particles, surface, refined, radius, |sheet| {
+            let mut lists = self
+                .term_lists
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
             Ok(
                 boundary::chain_input_at_boundary(particles.positions, surface, sheet, radius)?
-                    .solve(radius, kernel, tau)?,
+                    .solve_reusing(radius, kernel, tau, &mut lists)?,
             )
         })
     }

@@ -94,23 +94,57 @@ pub fn boundary_weights(
     kernel: Kernel,
     tau: f32,
 ) -> Result<Vec<f32>, SurfelError> {
+    boundary_weights_reusing(
+        points,
+        interior,
+        normals,
+        (spacing, kernel, tau),
+        &mut TermLists::default(),
+    )
+}
+
+/// [`boundary_weights`] (`spacing`, `kernel`, `tau` as there) with the sheet's term lists made
+/// in `lists`, kept by the caller for the next frame: the same weights bit for bit.
+pub fn boundary_weights_reusing(
+    points: Points<'_>,
+    interior: usize,
+    normals: &[Vec3],
+    (spacing, kernel, tau): (f32, Kernel, f32),
+    lists: &mut TermLists,
+) -> Result<Vec<f32>, SurfelError> {
     weights_listing(
         points,
         interior,
         normals,
         (spacing, kernel, tau),
-        LISTED_TARGETS,
+        (LISTED_TARGETS, lists),
     )
 }
 
-/// [`boundary_weights`], listing the sheet's terms once for the Jacobi steps when there are at
-/// most `listed` targets.
+/// The memory of [`boundary_weights`]' term lists (the sheet's terms at each target, 8 bytes a
+/// term: about 33 MB on the dam break at two steps), kept from frame to frame by a caller of
+/// [`boundary_weights_reusing`] ([`crate::pipeline::Pipeline`] does). Made afresh every frame,
+/// its pages were faulted in again each time: with glibc's default allocator settings 42 % of
+/// the page faults of the dam break's frame (`perf record -e page-faults`).
+#[derive(Default)]
+pub struct TermLists(Vec<Listed>);
+
+impl std::fmt::Debug for TermLists {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TermLists")
+            .field("chunks", &self.0.len())
+            .finish_non_exhaustive()
+    }
+}
+
+/// [`boundary_weights`], listing the sheet's terms once for the Jacobi steps in `lists` when
+/// there are at most `listed` targets.
 fn weights_listing(
     points: Points<'_>,
     interior: usize,
     normals: &[Vec3],
     (spacing, kernel, tau): (f32, Kernel, f32),
-    listed: usize,
+    (listed, lists): (usize, &mut TermLists),
 ) -> Result<Vec<f32>, SurfelError> {
     let n = points.len();
     debug_assert_eq!(n - interior, normals.len());
@@ -209,34 +243,16 @@ fn weights_listing(
     // 4.16 M terms)
     let terms = (targets.len() <= listed)
         .then(|| {
-            let lists: Vec<Listed> = targets
-                .par_chunks(TERMS_CHUNK)
-                .map(|chunk| {
-                    let mut l = Listed {
-                        ends: Vec::with_capacity(chunk.len() + 1),
-                        // room for the terms of most chunks at once (about 47 a target at
-                        // two steps on the dam break): no copies as the lists grow
-                        codes: Vec::with_capacity(chunk.len() * TERMS_PER_TARGET),
-                        kernels: Vec::with_capacity(chunk.len() * TERMS_PER_TARGET),
-                        first: Vec::with_capacity(chunk.len()),
-                    };
-                    l.ends.push(0);
-                    for t in chunk {
-                        let first = if t.alone < 1.0 {
-                            sheet_density.value_and_kernels(t.at, &mut l.codes, &mut l.kernels)?
-                        } else {
-                            0.0
-                        };
-                        l.first.push(first);
-                        l.ends.push(l.codes.len() as u32);
-                    }
-                    Some(l)
-                })
-                .collect::<Option<_>>()?;
-            Some(lists)
+            let lists = &mut lists.0;
+            lists.resize_with(targets.len().div_ceil(TERMS_CHUNK), Listed::default);
+            let fits = lists
+                .par_iter_mut()
+                .zip(targets.par_chunks(TERMS_CHUNK))
+                .all(|(l, chunk)| l.fill(chunk, &sheet_density));
+            fits.then_some(&lists[..])
         })
         .flatten();
-    let sheet_at = |j: usize, x: Vec3, density: &ExactDensity<'_>, step: u32| match &terms {
+    let sheet_at = |j: usize, x: Vec3, density: &ExactDensity<'_>, step: u32| match terms {
         Some(lists) => {
             let l = &lists[j / TERMS_CHUNK];
             let k = j % TERMS_CHUNK;
@@ -291,11 +307,42 @@ fn weights_listing(
 /// The sheet's terms at a chunk of targets ([`TERMS_CHUNK`]): target `k`'s are
 /// `codes[ends[k]..ends[k + 1]]` with their kernels in `kernels` ([`ExactDensity::value_and_kernels`]),
 /// `first[k]` their sum with the weights the sheet was indexed with (the first Jacobi step's).
+#[derive(Default)]
 struct Listed {
     ends: Vec<u32>,
     codes: Vec<u32>,
     kernels: Vec<f32>,
     first: Vec<f32>,
+}
+
+impl Listed {
+    /// The sheet's terms at the targets of `chunk` in `density`, in the room this list kept
+    /// from an earlier frame; `false` where a term's code does not fit
+    /// ([`ExactDensity::value_and_kernels`]).
+    fn fill(&mut self, chunk: &[Target], density: &ExactDensity<'_>) -> bool {
+        self.ends.clear();
+        self.codes.clear();
+        self.kernels.clear();
+        self.first.clear();
+        // room for the terms of most chunks at once (about 47 a target at two steps on the dam
+        // break): no copies as the lists grow (untouched room costs no memory)
+        self.codes.reserve(chunk.len() * TERMS_PER_TARGET);
+        self.kernels.reserve(chunk.len() * TERMS_PER_TARGET);
+        self.ends.push(0);
+        for t in chunk {
+            let first = if t.alone < 1.0 {
+                match density.value_and_kernels(t.at, &mut self.codes, &mut self.kernels) {
+                    Some(sum) => sum,
+                    None => return false,
+                }
+            } else {
+                0.0
+            };
+            self.first.push(first);
+            self.ends.push(self.codes.len() as u32);
+        }
+        true
+    }
 }
 
 /// A refined point's target half a spacing out along its normal (the point itself without one),
@@ -674,13 +721,23 @@ pub struct BoundaryInput {
 impl BoundaryInput {
     /// The weights solved on the CPU ([`boundary_weights`], reference radius `h`).
     pub fn solve(self, h: f32, kernel: Kernel, tau: f32) -> Result<ChainPoints, SurfelError> {
-        let weights = boundary_weights(
+        self.solve_reusing(h, kernel, tau, &mut TermLists::default())
+    }
+
+    /// [`Self::solve`] with the term lists made in `lists` ([`boundary_weights_reusing`]).
+    pub fn solve_reusing(
+        self,
+        h: f32,
+        kernel: Kernel,
+        tau: f32,
+        lists: &mut TermLists,
+    ) -> Result<ChainPoints, SurfelError> {
+        let weights = boundary_weights_reusing(
             Points::with_radii(&self.positions, &self.radii, h).with_weights(&self.base),
             self.interior,
             &self.normals,
-            self.spacing,
-            kernel,
-            tau,
+            (self.spacing, kernel, tau),
+            lists,
         )?;
         Ok(ChainPoints {
             positions: self.positions,
@@ -861,9 +918,14 @@ mod tests {
         let kernel = Kernel::Wyvill;
         let tau = 0.75 * kernel.peak(2.0 * s);
         let args = (s, kernel, tau);
-        let listed = weights_listing(points, interior, &normals, args, usize::MAX).unwrap();
-        let searched = weights_listing(points, interior, &normals, args, 0).unwrap();
+        let lists = &mut TermLists::default();
+        let listed =
+            weights_listing(points, interior, &normals, args, (usize::MAX, lists)).unwrap();
+        let searched = weights_listing(points, interior, &normals, args, (0, lists)).unwrap();
         assert_eq!(listed, searched);
+        // the lists kept from the first run (their terms cleared and made again): the same
+        let again = weights_listing(points, interior, &normals, args, (usize::MAX, lists)).unwrap();
+        assert_eq!(listed, again);
         assert!(listed[interior..].iter().any(|&w| w != 1.0));
     }
 }
