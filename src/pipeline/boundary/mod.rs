@@ -241,6 +241,10 @@ fn weights_listing(
     // term's kernel listed beside it and the zero terms left out, the later steps only multiply
     // by the new weights (the dam break's steps 2 and 3 at two steps: about 22 -> 5.4 ms for
     // 4.16 M terms)
+    if targets.len() > listed {
+        // (unused this frame: their memory given back rather than kept for a frame to come)
+        lists.0 = Vec::new();
+    }
     let terms = (targets.len() <= listed)
         .then(|| {
             let lists = &mut lists.0;
