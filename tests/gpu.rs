@@ -3027,7 +3027,7 @@ fn gpu_tiles_equal_the_cpus() {
 #[test]
 fn gpu_tiles_are_sized_from_late_counts_of_the_same_view() {
     use fluid_surfels::view::gpu::GpuTiles;
-    use fluid_surfels::view::{self, Camera, Light, View};
+    use fluid_surfels::view::{self, View};
     use glam::Vec3;
     let Some(ctx) =
         gpu::context_or_skip("gpu_tiles_are_sized_from_late_counts_of_the_same_view").unwrap()
@@ -3036,17 +3036,8 @@ fn gpu_tiles_are_sized_from_late_counts_of_the_same_view() {
     };
     let ddb = double_dam_break();
     let centre = ddb.iter().copied().sum::<Vec3>() / ddb.len() as f32;
-    let params = splat::SplatParams::default();
-    let view_from = |eye: Vec3| {
-        let camera = Camera {
-            eye,
-            target: centre,
-            ..Default::default()
-        };
-        View::new(&camera, &Light::default(), &params, 320, 240).unwrap()
-    };
-    let far = view_from(centre + Vec3::new(0.8, 0.9, 1.5));
-    let near = view_from(centre + Vec3::new(0.4, 0.45, 0.75));
+    let far = camera_view(centre + Vec3::new(0.8, 0.9, 1.5), centre);
+    let near = camera_view(centre + Vec3::new(0.4, 0.45, 0.75), centre);
     let mut tiles = GpuTiles::new(&ctx.device);
     // (frame, view, spheres' radius): the same view and spheres, then the spheres grown to
     // twice the radius under the same view (more pairs than the room), then another view
@@ -3113,6 +3104,25 @@ fn gpu_tiles_are_sized_from_late_counts_of_the_same_view() {
     );
     // another view counts at once
     assert!(log[10].1 && log[10].3, "{log:?}");
+}
+
+/// A 320x240 camera's view from `eye` looking at `target` (the splats' default parameters and
+/// light): the tiles tests' moving and still cameras.
+fn camera_view(eye: glam::Vec3, target: glam::Vec3) -> fluid_surfels::view::View {
+    use fluid_surfels::view::{Camera, Light, View};
+    let camera = Camera {
+        eye,
+        target,
+        ..Default::default()
+    };
+    View::new(
+        &camera,
+        &Light::default(),
+        &splat::SplatParams::default(),
+        320,
+        240,
+    )
+    .unwrap()
 }
 
 /// Bins `spheres` into the tiles of each of `views` in turn, one frame each, with one
@@ -3251,7 +3261,6 @@ fn gpu_tiles_of_a_moving_light_screen_are_sized_from_late_counts() {
 /// spheres, some behind the eye (its pairs 28,467 -> 53,766), sized late again.
 #[test]
 fn gpu_tiles_of_a_moving_camera_are_sized_from_late_counts() {
-    use fluid_surfels::view::{Camera, Light, View};
     use glam::Vec3;
     let Some(ctx) =
         gpu::context_or_skip("gpu_tiles_of_a_moving_camera_are_sized_from_late_counts").unwrap()
@@ -3260,7 +3269,6 @@ fn gpu_tiles_of_a_moving_camera_are_sized_from_late_counts() {
     };
     let ddb = double_dam_break();
     let centre = ddb.iter().copied().sum::<Vec3>() / ddb.len() as f32;
-    let params = splat::SplatParams::default();
     // frame f: the eye turning 1.5 degrees a frame around the water, 2 % nearer a frame, the
     // point looked at drifting sideways; frame 14 cuts to a view from the other side, close,
     // and from there the eye goes on turning and moves in among the spheres (some behind it)
@@ -3280,12 +3288,10 @@ fn gpu_tiles_of_a_moving_camera_are_sized_from_late_counts() {
                 Vec3::ZERO,
             )
         };
-        let camera = Camera {
-            eye: centre + distance * Vec3::new(angle.cos(), 0.55, angle.sin()),
-            target: centre + drift,
-            ..Default::default()
-        };
-        View::new(&camera, &Light::default(), &params, 320, 240).unwrap()
+        camera_view(
+            centre + distance * Vec3::new(angle.cos(), 0.55, angle.sin()),
+            centre + drift,
+        )
     };
     let spheres: Vec<[f32; 4]> = ddb.iter().map(|p| [p.x, p.y, p.z, 0.02]).collect();
     let log = bin_views(&ctx, &spheres, (0..26).map(view_at));

@@ -441,6 +441,8 @@ impl ReceiverGeometry {
     /// The hit of the ray `origin + t dir` that [`Self::nearest`] found.
     #[must_use]
     pub fn hit_at(&self, origin: Vec3, dir: Vec3, near: Nearest) -> Hit {
+        // the direction `nearest` traversed with (-0.0 made +0.0, see there), so that the hit is
+        // the one `intersect` made before it was split in two, bit for bit
         let dir = dir + Vec3::ZERO;
         let mut n = Vec3::from(self.tris[near.triangle as usize].compute_normal());
         if n.dot(dir) > 0.0 {
