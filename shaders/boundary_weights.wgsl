@@ -408,9 +408,15 @@ fn apply(@builtin(global_invocation_id) id: vec3<u32>) {
     binned_rw[n].weight = s.x + s.y * w_in[index];
 }
 
+// A point the factors leave out, in `ordered`'s output. Mirror: DROPPED in
+// src/pipeline/boundary/gpu.rs.
+const DROPPED: f32 = -1.0;
+
 // Per point in the points' own order: its weight in the density (as `apply` writes it into
 // the binned points) into `w_out`, for a reader that keeps that order (the ray caster's spheres
-// in `GpuPipeline`, `PointWeights`).
+// in `GpuPipeline`, `PointWeights`). With the split found here (`particles` > 0), a point whose
+// split is zero is one `chain_input_at_boundary` leaves out: DROPPED, so that the reader draws
+// it as that function's caller draws the points it keeps (no sphere, no PCA neighbour).
 @compute @workgroup_size(64)
 fn ordered(@builtin(global_invocation_id) id: vec3<u32>) {
     let j = point_index(id);
@@ -418,6 +424,10 @@ fn ordered(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
     let s = split[j];
+    if params.particles > 0u && s.x <= 0.0 && s.y <= 0.0 {
+        w_out[j] = DROPPED;
+        return;
+    }
     w_out[j] = s.x + s.y * w_in[j];
 }
 

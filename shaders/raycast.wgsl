@@ -71,7 +71,9 @@ struct Grids {
 // every grid's starts and items
 @group(0) @binding(4) var<storage, read> cells: array<u32>;
 // Each point's factor on its density term (the boundary calibration's weights; 1 without).
-// Mirror: Points::weight.
+// Mirror: Points::weight. A negative one (DROPPED, src/pipeline/boundary/gpu.rs: a point the
+// calibration's factors left out, weighed on the GPU) is a point that is not there: no sphere,
+// no term, no PCA neighbour, as the CPU's caster of the points it keeps.
 @group(0) @binding(16) var<storage, read> weights: array<f32>;
 @group(0) @binding(12) var<uniform> grids: Grids;
 // per pixel: unfiltered normal and hit depth (w < 0: no hit)
@@ -365,8 +367,12 @@ fn cs_step(@builtin(global_invocation_id) id: vec3<u32>) {
         }
         if (phase == ENTER) {
             if (s < s_end) {
-                let q = points[tile_items[s]];
+                let item = tile_items[s];
                 s += 1u;
+                if (weights[item] < 0.0) {
+                    continue;
+                }
+                let q = points[item];
                 let oc = o - q.xyz;
                 let b = dot(oc, d);
                 let disc = b * b - a * (dot(oc, oc) - q.w * q.w);
@@ -403,6 +409,9 @@ fn cs_step(@builtin(global_invocation_id) id: vec3<u32>) {
             let c = cells[s];
             let q = points[c];
             s += 1u;
+            if (weights[c] < 0.0) {
+                continue;
+            }
             if (phase == PCA) {
                 let e = q.xyz - x;
                 // CellGrid::for_each_within's test, then the weight's own reach

@@ -24,9 +24,11 @@
 //! [`PipelineParams::gpu_surfels`] off, and for a renderer or source without a density grid,
 //! the grid and the surfels are made on the CPU as [`Pipeline`] makes them and uploaded
 //! ([`GpuPipeline::gpu_stages`] says which ran). The ray-cast renderer with the boundary
-//! calibration draws the CPU's spheres, their factors found on the CPU too, but their weights'
-//! Jacobi steps run on the GPU and the weights stay there for the caster
-//! ([`GpuPipeline::weights_on_gpu`], [`crate::pipeline::boundary::gpu::PointWeights`]).
+//! calibration draws a sphere for every particle and every sheet point (the refined points, or
+//! the surface particles of the particle source), whose factors (which points are kept, how
+//! much) and weights' Jacobi steps run on the GPU, the weights staying there for the caster,
+//! which leaves out the spheres the factors drop ([`GpuPipeline::weights_on_gpu`],
+//! [`crate::pipeline::boundary::gpu::PointWeights::record_layout`]).
 //!
 //! Nothing is read back and nothing waits on the GPU on the frame path (the surfel count comes
 //! back asynchronously, a few frames late, to size the surfel buffer: call
@@ -294,9 +296,10 @@ impl GpuPipeline {
 
     /// Whether `prepare` solves the weights of the ray caster's spheres on the GPU: with
     /// [`PipelineParams::gpu_surfels`], for the ray-cast renderer with the boundary calibration
-    /// and the chain or particle source. The spheres and their factors (which particles form a
-    /// sheet, how buried each point is) are the CPU's, the Jacobi steps run on the GPU
-    /// ([`PointWeights`]); the weights stay there ([`Frame::weights_on_gpu`]).
+    /// and the chain or particle source. The spheres are every particle's and every sheet
+    /// point's (made on the CPU); their factors (which particles form a sheet, how buried each
+    /// point is, which points are left out) and the Jacobi steps run on the GPU
+    /// ([`PointWeights::record_layout`]); the weights stay there ([`Frame::weights_on_gpu`]).
     #[must_use]
     pub fn weights_on_gpu(&self) -> bool {
         let params = self.cpu.params();
@@ -308,7 +311,8 @@ impl GpuPipeline {
 
     /// The weights of the last frame's spheres solved on the GPU
     /// ([`GpuPipeline::weights_on_gpu`]), read back (a wait on the device: for tests and tools,
-    /// outside the frame path), in the order of its `render_surfels`; `None` before one.
+    /// outside the frame path), in the order of its `render_surfels`, a sphere the factors
+    /// leave out [`crate::pipeline::boundary::gpu::DROPPED`]; `None` before one.
     pub fn read_sphere_weights(&self, ctx: &GpuContext) -> Result<Option<Vec<f32>>, Error> {
         let Some(w) = self.sphere_weights.as_ref() else {
             return Ok(None);
@@ -665,9 +669,9 @@ impl GpuPipeline {
     }
 
     /// [`GpuPipeline::prepare`] for the ray caster's spheres with their weights solved on the
-    /// GPU ([`GpuPipeline::weights_on_gpu`]): the CPU's chain to the spheres and their factors,
-    /// then the weights' sort and Jacobi steps in `encoder` (timed as the calibration, the
-    /// sort's stage 0 ms), then the views.
+    /// GPU ([`GpuPipeline::weights_on_gpu`]): the CPU's chain to the spheres (every particle
+    /// and sheet point), then the weights' sort, factors and Jacobi steps in `encoder` (timed
+    /// as the calibration, the sort's stage 0 ms), then the views.
     fn prepare_spheres(
         &mut self,
         device: &wgpu::Device,
@@ -675,9 +679,9 @@ impl GpuPipeline {
         encoder: &mut wgpu::CommandEncoder,
         particles: ParticleView<'_>,
     ) -> Result<Frame, Error> {
-        let (mut frame, input) = self.cpu.frame_to_boundary_input(particles)?;
+        let (mut frame, layout) = self.cpu.frame_to_boundary_layout(particles)?;
         self.stages = SPHERE_STAGES;
-        let Some(input) = input else {
+        let Some(layout) = layout else {
             // no point: the empty frame the CPU path draws
             self.prepare_frame(device, queue, encoder, &frame)?;
             return Ok(frame);
@@ -690,7 +694,7 @@ impl GpuPipeline {
         let weights = self
             .sphere_weights
             .get_or_insert_with(|| PointWeights::new(device));
-        weights.record(&ctx, encoder, &input, (frame.radius, kernel, tau))?;
+        weights.record_layout(&ctx, encoder, &layout, (frame.radius, kernel, tau))?;
         let created = weights.created();
         self.mark(encoder, mark::CALIBRATED);
         frame.timings.calibration_ms += ms(t);

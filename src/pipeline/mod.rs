@@ -1123,37 +1123,39 @@ impl Pipeline {
         })
     }
 
-    /// The chain up to the ray caster's spheres with the boundary calibration's factors, for a
-    /// caller that solves their weights ([`boundary::gpu::PointWeights`], on the GPU):
-    /// detection, upsampling, the factors ([`boundary::chain_input_at_boundary`]); the frame's
-    /// `render_surfels` are the spheres of the input's points, its `render_weights` empty.
-    /// `None`: no point.
-    pub(crate) fn frame_to_boundary_input(
+    /// The chain up to the ray caster's spheres with the boundary calibration's factors left
+    /// to find, for a caller that finds them and solves the weights
+    /// ([`boundary::gpu::PointWeights::record_layout`], on the GPU): detection, upsampling,
+    /// and every particle then every sheet point ([`boundary::boundary_layout`], uncompacted:
+    /// a point the factors leave out is drawn by no one, its weight on the GPU negative). The
+    /// frame's `render_surfels` are the spheres of the layout's points, its `render_weights`
+    /// empty, its shape the particles' ([`Pipeline::sphere_water_shape`]). `None`: no point.
+    pub(crate) fn frame_to_boundary_layout(
         &mut self,
         particles: ParticleView<'_>,
-    ) -> Result<(Frame, Option<boundary::BoundaryInput>), Error> {
+    ) -> Result<(Frame, Option<boundary::BoundaryLayout>), Error> {
         self.in_pool(|p| {
             let total = Instant::now();
             let (mut frame, warnings) = p.detect_and_refine(particles, Through::Surfels)?;
             let t = Instant::now();
-            let input = p.with_boundary_sheet(
+            let layout = p.with_boundary_sheet(
                 p.params.source,
                 particles,
                 &frame.surface,
                 frame.refined.as_ref(),
                 frame.radius,
                 |sheet| {
-                    Ok(boundary::chain_input_at_boundary(
+                    Ok(boundary::boundary_layout(
                         particles.positions,
                         &frame.surface,
                         sheet,
                         frame.radius,
-                    )?)
+                    ))
                 },
             )?;
             frame.timings.calibration_ms = ms(t);
             frame.render_surfels =
-                splat::spheres_from(&input.positions, &input.radii, frame.radius, splat::WATER);
+                splat::spheres_from(&layout.positions, &layout.radii, frame.radius, splat::WATER);
             frame.shape = Some(p.sphere_water_shape(
                 particles.positions,
                 &frame.surface,
@@ -1162,8 +1164,8 @@ impl Pipeline {
             ));
             frame.warnings = warnings;
             frame.timings.total_ms = ms(total);
-            let input = (!input.positions.is_empty()).then_some(input);
-            Ok((frame, input))
+            let layout = (!layout.positions.is_empty()).then_some(layout);
+            Ok((frame, layout))
         })
     }
 
@@ -1925,6 +1927,14 @@ impl Pipeline {
     /// rose half way up the box of the water and its splash: on the dam break's frame, whose
     /// spray climbs far over its pool, the walls hid the pool's water from the camera in every
     /// peer renderer's finished frame.
+    ///
+    /// The ray caster's spheres with the boundary calibration are fitted to their particles
+    /// alone, as the surfels on a grid are ([`Pipeline::grid_water_shape`]): the calibrated
+    /// surface lies half a spacing outside the outermost particles (the surface's box, which
+    /// the pool's walls meet), a lone drop's ball 0.62 spacings around its particle
+    /// ([`boundary::LONE_RADIUS`]: the drawn box). [`GpuPipeline`] draws every particle and sheet point as a
+    /// sphere and leaves out on the GPU those the calibration's factors drop (their box is not
+    /// known on the CPU), and both pipelines' views are then alike.
     fn sphere_water_shape(
         &self,
         positions: &[Vec3],
@@ -1932,6 +1942,21 @@ impl Pipeline {
         radius: f32,
         spheres: &[Surfel],
     ) -> optics::WaterShape {
+        if self.water.drawn() == (Drawn::Spheres { calibrated: true })
+            && self.params.grid.calibration == Calibration::Boundary
+            && radius.is_finite()
+            && radius > 0.0
+        {
+            let out = 0.25 * radius;
+            return optics::WaterShape {
+                drawn: crate::view::widened_bounds(
+                    positions.iter().copied(),
+                    boundary::LONE_RADIUS * 2.0 * out,
+                ),
+                surface: crate::view::widened_bounds(positions.iter().copied(), out),
+                level: surface_level(positions, surface, out),
+            };
+        }
         let mut shape = self.water_shape(spheres, radius);
         if shape.level.is_none() && radius.is_finite() && radius > 0.0 {
             shape.level = surface_level(positions, surface, 0.25 * radius);

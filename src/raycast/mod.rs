@@ -338,7 +338,9 @@ impl<'a> Caster<'a> {
 
     /// The caster of `points` whose weights are in `weights` on the GPU (`f32` a point, in their
     /// order, solved there: `GpuPipeline`'s boundary calibration; `points`' own are not read):
-    /// the GPU cast reads them, a CPU cast is refused. The CPU's index is not built (the
+    /// the GPU cast reads them, a CPU cast is refused. A negative weight
+    /// ([`crate::pipeline::boundary::gpu::DROPPED`]) is a point that is not there: no sphere,
+    /// no density term, no PCA neighbour. The CPU's index is not built (the
     /// density's and the PCA's cells: 5-7 ms of the column's splash frame on this project's
     /// machine), only the radius groups the GPU's grids index.
     pub fn with_weights_on_gpu(

@@ -71,6 +71,11 @@ pub struct RawSheetPoint {
     pub normal: [f32; 4],
 }
 
+/// The weight [`PointWeights::record_layout`] gives a point the calibration's factors leave out
+/// (mirror: `DROPPED` in shaders/boundary_weights.wgsl): negative, which no weight is, so the
+/// ray caster draws no sphere for it and takes it for no neighbour (shaders/raycast.wgsl).
+pub const DROPPED: f32 = -1.0;
+
 /// Bytes of a `Target` (target and how alone, lone weight, interior density, padding).
 const TARGET_BYTES: u64 = 32;
 
@@ -783,19 +788,6 @@ impl PointWeights {
             ))
             .into());
         }
-        let (device, queue) = (&ctx.device, &ctx.queue);
-        let made = self.out.reserve(device, n.max(1) as u64 * 4);
-        self.count = n;
-        if n == 0 {
-            self.created = usize::from(made);
-            return Ok(self.out.buffer().clone());
-        }
-        let reach = points.max_radius();
-        let spec = GridSpec::around(points.positions, reach, Resolution::CellSize(reach))?;
-        let layout = BinLayout::of(&points, &spec);
-        self.sort
-            .record(ctx, encoder, &raw_points(&points), &layout)?;
-        let binned = BinnedPoints::sorted_by(&self.sort, &layout, &points);
         let split: Vec<[f32; 2]> = (0..n)
             .map(|j| {
                 let b = points.weight(j);
@@ -806,7 +798,83 @@ impl PointWeights {
                 }
             })
             .collect();
-        let sheet = sheet_points(&points, input.interior, &input.normals);
+        self.record_split(
+            ctx,
+            encoder,
+            &points,
+            (input.interior, &input.normals, Split::Given(&split)),
+            (input.spacing, kernel, tau),
+        )
+    }
+
+    /// [`Self::record`] of every particle and every sheet point ([`super::BoundaryLayout`]),
+    /// the calibration's factors found on the GPU too ([`Split::Found`]): once it has run, the
+    /// returned buffer holds each point's weight in the density (`f32` a point, in the
+    /// layout's order), the CPU's ([`super::chain_input_at_boundary`] then
+    /// [`super::BoundaryInput::solve`], whose points are these without those the factors
+    /// leave out, a particle in the interior and in a thin sheet summed) to rounding, and
+    /// [`DROPPED`] for a point the factors leave out (its split zero): no reader draws it.
+    pub fn record_layout(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        layout: &super::BoundaryLayout,
+        (h, kernel, tau): (f32, Kernel, f32),
+    ) -> Result<wgpu::Buffer, crate::Error> {
+        let points = Points::with_radii(&layout.positions, &layout.radii, h);
+        points.check()?;
+        let n = points.len();
+        let sheet = n - layout.particles.min(n);
+        if layout.classes.len() != layout.particles || layout.normals.len() != sheet {
+            return Err(GpuError::Validation(format!(
+                "{n} points, {} particles with {} classes, {} normals: one class per particle, \
+                 one normal per sheet point",
+                layout.particles,
+                layout.classes.len(),
+                layout.normals.len()
+            ))
+            .into());
+        }
+        self.record_split(
+            ctx,
+            encoder,
+            &points,
+            (
+                layout.particles,
+                &layout.normals,
+                Split::Found {
+                    classes: &layout.classes,
+                },
+            ),
+            (layout.spacing, kernel, tau),
+        )
+    }
+
+    /// The sort of `points` into bins on the GPU, the solve with sheet normals from point
+    /// `first` on and the split `split`, and the weights' write in order.
+    fn record_split(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        points: &Points<'_>,
+        (first, normals, split): (usize, &[Vec3], Split<'_>),
+        (spacing, kernel, tau): (f32, Kernel, f32),
+    ) -> Result<wgpu::Buffer, crate::Error> {
+        let (device, queue) = (&ctx.device, &ctx.queue);
+        let n = points.len();
+        let made = self.out.reserve(device, n.max(1) as u64 * 4);
+        self.count = n;
+        if n == 0 {
+            self.created = usize::from(made);
+            return Ok(self.out.buffer().clone());
+        }
+        let reach = points.max_radius();
+        let spec = GridSpec::around(points.positions, reach, Resolution::CellSize(reach))?;
+        let layout = BinLayout::of(points, &spec);
+        self.sort
+            .record(ctx, encoder, &raw_points(points), &layout)?;
+        let binned = BinnedPoints::sorted_by(&self.sort, &layout, points);
+        let sheet = sheet_points(points, first, normals);
         self.passes.record(
             (device, queue),
             encoder,
@@ -814,11 +882,11 @@ impl PointWeights {
                 binned: &binned,
                 origin: spec.origin,
                 sheet: &sheet,
-                split: Split::Given(&split),
-                half_spacing: 0.5 * input.spacing,
+                split,
+                half_spacing: 0.5 * spacing,
                 tau,
                 kernel,
-                h,
+                h: points.h,
             },
         )?;
         let created = self.sort.created() + self.passes.created() + usize::from(made);
