@@ -144,12 +144,7 @@ fn one_particle_casts_its_analytic_sphere() {
 /// 1 % on every sampled pixel, normal within 1 degree on >= 99 % of them.
 #[test]
 fn sphere_and_slab_hit_the_kernel_sums_first_crossing() {
-    let sphere = scenes::sphere(&scenes::SphereParams {
-        radius_in_spacings: 5.0,
-        jitter: 0.1,
-        ..Default::default()
-    })
-    .unwrap();
+    let sphere = jittered_sphere(5.0);
     let slab = scenes::block(&scenes::BlockParams {
         counts: [14, 4, 14],
         spacing: 0.05,
@@ -513,12 +508,7 @@ fn gpu_and_cpu_ray_casts_agree() {
     else {
         return;
     };
-    let sphere = scenes::sphere(&scenes::SphereParams {
-        radius_in_spacings: 6.0,
-        jitter: 0.1,
-        ..Default::default()
-    })
-    .unwrap();
+    let sphere = jittered_sphere(6.0);
     let mut sim = scenes::ColumnSim::new(scenes::ColumnParams::default()).unwrap();
     sim.advance_to(scenes::ColumnParams::SPLASH_FRAME);
     let column = (sim.particles().positions.clone(), sim.support_radius());
@@ -631,37 +621,23 @@ fn gpu_and_cpu_ray_casts_agree_on_the_chains_points() {
 /// GPU, bit for bit; the CPU refuses to cast it.
 #[test]
 fn a_caster_with_its_weights_on_the_gpu_casts_what_the_cpus_does() {
-    use wgpu::util::DeviceExt;
     let Some(ctx) = fluid_surfels::gpu::context_or_skip(
         "a_caster_with_its_weights_on_the_gpu_casts_what_the_cpus_does",
     )
     .unwrap() else {
         return;
     };
-    let sphere = scenes::sphere(&scenes::SphereParams {
-        radius_in_spacings: 5.0,
-        jitter: 0.1,
-        ..Default::default()
-    })
-    .unwrap();
+    let sphere = jittered_sphere(5.0);
     let (positions, h) = (&sphere.particles.positions, sphere.support_radius);
     // two radius groups and weights that differ from point to point
     let radii: Vec<f32> = (0..positions.len())
         .map(|j| if j % 3 == 0 { 0.6 * h } else { h })
         .collect();
-    let weights: Vec<f32> = (0..positions.len())
-        .map(|j| 0.7 + 0.6 * ((j * 37 % 101) as f32 / 100.0))
-        .collect();
+    let weights = varied_weights(positions.len());
     let params = RayCastParams::default();
     let points = Points::with_radii(positions, &radii, h);
     let on_cpu = Caster::new(points.with_weights(&weights), Kernel::Wyvill, &params).unwrap();
-    let buffer = ctx
-        .device
-        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("weights"),
-            contents: bytemuck::cast_slice(&weights),
-            usage: wgpu::BufferUsages::STORAGE,
-        });
+    let buffer = weights_buffer(&ctx, &weights);
     let on_gpu = Caster::with_weights_on_gpu(points, Kernel::Wyvill, &params, buffer).unwrap();
     // the groups the GPU's grids index: the two radii, each with its own points (both casters
     // find them through `radius_groups`, so checked against the radii themselves too)
@@ -745,17 +721,10 @@ fn a_casters_dropped_points_are_not_there() {
     else {
         return;
     };
-    let sphere = scenes::sphere(&scenes::SphereParams {
-        radius_in_spacings: 5.0,
-        jitter: 0.1,
-        ..Default::default()
-    })
-    .unwrap();
+    let sphere = jittered_sphere(5.0);
     let (positions, h) = (&sphere.particles.positions, sphere.support_radius);
     let centre = positions.iter().copied().sum::<Vec3>() / positions.len() as f32;
-    let weights: Vec<f32> = (0..positions.len())
-        .map(|j| 0.7 + 0.6 * ((j * 37 % 101) as f32 / 100.0))
-        .collect();
+    let weights = varied_weights(positions.len());
     let mut more = positions.clone();
     let mut more_weights = weights.clone();
     for (j, &p) in positions.iter().enumerate().step_by(3) {
@@ -809,14 +778,36 @@ fn gpu_weighed<'a>(
     weights: &[f32],
     h: f32,
 ) -> Caster<'a> {
+    let buffer = weights_buffer(ctx, weights);
+    let points = Points::uniform(points, h);
+    Caster::with_weights_on_gpu(points, Kernel::Wyvill, &RayCastParams::default(), buffer).unwrap()
+}
+
+/// A sphere of particles `radius_in_spacings` spacings in radius, jittered by a tenth of a
+/// spacing.
+fn jittered_sphere(radius_in_spacings: f32) -> scenes::Scene {
+    scenes::sphere(&scenes::SphereParams {
+        radius_in_spacings,
+        jitter: 0.1,
+        ..Default::default()
+    })
+    .unwrap()
+}
+
+/// Weights between 0.7 and 1.3 that differ from point to point, for `n` points.
+fn varied_weights(n: usize) -> Vec<f32> {
+    (0..n)
+        .map(|j| 0.7 + 0.6 * ((j * 37 % 101) as f32 / 100.0))
+        .collect()
+}
+
+/// A storage buffer of `weights` on the GPU of `ctx`.
+fn weights_buffer(ctx: &fluid_surfels::gpu::GpuContext, weights: &[f32]) -> wgpu::Buffer {
     use wgpu::util::DeviceExt;
-    let buffer = ctx
-        .device
+    ctx.device
         .create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("weights"),
             contents: bytemuck::cast_slice(weights),
             usage: wgpu::BufferUsages::STORAGE,
-        });
-    let points = Points::uniform(points, h);
-    Caster::with_weights_on_gpu(points, Kernel::Wyvill, &RayCastParams::default(), buffer).unwrap()
+        })
 }
