@@ -334,8 +334,8 @@ pub struct PipelineParams {
     /// nothing read back. Off, on the CPU as [`Pipeline`] makes them (to compare the two in one
     /// program). Only for the EWA renderer and the chain or particle source (the others have no
     /// density grid); [`Pipeline`] itself always makes them on the CPU. For the ray-cast
-    /// renderer with the boundary calibration it says where the spheres' weights are solved
-    /// ([`GpuPipeline::weights_on_gpu`]).
+    /// renderer with the boundary calibration it says where the calibration's factors and the
+    /// spheres' weights are found ([`GpuPipeline::weights_on_gpu`]).
     pub gpu_surfels: bool,
 }
 
