@@ -662,10 +662,12 @@ pub struct Frame {
     /// are empty, [`DetailReport::surfels`] is a recent frame's count (read back without a
     /// wait), [`GpuPipeline::read_surfels`] reads them back.
     pub surfels_on_gpu: bool,
-    /// The weights of the ray caster's spheres (the boundary calibration's) were solved on the
+    /// The weights of the ray caster's spheres (the boundary calibration's) were found on the
     /// GPU ([`GpuPipeline::prepare`] with [`PipelineParams::gpu_surfels`]) and stay there:
-    /// `render_weights` is empty, [`GpuPipeline::read_sphere_weights`] reads them back; the
-    /// frame is drawn by the `GpuPipeline` that prepared it.
+    /// `render_surfels` holds a sphere for every particle and every sheet point (those the
+    /// calibration's factors leave out are weighted [`boundary::gpu::DROPPED`] there and not
+    /// drawn), `render_weights` is empty, [`GpuPipeline::read_sphere_weights`] reads them
+    /// back; the frame is drawn by the `GpuPipeline` that prepared it.
     pub weights_on_gpu: bool,
     /// Where the water is, as the views (camera, pool, the light's screen) are fitted to it,
     /// for surfels on a density grid with the boundary calibration: from the particles
