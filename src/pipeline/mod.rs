@@ -1950,12 +1950,12 @@ impl Pipeline {
             && radius > 0.0
         {
             let out = 0.25 * radius;
+            // the particles' box, once, widened for each
+            let centres = crate::view::widened_bounds(positions.iter().copied(), 0.0);
+            let widened = |by: f32| centres.map(|(lo, hi)| (lo - by, hi + by));
             return optics::WaterShape {
-                drawn: crate::view::widened_bounds(
-                    positions.iter().copied(),
-                    boundary::LONE_RADIUS * 2.0 * out,
-                ),
-                surface: crate::view::widened_bounds(positions.iter().copied(), out),
+                drawn: widened(boundary::LONE_RADIUS * 2.0 * out),
+                surface: widened(out),
                 level: surface_level(positions, surface, out),
             };
         }
