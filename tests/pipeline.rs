@@ -1340,6 +1340,8 @@ fn a_renderer_of_ones_own_draws_the_splats_and_the_finished_frame() {
     };
     params.scene.optics.image_size = [96, 72];
     let mut ewa = Pipeline::new(params.clone()).unwrap();
+    // every surfel, as for the dots (which do not say they cull the disks facing away)
+    ewa.keep_hidden_surfels(true);
     let by_ewa = ewa
         .frame_through(&scene.particles, Through::Splats)
         .unwrap();

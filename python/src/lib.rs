@@ -958,7 +958,12 @@ impl Pipeline {
                 } else {
                     through
                 };
-                let mut frame = self.lock().frame_through(view, run)?;
+                let mut pipeline = self.lock();
+                // a mesh's vertices are its frame's surfels, moved onto the surface: every
+                // one, also those the frame's picture cannot show
+                pipeline.keep_hidden_surfels(mesh);
+                let mut frame = pipeline.frame_through(view, run)?;
+                drop(pipeline);
                 let mut m = match frame.mesh.take() {
                     Some(m) => Some(m),
                     None if mesh => frame.triangulate(),

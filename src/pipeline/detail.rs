@@ -20,6 +20,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::refine::RADIUS_FACTOR;
 use crate::splat::View;
+use crate::surfels::Viewpoints;
 
 /// How much of `refine.steps` the chain's upsampling takes ([`super::PipelineParams::detail`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -84,6 +85,19 @@ impl ViewLevels {
             detail_px,
             margin: 2.0 * radius,
         }
+    }
+
+    /// The views' eyes (perspective) and directions (orthographic), for leaving out the surface
+    /// that faces away from all of them.
+    #[must_use]
+    pub fn viewpoints(&self) -> Viewpoints {
+        self.views.iter().fold(Viewpoints::new(), |seen, v| {
+            if v.is_orthographic() {
+                seen.with_direction(v.forward())
+            } else {
+                seen.with_eye(v.matrices().1.w_axis.xyz())
+            }
+        })
     }
 
     /// The fewest steps whose spacing, seen at `x` from the view that sees it largest, is at most

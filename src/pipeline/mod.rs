@@ -694,7 +694,9 @@ impl Frame {
     /// `n` was projected from: on the exact iso-surface, the kernel's gradient as normal; the
     /// few whose move would fold a triangle stay on their edges, [`crate::mesh::Mesh::move_onto`]);
     /// `None` without a grid (the peer renderers' spheres, or a frame not run through the
-    /// surfels). [`Through::Mesh`] stores it in [`Frame::mesh`].
+    /// surfels). [`Through::Mesh`] stores it in [`Frame::mesh`]. A frame that left out the
+    /// surfels its picture cannot show ([`Pipeline::keep_hidden_surfels`]) has vertices on the
+    /// grid's edges instead.
     #[must_use]
     pub fn triangulate(&self) -> Option<crate::mesh::Mesh> {
         let grid = self.grid.as_ref()?;
@@ -761,6 +763,8 @@ pub struct Pipeline {
     /// Frames through the surfels are drawn by the caller as this picture
     /// ([`Pipeline::set_drawn`]).
     drawn: Option<Through>,
+    /// Frames keep the surfels their pictures cannot show ([`Pipeline::keep_hidden_surfels`]).
+    keep_hidden: bool,
     /// The level of detail of each surface particle (by id) in the last `detail = "auto"`
     /// frame: the hysteresis of [`ViewLevels::level_after`].
     levels_before: std::collections::HashMap<u32, u8>,
@@ -791,6 +795,7 @@ impl Pipeline {
             grid_buffer: Vec::new(),
             warning_sink: None,
             drawn: None,
+            keep_hidden: false,
             levels_before: std::collections::HashMap::new(),
             water: water_renderer(&params),
             receiver_views: optics::ReceiverViews::default(),
@@ -820,6 +825,15 @@ impl Pipeline {
     /// surfels written to disk never depend on an image size.
     pub fn set_drawn(&mut self, drawn_as: Option<Through>) {
         self.drawn = drawn_as.filter(|&t| t >= Through::Splats);
+    }
+
+    /// Whether frames keep the surfels their pictures cannot show. By default (`false`) a frame
+    /// with `detail = "auto"` whose picture the pipeline draws from known views leaves out the
+    /// surfels that face away from all of them (see [`Pipeline::frame_through`]); `true` keeps
+    /// every one, for a caller that wants the whole surface as well as the picture (surfels
+    /// written to disk, or compared with [`GpuPipeline`]'s, which keeps them all).
+    pub fn keep_hidden_surfels(&mut self, keep: bool) {
+        self.keep_hidden = keep;
     }
 
     /// Tells `sink` each warning as soon as it is known, before the rest of the frame's work (a
@@ -940,6 +954,12 @@ impl Pipeline {
     }
 
     /// The chain on one frame, up to `through` (on `params.threads` threads, when given).
+    ///
+    /// With `detail = "auto"` and EWA splats, a frame drawn here (through the shaded splats or
+    /// the finished frame, or marked drawn as the shaded splats by [`Pipeline::set_drawn`])
+    /// leaves out of [`Frame::surfels`] the surfels that face away from its camera, and for the
+    /// finished frame from its light too, which the picture cannot show (the same pixels; see
+    /// [`surfels::Viewpoints`]); [`Pipeline::keep_hidden_surfels`] keeps them.
     pub fn frame_through<'a>(
         &mut self,
         particles: impl Into<ParticleView<'a>>,
@@ -981,7 +1001,10 @@ impl Pipeline {
             particles,
             &frame.surface,
             frame.refined.as_ref(),
-            frame.radius,
+            (
+                frame.radius,
+                self.hidden_from(particles.positions, frame.radius, through)?,
+            ),
         )?;
         frame.render_surfels = render;
         frame.render_weights = weights;
@@ -1249,7 +1272,7 @@ impl Pipeline {
         particles: ParticleView<'_>,
         surface: &Surface,
         refined: Option<&Refined>,
-        radius: f32,
+        (radius, seen): (f32, Option<surfels::Viewpoints>),
     ) -> Result<SourceStage, Error> {
         let colour = splat::WATER;
         let given = refined;
@@ -1303,7 +1326,12 @@ impl Pipeline {
         let calibration_ms = if weights.is_empty() { 0.0 } else { ms(t) };
         let points = points_of(&positions, &radii, &weights, radius);
         let buffer = std::mem::take(&mut self.grid_buffer);
-        let iso = iso_surfels_in(points, &self.params.grid, &self.params.surfels, buffer)?;
+        let iso = iso_surfels_in(
+            points,
+            (&self.params.grid, &self.params.surfels),
+            buffer,
+            seen,
+        )?;
         let render = iso.as_ref().map_or_else(Vec::new, |iso| {
             splat::surfels_from(
                 &iso.surfels.positions,
@@ -1452,7 +1480,7 @@ impl Pipeline {
             particles.into(),
             &frame.surface,
             frame.refined.as_ref(),
-            frame.radius,
+            (frame.radius, None),
         )?;
         // a coarsened grid is said as frame_through says it
         if let Some(Some(iso)) = iso {
@@ -1608,6 +1636,37 @@ impl Pipeline {
             self.params.refine.steps,
             self.params.detail_px,
         )))
+    }
+
+    /// Where the picture of a frame made `through` sees the water from, when the surfels facing
+    /// away from it may be left out ([`surfels::SurfelExtractor::finish_seen`]; `None` keeps them
+    /// all): with `detail = "auto"`, a renderer that culls a disk facing away from the eye
+    /// ([`WaterRenderer::culls_back_faces`]: EWA's disks and sprites), views fitted to the particles (every calibration but `paper`, whose views are fitted
+    /// to the surfels), and a picture drawn from the views the level of detail sees
+    /// ([`Pipeline::view_levels`]: the camera, and for the finished frame the light) right after:
+    /// through the splats or the finished frame, or the surfels drawn by the caller as the shaded
+    /// splats ([`Pipeline::set_drawn`]). Not for surfels drawn as the finished frame by the
+    /// caller: [`GpuPipeline`] may draw them again from another camera.
+    fn hidden_from(
+        &self,
+        positions: &[Vec3],
+        radius: f32,
+        through: Through,
+    ) -> Result<Option<surfels::Viewpoints>, Error> {
+        let drawn_here = through >= Through::Splats
+            || (through == Through::Surfels && self.drawn == Some(Through::Splats));
+        if !drawn_here
+            || self.keep_hidden
+            || self.water.drawn() != Drawn::Surfels
+            || !self.water.culls_back_faces()
+            || self.splat_params().mode == splat::SplatMode::Spheres
+            || self.params.grid.calibration == Calibration::Paper
+        {
+            return Ok(None);
+        }
+        Ok(self
+            .view_levels(positions, radius, through)?
+            .map(|levels| levels.viewpoints()))
     }
 
     /// The level of each refined particle (`indices`, in that order) seen in `view`, with the
@@ -2392,15 +2451,16 @@ pub fn iso_surfels(
     grid: &GridParams,
     params: &SurfelParams,
 ) -> Result<Option<IsoSurfels>, Error> {
-    iso_surfels_in(points, grid, params, Vec::new())
+    iso_surfels_in(points, (grid, params), Vec::new(), None)
 }
 
-/// [`iso_surfels`] with the grid's values in a buffer earlier frames allocated.
+/// [`iso_surfels`] with the grid's values in a buffer earlier frames allocated, without the
+/// surfels `seen` does not see ([`surfels::SurfelExtractor::finish_seen`]).
 pub fn iso_surfels_in(
     points: Points<'_>,
-    grid: &GridParams,
-    params: &SurfelParams,
+    (grid, params): (&GridParams, &SurfelParams),
     buffer: Vec<f32>,
+    seen: Option<surfels::Viewpoints>,
 ) -> Result<Option<IsoSurfels>, Error> {
     if points.is_empty() {
         return Ok(None);
@@ -2433,8 +2493,12 @@ pub fn iso_surfels_in(
     let density_ms = ms(t);
     let t = Instant::now();
     let surfels = match &values {
-        Grid::Dense(g) => surfels::extract_points(g, points, grid.kernel, params)?,
-        Grid::Sparse(g) => surfels::extract_sparse(g, points, grid.kernel, params)?,
+        Grid::Dense(g) => {
+            surfels::extract_points_seen(g, points, grid.kernel, params, seen.as_ref())?
+        }
+        Grid::Sparse(g) => {
+            surfels::extract_sparse_seen(g, points, grid.kernel, params, seen.as_ref())?
+        }
     };
     Ok(Some(IsoSurfels {
         grid: values,

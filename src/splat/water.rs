@@ -81,6 +81,12 @@ pub trait WaterRenderer: Send + Sync {
     fn set_depth_offset(&self, params: &mut SplatParams, offset: f32) {
         let _ = (params, offset);
     }
+    /// Whether it never draws a surfel whose normal faces away from the eye (EWA's disks and
+    /// sprites, not its spheres: [`SplatMode::Spheres`]), so that the pipeline may leave those
+    /// out of a picture drawn from known views (`detail = "auto"`). Default `false`.
+    fn culls_back_faces(&self) -> bool {
+        false
+    }
     /// The frame's water, built once for every view of the frame.
     fn water<'a>(&self, input: WaterInput<'a>) -> Result<Box<dyn WaterSurface + 'a>, Error>;
 }
@@ -184,6 +190,9 @@ pub struct Ewa;
 impl WaterRenderer for Ewa {
     fn drawn(&self) -> Drawn {
         Drawn::Surfels
+    }
+    fn culls_back_faces(&self) -> bool {
+        true
     }
     fn set_depth_offset(&self, params: &mut SplatParams, offset: f32) {
         params.depth_offset = offset;

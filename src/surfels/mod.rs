@@ -20,7 +20,8 @@ pub mod cpu;
 pub mod gpu;
 
 pub use cpu::{
-    ExactDensity, SurfelExtractor, extract, extract_points, extract_sparse, radius_groups,
+    ExactDensity, SurfelExtractor, extract, extract_points, extract_points_seen, extract_sparse,
+    extract_sparse_seen, radius_groups,
 };
 
 use glam::Vec3;
@@ -188,6 +189,62 @@ impl Surfels {
             self.radii.iter().map(|&r| r as f64).collect(),
         ));
         set
+    }
+}
+
+/// Where a picture sees the surface from, so that extraction can leave out the surfels that face
+/// away from every viewpoint ([`SurfelExtractor::finish_seen`]): a picture drawn from these
+/// viewpoints alone never shows them (the EWA splats cull a disk facing away from the eye).
+/// Eyes of perspective views and directions towards the viewer of orthographic ones.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Viewpoints {
+    eyes: Vec<Vec3>,
+    directions: Vec<Vec3>,
+}
+
+/// How far past edge-on (the cosine between its outward normal and the direction to the eye) a
+/// surfel must face away from every viewpoint before [`Viewpoints::sees`] says it is hidden.
+/// The decision is taken on the density's gradient at the crossing, before the surfel is
+/// projected onto the exact surface (which turns its normal a little), and the camera a picture
+/// is finally drawn from may be fitted a little differently from the one the level of detail
+/// saw: a margin of 24 degrees. Measured on the dam break from the automatic camera at
+/// 640x480 (`detail = "auto"`): 35 % of its surfels lie past it (48 % face away at all).
+pub const HIDDEN_PAST: f32 = 0.4;
+
+impl Viewpoints {
+    /// No viewpoint yet (every surfel would be hidden: add some).
+    #[must_use]
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// With the eye of a perspective view at `eye`.
+    #[must_use]
+    pub fn with_eye(mut self, eye: Vec3) -> Self {
+        self.eyes.push(eye);
+        self
+    }
+
+    /// With an orthographic view looking along `forward` (its viewer at infinity against it).
+    #[must_use]
+    pub fn with_direction(mut self, forward: Vec3) -> Self {
+        self.directions.push(-forward.normalize_or_zero());
+        self
+    }
+
+    /// Whether a surfel at `x` with outward normal `n` (any length; zero: no normal, seen) faces
+    /// at least one viewpoint, or lies past edge-on by less than [`HIDDEN_PAST`].
+    #[must_use]
+    pub fn sees(&self, x: Vec3, n: Vec3) -> bool {
+        let n = n.normalize_or_zero();
+        if n == Vec3::ZERO {
+            return true;
+        }
+        self.eyes
+            .iter()
+            .map(|&e| (e - x).normalize_or_zero())
+            .chain(self.directions.iter().copied())
+            .any(|d| n.dot(d) >= -HIDDEN_PAST)
     }
 }
 

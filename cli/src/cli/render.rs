@@ -174,7 +174,8 @@ pub struct RenderArgs {
     /// what --surfels reads back) to this particle file, in the coordinates of the rendering
     /// (turned by --up). One frame only, not with --frames. The frame is then refined with
     /// --detail fixed unless --detail is given, so that the file does not depend on the image
-    /// size.
+    /// size; with --detail auto the file holds the whole surface too, also the surfels facing
+    /// away from the camera that the picture leaves out.
     #[arg(long, conflicts_with = "frames")]
     pub save_surfels: Option<PathBuf>,
     /// The PNG to write (a folder with --frames).
@@ -621,6 +622,8 @@ pub fn render_command(args: &RenderArgs) -> Result<(), Error> {
     // the surfels are drawn here as the shaded splats (from --camera or the one framing them):
     // --detail auto sees them so
     pipeline.set_drawn(Some(Through::Splats));
+    // the surfels written to a file are the whole surface, not only what the picture shows
+    pipeline.keep_hidden_surfels(args.save_surfels.is_some());
     let splat_params = pipeline.splat_params();
     super::warn_at_once(&mut pipeline);
     let t = Instant::now();
@@ -888,6 +891,8 @@ fn pipelines(
     let [w, h] = params.scene.optics.image_size;
     let mut pipeline = Pipeline::new(params.clone())?;
     super::warn_at_once(&mut pipeline);
+    // the surfels written to a file are the whole surface, not only what the picture shows
+    pipeline.keep_hidden_surfels(args.save_surfels.is_some());
     let gpu = match choose_gpu(args.cpu, args.gpu)? {
         Some(ctx) => {
             let g = GpuPipeline::new(

@@ -46,6 +46,9 @@ pub fn column_to_frame(
         ..params
     };
     let mut pipeline = Pipeline::new(params)?;
+    // the main job writes the surfels to a file: the whole surface, also what its pictures
+    // cannot show
+    pipeline.keep_hidden_surfels(true);
     let bar = progress(frame as u64 + 1, "simulating column");
     let f = pipeline::column_frame(&mut pipeline, &mut sim, frame, through, |_| bar.inc(1))?;
     bar.finish_and_clear();
