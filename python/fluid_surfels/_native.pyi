@@ -92,7 +92,9 @@ class Frame:
     refined: Optional[Refined]
     """The refined surface, from through="refine" on (None for the 'particles' source)."""
     surfels: Optional[Surfels]
-    """The surfels that are rendered, from through="surfels" on."""
+    """The surfels that are rendered, from through="surfels" on; through "splats" or "frame"
+    with detail "auto" only those facing the camera (or the light) that the picture can show,
+    unless mesh=True."""
     image: Optional[npt.NDArray[np.uint8]]
     """(H, W, 4) RGBA: the shaded splats (through="splats") or the finished frame
     (through="frame"); None before."""

@@ -714,7 +714,9 @@ struct Frame {
     /// The refined surface, from `through="refine"` on (None for the `particles` source).
     #[pyo3(get)]
     refined: Option<Py<Refined>>,
-    /// The surfels that are rendered, from `through="surfels"` on.
+    /// The surfels that are rendered, from `through="surfels"` on; through "splats" or "frame"
+    /// with detail "auto" only those facing the camera (or the light) that the picture can
+    /// show, unless `mesh=True`.
     #[pyo3(get)]
     surfels: Option<Py<Surfels>>,
     /// (H, W, 4) uint8 RGBA: the shaded splats (`through="splats"`) or the finished frame

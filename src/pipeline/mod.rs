@@ -583,7 +583,8 @@ pub struct DetailReport {
     pub level_changes: usize,
     /// The density grid's cell, world units (0 without a grid).
     pub cell: f32,
-    /// Surfels on the iso-surface (0 without a density grid).
+    /// Surfels on the iso-surface (0 without a density grid): with `auto`, those the frame's
+    /// picture can show ([`Pipeline::keep_hidden_surfels`]).
     pub surfels: usize,
 }
 

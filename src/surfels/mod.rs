@@ -262,6 +262,30 @@ pub(crate) fn iso_of(h: f32, kernel: Kernel, params: &SurfelParams) -> Result<f3
 mod tests {
     use super::*;
 
+    /// A surfel is seen from an eye or a direction when it faces it, or lies past edge-on by
+    /// less than [`HIDDEN_PAST`] (normals of any length); one without a normal always; none
+    /// without a viewpoint.
+    #[test]
+    fn viewpoints_see_what_faces_them() {
+        let x = Vec3::new(1.0, 2.0, 3.0);
+        let eye = Viewpoints::new().with_eye(x + Vec3::new(0.0, 0.0, 10.0));
+        // the cosine to the eye: +1, 0, just above and below -HIDDEN_PAST, -1
+        let at = |c: f32| Vec3::new((1.0 - c * c).sqrt(), 0.0, c);
+        assert!(eye.sees(x, at(1.0) * 3.0));
+        assert!(eye.sees(x, at(0.0)));
+        assert!(eye.sees(x, at(-HIDDEN_PAST + 1e-3) * 0.01));
+        assert!(!eye.sees(x, at(-HIDDEN_PAST - 1e-3)));
+        assert!(!eye.sees(x, at(-1.0)));
+        assert!(eye.sees(x, Vec3::ZERO));
+        // an orthographic view looking down -y sees the normals up, and with it added, either
+        let down = Viewpoints::new().with_direction(Vec3::new(0.0, -2.0, 0.0));
+        assert!(down.sees(x, Vec3::Y));
+        assert!(!down.sees(x, -Vec3::Y));
+        assert!(down.with_eye(x - Vec3::Y).sees(x, -Vec3::Y));
+        assert!(!Viewpoints::new().sees(x, Vec3::Y));
+        assert!(Viewpoints::new().sees(x, Vec3::ZERO));
+    }
+
     /// The cubic's root: exact where the values along the line come from a cubic, the linear
     /// interpolation where they come from a line or the outer values are missing, and always a
     /// root in the edge where the values are anything with a crossing.
