@@ -1641,13 +1641,14 @@ impl Pipeline {
 
     /// Where the picture of a frame made `through` sees the water from, when the surfels facing
     /// away from it may be left out ([`surfels::SurfelExtractor::finish_seen`]; `None` keeps them
-    /// all): with `detail = "auto"`, a renderer that culls a disk facing away from the eye
-    /// ([`WaterRenderer::culls_back_faces`]: EWA's disks and sprites), views fitted to the particles (every calibration but `paper`, whose views are fitted
-    /// to the surfels), and a picture drawn from the views the level of detail sees
-    /// ([`Pipeline::view_levels`]: the camera, and for the finished frame the light) right after:
-    /// through the splats or the finished frame, or the surfels drawn by the caller as the shaded
-    /// splats ([`Pipeline::set_drawn`]). Not for surfels drawn as the finished frame by the
-    /// caller: [`GpuPipeline`] may draw them again from another camera.
+    /// all). That takes `detail = "auto"`; a renderer that culls a disk facing away from the eye
+    /// ([`WaterRenderer::culls_back_faces`]: EWA's disks and sprites); views fitted to the
+    /// particles (every calibration but `paper`, whose views are fitted to the surfels); and a
+    /// picture drawn right after from the views the level of detail sees
+    /// ([`Pipeline::view_levels`]: the camera, and for the finished frame the light), through
+    /// the splats or the finished frame, or the surfels drawn by the caller as the shaded splats
+    /// ([`Pipeline::set_drawn`]). Not for surfels drawn as the finished frame by the caller:
+    /// [`GpuPipeline`] may draw them again from another camera.
     fn hidden_from(
         &self,
         positions: &[Vec3],
