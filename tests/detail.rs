@@ -467,6 +467,8 @@ fn a_picture_leaves_out_only_what_it_cannot_show() {
         let (kept, made) = (culled.detail.surfels, all.detail.surfels);
         println!("{through:?}: {kept} of {made} surfels kept");
         assert_eq!(culled.detail.refined_points, all.detail.refined_points);
+        assert_eq!(all.detail.hidden_surfels, 0);
+        assert_eq!(culled.detail.surfels + culled.detail.hidden_surfels, made);
         assert!(kept * 4 <= made * 3, "{kept} of {made} surfels kept");
         assert_eq!(culled.render_surfels.len(), kept);
         if through == Through::Splats {

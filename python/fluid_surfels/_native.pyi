@@ -102,7 +102,8 @@ class Frame:
     """Milliseconds per stage: neighbours_ms, detect_ms, refine_ms, calibration_ms, density_ms,
     surfels_ms, splats_ms, caustics_ms, image_ms, total_ms; and what the level of detail made:
     detail ("auto" or "fixed" as applied), steps (run), refined_points, cell (the density
-    grid's, world units), surfels."""
+    grid's, world units), surfels, hidden_surfels (left out as facing away from the picture's
+    views)."""
     warnings: list[str]
     """What a user should know (a support radius far off, a grid coarsened to fit its memory
     budget)."""

@@ -725,7 +725,8 @@ struct Frame {
     image: Option<Py<PyAny>>,
     /// Milliseconds per stage (`neighbours_ms`, `detect_ms`, ..., `total_ms`) and what the level
     /// of detail made: `detail` ("auto" or "fixed" as applied), `steps` (run), `refined_points`,
-    /// `cell` (the density grid's) and `surfels`.
+    /// `cell` (the density grid's), `surfels` and `hidden_surfels` (left out as facing away from
+    /// the picture's views).
     #[pyo3(get)]
     timings: Py<PyAny>,
     /// What a user should know (a radius far off, a grid coarsened to fit the memory budget).

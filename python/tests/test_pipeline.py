@@ -54,6 +54,8 @@ def test_column_matches_the_main_job(cli, column, tmp_path):
     assert frame.timings["refined_points"] == len(frame.refined)
     assert frame.timings["points_per_level"] == [0, 0, 0, len(frame.refined)]
     assert frame.timings["surfels"] == len(frame.surfels) and frame.timings["cell"] > 0
+    # a frame without a picture keeps every surfel
+    assert frame.timings["hidden_surfels"] == 0
     assert frame.image is None and frame.radius == fs.column_params()["support_radius"]
 
 

@@ -1145,6 +1145,7 @@ pub fn iso_surfels_gpu(
     Ok(Some(super::IsoSurfels {
         grid: crate::density::Grid::Dense(values),
         surfels,
+        hidden: 0,
         density_ms,
         surfels_ms: t.elapsed().as_secs_f64() * 1e3,
         warning,

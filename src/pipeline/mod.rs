@@ -586,6 +586,9 @@ pub struct DetailReport {
     /// Surfels on the iso-surface (0 without a density grid): with `auto`, those the frame's
     /// picture can show ([`Pipeline::keep_hidden_surfels`]).
     pub surfels: usize,
+    /// Crossings of the iso-surface left out as facing away from every view of the picture
+    /// (`auto`; 0 otherwise): `surfels` plus these are the surfels of the whole surface.
+    pub hidden_surfels: usize,
 }
 
 impl Default for DetailReport {
@@ -599,6 +602,7 @@ impl Default for DetailReport {
             level_changes: 0,
             cell: 0.0,
             surfels: 0,
+            hidden_surfels: 0,
         }
     }
 }
@@ -1017,6 +1021,7 @@ impl Pipeline {
                 self.warn(&mut warnings, iso.warning);
                 frame.detail.cell = iso.grid.spec().spacing;
                 frame.detail.surfels = iso.surfels.len();
+                frame.detail.hidden_surfels = iso.hidden;
                 frame.grid = Some(iso.grid);
                 frame.surfels = Some(iso.surfels);
             }
@@ -2399,6 +2404,8 @@ fn points_of<'p>(
 pub struct IsoSurfels {
     pub grid: Grid,
     pub surfels: Surfels,
+    /// Crossings left out as facing away from every viewpoint ([`iso_surfels_in`]'s `seen`).
+    pub hidden: usize,
     pub density_ms: f64,
     pub surfels_ms: f64,
     /// Set when the grid was coarsened to fit the memory budget.
@@ -2494,7 +2501,7 @@ pub fn iso_surfels_in(
     };
     let density_ms = ms(t);
     let t = Instant::now();
-    let surfels = match &values {
+    let (surfels, hidden) = match &values {
         Grid::Dense(g) => {
             surfels::extract_points_seen(g, points, grid.kernel, params, seen.as_ref())?
         }
@@ -2505,6 +2512,7 @@ pub fn iso_surfels_in(
     Ok(Some(IsoSurfels {
         grid: values,
         surfels,
+        hidden,
         density_ms,
         surfels_ms: ms(t),
         warning,

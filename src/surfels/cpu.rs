@@ -625,6 +625,12 @@ impl SurfelExtractor {
         self.finish_seen(density, params, None)
     }
 
+    /// The crossings found so far: the surfels [`Self::finish`] makes from them.
+    #[must_use]
+    pub fn crossings(&self) -> usize {
+        self.crossings.len()
+    }
+
     /// [`Self::finish`] without the surfels whose outward normal faces away from every one of
     /// `seen` by more than [`super::HIDDEN_PAST`] ([`Viewpoints::sees`]), judged on the density's
     /// exact gradient at the crossing, the projection's first evaluation (the crossings start
@@ -693,20 +699,25 @@ pub fn extract_sparse(
     kernel: Kernel,
     params: &SurfelParams,
 ) -> Result<Surfels, SurfelError> {
-    extract_sparse_seen(grid, points, kernel, params, None)
+    Ok(extract_sparse_seen(grid, points, kernel, params, None)?.0)
 }
 
-/// [`extract_sparse`] without the surfels `seen` does not see ([`SurfelExtractor::finish_seen`]).
+/// [`extract_sparse`] without the surfels `seen` does not see ([`SurfelExtractor::finish_seen`]),
+/// and how many it left out.
 pub fn extract_sparse_seen(
     grid: &crate::density::SparseGrid,
     points: Points<'_>,
     kernel: Kernel,
     params: &SurfelParams,
     seen: Option<&Viewpoints>,
-) -> Result<Surfels, SurfelError> {
+) -> Result<(Surfels, usize), SurfelError> {
     let iso = iso_of(points.h, kernel, params)?;
     let density = ExactDensity::of(points, kernel)?;
-    Ok(SurfelExtractor::from_sparse(grid, iso).finish_seen(&density, params, seen))
+    let extractor = SurfelExtractor::from_sparse(grid, iso);
+    let crossings = extractor.crossings();
+    let surfels = extractor.finish_seen(&density, params, seen);
+    let hidden = crossings - surfels.len();
+    Ok((surfels, hidden))
 }
 
 /// The absolute iso-value of `params`: `iso_fraction` of the peak `F(0, h)`.
@@ -729,20 +740,24 @@ pub fn extract_points(
     kernel: Kernel,
     params: &SurfelParams,
 ) -> Result<Surfels, SurfelError> {
-    extract_points_seen(grid, points, kernel, params, None)
+    Ok(extract_points_seen(grid, points, kernel, params, None)?.0)
 }
 
-/// [`extract_points`] without the surfels `seen` does not see ([`SurfelExtractor::finish_seen`]).
+/// [`extract_points`] without the surfels `seen` does not see ([`SurfelExtractor::finish_seen`]),
+/// and how many it left out.
 pub fn extract_points_seen(
     grid: &DensityGrid,
     points: Points<'_>,
     kernel: Kernel,
     params: &SurfelParams,
     seen: Option<&Viewpoints>,
-) -> Result<Surfels, SurfelError> {
+) -> Result<(Surfels, usize), SurfelError> {
     let iso = iso_of(points.h, kernel, params)?;
     let density = ExactDensity::of(points, kernel)?;
     let mut extractor = SurfelExtractor::new(grid.spec, iso);
     extractor.push_planes(0, &grid.values);
-    Ok(extractor.finish_seen(&density, params, seen))
+    let crossings = extractor.crossings();
+    let surfels = extractor.finish_seen(&density, params, seen);
+    let hidden = crossings - surfels.len();
+    Ok((surfels, hidden))
 }

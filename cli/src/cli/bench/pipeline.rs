@@ -256,7 +256,7 @@ fn bench_file(args: &BenchPipelineArgs, path: &std::path::Path) -> Result<(), Er
     for r in &report.runs {
         let (t, m) = (&r.stages_ms, &r.made);
         println!(
-            "  {:<5} {:>8.1} ms (fastest {:.1}): {} steps, {} refined points {:?}, cell {:.5}, {} surfels, enclosed holes {:.3} %",
+            "  {:<5} {:>8.1} ms (fastest {:.1}): {} steps, {} refined points {:?}, cell {:.5}, {} surfels ({} facing away left out), enclosed holes {:.3} %",
             r.detail.as_str(),
             r.median_ms,
             r.fastest_ms,
@@ -265,6 +265,7 @@ fn bench_file(args: &BenchPipelineArgs, path: &std::path::Path) -> Result<(), Er
             m.points_per_level,
             m.cell,
             m.surfels,
+            m.hidden_surfels,
             100.0 * r.enclosed_holes_fraction
         );
         println!("        {t}");
