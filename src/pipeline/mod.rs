@@ -2000,9 +2000,9 @@ impl Pipeline {
     /// alone, as the surfels on a grid are ([`Pipeline::grid_water_shape`]): the calibrated
     /// surface lies half a spacing outside the outermost particles (the surface's box, which
     /// the pool's walls meet), a lone drop's ball 0.62 spacings around its particle
-    /// ([`boundary::LONE_RADIUS`]: the drawn box). [`GpuPipeline`] draws every particle and sheet point as a
-    /// sphere and leaves out on the GPU those the calibration's factors drop (their box is not
-    /// known on the CPU), and both pipelines' views are then alike.
+    /// ([`boundary::LONE_RADIUS`]: the drawn box). [`GpuPipeline`] draws every particle and
+    /// sheet point as a sphere and leaves out on the GPU those the calibration's factors drop
+    /// (their box is not known on the CPU), and both pipelines' views are then alike.
     fn sphere_water_shape(
         &self,
         positions: &[Vec3],

@@ -634,8 +634,9 @@ impl SurfelExtractor {
     /// [`Self::finish`] without the surfels whose outward normal faces away from every one of
     /// `seen` by more than [`super::HIDDEN_PAST`] ([`Viewpoints::sees`]), judged on the density's
     /// exact gradient at the crossing, the projection's first evaluation (the crossings start
-    /// 0.006 cells from the surface on average, [`crossing_t`]; a thin sheet's gradient on
-    /// the grid, by differences, pointed 60 degrees off and more): for a picture drawn from
+    /// 0.006 cells from the surface on average, [`crossing_t`]; on the double dam break's
+    /// crest, a few cells thick, the grid's differences turned a normal more than 37 degrees
+    /// off the exact one, measured by the pixels that changed): for a picture drawn from
     /// those viewpoints alone, which never shows them (the EWA splats cull a disk facing away
     /// from the eye), they are not projected further nor handed on. The others are the same
     /// surfels in the same order.
