@@ -303,11 +303,17 @@ impl CellGrid {
     /// Sorts `positions` into cells of edge `cell`. Positions must be finite and `cell > 0`.
     pub fn new(positions: &[Vec3], cell: f32) -> Result<Self, NeighbourError> {
         check_input(positions, cell)?;
+        // (the minimum and maximum of finite values: the same whatever the split)
         let (lo, hi) = positions
-            .iter()
-            .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &p| {
-                (lo.min(p), hi.max(p))
-            });
+            .par_iter()
+            .fold(
+                || (Vec3::INFINITY, Vec3::NEG_INFINITY),
+                |(lo, hi), &p| (lo.min(p), hi.max(p)),
+            )
+            .reduce(
+                || (Vec3::INFINITY, Vec3::NEG_INFINITY),
+                |(a, b), (c, d)| (a.min(c), b.max(d)),
+            );
         let (lo, hi) = if positions.is_empty() {
             (Vec3::ZERO, Vec3::ZERO)
         } else {
@@ -373,12 +379,10 @@ impl CellGrid {
         };
         // one array per axis, run on by `LANES - 1` infinite values ([`near_mask`])
         let axis = |c: fn(&Vec3) -> f32| -> Vec<f32> {
-            let pad = std::iter::repeat_n(f32::INFINITY, LANES - 1);
-            order
-                .iter()
-                .map(|&i| c(&positions[i as usize]))
-                .chain(pad)
-                .collect()
+            let mut values = Vec::with_capacity(order.len() + LANES - 1);
+            values.par_extend(order.par_iter().map(|&i| c(&positions[i as usize])));
+            values.extend(std::iter::repeat_n(f32::INFINITY, LANES - 1));
+            values
         };
         let axes = [axis(|p| p.x), axis(|p| p.y), axis(|p| p.z)];
         Ok(Self {

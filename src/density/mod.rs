@@ -21,6 +21,7 @@
 //! reference, which are the specification. Surfel extraction is [`crate::surfels`].
 
 pub mod bins;
+pub(crate) mod bits;
 pub mod cpu;
 pub mod gpu;
 pub mod sparse;

@@ -30,6 +30,7 @@ use rayon::prelude::*;
 
 use super::{Mesh, vertex_normals};
 use crate::density::GridSpec;
+use crate::density::bits::{Bits, below, next_point, points_of};
 
 /// Corner `c` of a cube: its offset along x, y and z (bits 0, 1 and 2 of `c`).
 fn corner(c: usize) -> [u32; 3] {
@@ -257,63 +258,6 @@ pub fn marching_cubes_of_sparse(grid: &crate::density::SparseGrid, iso: f32) -> 
         let mut plane = vec![0.0; nx as usize * ny as usize];
         grid.plane_into(k, &mut plane);
         Cow::Owned(plane)
-    })
-}
-
-/// Which points of a plane are inside (not below the iso-value), one bit each, row by row
-/// (`words` words a row, bit `i % 64` of word `i / 64` for point `i`; bits past the row's end
-/// 0). The scans below find the crossing edges and the cubes that hold one with a few word
-/// operations per 64 points, where most of a grid is far from the surface (reading eight
-/// corners a cube, the 150k block's 85^3 grid took 12 ms).
-struct Bits {
-    words: usize,
-    bits: Vec<u64>,
-}
-
-impl Bits {
-    fn of(plane: &[f32], nx: u32, iso: f32) -> Self {
-        let words = (nx as usize).div_ceil(64);
-        let mut bits = Vec::with_capacity(words * plane.len() / nx as usize);
-        for row in plane.chunks_exact(nx as usize) {
-            for chunk in row.chunks(64) {
-                let mut w = 0u64;
-                for (b, &v) in chunk.iter().enumerate() {
-                    w |= u64::from(v >= iso) << b;
-                }
-                bits.push(w);
-            }
-        }
-        Self { words, bits }
-    }
-
-    fn row(&self, j: u32) -> &[u64] {
-        &self.bits[j as usize * self.words..(j as usize + 1) * self.words]
-    }
-}
-
-/// Word `w` of a row shifted down by one point (bit `i` holds point `i + 1`).
-fn next_point(row: &[u64], w: usize) -> u64 {
-    (row[w] >> 1) | row.get(w + 1).map_or(0, |&n| n << 63)
-}
-
-/// The bits of word `w` for points below `end`.
-fn below(w: usize, end: u32) -> u64 {
-    let first = 64 * w as u32;
-    match end.saturating_sub(first) {
-        0 => 0,
-        n if n >= 64 => u64::MAX,
-        n => (1u64 << n) - 1,
-    }
-}
-
-/// The set bits of `mask`, as points of word `w`, in increasing order.
-fn points_of(mut mask: u64, w: usize) -> impl Iterator<Item = u32> {
-    std::iter::from_fn(move || {
-        (mask != 0).then(|| {
-            let b = mask.trailing_zeros();
-            mask &= mask - 1;
-            64 * w as u32 + b
-        })
     })
 }
 
