@@ -538,7 +538,7 @@ fn caustics_of_render(
         }
     }
     out.irradiance = flux
-        .iter()
+        .par_iter()
         .enumerate()
         .map(|(i, f)| irradiance_of(&map, i, *f, out.geometry[i], out.normals[i]))
         .collect();
@@ -986,10 +986,19 @@ fn frame_of_render(
             .to_array()
         })
         .collect();
-    let image = RgbaImage::from_fn(size.0, size.1, |x, y| {
-        let [r, g, b] = encode(Vec4::from(linear[(y * size.0 + x) as usize]).truncate());
-        image::Rgba([r, g, b, 255])
-    });
+    // the sRGB encoding row by row in parallel (one pass of the column's splash frame at
+    // 512x512: 6.8 ms on one thread)
+    let mut image = RgbaImage::new(size.0, size.1);
+    image
+        .as_mut()
+        .par_chunks_mut(4 * size.0 as usize)
+        .zip(linear.par_chunks(size.0 as usize))
+        .for_each(|(row, values)| {
+            for (px, v) in row.chunks_exact_mut(4).zip(values) {
+                let [r, g, b] = encode(Vec4::from(*v).truncate());
+                px.copy_from_slice(&[r, g, b, 255]);
+            }
+        });
     Ok(FrameImage {
         image,
         linear,
