@@ -299,21 +299,23 @@ pub struct CellGrid {
     index: CellIndex,
 }
 
+/// The box of `positions` (lowest and highest corner), found in parallel: the minimum and
+/// maximum are exact, so the same box whatever the split (for finite positions; an empty set
+/// gives the infinite, inverted box).
+#[must_use]
+pub fn bounds(positions: &[Vec3]) -> (Vec3, Vec3) {
+    let empty = || (Vec3::INFINITY, Vec3::NEG_INFINITY);
+    positions
+        .par_iter()
+        .fold(empty, |(lo, hi), &p| (lo.min(p), hi.max(p)))
+        .reduce(empty, |(a, b), (c, d)| (a.min(c), b.max(d)))
+}
+
 impl CellGrid {
     /// Sorts `positions` into cells of edge `cell`. Positions must be finite and `cell > 0`.
     pub fn new(positions: &[Vec3], cell: f32) -> Result<Self, NeighbourError> {
         check_input(positions, cell)?;
-        // (the minimum and maximum of finite values: the same whatever the split)
-        let (lo, hi) = positions
-            .par_iter()
-            .fold(
-                || (Vec3::INFINITY, Vec3::NEG_INFINITY),
-                |(lo, hi), &p| (lo.min(p), hi.max(p)),
-            )
-            .reduce(
-                || (Vec3::INFINITY, Vec3::NEG_INFINITY),
-                |(a, b), (c, d)| (a.min(c), b.max(d)),
-            );
+        let (lo, hi) = bounds(positions);
         let (lo, hi) = if positions.is_empty() {
             (Vec3::ZERO, Vec3::ZERO)
         } else {

@@ -93,16 +93,7 @@ pub(crate) fn domain(
     let (lo, hi) = match params.domain {
         Some([lo, hi]) => (Vec3::from(lo), Vec3::from(hi)),
         None if positions.is_empty() => (Vec3::ZERO, Vec3::ZERO),
-        None => positions
-            .par_iter()
-            .fold(
-                || (Vec3::INFINITY, Vec3::NEG_INFINITY),
-                |(a, b), &p| (a.min(p), b.max(p)),
-            )
-            .reduce(
-                || (Vec3::INFINITY, Vec3::NEG_INFINITY),
-                |(a, b), (c, d)| (a.min(c), b.max(d)),
-            ),
+        None => crate::neighbours::bounds(positions),
     };
     let span = ((hi - lo) / edge).floor();
     let voxels = [span.x, span.y, span.z].map(|v| v as u64 + 1);
