@@ -361,6 +361,11 @@ fn plane_crossings(
     let mut found = Vec::new();
     let mut later = Vec::new();
     let (here, under) = bits;
+    debug_assert_eq!(
+        around.below.is_some(),
+        under.is_some(),
+        "bits for the plane below"
+    );
     for j in 0..ny {
         let row = here.row(j);
         let up = (j + 1 < ny).then(|| here.row(j + 1));
