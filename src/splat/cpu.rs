@@ -20,6 +20,18 @@ pub(crate) fn to_unorm8(c: Vec4) -> [u8; 4] {
 /// Rows per parallel band of the CPU renderer.
 const BAND: usize = 8;
 
+/// A fragment of a band's first pass kept for its second: its pixel in the band, its surfel
+/// and what the weight and the sums read (20 bytes: the whole [`Fragment`] with its pixel and
+/// surfel was 40, and the bands' passes are bound by what the two cores share; a sphere's
+/// normal and depth offset are kept beside, for [`SplatMode::Spheres`] alone).
+struct Kept {
+    pixel: u32,
+    surfel: u32,
+    r2: f32,
+    depth: f32,
+    ndc: f32,
+}
+
 /// A surfel as the CPU renderer places it: its frame, colour, unit normal, and the pixel
 /// columns and rows (half-open) whose centres lie in its rectangle.
 struct Placed {
@@ -99,13 +111,20 @@ pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Result<Render, SplatErro
         .zip(&in_band)
         .enumerate()
         .for_each_init(
-            || (Vec::<f32>::new(), Vec::<(u32, u32, Fragment)>::new()),
-            |(depth, kept), (band, ((crow, nrow), members))| {
+            || {
+                (
+                    Vec::<f32>::new(),
+                    Vec::<Kept>::new(),
+                    Vec::<(Vec3, f32)>::new(),
+                )
+            },
+            |(depth, kept, extra), (band, ((crow, nrow), members))| {
                 let y0 = band * BAND;
                 let y1 = y0 + crow.len() / w;
                 depth.clear();
                 depth.resize(crow.len(), 1.0);
                 kept.clear();
+                extra.clear();
                 for &k in members {
                     let p = &placed[k as usize];
                     for y in p.ys.0.max(y0)..p.ys.1.min(y1) {
@@ -114,17 +133,36 @@ pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Result<Render, SplatErro
                             if let Some(frag) = fragment(pixel, &p.frame, v) {
                                 let i = (y - y0) * w + x;
                                 depth[i] = depth[i].min(frag.ndc_offset);
-                                kept.push((i as u32, k, frag));
+                                kept.push(Kept {
+                                    pixel: i as u32,
+                                    surfel: k,
+                                    r2: frag.r2,
+                                    depth: frag.depth,
+                                    ndc: frag.ndc,
+                                });
+                                if spheres {
+                                    extra.push((frag.sphere_normal, frag.epsilon));
+                                }
                             }
                         }
                     }
                 }
-                for &(i, k, ref frag) in kept.iter() {
-                    let i = i as usize;
+                for (f, kept) in kept.iter().enumerate() {
+                    let i = kept.pixel as usize;
                     let buffer = depth[i];
-                    if frag.ndc > buffer {
+                    if kept.ndc > buffer {
                         continue;
                     }
+                    let (sphere_normal, epsilon) = extra.get(f).copied().unwrap_or_default();
+                    let frag = &Fragment {
+                        r2: kept.r2,
+                        depth: kept.depth,
+                        ndc: kept.ndc,
+                        ndc_offset: buffer,
+                        sphere_normal,
+                        epsilon,
+                    };
+                    let k = kept.surfel;
                     let p = &placed[k as usize];
                     let wt = weight(frag, buffer, v);
                     let n = if spheres {
