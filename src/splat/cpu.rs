@@ -153,12 +153,13 @@ pub fn render_view_cpu(surfels: &[Surfel], v: &View) -> Result<Render, SplatErro
                     if kept.ndc > buffer {
                         continue;
                     }
+                    // the fragment as pass 2 reads it (the offset depth was pass 1's alone)
                     let (sphere_normal, epsilon) = extra.get(f).copied().unwrap_or_default();
                     let frag = &Fragment {
                         r2: kept.r2,
                         depth: kept.depth,
                         ndc: kept.ndc,
-                        ndc_offset: buffer,
+                        ndc_offset: kept.ndc,
                         sphere_normal,
                         epsilon,
                     };
